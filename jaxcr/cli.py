@@ -1,0 +1,58 @@
+"""The ``jaxcr`` command line. Each subcommand lives in ``jaxcr/commands/<name>.py`` and
+exposes ``add_parser(subparsers)`` (registering its arguments and ``set_defaults(func=run)``)
+and ``run(args) -> int``.
+
+Exit codes: 0 success, 1 a run that failed (e.g. some frames failed), 2 bad usage or input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import os
+import sys
+
+from jaxcr.errors import InputError
+
+# Order shown in --help.
+COMMANDS = ["demo", "synth", "validate", "fk", "segment", "evaluate", "bench", "calibrate"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jaxcr",
+        description="jaxcr: JAX batch estimation for the vision of continuum robots.",
+    )
+    from jaxcr import __version__
+
+    parser.add_argument("--version", action="version", version=f"jaxcr {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        modname = f"jaxcr.commands.{name}"
+        if importlib.util.find_spec(modname) is None:
+            continue
+        importlib.import_module(modname).add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        code = args.func(args)
+    except InputError as err:
+        print(f"jaxcr {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"jaxcr {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

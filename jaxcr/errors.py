@@ -1,0 +1,48 @@
+"""User-facing input errors: one line naming the file, frame and field."""
+
+from __future__ import annotations
+
+
+class InputError(Exception):
+    """Bad user input. The CLI prints ``str(err)`` as one line and exits with code 2.
+
+    Args:
+        message: what is wrong, in plain words.
+        file: the offending file (path as the user gave it), if any.
+        frame: frame id within a dataset, if any.
+        field: the field name (e.g. ``"q"``, ``"cameras.left.K"``), if any.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        file: str | None = None,
+        frame: str | int | None = None,
+        field: str | None = None,
+    ):
+        self.message = message
+        self.file = None if file is None else str(file)
+        self.frame = frame
+        self.field = field
+        super().__init__(self.format())
+
+    def format(self) -> str:
+        parts = []
+        if self.file is not None:
+            parts.append(self.file)
+        if self.frame is not None:
+            parts.append(f"frame {self.frame}")
+        if self.field is not None:
+            parts.append(f"field '{self.field}'")
+        prefix = ": ".join(parts)
+        return f"{prefix}: {self.message}" if prefix else self.message
+
+
+class InputErrors(InputError):
+    """Several input problems found at once (e.g. by the dataset validator)."""
+
+    def __init__(self, errors: list[InputError]):
+        self.errors = list(errors)
+        first = self.errors[0].format() if self.errors else "no errors"
+        more = f" (and {len(self.errors) - 1} more problems)" if len(self.errors) > 1 else ""
+        super().__init__(first + more)
