@@ -1,0 +1,236 @@
+"""``jaxcr fk ROBOT Q.csv -o OUT``: forward kinematics for many joint vectors in one compile.
+
+ROBOT is a robot.json, a dataset.json, or a dataset folder (robot from its dataset.json).
+Q.csv holds one joint vector per row, comma-separated; blank lines and lines starting with
+``#`` are skipped; an optional first line of column names (any non-numeric field) is a header.
+``nan`` entries are allowed: that row is reported as failed (ok = 0), not an error.
+
+Outputs (format ``jaxcr.fk/1``), written atomically (temp file, then rename):
+
+- ``OUT/centrelines.npz``: ``format``, ``kind``, ``q`` (B, m), ``s`` (B, N), ``p`` (B, N, 3),
+  ``R`` (B, N, 3, 3), ``rho`` (B, N), ``ok`` (B,), ``residual`` (B,), ``energy`` (B,),
+  ``num_steps`` (B,); robot frame, metres.
+- ``OUT/tips.csv``: ``# format: jaxcr.fk/1`` then a header
+  ``row,ok,x,y,z,rx,ry,rz,residual,energy`` (tip position in m, tip rotation vector in rad).
+
+Exit code 0 when every row succeeded, 1 when any row failed, 2 on bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import math
+import os
+import sys
+
+import numpy as np
+
+from jaxcr.errors import InputError
+
+FORMAT = "jaxcr.fk/1"
+CHUNK = 1024
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fk",
+        help="forward kinematics of a robot for rows of joint values",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("\n", 1)[1],
+    )
+    p.add_argument("robot", help="robot.json, dataset.json or dataset folder")
+    p.add_argument("q_csv", metavar="Q.csv", help="joint values, one row per configuration")
+    p.add_argument("-o", "--out", required=True, help="output folder (created if missing)")
+    p.add_argument(
+        "--points", type=int, default=None, help="centreline samples N (default: robot's)"
+    )
+    p.add_argument(
+        "--chunk", type=int, default=CHUNK, help="rows per compiled batch (default %(default)s)"
+    )
+    p.set_defaults(func=run)
+
+
+def read_q_csv(path: str, n_joints: int) -> np.ndarray:
+    """Rows of ``n_joints`` floats from ``path`` (see module docstring). NaN allowed."""
+    try:
+        with open(path, encoding="utf-8", newline="") as fh:
+            text = fh.read()
+    except FileNotFoundError:
+        raise InputError("file not found", file=path) from None
+    except IsADirectoryError:
+        raise InputError("is a directory, expected a CSV file", file=path) from None
+    except UnicodeDecodeError:
+        raise InputError("not a text CSV file", file=path) from None
+    except OSError as err:
+        raise InputError(f"cannot read ({err.strerror})", file=path) from None
+    rows: list[list[float]] = []
+    seen_data = False
+    header_allowed = True
+    for lineno, fields in enumerate(csv.reader(io.StringIO(text)), start=1):
+        fields = [f.strip() for f in fields]
+        if not fields or all(f == "" for f in fields) or fields[0].startswith("#"):
+            continue
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            if header_allowed and not seen_data:
+                header_allowed = False
+                continue
+            raise InputError(
+                f"row {len(rows)} (line {lineno}): non-numeric value in {fields}",
+                file=path,
+                field="q",
+            ) from None
+        header_allowed = False
+        seen_data = True
+        if len(values) != n_joints:
+            raise InputError(
+                f"row {len(rows)} (line {lineno}): expected {n_joints} joint values, got {len(values)}",
+                file=path,
+                field="q",
+            )
+        rows.append(values)
+    if not rows:
+        raise InputError("no joint rows found", file=path)
+    return np.asarray(rows, np.float64)
+
+
+def _with_points(model, n_points: int):
+    if n_points < 2:
+        raise InputError(f"--points must be >= 2, got {n_points}", field="--points")
+    try:
+        return dataclasses.replace(model, n_points=n_points)
+    except (TypeError, ValueError) as err:
+        raise InputError(
+            f"cannot use {n_points} points for this robot ({err})", field="--points"
+        ) from None
+
+
+def batch_forward(
+    model, q: np.ndarray, chunk: int = CHUNK, progress: bool = True
+) -> dict[str, np.ndarray]:
+    """Forward kinematics of every row of ``q`` (B, m) with one jitted ``vmap`` (one compile).
+
+    Rows are processed in chunks of ``chunk`` (the last chunk padded to the same shape, so
+    there is a single trace). Returns numpy arrays keyed as in ``centrelines.npz``.
+    """
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from jaxcr.geometry import so3_log
+
+    @eqx.filter_jit
+    def run_chunk(model, qs):
+        res = jax.vmap(model.forward)(qs)
+        rotvec = jax.vmap(so3_log)(res.centreline.R[:, -1])
+        return res, rotvec
+
+    B = q.shape[0]
+    chunk = max(1, min(chunk, B))
+    outs = []
+    starts = range(0, B, chunk)
+    bar = None
+    if progress and len(starts) > 1:
+        from tqdm import tqdm
+
+        bar = tqdm(total=B, desc="fk", unit="row", file=sys.stderr)
+    for start in starts:
+        part = q[start : start + chunk]
+        n = part.shape[0]
+        if n < chunk:
+            part = np.concatenate([part, np.repeat(part[-1:], chunk - n, axis=0)])
+        res, rotvec = run_chunk(model, jnp.asarray(part, jnp.float32))
+        c = res.centreline
+        outs.append(
+            {
+                "s": np.asarray(c.s)[:n],
+                "p": np.asarray(c.p)[:n],
+                "R": np.asarray(c.R)[:n],
+                "rho": np.asarray(c.rho)[:n],
+                "ok": np.asarray(res.ok)[:n],
+                "residual": np.asarray(res.residual)[:n],
+                "energy": np.asarray(res.energy)[:n],
+                "num_steps": np.asarray(res.num_steps)[:n],
+                "tip_rotvec": np.asarray(rotvec)[:n],
+            }
+        )
+        if bar is not None:
+            bar.update(n)
+    if bar is not None:
+        bar.close()
+    out = {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
+    # A row with non-finite joint values never counts as a success.
+    out["ok"] = out["ok"].astype(bool) & np.all(np.isfinite(q), axis=1)
+    return out
+
+
+def _atomic_write(path: str, write) -> None:
+    tmp = os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.tmp{os.getpid()}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def _fmt(x: float) -> str:
+    return "nan" if not math.isfinite(x) else f"{float(x):.9g}"
+
+
+def run(args) -> int:
+    from jaxcr.kinematics.robots import load_robot
+
+    model = load_robot(args.robot)
+    if args.points is not None:
+        model = _with_points(model, args.points)
+    if args.chunk < 1:
+        raise InputError(f"--chunk must be >= 1, got {args.chunk}", field="--chunk")
+    q = read_q_csv(args.q_csv, model.n_joints)
+    out = batch_forward(model, q, chunk=args.chunk)
+
+    os.makedirs(args.out, exist_ok=True)
+    npz_path = os.path.join(args.out, "centrelines.npz")
+    csv_path = os.path.join(args.out, "tips.csv")
+
+    def write_npz(tmp):
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(
+                fh,
+                format=np.array(FORMAT),
+                kind=np.array(model.kind),
+                q=q,
+                **{k: v for k, v in out.items() if k != "tip_rotvec"},
+            )
+
+    def write_csv(tmp):
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            fh.write(f"# format: {FORMAT}\n")
+            w = csv.writer(fh)
+            w.writerow(["row", "ok", "x", "y", "z", "rx", "ry", "rz", "residual", "energy"])
+            for i in range(q.shape[0]):
+                tip = out["p"][i, -1]
+                rv = out["tip_rotvec"][i]
+                w.writerow(
+                    [i, int(out["ok"][i]), *map(_fmt, tip), *map(_fmt, rv)]
+                    + [_fmt(out["residual"][i]), _fmt(out["energy"][i])]
+                )
+
+    _atomic_write(npz_path, write_npz)
+    _atomic_write(csv_path, write_csv)
+
+    failed = np.flatnonzero(~out["ok"])
+    B = q.shape[0]
+    if failed.size:
+        shown = ", ".join(str(i) for i in failed[:10]) + (" ..." if failed.size > 10 else "")
+        print(
+            f"jaxcr fk: {B - failed.size}/{B} rows ok, {failed.size} failed (rows {shown}); wrote {args.out}"
+        )
+        return 1
+    print(f"jaxcr fk: {B}/{B} rows ok; wrote {args.out}")
+    return 0
