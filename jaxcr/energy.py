@@ -1,0 +1,236 @@
+"""Region energy of Watson et al. eq. 5 with the Chan-Vese data terms of eq. 6.
+
+    E = g1 * int_{R - B} |I' - mu_in|^2 + g2 * int_{R^c - B} |I' - mu_out|^2
+        + g3 * E_reg(delta-u) + g4 * |R intersect B|
+
+with R the projected tube, B the background pixels (:mod:`jaxcr.background`), I' the
+background-subtracted RGB image and mu_in/out the mean colours of R - B and R^c - B (eq. 6).
+Each data integral only needs three moments of its region: with ``S0 = sum w``, ``S1 = sum w
+I``, ``S2 = sum w |I|^2`` (``w`` = 1 on pixels outside B), ``int |I - mu|^2 = S2 - |S1|^2 / S0``.
+The moments of R^c are the image totals minus those of R, and R is small, so only the
+moments of R are accumulated: over the band pixels with the soft silhouette (see
+:mod:`jaxcr.silhouette`) and over whole tiles inside R from per-tile sums. The image is
+centred on its mean data colour first, so the float32 sums stay accurate.
+
+Units: pixels are counted in full-resolution pixels at every pyramid level (a level-l pixel
+counts ``4**l``), colours are RGB in [0, 1]. The solver minimises the dimensionless
+
+    J = [g1 E_in + g2 (E_out - E_out(R = empty))] / (A_ref var) + g3 E_reg + g4 E_pen / A_ref,
+
+where ``A_ref`` is the nominal silhouette area and ``var`` the mean squared centred colour,
+so that the terms are of the same order of magnitude whatever the image and tube size (as
+Watson et al. advise for their weights).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from jaxcr._types import Array, Bool, Float
+from jaxcr.silhouette import Band, TileGrid, TubeImage, band_margin
+
+
+class RegionData(eqx.Module):
+    """One image at one pyramid level, in tile layout, ready for region sums.
+
+    Attributes:
+        grid: the tiling (static).
+        w: (n_tiles, p) data weight of each pixel: fraction of the pixel outside B (0 on
+            padding).
+        b: (n_tiles, p) background weight: fraction of the pixel in B (0 on padding).
+        img: (n_tiles, p, 3) centred colour ``I' - c`` (weighted mean over the data part).
+        tile_w, tile_b, tile_s2: (n_tiles,) per-tile sums of w, b and w |img|^2.
+        tile_s1: (n_tiles, 3) per-tile sums of w img.
+        total_w, total_s2: scalars, image totals of w and w |img|^2; total_s1: (3,).
+        centre: (3,) the colour subtracted.
+        pix_area: full-resolution pixels per pixel at this level (``4**level``).
+    """
+
+    grid: TileGrid
+    w: Float[Array, "n p"]
+    b: Float[Array, "n p"]
+    img: Float[Array, "n p 3"]
+    tile_w: Float[Array, " n"]
+    tile_b: Float[Array, " n"]
+    tile_s1: Float[Array, "n 3"]
+    tile_s2: Float[Array, " n"]
+    total_w: Float[Array, ""]
+    total_s1: Float[Array, " 3"]
+    total_s2: Float[Array, ""]
+    centre: Float[Array, " 3"]
+    pix_area: float = eqx.field(static=True)
+
+
+def downsample(
+    image: Float[Array, "h w 3"], w: Float[Array, "h w"], b: Float[Array, "h w"]
+) -> tuple[Float[Array, "h2 w2 3"], Float[Array, "h2 w2"], Float[Array, "h2 w2"]]:
+    """One pyramid step: 2x2 averages of the weights and the data-weighted mean colour.
+
+    Odd sizes are padded at the bottom/right with zero weight (pixel j of the new level
+    covers pixels 2j, 2j+1 of the old one).
+    """
+    h, wd = w.shape
+    ph, pw = h % 2, wd % 2
+    image = jnp.pad(image, ((0, ph), (0, pw), (0, 0)))
+    w = jnp.pad(w, ((0, ph), (0, pw)))
+    b = jnp.pad(b, ((0, ph), (0, pw)))
+    H, W = (h + ph) // 2, (wd + pw) // 2
+
+    def pool(x):
+        return x.reshape((H, 2, W, 2) + x.shape[2:]).sum(axis=(1, 3))
+
+    sw = pool(w)
+    si = pool(image * w[..., None])
+    img = jnp.where(sw[..., None] > 0, si / jnp.where(sw > 0, sw, 1.0)[..., None], 0.0)
+    return img, sw / 4.0, pool(b) / 4.0
+
+
+def prepare_region_data(
+    image: Float[Array, "h w 3"],
+    background: Bool[Array, "h w"],
+    level: int = 0,
+    tile: int = 8,
+) -> RegionData:
+    """Build :class:`RegionData` for pyramid level ``level`` of a full-resolution image.
+
+    Args:
+        image: background-subtracted RGB image I' (float, [0, 1]).
+        background: B, True on background pixels (excluded from the data terms).
+        level: pyramid level (0 = full resolution).
+        tile: tile size in pixels (static).
+    """
+    b = background.astype(image.dtype)
+    w = 1.0 - b
+    img = image
+    for _ in range(level):
+        img, w, b = downsample(img, w, b)
+    h, wd = w.shape
+    grid = TileGrid(h, wd, tile)
+    tw = grid.to_tiles(w)
+    tb = grid.to_tiles(b)
+    ti = grid.to_tiles(img)
+    total_w = jnp.sum(tw)
+    centre = jnp.sum(tw[..., None] * ti, axis=(0, 1)) / jnp.maximum(total_w, 1e-6)
+    ti = (ti - centre) * (tw[..., None] > 0)
+    tile_s1 = jnp.sum(tw[..., None] * ti, axis=1)
+    tile_s2 = jnp.sum(tw * jnp.sum(ti * ti, axis=-1), axis=1)
+    return RegionData(
+        grid=grid,
+        w=tw,
+        b=tb,
+        img=ti,
+        tile_w=jnp.sum(tw, axis=1),
+        tile_b=jnp.sum(tb, axis=1),
+        tile_s1=tile_s1,
+        tile_s2=tile_s2,
+        total_w=total_w,
+        total_s1=jnp.sum(tile_s1, axis=0),
+        total_s2=jnp.sum(tile_s2),
+        centre=centre,
+        pix_area=float(4**level),
+    )
+
+
+class RegionTerms(eqx.Module):
+    """Eq. 5 terms in full-resolution pixels (colour terms in pixels x colour^2).
+
+    Attributes:
+        e_in: int_{R - B} |I' - mu_in|^2.
+        e_out: int_{R^c - B} |I' - mu_out|^2.
+        e_pen: |R intersect B| (pixels).
+        area_in: |R - B| (pixels).
+        e_out_empty: e_out for an empty R (the constant the solver subtracts).
+    """
+
+    e_in: Float[Array, ""]
+    e_out: Float[Array, ""]
+    e_pen: Float[Array, ""]
+    area_in: Float[Array, ""]
+    e_out_empty: Float[Array, ""]
+
+
+def region_terms(soft: Float[Array, "k p"], band: Band, data: RegionData) -> RegionTerms:
+    """Chan-Vese region terms (eq. 6) for a soft silhouette on the band and hard tiles inside.
+
+    ``soft`` holds the silhouette value in [0, 1] of each band pixel (``band.tiles`` order).
+    """
+    ins = band.inside.astype(soft.dtype)
+    w = data.w[band.tiles] * soft
+    img = data.img[band.tiles]
+    s0 = jnp.sum(w) + jnp.dot(ins, data.tile_w)
+    s1 = jnp.einsum("kp,kpc->c", w, img) + ins @ data.tile_s1
+    s2 = jnp.sum(w * jnp.sum(img * img, axis=-1)) + jnp.dot(ins, data.tile_s2)
+    pen = jnp.sum(data.b[band.tiles] * soft) + jnp.dot(ins, data.tile_b)
+    eps = 1e-6
+    e_in = s2 - jnp.sum(s1 * s1) / jnp.maximum(s0, eps)
+    s0o = data.total_w - s0
+    s1o = data.total_s1 - s1
+    e_out = (data.total_s2 - s2) - jnp.sum(s1o * s1o) / jnp.maximum(s0o, eps)
+    e_out_empty = data.total_s2 - jnp.sum(data.total_s1**2) / jnp.maximum(data.total_w, eps)
+    a = data.pix_area
+    return RegionTerms(
+        e_in=a * jnp.maximum(e_in, 0.0),
+        e_out=a * jnp.maximum(e_out, 0.0),
+        e_pen=a * pen,
+        area_in=a * s0,
+        e_out_empty=a * e_out_empty,
+    )
+
+
+def soft_band(tube: TubeImage, band: Band, grid: TileGrid, tau: float) -> Float[Array, "k p"]:
+    """Soft silhouette sigmoid(margin / tau) on the band pixels (tau in level pixels)."""
+    return jax.nn.sigmoid(band_margin(tube, grid, band) / tau)
+
+
+class Weights(eqx.Module):
+    """Weights gamma_1..4 of Watson et al. eq. 5 (on the normalised terms, see module doc)."""
+
+    g_in: float = 1.0
+    g_out: float = 1.0
+    g_reg: float = 0.1
+    g_pen: float = 1.0
+
+
+def chan_vese_energy(
+    tube: TubeImage,
+    band: Band,
+    data: RegionData,
+    reg: Float[Array, ""],
+    weights: Weights,
+    tau: float,
+    area_ref: Float[Array, ""],
+) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
+    """Watson et al. eq. 5 (with eq. 6) for one image at one pyramid level.
+
+    Args:
+        tube: the projected tube at this level's pixel grid (:func:`silhouette.scale_tube`).
+        band: band tiles for this tube (from :func:`silhouette.select_band`, no gradient).
+        data: the image's :class:`RegionData` at this level.
+        reg: E_reg, the dimensionless L * int |delta-u|^2 ds (:func:`shape.regularisation`).
+        weights: gamma_1..4.
+        tau: soft-silhouette temperature in this level's pixels.
+        area_ref: reference silhouette area (full-resolution pixels) normalising the terms.
+
+    Returns:
+        ``(J, terms)``: the normalised objective minimised by the solver, and a dict with the
+        raw terms ``e_in, e_out, e_reg, e_pen`` (eq. 5, full-resolution pixel units) and
+        ``area_in``.
+    """
+    soft = soft_band(tube, band, data.grid, tau)
+    t = region_terms(soft, band, data)
+    var = data.pix_area * data.total_s2 / jnp.maximum(data.pix_area * data.total_w, 1e-6)
+    scale = jnp.maximum(area_ref, 1.0)
+    data_term = (weights.g_in * t.e_in + weights.g_out * (t.e_out - t.e_out_empty)) / (
+        scale * jnp.maximum(var, 1e-8)
+    )
+    J = data_term + weights.g_reg * reg + weights.g_pen * t.e_pen / scale
+    terms = {
+        "e_in": t.e_in,
+        "e_out": t.e_out,
+        "e_reg": reg,
+        "e_pen": t.e_pen,
+        "area_in": t.area_in,
+    }
+    return J, terms

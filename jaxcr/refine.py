@@ -1,0 +1,503 @@
+"""Kinematic-prior segmentation: refine delta-u so the projected tube explains the image.
+
+Watson et al. (Sec. II): the kinematic model gives the nominal curvature u(s) = f(q); the
+unknown is a small curvature change delta-u(s) (:mod:`jaxcr.shape`), re-integrated from the
+same base pose (eq. 1), drawn as a tube (eq. 7), projected (eqs. 3-4, :mod:`jaxcr.silhouette`)
+and scored by the region energy of eq. 5 with eq. 6 (:mod:`jaxcr.energy`). This module
+minimises that energy with Optimistix BFGS, coarse to fine over an image pyramid, for one
+frame seen by one or several cameras (one delta-u explains all cameras: a 3-D estimate), and
+for batches and sequences of frames.
+
+Everything below ``refine_frame`` is pure and jit-compiled; a batch of frames with equal
+image sizes and robot sampling is refined by one compiled call (``refine_batch``), compiled
+once per shape. Solvers never raise: each frame carries ``status`` (Optimistix RESULTS as
+int, 0 = success), ``num_steps``, ``ok`` and ``failure`` (:data:`FAILURES`).
+
+Usage (notebook)::
+
+    import jax, jax.numpy as jnp
+    from jaxcr.background import colour_mask
+    from jaxcr.refine import RefineConfig, refine_frame, refine_batch
+
+    fk = robot.forward(q)                               # FkResult, .centreline in robot frame
+    bg, img = colour_mask(image)                        # B (h, w) bool and I' = I o M
+    cfg = RefineConfig()                                # weights, basis, pyramid, solver
+    res = refine_frame(fk.centreline, camera, img, bg, cfg)
+    res.masks[0]        # (h, w) bool: full projection of the refined robot (occluded parts too)
+    res.centreline.p    # (N, 3) refined centreline, robot frame, metres
+    res.coeffs, res.delta_u, res.energy, res.status, res.num_steps, res.ok
+
+    # a dataset: stack frames (leading axis F) and refine in one compiled call
+    cls = jax.vmap(robot.forward)(qs).centreline        # Centreline with leading axis F
+    bgs, imgs = jax.vmap(colour_mask)(images)           # (F, h, w), (F, h, w, 3)
+    out = refine_batch(cls, (camera,), (imgs,), (bgs,), cfg)   # RefineResult, axis F
+    # sequences: warm start each frame from the previous delta-u
+    out = refine_sequence(cls, (camera,), (imgs,), (bgs,), cfg)
+
+Several cameras: pass tuples ``(cam_a, cam_b)``, ``(img_a, img_b)``, ``(bg_a, bg_b)``; the
+energies are summed and ``masks`` holds one mask per camera.
+"""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from jaxcr._types import Array, Bool, Float, Int
+from jaxcr.camera import Camera
+from jaxcr.energy import RegionData, Weights, chan_vese_energy, prepare_region_data, region_terms
+from jaxcr.errors import InputError
+from jaxcr.kinematics.cosserat import Centreline
+from jaxcr.shape import delta_u_steps, n_axes, perturbed_centreline, regularisation
+from jaxcr.silhouette import (
+    Band,
+    TubeImage,
+    band_margin,
+    project_tube,
+    scale_tube,
+    select_band,
+)
+
+#: failure codes of :attr:`RefineResult.failure`
+FAILURES = {
+    0: "ok",
+    1: "invalid input (non-finite joints/centreline or missing image)",
+    2: "robot out of view (nominal projection misses every image)",
+    3: "no data (every pixel is background)",
+    4: "solver produced a non-finite result",
+}
+
+
+class RefineConfig(eqx.Module):
+    """Settings of the refinement (all static: a new config compiles a new function).
+
+    Attributes:
+        n_coeffs: Chebyshev coefficients per bending axis (:mod:`jaxcr.shape`).
+        torsion: also perturb the torsion (third axis); off by default.
+        levels: pyramid levels visited, coarse to fine (0 = full resolution).
+        steps: max BFGS steps per solve at each level.
+        outer: solves per level; the band is re-selected before each solve.
+        tau: soft-silhouette temperature (pixels of that level) per level.
+        band_tiles: tiles in the band at level 0 (halved per level, at least ``min_tiles``).
+        min_tiles: smallest band (tiles) at coarse levels.
+        tile: tile size in pixels.
+        k_seg: candidate segments per band tile.
+        g_in, g_out, g_reg, g_pen: gamma_1..4 of eq. 5 on the normalised terms
+            (:mod:`jaxcr.energy`).
+        rtol, atol: BFGS tolerances (coefficients are dimensionless, see :mod:`jaxcr.shape`).
+    """
+
+    n_coeffs: int = eqx.field(static=True, default=4)
+    torsion: bool = eqx.field(static=True, default=False)
+    levels: tuple[int, ...] = eqx.field(static=True, default=(3, 2, 1, 0))
+    steps: tuple[int, ...] = eqx.field(static=True, default=(30, 20, 15, 8))
+    outer: tuple[int, ...] = eqx.field(static=True, default=(2, 2, 1, 1))
+    tau: tuple[float, ...] = eqx.field(static=True, default=(1.0, 0.8, 0.7, 0.6))
+    band_tiles: int = eqx.field(static=True, default=384)
+    min_tiles: int = eqx.field(static=True, default=48)
+    tile: int = eqx.field(static=True, default=8)
+    k_seg: int = eqx.field(static=True, default=8)
+    g_in: float = eqx.field(static=True, default=1.0)
+    g_out: float = eqx.field(static=True, default=1.0)
+    g_reg: float = eqx.field(static=True, default=0.1)
+    g_pen: float = eqx.field(static=True, default=1.0)
+    rtol: float = eqx.field(static=True, default=1e-4)
+    atol: float = eqx.field(static=True, default=1e-4)
+
+    def __check_init__(self):
+        n = len(self.levels)
+        if not (len(self.steps) == len(self.outer) == len(self.tau) == n) or n == 0:
+            raise InputError(
+                "levels, steps, outer and tau must have the same non-zero length",
+                field="RefineConfig",
+            )
+        if self.n_coeffs < 1 or min(self.levels) < 0:
+            raise InputError("n_coeffs must be >= 1 and levels >= 0", field="RefineConfig")
+
+    @property
+    def weights(self) -> Weights:
+        return Weights(self.g_in, self.g_out, self.g_reg, self.g_pen)
+
+    @property
+    def coeff_shape(self) -> tuple[int, int]:
+        return (n_axes(self.torsion), self.n_coeffs)
+
+    def tiles_at(self, level: int) -> int:
+        return max(self.min_tiles, -(-self.band_tiles // (2**level)))
+
+
+DEFAULT_CONFIG = RefineConfig()
+
+
+class RefineResult(eqx.Module):
+    """Output of one frame (or, from the batch functions, arrays with a leading frame axis).
+
+    Attributes:
+        masks: per camera, (h, w) bool full projection of the refined tube (the whole robot,
+            occluded parts included, as in Watson et al.).
+        nominal_masks: per camera, the projection with delta-u = 0.
+        centreline: refined :class:`Centreline` (robot frame, metres).
+        coeffs: (a, k) delta-u coefficients (:mod:`jaxcr.shape`).
+        delta_u: (N-1, 3) per-step curvature change (1/m).
+        energy: dict of final eq. 5 terms ``e_in, e_out, e_reg, e_pen`` (full-resolution
+            pixel units, hard mask), ``total`` (normalised objective J) and ``total_nominal``
+            (J at delta-u = 0), all summed over cameras.
+        status: Optimistix RESULTS as int of the last solve (0 = successful).
+        num_steps: total solver steps over all levels.
+        steps_per_level: (n_levels,) solver steps per pyramid level.
+        ok: frame usable: no failure and finite output.
+        failure: code from :data:`FAILURES` (0 = none).
+        band_exact: the final masks are exact rasterisations (band reached every boundary tile).
+        time_s: wall time per frame in seconds (set by the Python entry points; 0 inside jit).
+    """
+
+    masks: tuple[Bool[Array, "h w"], ...]
+    nominal_masks: tuple[Bool[Array, "h w"], ...]
+    centreline: Centreline
+    coeffs: Float[Array, "a k"]
+    delta_u: Float[Array, "m 3"]
+    energy: dict[str, Float[Array, ""]]
+    status: Int[Array, ""]
+    num_steps: Int[Array, ""]
+    steps_per_level: Int[Array, " l"]
+    ok: Bool[Array, ""]
+    failure: Int[Array, ""]
+    band_exact: Bool[Array, ""]
+    time_s: Float[Array, ""]
+
+
+def _as_tuple(x):
+    return tuple(x) if isinstance(x, (tuple, list)) else (x,)
+
+
+def _straight(base: Centreline) -> Centreline:
+    """A harmless straight replacement for a non-finite centreline (keeps shapes)."""
+    n = base.s.shape[0]
+    s = jnp.where(jnp.isfinite(base.s), base.s, jnp.linspace(0.0, 1.0, n, dtype=base.s.dtype))
+    s = jnp.where(jnp.all(jnp.isfinite(base.s)), base.s, jnp.linspace(0, 0.1, n, dtype=s.dtype))
+    p = jnp.zeros_like(base.p).at[:, 2].set(s)
+    R = jnp.broadcast_to(jnp.eye(3, dtype=base.p.dtype), base.R.shape)
+    return Centreline(s=s, p=p, R=R, u=jnp.zeros_like(base.u), rho=jnp.zeros_like(base.rho))
+
+
+def _tube_area(tube: TubeImage, camera: Camera) -> Float[Array, ""]:
+    """Approximate projected area (px) of the in-image part of the capsules (overlaps
+    counted twice, joints ignored): a scale for normalising the energy."""
+    mx, my = 0.5 * (tube.ax + tube.bx), 0.5 * (tube.ay + tube.by)
+    inside = (mx > -0.5) & (mx < camera.width - 0.5) & (my > -0.5) & (my < camera.height - 0.5)
+    length = jnp.hypot(tube.bx - tube.ax, tube.by - tube.ay)
+    a = (tube.ra + tube.rb) * length
+    return jnp.sum(jnp.where(inside & tube.valid, a, 0.0))
+
+
+def _hard_terms(tube: TubeImage, band: Band, data: RegionData):
+    m = band_margin(tube, data.grid, band)
+    return region_terms((m > 0).astype(m.dtype), band, data)
+
+
+def _mask(tube: TubeImage, band: Band, data: RegionData) -> Bool[Array, "h w"]:
+    grid = data.grid
+    m = band_margin(tube, grid, band)
+    tiles = jnp.broadcast_to(band.inside[:, None], (grid.n_tiles, grid.n_pix))
+    return grid.from_tiles(tiles.at[band.tiles].set(m > 0))
+
+
+def _result_int(result) -> Int[Array, ""]:
+    return jnp.asarray(result._value, jnp.int32)
+
+
+def refine_frame(
+    base: Centreline,
+    cameras: Camera | tuple[Camera, ...],
+    images: Float[Array, "h w 3"] | tuple[Float[Array, "h w 3"], ...],
+    backgrounds: Bool[Array, "h w"] | tuple[Bool[Array, "h w"], ...],
+    config: RefineConfig = DEFAULT_CONFIG,
+    init: Float[Array, "a k"] | None = None,
+    valid: Bool[Array, ""] | bool = True,
+) -> RefineResult:
+    """Refine one frame (pure; jit it, or use :func:`refine_batch` / :func:`refine_frame_jit`).
+
+    Args:
+        base: nominal centreline from the robot model (robot frame, metres), N samples.
+        cameras: one :class:`Camera` or a tuple (one per view).
+        images: background-subtracted images I' (h, w, 3) in [0, 1], one per camera.
+        backgrounds: B masks (h, w) bool, True on background, one per camera.
+        config: :class:`RefineConfig`.
+        init: warm-start coefficients (a, k) (e.g. the previous frame's); zeros if None.
+        valid: False marks a frame known to be bad (e.g. missing image): it is skipped and
+            reported with ``failure = 1``.
+
+    Returns:
+        :class:`RefineResult` (see there).
+    """
+    cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
+    if not (len(cameras) == len(images) == len(backgrounds)):
+        raise InputError("need one image and one background mask per camera", field="images")
+    dtype = base.p.dtype
+    finite_in = jnp.all(jnp.isfinite(base.p)) & jnp.all(jnp.isfinite(base.u))
+    finite_in = finite_in & jnp.all(jnp.isfinite(base.R)) & jnp.all(jnp.isfinite(base.rho))
+    finite_in = finite_in & jnp.asarray(valid)
+    for im in images:
+        finite_in = finite_in & jnp.all(jnp.isfinite(im))
+    base = jax.tree.map(lambda a, b: jnp.where(finite_in, a, b), base, _straight(base))
+    images = tuple(jnp.where(jnp.isfinite(im), im, 0.0).astype(dtype) for im in images)
+
+    shape = config.coeff_shape
+    c0 = jnp.zeros(shape, dtype) if init is None else jnp.asarray(init, dtype).reshape(shape)
+    c0 = jnp.where(jnp.all(jnp.isfinite(c0)), c0, 0.0)
+    weights = config.weights
+
+    def tubes_of(c):
+        cl = perturbed_centreline(base, c, config.torsion)
+        return cl, tuple(project_tube(cam, cl) for cam in cameras)
+
+    _, nominal_tubes = tubes_of(jnp.zeros(shape, dtype))
+    area_ref = sum(_tube_area(t, cam) for t, cam in zip(nominal_tubes, cameras, strict=True))
+    area_ref = jax.lax.stop_gradient(jnp.maximum(area_ref, 1.0))
+    in_view = area_ref > 1.0
+
+    def objective(c, args):
+        bands, datas, level, tau = args
+        _, tubes = tubes_of(c)
+        reg = regularisation(c, base.s, config.torsion)
+        J = reg * weights.g_reg
+        for tube, band, data in zip(tubes, bands, datas, strict=True):
+            Jc, _ = chan_vese_energy(
+                scale_tube(tube, level), band, data, 0.0, weights, tau, area_ref
+            )
+            J = J + Jc
+        return J
+
+    solver = optx.BFGS(rtol=config.rtol, atol=config.atol)
+    c = c0
+    steps = []
+    status = jnp.asarray(0, jnp.int32)
+    data_ok = jnp.asarray(True)
+    level_data = {}
+    for li, level in enumerate(config.levels):
+        datas = tuple(
+            prepare_region_data(im, bg, level, config.tile)
+            for im, bg in zip(images, backgrounds, strict=True)
+        )
+        level_data[level] = datas
+        if li == 0:
+            data_ok = sum(d.total_w for d in datas) > 0.5
+        k_tiles = config.tiles_at(level)
+        tau = config.tau[li]
+
+        def solve(carry, _, datas=datas, level=level, k_tiles=k_tiles, tau=tau, li=li):
+            c, nsteps, _ = carry
+            _, tubes = tubes_of(c)
+            bands = tuple(
+                select_band(scale_tube(t, level), d.grid, k_tiles, config.k_seg)
+                for t, d in zip(tubes, datas, strict=True)
+            )
+            sol = optx.minimise(
+                objective,
+                solver,
+                c,
+                args=(bands, datas, level, tau),
+                max_steps=config.steps[li],
+                throw=False,
+            )
+            c_new = jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, c)
+            return (c_new, nsteps + sol.stats["num_steps"], _result_int(sol.result)), None
+
+        (c, n, status), _ = jax.lax.scan(
+            solve,
+            (c, jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32)),
+            None,
+            length=config.outer[li],
+        )
+        steps.append(n)
+
+    # final outputs at full resolution
+    datas0 = level_data.get(0) or tuple(
+        prepare_region_data(im, bg, 0, config.tile)
+        for im, bg in zip(images, backgrounds, strict=True)
+    )
+    k0 = config.tiles_at(0)
+
+    def outputs(c):
+        cl, tubes = tubes_of(c)
+        masks, exact = [], jnp.asarray(True)
+        e = {"e_in": 0.0, "e_out": 0.0, "e_pen": 0.0, "J": 0.0}
+        for tube, data in zip(tubes, datas0, strict=True):
+            band = select_band(tube, data.grid, k0, config.k_seg)
+            masks.append(_mask(tube, band, data))
+            exact = exact & band.exact
+            t = _hard_terms(tube, band, data)
+            var = t.e_out_empty / jnp.maximum(data.total_w, 1e-6)
+            e["e_in"] = e["e_in"] + t.e_in
+            e["e_out"] = e["e_out"] + t.e_out
+            e["e_pen"] = e["e_pen"] + t.e_pen
+            e["J"] = (
+                e["J"]
+                + (weights.g_in * t.e_in + weights.g_out * (t.e_out - t.e_out_empty))
+                / (area_ref * jnp.maximum(var, 1e-8))
+                + weights.g_pen * t.e_pen / area_ref
+            )
+        reg = regularisation(c, base.s, config.torsion)
+        e["e_reg"] = reg
+        e["J"] = e["J"] + weights.g_reg * reg
+        return cl, tuple(masks), exact, e
+
+    finite_out = jnp.all(jnp.isfinite(c))
+    c = jnp.where(finite_out, c, 0.0)
+    cl, masks, exact, e = outputs(c)
+    _, nominal_masks, _, e_nom = outputs(jnp.zeros(shape, dtype))
+
+    failure = jnp.where(
+        ~finite_in,
+        1,
+        jnp.where(~in_view, 2, jnp.where(~data_ok, 3, jnp.where(~finite_out, 4, 0))),
+    ).astype(jnp.int32)
+    ok = failure == 0
+    energy = {
+        "e_in": e["e_in"],
+        "e_out": e["e_out"],
+        "e_reg": e["e_reg"],
+        "e_pen": e["e_pen"],
+        "total": e["J"],
+        "total_nominal": e_nom["J"],
+    }
+    return RefineResult(
+        masks=masks,
+        nominal_masks=nominal_masks,
+        centreline=cl,
+        coeffs=c,
+        delta_u=delta_u_steps(c, base.s, config.torsion),
+        energy=energy,
+        status=status,
+        num_steps=sum(steps),
+        steps_per_level=jnp.stack(steps),
+        ok=ok,
+        failure=failure,
+        band_exact=exact,
+        time_s=jnp.asarray(0.0, dtype),
+    )
+
+
+@eqx.filter_jit
+def _refine_frame_jit(base, cameras, images, backgrounds, config, init, valid):
+    return refine_frame(base, cameras, images, backgrounds, config, init, valid)
+
+
+def refine_frame_jit(
+    base: Centreline,
+    cameras,
+    images,
+    backgrounds,
+    config: RefineConfig = DEFAULT_CONFIG,
+    init=None,
+    valid=True,
+) -> RefineResult:
+    """Jit-compiled :func:`refine_frame` (compiled once per shape/config) with wall time."""
+    cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
+    init = jnp.zeros(config.coeff_shape, base.p.dtype) if init is None else init
+    t0 = time.perf_counter()
+    out = _refine_frame_jit(
+        base, cameras, images, backgrounds, config, init, jnp.asarray(valid, bool)
+    )
+    jax.block_until_ready(out)
+    return eqx.tree_at(lambda r: r.time_s, out, jnp.asarray(time.perf_counter() - t0))
+
+
+@eqx.filter_jit
+def _refine_batch_jit(bases, cameras, images, backgrounds, config, inits, valid, mode):
+    def one(args):
+        base, ims, bgs, init, v = args
+        return refine_frame(base, cameras, ims, bgs, config, init, v)
+
+    args = (bases, images, backgrounds, inits, valid)
+    if mode == "vmap":
+        return jax.vmap(one)(args)
+    return jax.lax.map(one, args)
+
+
+def refine_batch(
+    bases: Centreline,
+    cameras,
+    images,
+    backgrounds,
+    config: RefineConfig = DEFAULT_CONFIG,
+    inits: Float[Array, "f a k"] | None = None,
+    valid: Bool[Array, " f"] | None = None,
+    mode: str = "map",
+) -> RefineResult:
+    """Refine F independent frames in one compiled call.
+
+    Args:
+        bases: :class:`Centreline` with a leading frame axis F (e.g. ``jax.vmap(robot.forward)
+            (qs).centreline``).
+        cameras: one :class:`Camera` or a tuple, shared by all frames.
+        images: per camera, (F, h, w, 3) background-subtracted images.
+        backgrounds: per camera, (F, h, w) bool B masks.
+        config: :class:`RefineConfig`.
+        inits: optional (F, a, k) warm starts.
+        valid: optional (F,) bool; False frames are skipped and reported failed.
+        mode: ``"map"`` (``lax.map``: frames one after another inside the compiled call,
+            fastest on CPU) or ``"vmap"`` (all frames in lock step; better on accelerators).
+
+    Returns:
+        :class:`RefineResult` with a leading frame axis; ``time_s`` is the batch wall time
+        divided by F.
+    """
+    cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
+    if mode not in ("map", "vmap"):
+        raise InputError(f"mode must be 'map' or 'vmap', got {mode!r}", field="mode")
+    f = bases.p.shape[0]
+    for im, bg in zip(images, backgrounds, strict=True):
+        if im.shape[0] != f or bg.shape[0] != f:
+            raise InputError(
+                f"images/backgrounds need {f} frames, got {im.shape[0]}/{bg.shape[0]}",
+                field="images",
+            )
+    dtype = bases.p.dtype
+    inits = jnp.zeros((f,) + config.coeff_shape, dtype) if inits is None else inits
+    valid = jnp.ones(f, bool) if valid is None else jnp.asarray(valid, bool)
+    t0 = time.perf_counter()
+    out = _refine_batch_jit(bases, cameras, images, backgrounds, config, inits, valid, mode)
+    jax.block_until_ready(out)
+    dt = (time.perf_counter() - t0) / max(f, 1)
+    return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))
+
+
+@eqx.filter_jit
+def _refine_sequence_jit(bases, cameras, images, backgrounds, config, init, valid):
+    def step(c_prev, args):
+        base, ims, bgs, v = args
+        r = refine_frame(base, cameras, ims, bgs, config, c_prev, v)
+        c_next = jnp.where(r.ok, r.coeffs, c_prev)
+        return c_next, r
+
+    _, out = jax.lax.scan(step, init, (bases, images, backgrounds, valid))
+    return out
+
+
+def refine_sequence(
+    bases: Centreline,
+    cameras,
+    images,
+    backgrounds,
+    config: RefineConfig = DEFAULT_CONFIG,
+    init: Float[Array, "a k"] | None = None,
+    valid: Bool[Array, " f"] | None = None,
+) -> RefineResult:
+    """Refine a sequence, warm-starting frame t from frame t-1's delta-u (in one compiled
+    ``lax.scan``). A failed frame passes the last good coefficients on. Arguments as
+    :func:`refine_batch`; ``init`` warm-starts the first frame."""
+    cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
+    f = bases.p.shape[0]
+    dtype = bases.p.dtype
+    init = jnp.zeros(config.coeff_shape, dtype) if init is None else init
+    valid = jnp.ones(f, bool) if valid is None else jnp.asarray(valid, bool)
+    t0 = time.perf_counter()
+    out = _refine_sequence_jit(bases, cameras, images, backgrounds, config, init, valid)
+    jax.block_until_ready(out)
+    dt = (time.perf_counter() - t0) / max(f, 1)
+    return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))
