@@ -103,7 +103,7 @@ def test_frames_orthonormal_property(steps_jit, u, h):
     np.testing.assert_allclose(np.linalg.det(np.asarray(R, np.float64)), 1.0, atol=1e-5)
     # Unit-speed curve: chord of each step never exceeds its arclength.
     chord = np.linalg.norm(np.diff(np.asarray(p, np.float64), axis=0), axis=1)
-    assert np.all(chord <= h * (1 + 1e-5) + 1e-9)
+    assert np.all(chord <= h * (1 + 1e-5) + 1e-7)  # float32 positions: ~1e-8 m rounding
 
 
 @settings(max_examples=20, deadline=None)
@@ -157,9 +157,9 @@ def test_gradient_matches_finite_differences():
         rng = np.random.default_rng(1)
         u0 = jnp.asarray(rng.normal(scale=10.0, size=(M, 3)))
         h = jnp.full((M,), 0.004)
-        f = lambda u: integrate_steps(u, h)[0][-1]  # noqa: E731
-        J = jax.jacfwd(f)(u0)
-        Jr = jax.jacrev(f)(u0)
+        f = jax.jit(lambda u: integrate_steps(u, h)[0][-1])
+        J = jax.jit(jax.jacfwd(f))(u0)
+        Jr = jax.jit(jax.jacrev(f))(u0)
         np.testing.assert_allclose(J, Jr, atol=1e-12)
         eps = 1e-6
         for idx in [(0, 0), (3, 1), (7, 2), (M - 1, 0)]:
