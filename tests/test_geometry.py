@@ -6,7 +6,28 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from jaxcr.geometry import hat, kabsch, so3_exp, so3_left_jacobian, so3_log, umeyama, vee
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.linalg import expm
+
+from jaxcr.geometry import (
+    hat,
+    invert_transform,
+    kabsch,
+    make_transform,
+    orthonormalize,
+    rot_x,
+    rot_y,
+    rot_z,
+    se3_exp,
+    so3_exp,
+    so3_left_jacobian,
+    so3_log,
+    transform_points,
+    umeyama,
+    vee,
+)
 
 
 def test_hat_vee_roundtrip_and_cross():
@@ -59,3 +80,116 @@ def test_kabsch_and_umeyama_recover_transform():
     R2, t2, c = umeyama(jnp.array(P), jnp.array(2.5 * Q), with_scale=True)
     np.testing.assert_allclose(c, 2.5, rtol=1e-5)
     np.testing.assert_allclose(R2, R, atol=1e-5)
+
+
+# ---------------------------------------------------------------------------------------------
+# Property tests and the standard kit (jit, vmap, gradients) — added by the kinematics owner.
+# ---------------------------------------------------------------------------------------------
+
+_exp_jit = jax.jit(so3_exp)
+_log_jit = jax.jit(so3_log)
+_rotvec = arrays(np.float64, (3,), elements=st.floats(-4.0, 4.0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(w=_rotvec)
+def test_exp_is_orthonormal_and_matches_scipy_property(w):
+    R = np.asarray(_exp_jit(jnp.asarray(w, jnp.float32)), np.float64)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=2e-6)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=2e-6)
+    np.testing.assert_allclose(R, Rotation.from_rotvec(w).as_matrix(), atol=2e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(w=_rotvec)
+def test_log_exp_round_trip_property(w):
+    # Canonical rotation vector (angle in [0, pi)); skip the measure-zero band right at pi.
+    theta = np.linalg.norm(w)
+    if theta > np.pi:
+        w = w * (1.0 - 2.0 * np.pi / theta)
+        theta = np.linalg.norm(w)
+    if abs(theta - np.pi) < 1e-3:
+        return
+    R = Rotation.from_rotvec(w).as_matrix()
+    w_back = np.asarray(_log_jit(jnp.asarray(R, jnp.float32)), np.float64)
+    # float32: the near-pi fallback (cos < -0.99) is the least accurate branch.
+    np.testing.assert_allclose(w_back, w, atol=5e-4 if theta > 3.0 else 2e-5)
+    np.testing.assert_allclose(Rotation.from_rotvec(w_back).as_matrix(), R, atol=2e-5)
+
+
+@pytest.mark.parametrize("axis, fn", [(0, rot_x), (1, rot_y), (2, rot_z)])
+def test_elementary_rotations_match_scipy(axis, fn):
+    for a in (-2.5, 0.0, 0.7):
+        e = np.zeros(3)
+        e[axis] = a
+        np.testing.assert_allclose(
+            fn(jnp.float32(a)), Rotation.from_rotvec(e).as_matrix(), atol=1e-6
+        )
+
+
+def test_se3_exp_matches_matrix_exponential():
+    xi = np.array([0.1, -0.3, 0.2, 0.5, -1.1, 0.7])
+    X = np.zeros((4, 4))
+    X[:3, :3] = np.asarray(hat(jnp.asarray(xi[3:])))
+    X[:3, 3] = xi[:3]
+    np.testing.assert_allclose(se3_exp(jnp.asarray(xi, jnp.float32)), expm(X), atol=1e-6)
+
+
+def test_transforms_invert_and_apply():
+    R = Rotation.from_rotvec([0.3, 0.2, -0.9]).as_matrix()
+    t = np.array([0.5, -0.1, 2.0])
+    T = make_transform(jnp.asarray(R, jnp.float32), jnp.asarray(t, jnp.float32))
+    np.testing.assert_allclose(T @ invert_transform(T), np.eye(4), atol=1e-6)
+    P = np.random.default_rng(3).normal(size=(7, 3))
+    np.testing.assert_allclose(
+        transform_points(T, jnp.asarray(P, jnp.float32)), P @ R.T + t, atol=1e-5
+    )
+
+
+def test_orthonormalize_returns_rotation_near_input():
+    R = Rotation.from_rotvec([0.4, -0.2, 0.1]).as_matrix()
+    noisy = R + 1e-3 * np.random.default_rng(4).normal(size=(3, 3))
+    Q = np.asarray(orthonormalize(jnp.asarray(noisy, jnp.float32)), np.float64)
+    np.testing.assert_allclose(Q.T @ Q, np.eye(3), atol=1e-6)
+    np.testing.assert_allclose(np.linalg.det(Q), 1.0, atol=1e-6)
+    np.testing.assert_allclose(Q, R, atol=5e-3)
+
+
+def test_jit_equals_eager_and_vmap_equals_loop():
+    W = np.random.default_rng(5).normal(size=(6, 3)).astype(np.float32)
+    for f in (so3_exp, so3_left_jacobian, hat):
+        batched = jax.jit(jax.vmap(f))(jnp.asarray(W))
+        for i in range(len(W)):
+            np.testing.assert_allclose(batched[i], f(jnp.asarray(W[i])), atol=1e-6)
+    Rs = jax.vmap(so3_exp)(jnp.asarray(W))
+    logs = jax.vmap(so3_log)(Rs)
+    for i in range(len(W)):
+        np.testing.assert_allclose(logs[i], so3_log(Rs[i]), atol=1e-6)
+
+
+def test_gradients_match_finite_differences():
+    with jax.enable_x64(True):
+        w0 = jnp.array([0.3, -0.7, 0.4])
+        v = jnp.array([0.2, 0.5, -1.0])
+        for f in (
+            lambda w: so3_exp(w) @ v,
+            lambda w: so3_left_jacobian(w) @ v,
+            lambda w: so3_log(so3_exp(w) @ so3_exp(v / 4)),
+        ):
+            f = jax.jit(f)
+            J = jax.jit(jax.jacfwd(f))(w0)
+            np.testing.assert_allclose(J, jax.jit(jax.jacrev(f))(w0), atol=1e-10)
+            eps = 1e-6
+            fd = np.stack(
+                [(f(w0 + eps * e) - f(w0 - eps * e)) / (2 * eps) for e in jnp.eye(3)], axis=1
+            )
+            np.testing.assert_allclose(J, fd, atol=1e-8)
+
+
+def test_exp_derivative_is_left_jacobian():
+    # d/dt exp(w + t d) at t=0 equals hat(J_l(w) d) exp(w) (left-trivialised derivative).
+    with jax.enable_x64(True):
+        w = jnp.array([0.5, 0.2, -0.8])
+        d = jnp.array([0.1, -0.3, 0.6])
+        dR = jax.jvp(so3_exp, (w,), (d,))[1]
+        np.testing.assert_allclose(dR, hat(so3_left_jacobian(w) @ d) @ so3_exp(w), atol=1e-12)
