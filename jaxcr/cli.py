@@ -16,7 +16,20 @@ import sys
 from jaxcr.errors import InputError
 
 # Order shown in --help.
-COMMANDS = ["demo", "synth", "validate", "fk", "segment", "evaluate", "bench", "calibrate"]
+COMMANDS = [
+    "demo",
+    "synth",
+    "validate",
+    "fk",
+    "segment",
+    "evaluate",
+    "bench",
+    "calibrate",
+    "stereo",
+    "manifold",
+    "motion",
+    "model_object",
+]
 
 
 def build_parser() -> argparse.ArgumentParser:
