@@ -1,0 +1,408 @@
+"""Concentric-tube robot (CTR): Rucker/Webster Cosserat model without external load, solved by
+shooting on the initial twist rates.
+
+Joint vector ``q = (beta_1..beta_n, alpha_1..alpha_n)`` (tubes innermost first): ``beta_i <= 0``
+is the arclength of tube ``i``'s proximal end (s = 0 where the tubes leave the actuation unit),
+``alpha_i`` its rotation about the insertion axis z. Robot frame: ``p(0) = 0``, the backbone
+leaves s = 0 along +z, ``R(s)`` is the innermost tube's material frame and
+``R(0) = Rz(psi_1(0))``.
+
+* Default (``transmission_torsion=False``): tubes are torsionally rigid behind s = 0, so
+  ``psi_i(0) = alpha_i`` and ``R(0) = Rz(alpha_1)``.
+* ``transmission_torsion=True`` (Rucker et al. 2010): the straight part ``[beta_i, 0]`` twists
+  uniformly, ``alpha_i`` is applied at ``s = beta_i``, so ``psi_i(0) = alpha_i - beta_i u_iz(0)``
+  and ``R(0) = Rz(psi_1(0))`` (the innermost tube's material frame where it leaves the unit).
+
+Mechanics and the aligned integration grid: :mod:`jaxcr.kinematics.ctr_mechanics`. Shooting
+unknowns: ``x = u_z(0)`` (n twist rates, 1/m); residual: ``u_iz(l_i)`` (free distal ends carry
+no torsional moment). The solve is a damped Newton with a bounded iteration count
+(:mod:`jaxcr.kinematics.newton`), followed by one implicit-function Newton step so that
+``forward`` is differentiable in ``q`` at the solution.
+
+Several equilibria. For some ``q`` the rod has several (two stable, one unstable) solutions.
+``forward(q)`` without ``guess`` solves from a fixed set of initial twist guesses
+(:meth:`ConcentricTubeRobot.initial_guesses`) and returns, among the converged ones, the one with
+the least elastic energy (the global minimum found); ``forward(q, guess)`` runs warm-started
+Newton from ``guess`` only (continuation: follows the branch the guess lies on, e.g. the
+previous frame's ``state``). :meth:`ConcentricTubeRobot.forward_branches` returns all of them.
+``FkResult.energy`` and ``FkResult.residual`` say which solution was found.
+
+Joint limits (``beta_1 <= ... <= beta_n <= 0``, ``l_1 >= ... >= l_n``, every ``l_i > 0``): when
+violated, ``forward`` still returns finite numbers (the same mechanics with whichever tubes are
+present) but ``ok = False``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcr._types import Array, Float
+from jaxcr.errors import InputError
+from jaxcr.geometry import rot_z
+from jaxcr.kinematics.base import (
+    FkResult,
+    check_keys,
+    get_int,
+    get_number,
+    require_mapping,
+    steps_per_piece,
+)
+from jaxcr.kinematics.cosserat import integrate_centreline
+from jaxcr.kinematics.ctr_mechanics import (
+    TubeMechanics,
+    integrate_torsion,
+    make_grid,
+    second_moments,
+    telescoping_ok,
+)
+from jaxcr.kinematics.newton import damped_newton, implicit_newton_step
+
+#: Public 3-tube test robot (innermost first), SI units, in the dataset robot schema.
+TEST_CTR: dict[str, Any] = {
+    "kind": "ctr",
+    "tubes": [
+        {
+            "length": 0.431,
+            "curved_length": 0.103,
+            "id": 0.70e-3,
+            "od": 1.10e-3,
+            "E": 64.3e9,
+            "G": 25.0e9,
+            "kappa": 21.3,
+        },
+        {
+            "length": 0.332,
+            "curved_length": 0.113,
+            "id": 1.40e-3,
+            "od": 1.80e-3,
+            "E": 52.5e9,
+            "G": 21.4e9,
+            "kappa": 13.108,
+        },
+        {
+            "length": 0.174,
+            "curved_length": 0.134,
+            "id": 2.0e-3,
+            "od": 2.2e-3,
+            "E": 47.1e9,
+            "G": 29.7e9,
+            "kappa": 3.5,
+        },
+    ],
+    "transmission_torsion": False,
+}
+
+_TUBE_KEYS = ("length", "curved_length", "od", "id", "E", "G", "kappa")
+_TOP_KEYS = {"kind", "tubes", "transmission_torsion", "n_points", "name"}
+
+
+class ConcentricTubeRobot(eqx.Module):
+    """n concentric precurved tubes (see module docstring for q, frames and conventions).
+
+    Attributes (all (n,) arrays, innermost tube first, SI units):
+        length: total tube lengths L_i (m).
+        curved_length: lengths of the distal precurved parts Lc_i (m), ``<= length``.
+        od, id: outer and inner diameters (m).
+        E, G: Young's and shear moduli (Pa).
+        kappa: precurvatures (1/m) of the curved parts, about the tube's own x axis.
+        n_points: centreline samples N (static). The 2n pieces between breakpoints get
+            ``(N - 1) / 2n`` RK4 steps each (the remainder to the first pieces).
+        transmission_torsion: let the transmission behind s = 0 twist (static).
+        tol: converged when ``||u_z(l)||_2 <= tol`` (1/m) (static).
+        warm_steps: iteration bound of warm-started Newton (static).
+        cold_steps: iteration bound of each cold start (static).
+    """
+
+    kind: ClassVar[str] = "ctr"
+
+    length: Float[Array, " n"]
+    curved_length: Float[Array, " n"]
+    od: Float[Array, " n"]
+    id: Float[Array, " n"]
+    E: Float[Array, " n"]
+    G: Float[Array, " n"]
+    kappa: Float[Array, " n"]
+    n_points: int = eqx.field(static=True, default=97)
+    transmission_torsion: bool = eqx.field(static=True, default=False)
+    tol: float = eqx.field(static=True, default=1e-3)
+    warm_steps: int = eqx.field(static=True, default=12)
+    cold_steps: int = eqx.field(static=True, default=40)
+
+    def __check_init__(self):
+        steps_per_piece(2 * self.n_tubes, self.n_points)  # raises if n_points is too small
+
+    # ------------------------------------------------------------------ construction
+
+    @classmethod
+    def make(
+        cls,
+        tubes: list[Mapping[str, float]],
+        *,
+        transmission_torsion: bool = False,
+        n_points: int = 97,
+        dtype=None,
+        **kwargs,
+    ) -> ConcentricTubeRobot:
+        """Build from a list of tube dicts (keys as in the robot schema), innermost first."""
+        dtype = jnp.zeros(0).dtype if dtype is None else dtype
+        cols = {k: jnp.asarray([float(t[k]) for t in tubes], dtype) for k in _TUBE_KEYS}
+        return cls(
+            **cols,
+            n_points=int(n_points),
+            transmission_torsion=bool(transmission_torsion),
+            **kwargs,
+        )
+
+    @classmethod
+    def from_dict(
+        cls, d: Mapping[str, Any], file: str | None = None, **kwargs
+    ) -> ConcentricTubeRobot:
+        """Parse ``{"kind": "ctr", "tubes": [...], "transmission_torsion": false}``.
+
+        Validates every field (finite, positive lengths/moduli, ``id < od``,
+        ``curved_length <= length``, tubes nested: each tube's ``od`` at most the next outer
+        tube's ``id``) and raises :class:`InputError` naming the offending field.
+        """
+        d = require_mapping(d, file=file, field=None)
+        check_keys(d, _TOP_KEYS, file=file)
+        if d.get("kind", "ctr") != "ctr":
+            raise InputError(f"expected kind 'ctr', got {d.get('kind')!r}", file=file, field="kind")
+        if "tubes" not in d:
+            raise InputError("missing required key", file=file, field="tubes")
+        tubes = d["tubes"]
+        if not isinstance(tubes, list) or not tubes:
+            raise InputError("expected a non-empty list of tubes", file=file, field="tubes")
+        rows = []
+        for i, t in enumerate(tubes):
+            prefix = f"tubes[{i}]."
+            t = require_mapping(t, file=file, field=f"tubes[{i}]")
+            check_keys(t, set(_TUBE_KEYS), file=file, prefix=prefix)
+            row = {}
+            for k in ("length", "od", "id", "E", "G"):
+                row[k] = get_number(t, k, file=file, prefix=prefix, positive=True)
+            row["curved_length"] = get_number(
+                t, "curved_length", file=file, prefix=prefix, nonnegative=True
+            )
+            row["kappa"] = get_number(t, "kappa", file=file, prefix=prefix)
+            if row["id"] >= row["od"]:
+                raise InputError(
+                    f"inner diameter {row['id']} must be < outer diameter {row['od']}",
+                    file=file,
+                    field=prefix + "id",
+                )
+            if row["curved_length"] > row["length"]:
+                raise InputError(
+                    f"curved_length {row['curved_length']} exceeds length {row['length']}",
+                    file=file,
+                    field=prefix + "curved_length",
+                )
+            if rows and row["id"] < rows[-1]["od"]:
+                raise InputError(
+                    f"inner diameter {row['id']} is smaller than the outer diameter "
+                    f"{rows[-1]['od']} of tube {i - 1} inside it (tubes are innermost first)",
+                    file=file,
+                    field=prefix + "id",
+                )
+            rows.append(row)
+        tt = d.get("transmission_torsion", False)
+        if not isinstance(tt, bool):
+            raise InputError(
+                f"expected true or false, got {tt!r}", file=file, field="transmission_torsion"
+            )
+        n_points = get_int(d, "n_points", file=file, default=97, minimum=2 * len(rows) + 1)
+        n_points = kwargs.pop("n_points", n_points)
+        return cls.make(rows, transmission_torsion=tt, n_points=n_points, **kwargs)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description (``from_dict(to_dict())`` rebuilds the same model)."""
+        cols = {k: np.asarray(getattr(self, k), np.float64) for k in _TUBE_KEYS}
+        tubes = [{k: float(cols[k][i]) for k in _TUBE_KEYS} for i in range(self.n_tubes)]
+        return {
+            "kind": "ctr",
+            "tubes": tubes,
+            "transmission_torsion": bool(self.transmission_torsion),
+            "n_points": int(self.n_points),
+        }
+
+    # ------------------------------------------------------------------ properties
+
+    @property
+    def n_tubes(self) -> int:
+        return int(self.length.shape[0])
+
+    @property
+    def n_joints(self) -> int:
+        return 2 * self.n_tubes
+
+    def mechanics(self, dtype=None) -> TubeMechanics:
+        """Per-tube stiffnesses and geometry in ``dtype``."""
+        dtype = self.length.dtype if dtype is None else dtype
+        od, id_ = self.od.astype(dtype), self.id.astype(dtype)
+        I, J = second_moments(od, id_)
+        return TubeMechanics(
+            EI=self.E.astype(dtype) * I,
+            GJ=self.G.astype(dtype) * J,
+            kappa=self.kappa.astype(dtype),
+            length=self.length.astype(dtype),
+            curved_length=self.curved_length.astype(dtype),
+            radius=0.5 * od,
+        )
+
+    def _split(self, q: Array) -> tuple[Array, Array]:
+        q = jnp.asarray(q)
+        if q.shape != (self.n_joints,):
+            raise ValueError(f"q must have shape ({self.n_joints},), got {q.shape}")
+        dtype = jnp.result_type(q.dtype, self.length.dtype)
+        q = q.astype(dtype)
+        return q[: self.n_tubes], q[self.n_tubes :]
+
+    def _base_angles(self, beta: Array, alpha: Array, uz0: Array) -> Array:
+        """``psi_i(0)``: alpha_i, or alpha_i - beta_i u_iz(0) with transmission torsion."""
+        if self.transmission_torsion:
+            return alpha - beta * uz0
+        return alpha
+
+    # ------------------------------------------------------------------ shooting
+
+    def shooting_residual(self, q: Float[Array, " m"], uz0: Float[Array, " n"]) -> Array:
+        """``u_iz(l_i)`` (1/m) for initial twist rates ``uz0``: zero at an equilibrium."""
+        beta, alpha = self._split(q)
+        tubes = self.mechanics(beta.dtype)
+        grid = make_grid(tubes, beta, self.n_points)
+        psi0 = self._base_angles(beta, alpha, uz0)
+        traj = integrate_torsion(tubes, grid, uz0, psi0 - psi0[0], with_centreline=False)
+        return traj.uz_end
+
+    def initial_guesses(self, q: Float[Array, " m"]) -> Float[Array, "k n"]:
+        """Cold-start guesses for ``u_z(0)`` (1/m): the zero-twist state plus twisted states.
+
+        The non-zero guesses twist tube ``j > 1`` against the others by about ``+-pi``
+        over the overlap with the next inner tube (balanced so that ``sum GJ u_z = 0``), which
+        is how the snapped (other-branch) equilibria differ from the zero-twist one.
+        """
+        beta, _ = self._split(q)
+        tubes = self.mechanics(beta.dtype)
+        n = self.n_tubes
+        ends = beta + tubes.length
+        guesses = [jnp.zeros(n, beta.dtype)]
+        for j in range(1, n):
+            overlap = jnp.maximum(jnp.minimum(ends[j], ends[j - 1]), 1e-3)
+            for sign in (1.0, -1.0):
+                rate = sign * jnp.pi / overlap
+                # Tube j twists by `rate`, the rest share the balancing moment.
+                others = jnp.arange(n) != j
+                gj_rest = jnp.sum(jnp.where(others, tubes.GJ, 0.0))
+                g = jnp.where(others, -rate * tubes.GJ[j] / gj_rest, rate)
+                guesses.append(g)
+        return jnp.stack(guesses)
+
+    def _solve(self, q: Array, guess: Array, max_steps: int, damping: float):
+        def residual(x):
+            return self.shooting_residual(jax.lax.stop_gradient(q), x)
+
+        res = damped_newton(residual, guess, max_steps=max_steps, tol=self.tol, damping=damping)
+        return res
+
+    def _result(self, q: Array, res) -> FkResult:
+        """Centreline, energy and flags at the solved twist (differentiable in q)."""
+        beta, alpha = self._split(q)
+        uz0 = implicit_newton_step(lambda x: self.shooting_residual(q, x), res.x, res.jac)
+        tubes = self.mechanics(beta.dtype)
+        grid = make_grid(tubes, beta, self.n_points)
+        psi0 = self._base_angles(beta, alpha, uz0)
+        traj = integrate_torsion(tubes, grid, uz0, psi0 - psi0[0], with_centreline=True)
+        R0 = rot_z(psi0[0])
+        centreline = integrate_centreline(grid.s, traj.u_steps, grid.rho, None, R0)
+        energy = traj.energy
+        if self.transmission_torsion:
+            energy = energy + 0.5 * jnp.sum(tubes.GJ * uz0**2 * (-beta))
+        residual = jnp.linalg.norm(traj.uz_end)
+        finite = (
+            jnp.all(jnp.isfinite(centreline.p))
+            & jnp.all(jnp.isfinite(centreline.R))
+            & jnp.isfinite(energy)
+        )
+        ok = finite & (residual <= self.tol) & telescoping_ok(tubes, beta)
+        return FkResult(
+            centreline=centreline,
+            ok=ok,
+            residual=residual,
+            energy=energy,
+            num_steps=res.num_steps,
+            state=jax.lax.stop_gradient(uz0),
+        )
+
+    def forward(self, q: Float[Array, " m"], guess: Array | None = None) -> FkResult:
+        """Equilibrium centreline for joint vector ``q`` (see the module docstring).
+
+        Args:
+            q: (2n,) ``(beta, alpha)`` in metres and radians.
+            guess: (n,) initial twist rates ``u_z(0)`` (1/m), e.g. a previous ``state``.
+                ``None``: cold start from every :meth:`initial_guesses` entry, keep the
+                converged solution of least elastic energy.
+
+        Returns:
+            :class:`FkResult` with N = ``n_points`` samples; ``state`` = ``u_z(0)``.
+        """
+        beta, _ = self._split(q)
+        if guess is not None:
+            guess = jnp.asarray(guess, beta.dtype)
+            res = self._solve(q, guess, self.warm_steps, 1e-6)
+            return self._result(q, res)
+        guesses = self.initial_guesses(q)
+        results = jax.vmap(lambda g: self._solve(q, g, self.cold_steps, 1e-3))(guesses)
+        best = self._pick_branch(jax.lax.stop_gradient(q), results)
+        res = jax.tree.map(lambda a: a[best], results)
+        res = res._replace(num_steps=jnp.sum(results.num_steps))
+        return self._result(q, res)
+
+    def _branch_energy(self, q: Array, uz0: Array) -> Array:
+        beta, alpha = self._split(q)
+        tubes = self.mechanics(beta.dtype)
+        grid = make_grid(tubes, beta, self.n_points)
+        psi0 = self._base_angles(beta, alpha, uz0)
+        traj = integrate_torsion(tubes, grid, uz0, psi0 - psi0[0], with_centreline=False)
+        energy = traj.energy
+        if self.transmission_torsion:
+            energy = energy + 0.5 * jnp.sum(tubes.GJ * uz0**2 * (-beta))
+        return energy
+
+    def _pick_branch(self, q: Array, results) -> Array:
+        """Index of the converged solution with least energy (least residual if none)."""
+        energies = jax.vmap(lambda x: self._branch_energy(q, x))(results.x)
+        converged = (results.residual <= self.tol) & jnp.isfinite(energies)
+        key = jnp.where(converged, energies, jnp.inf)
+        return jnp.where(
+            jnp.any(converged),
+            jnp.argmin(key),
+            jnp.argmin(jnp.nan_to_num(results.residual, nan=jnp.inf)),
+        )
+
+    def forward_branches(
+        self, q: Float[Array, " m"], guesses: Float[Array, "k n"] | None = None
+    ) -> FkResult:
+        """Solve from each of ``guesses`` (default :meth:`initial_guesses`) independently.
+
+        Returns an :class:`FkResult` with a leading axis k (one per guess; several may land on
+        the same equilibrium). Compare ``residual`` and ``energy`` to tell the branches apart.
+        """
+        guesses = self.initial_guesses(q) if guesses is None else jnp.asarray(guesses)
+
+        def one(g):
+            return self._result(q, self._solve(q, g, self.cold_steps, 1e-3))
+
+        return jax.vmap(one)(guesses)
+
+
+def make_test_ctr(**kwargs) -> ConcentricTubeRobot:
+    """:data:`TEST_CTR` as a model (keyword arguments override e.g. ``n_points``)."""
+    return ConcentricTubeRobot.from_dict(TEST_CTR, **kwargs)
+
+
+__all__ = ["TEST_CTR", "ConcentricTubeRobot", "make_test_ctr"]
