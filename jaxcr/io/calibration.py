@@ -1,0 +1,390 @@
+"""Camera calibration files: OpenCV FileStorage (YAML ``.yaml``/``.yml``, XML ``.xml``) and JSON.
+
+Single camera (any of the three formats)
+----------------------------------------
+=========================  ===============================================================
+key                        meaning
+=========================  ===============================================================
+``camera_matrix``          3x3 intrinsics, pixels (OpenCV ``!!opencv-matrix`` or nested
+                           list); JSON may use ``K`` instead
+``distortion_coefficients``OpenCV order ``k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tx ty]]]]``
+                           as 1xN or Nx1 (or a flat list); JSON may use ``dist``
+``image_width``,           image size in pixels; JSON may use ``"size": [w, h]``
+``image_height``
+``T_cam_robot``            optional 4x4, maps robot-frame points (metres) to the camera
+                           frame; identity if absent
+``unit``                   optional, ``"m"`` (default) or ``"mm"``: unit of the
+                           translations in this file (converted to metres)
+=========================  ===============================================================
+
+Distortion length rule: N must be 4, 5, 8, 12 or 14. N = 4 means ``k3 = 0``. Only the
+five-parameter model ``(k1, k2, p1, p2, k3)`` is implemented, so for N > 5 every entry after
+the fifth must be exactly 0 (rational/thin-prism/tilt models are rejected, not silently
+truncated).
+
+Stereo pair (as labs save the output of ``cv2.stereoCalibrate``)
+----------------------------------------------------------------
+Intrinsics ``K1``/``D1``, ``K2``/``D2`` (also accepted: ``M1``/``M2`` as in OpenCV's
+``stereo_calib`` sample, or ``camera_matrix_1``/``distortion_coefficients_1`` ...), image
+size ``image_width``/``image_height`` (shared) or ``image_width_1``... per camera,
+``R`` (3x3) and ``T`` (3x1) mapping camera-1 points to camera 2 (``X2 = R X1 + T``, the
+``cv2.stereoCalibrate`` convention), optional ``E``/``F`` (checked for shape and
+finiteness only), optional ``T_cam_robot`` for camera 1 and ``unit``. Camera 2's extrinsic is
+composed: ``T_cam2_robot = [R | T] @ T_cam1_robot``.
+
+Every problem raises :class:`jaxcr.errors.InputError` naming the file and the field.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import cv2
+import numpy as np
+
+from jaxcr.camera import Camera, camera_from_arrays
+from jaxcr.errors import InputError
+
+_FS_EXT = (".yaml", ".yml", ".xml")
+_DIST_LENGTHS = (4, 5, 8, 12, 14)
+_UNITS = {"m": 1.0, "mm": 1e-3}
+
+
+# ---------------------------------------------------------------------------- raw reading
+
+
+def _fs_node_value(node: Any) -> Any:
+    if node.isMap():
+        try:
+            m = node.mat()
+        except cv2.error:
+            m = None
+        if m is not None:
+            return np.asarray(m, np.float64)
+        return {k: _fs_node_value(node.getNode(k)) for k in node.keys()}
+    if node.isSeq():
+        return [_fs_node_value(node.at(i)) for i in range(node.size())]
+    if node.isInt() or node.isReal():
+        return node.real()
+    if node.isString():
+        return node.string()
+    return None
+
+
+def read_filestorage(path: str | os.PathLike) -> dict[str, Any]:
+    """All top-level entries of an OpenCV FileStorage file as Python/numpy values."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise InputError("calibration file not found", file=path)
+    try:
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    except cv2.error as err:
+        msg = str(err).strip().splitlines()[-1] if str(err).strip() else "parse error"
+        raise InputError(f"not a readable OpenCV FileStorage file ({msg})", file=path) from None
+    try:
+        if not fs.isOpened():
+            raise InputError("not a readable OpenCV FileStorage file", file=path)
+        root = fs.root()
+        if not root.isMap():
+            raise InputError("expected a map of named entries at the top level", file=path)
+        return {k: _fs_node_value(fs.getNode(k)) for k in root.keys()}
+    except cv2.error as err:
+        raise InputError(f"cannot parse OpenCV FileStorage file ({err})", file=path) from None
+    finally:
+        fs.release()
+
+
+def read_raw(path: str | os.PathLike) -> dict[str, Any]:
+    """Top-level entries of a calibration file (FileStorage by extension, else JSON)."""
+    path = os.fspath(path)
+    if path.lower().endswith(_FS_EXT):
+        return read_filestorage(path)
+    if not path.lower().endswith(".json"):
+        raise InputError(
+            "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path
+        )
+    try:
+        with open(path, encoding="utf-8") as fh:
+            d = json.load(fh)
+    except FileNotFoundError:
+        raise InputError("calibration file not found", file=path) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise InputError(f"not valid JSON ({err})", file=path) from None
+    except OSError as err:
+        raise InputError(f"cannot read ({err.strerror})", file=path) from None
+    if not isinstance(d, dict):
+        raise InputError("expected a JSON object", file=path)
+    return d
+
+
+# ------------------------------------------------------------------------------ validation
+
+
+def _get(d: Mapping[str, Any], names: tuple[str, ...], file, prefix: str, required=True):
+    for n in names:
+        if n in d and d[n] is not None:
+            return n, d[n]
+    if required:
+        alt = f" (or {', '.join(repr(n) for n in names[1:])})" if len(names) > 1 else ""
+        raise InputError(f"missing required key{alt}", file=file, field=prefix + names[0])
+    return names[0], None
+
+
+def _matrix(value, shape_ok, want: str, file, field) -> np.ndarray:
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"expected a {want} matrix of numbers", file=file, field=field) from None
+    if not shape_ok(a.shape):
+        raise InputError(f"expected a {want} matrix, got shape {a.shape}", file=file, field=field)
+    if not np.all(np.isfinite(a)):
+        raise InputError("contains NaN or infinite values", file=file, field=field)
+    return a
+
+
+def check_intrinsics(K, file=None, field="camera_matrix") -> np.ndarray:
+    """Validated 3x3 intrinsics (finite, fx, fy > 0, last row [0, 0, 1])."""
+    K = _matrix(K, lambda s: s == (3, 3), "3x3", file, field)
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise InputError(
+            f"focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}",
+            file=file,
+            field=field,
+        )
+    if K[1, 0] != 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise InputError("expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]", file=file, field=field)
+    return K
+
+
+def check_distortion(dist, file=None, field="distortion_coefficients") -> np.ndarray:
+    """Validated distortion reduced to the 5 OpenCV coefficients (see module docstring)."""
+    d = _matrix(dist, lambda s: len(s) <= 2 and (len(s) < 2 or 1 in s), "1xN or Nx1", file, field)
+    d = d.reshape(-1)
+    if d.size not in _DIST_LENGTHS:
+        raise InputError(
+            f"expected 4, 5, 8, 12 or 14 coefficients, got {d.size}", file=file, field=field
+        )
+    if d.size == 4:
+        return np.concatenate([d, [0.0]])
+    if np.any(d[5:] != 0):
+        raise InputError(
+            "only the 5-parameter model (k1, k2, p1, p2, k3) is supported; coefficients after "
+            "the fifth must be 0",
+            file=file,
+            field=field,
+        )
+    return d[:5]
+
+
+def check_transform(T, file=None, field="T_cam_robot", scale: float = 1.0) -> np.ndarray:
+    """Validated 4x4 rigid transform (rotation orthonormal to 1e-4, det +1, last row 0 0 0 1);
+    the translation is multiplied by ``scale`` (unit conversion to metres)."""
+    T = _matrix(T, lambda s: s == (4, 4), "4x4", file, field)
+    R = T[:3, :3]
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InputError("last row must be [0, 0, 0, 1]", file=file, field=field)
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        raise InputError("rotation part is not a proper rotation matrix", file=file, field=field)
+    T = T.copy()
+    T[:3, 3] *= scale
+    return T
+
+
+def _size_value(v, file, field) -> int:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise InputError("expected a positive integer", file=file, field=field) from None
+    if not np.isfinite(f) or f != int(f) or f <= 0:
+        raise InputError(f"expected a positive integer, got {v!r}", file=file, field=field)
+    return int(f)
+
+
+def _image_size(d, file, prefix: str, suffix: str = "") -> tuple[int, int]:
+    if "size" in d and not suffix:
+        size = d["size"]
+        if not isinstance(size, list | tuple | np.ndarray) or len(size) != 2:
+            raise InputError("expected [width, height]", file=file, field=prefix + "size")
+        return (
+            _size_value(size[0], file, prefix + "size[0]"),
+            _size_value(size[1], file, prefix + "size[1]"),
+        )
+    names_w = (f"image_width{suffix}", "image_width") if suffix else ("image_width",)
+    names_h = (f"image_height{suffix}", "image_height") if suffix else ("image_height",)
+    kw, w = _get(d, names_w, file, prefix)
+    kh, h = _get(d, names_h, file, prefix)
+    return _size_value(w, file, prefix + kw), _size_value(h, file, prefix + kh)
+
+
+def _unit_scale(d, file, prefix) -> float:
+    unit = d.get("unit", "m")
+    if unit not in _UNITS:
+        raise InputError(
+            f"expected one of {list(_UNITS)}, got {unit!r}", file=file, field=prefix + "unit"
+        )
+    return _UNITS[unit]
+
+
+def camera_from_dict(d: Mapping[str, Any], file: str | None = None, prefix: str = "") -> Camera:
+    """Build a :class:`Camera` from a single-camera mapping (file or inline dataset entry).
+
+    ``prefix`` is prepended to field names in error messages (e.g. ``"cameras.main."``).
+    """
+    if not isinstance(d, Mapping):
+        raise InputError(
+            "expected a mapping of camera fields", file=file, field=prefix.rstrip(".") or None
+        )
+    scale = _unit_scale(d, file, prefix)
+    kK, K = _get(d, ("camera_matrix", "K"), file, prefix)
+    K = check_intrinsics(K, file, prefix + kK)
+    kd, dist = _get(d, ("distortion_coefficients", "dist"), file, prefix, required=False)
+    dist = np.zeros(5) if dist is None else check_distortion(dist, file, prefix + kd)
+    w, h = _image_size(d, file, prefix)
+    T = d.get("T_cam_robot")
+    T = np.eye(4) if T is None else check_transform(T, file, prefix + "T_cam_robot", scale)
+    return camera_from_arrays(K, dist, T, w, h)
+
+
+def load_camera(path: str | os.PathLike) -> Camera:
+    """Read a single-camera calibration file (``.yaml``/``.yml``/``.xml``/``.json``)."""
+    path = os.fspath(path)
+    return camera_from_dict(read_raw(path), file=path)
+
+
+def load_stereo(path: str | os.PathLike) -> tuple[Camera, Camera]:
+    """Read a stereo calibration file into two cameras (second extrinsic composed, see module
+    docstring)."""
+    path = os.fspath(path)
+    d = read_raw(path)
+    scale = _unit_scale(d, path, "")
+    cams_intr = []
+    for i in (1, 2):
+        kK, K = _get(d, (f"K{i}", f"M{i}", f"camera_matrix_{i}"), path, "")
+        K = check_intrinsics(K, path, kK)
+        kd, D = _get(d, (f"D{i}", f"distortion_coefficients_{i}"), path, "", required=False)
+        D = np.zeros(5) if D is None else check_distortion(D, path, kd)
+        size = _image_size(d, path, "", suffix=f"_{i}")
+        cams_intr.append((K, D, size))
+    R = _matrix(
+        d.get("R") if "R" in d else _missing(path, "R"), lambda s: s == (3, 3), "3x3", path, "R"
+    )
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        raise InputError("not a proper rotation matrix", file=path, field="R")
+    t = _matrix(
+        d.get("T") if "T" in d else _missing(path, "T"),
+        lambda s: s in ((3,), (3, 1), (1, 3)),
+        "3x1",
+        path,
+        "T",
+    ).reshape(3)
+    for key in ("E", "F"):
+        if key in d and d[key] is not None:
+            _matrix(d[key], lambda s: s == (3, 3), "3x3", path, key)
+    T1 = d.get("T_cam_robot")
+    T1 = np.eye(4) if T1 is None else check_transform(T1, path, "T_cam_robot", scale)
+    T21 = np.eye(4)
+    T21[:3, :3] = R
+    T21[:3, 3] = t * scale
+    T2 = T21 @ T1
+    (K1, D1, s1), (K2, D2, s2) = cams_intr
+    return (camera_from_arrays(K1, D1, T1, *s1), camera_from_arrays(K2, D2, T2, *s2))
+
+
+def _missing(file, field):
+    raise InputError("missing required key", file=file, field=field)
+
+
+# --------------------------------------------------------------------------------- writing
+
+
+def camera_to_dict(camera: Camera) -> dict[str, Any]:
+    """JSON-ready inline description (the dataset.json ``cameras.<name>`` form)."""
+    return {
+        "K": np.asarray(camera.K, np.float64).tolist(),
+        "dist": np.asarray(camera.dist, np.float64).tolist(),
+        "size": [int(camera.width), int(camera.height)],
+        "T_cam_robot": np.asarray(camera.T_cam_robot, np.float64).tolist(),
+    }
+
+
+def _write_atomic_text(path: str, text: str) -> None:
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+
+
+def _write_fs(path: str, entries: dict[str, Any]) -> None:
+    ext = os.path.splitext(path)[1]
+    tmp = f"{path}.tmp{os.getpid()}{ext}"  # FileStorage picks the format from the extension
+    fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
+    try:
+        for k, v in entries.items():
+            fs.write(k, v)
+    finally:
+        fs.release()
+    os.replace(tmp, path)
+
+
+def save_camera(camera: Camera, path: str | os.PathLike) -> None:
+    """Write a single-camera file; format from the extension (YAML/XML via
+    ``cv2.FileStorage``, or JSON with the FileStorage key names). Atomic."""
+    path = os.fspath(path)
+    entries = {
+        "camera_matrix": np.asarray(camera.K, np.float64),
+        "distortion_coefficients": np.asarray(camera.dist, np.float64).reshape(1, 5),
+        "image_width": int(camera.width),
+        "image_height": int(camera.height),
+        "T_cam_robot": np.asarray(camera.T_cam_robot, np.float64),
+    }
+    if path.lower().endswith(_FS_EXT):
+        _write_fs(path, entries)
+    elif path.lower().endswith(".json"):
+        js = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in entries.items()}
+        _write_atomic_text(path, json.dumps(js, indent=2) + "\n")
+    else:
+        raise InputError(
+            "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path
+        )
+
+
+def save_stereo(cam1: Camera, cam2: Camera, path: str | os.PathLike) -> None:
+    """Write a stereo file in the layout :func:`load_stereo` reads (R, T between the two
+    cameras, plus E = [T]x R and F = K2^-T E K1^-1 as cv2.stereoCalibrate reports them)."""
+    path = os.fspath(path)
+    T1 = np.asarray(cam1.T_cam_robot, np.float64)
+    T2 = np.asarray(cam2.T_cam_robot, np.float64)
+    T21 = T2 @ np.linalg.inv(T1)
+    R, t = T21[:3, :3], T21[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    E = tx @ R
+    K1 = np.asarray(cam1.K, np.float64)
+    K2 = np.asarray(cam2.K, np.float64)
+    F = np.linalg.inv(K2).T @ E @ np.linalg.inv(K1)
+    entries = {
+        "K1": K1,
+        "D1": np.asarray(cam1.dist, np.float64).reshape(1, 5),
+        "K2": K2,
+        "D2": np.asarray(cam2.dist, np.float64).reshape(1, 5),
+        "image_width_1": int(cam1.width),
+        "image_height_1": int(cam1.height),
+        "image_width_2": int(cam2.width),
+        "image_height_2": int(cam2.height),
+        "R": R,
+        "T": t.reshape(3, 1),
+        "E": E,
+        "F": F,
+        "T_cam_robot": T1,
+    }
+    if path.lower().endswith(_FS_EXT):
+        _write_fs(path, entries)
+    elif path.lower().endswith(".json"):
+        js = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in entries.items()}
+        _write_atomic_text(path, json.dumps(js, indent=2) + "\n")
+    else:
+        raise InputError(
+            "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path
+        )
