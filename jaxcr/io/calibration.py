@@ -81,8 +81,10 @@ def read_filestorage(path: str | os.PathLike) -> dict[str, Any]:
         raise InputError("calibration file not found", file=path)
     try:
         fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    except cv2.error as err:
-        msg = str(err).strip().splitlines()[-1] if str(err).strip() else "parse error"
+    except (cv2.error, SystemError) as err:
+        # cv2 raises cv2.error (sometimes wrapped in SystemError) with a multi-line message
+        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+        msg = lines[-1] if lines else "parse error"
         raise InputError(f"not a readable OpenCV FileStorage file ({msg})", file=path) from None
     try:
         if not fs.isOpened():
@@ -91,8 +93,10 @@ def read_filestorage(path: str | os.PathLike) -> dict[str, Any]:
         if not root.isMap():
             raise InputError("expected a map of named entries at the top level", file=path)
         return {k: _fs_node_value(fs.getNode(k)) for k in root.keys()}
-    except cv2.error as err:
-        raise InputError(f"cannot parse OpenCV FileStorage file ({err})", file=path) from None
+    except (cv2.error, SystemError) as err:
+        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+        msg = lines[-1] if lines else "parse error"
+        raise InputError(f"cannot parse OpenCV FileStorage file ({msg})", file=path) from None
     finally:
         fs.release()
 
@@ -300,13 +304,22 @@ def _missing(file, field):
 # --------------------------------------------------------------------------------- writing
 
 
+def _json_floats(a) -> list:
+    """Nested lists of floats; float32 values are written with their shortest round-trip
+    decimal (0.03, not 0.029999999329447746)."""
+    a = np.asarray(a)
+    if a.dtype == np.float32:
+        return np.vectorize(lambda x: float(str(x)), otypes=[np.float64])(a).tolist()
+    return a.astype(np.float64).tolist()
+
+
 def camera_to_dict(camera: Camera) -> dict[str, Any]:
     """JSON-ready inline description (the dataset.json ``cameras.<name>`` form)."""
     return {
-        "K": np.asarray(camera.K, np.float64).tolist(),
-        "dist": np.asarray(camera.dist, np.float64).tolist(),
+        "K": _json_floats(camera.K),
+        "dist": _json_floats(camera.dist),
         "size": [int(camera.width), int(camera.height)],
-        "T_cam_robot": np.asarray(camera.T_cam_robot, np.float64).tolist(),
+        "T_cam_robot": _json_floats(camera.T_cam_robot),
     }
 
 

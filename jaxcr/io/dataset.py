@@ -166,7 +166,9 @@ def _robot_from_dict(d: Mapping[str, Any], file: str):
 class _Scan:
     """Collects problems while reading dataset.json (dataset-level and per frame)."""
 
-    def __init__(self, root: Path, json_path: Path, decode_images: bool):
+    def __init__(self, root: Path, json_path: Path, decode_images: bool, progress=None):
+        self.progress = progress
+        self.n_frames = 0
         self.root = root
         self.json_path = json_path
         self.file = str(json_path)
@@ -455,8 +457,11 @@ class _Scan:
             except Exception:  # noqa: BLE001 - a model without n_joints: skip the length check
                 n_joints = None
         seen: set[str] = set()
+        self.n_frames = len(frames)
         for i, fr in enumerate(frames):
             self.check_frame(i, fr, seen, n_joints)
+            if self.progress is not None:
+                self.progress(i + 1, len(frames))
 
     def check_background(self, d: dict) -> None:
         bg = d.get("background_images")
@@ -513,13 +518,59 @@ def _locate(path: str | os.PathLike) -> tuple[Path, Path]:
     return p, p / DATASET_FILE
 
 
-def _scan(path, decode_images: bool) -> _Scan:
+def _scan(path, decode_images: bool, progress=None) -> _Scan:
     root, json_path = _locate(path)
     if not root.exists():
         s = _Scan(root, json_path, decode_images)
         s.errors.append(InputError("dataset folder not found", file=str(root)))
         return s
-    return _Scan(root, json_path, decode_images).run()
+    return _Scan(root, json_path, decode_images, progress).run()
+
+
+@dataclass
+class DatasetCheck:
+    """Outcome of :func:`check_dataset`: dataset-level ``errors``, per-frame problems
+    ``frame_errors`` (frame label -> errors, in file order), and counts for a report."""
+
+    path: Path
+    name: str
+    robot_kind: str | None
+    cameras: list[str]
+    n_frames: int
+    errors: list[InputError]
+    frame_errors: dict[str, list[InputError]]
+
+    @property
+    def all_errors(self) -> list[InputError]:
+        return list(self.errors) + [e for es in self.frame_errors.values() for e in es]
+
+    @property
+    def n_bad_frames(self) -> int:
+        return len(self.frame_errors)
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors and not self.frame_errors
+
+
+def check_dataset(
+    path: str | os.PathLike, decode_images: bool = True, progress=None
+) -> DatasetCheck:
+    """Validate the dataset at ``path`` and summarise it (see :func:`validate_dataset`).
+
+    ``progress``: optional callback ``progress(done_frames, total_frames)``.
+    """
+    s = _scan(path, decode_images, progress)
+    kind = s.robot_dict.get("kind") if isinstance(s.robot_dict, dict) else None
+    return DatasetCheck(
+        path=s.json_path,
+        name=s.name,
+        robot_kind=kind if isinstance(kind, str) else None,
+        cameras=sorted(set(s.cameras) | s.bad_cameras),
+        n_frames=s.n_frames,
+        errors=list(s.errors),
+        frame_errors=dict(s.frame_errors),
+    )
 
 
 def validate_dataset(path: str | os.PathLike, decode_images: bool = True) -> list[InputError]:
@@ -529,11 +580,7 @@ def validate_dataset(path: str | os.PathLike, decode_images: bool = True) -> lis
     ``decode_images`` (default) every image and mask is fully decoded, so corrupt files are
     found; otherwise only PNG headers are read (sizes), which is much faster.
     """
-    s = _scan(path, decode_images)
-    out = list(s.errors)
-    for errs in s.frame_errors.values():
-        out.extend(errs)
-    return out
+    return check_dataset(path, decode_images).all_errors
 
 
 def load_dataset(
