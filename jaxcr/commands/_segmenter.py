@@ -1,0 +1,291 @@
+"""The batch loop behind ``jaxcr segment``: frames in fixed-size chunks through nominal
+kinematics, background subtraction and :func:`jaxcr.refine.refine_batch` (or
+:func:`~jaxcr.refine.refine_sequence` for ``--warm-start``), then each frame's files and its
+``results.jsonl`` record are written (files first, record last; see :mod:`jaxcr.io.results`).
+
+Every chunk has exactly ``batch_size`` frames (the last one is padded by repeating a frame,
+whose results are discarded), so the whole run compiles once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcr.commands._timing import CompileTimer
+from jaxcr.errors import InputError
+from jaxcr.io import results as R
+from jaxcr.io.overlay import fig4_panel
+
+FK_FAILED = "kinematics failed (solver did not converge or non-finite shape)"
+
+
+@eqx.filter_jit
+def _fk_batch(robot, qs):
+    return jax.vmap(robot.forward)(qs)
+
+
+def _background_fn(kind: str, ds, camera: str) -> Callable:
+    """A jitted batch function images (F, h, w, 3) -> (B (F, h, w), I' (F, h, w, 3))."""
+    from jaxcr import background as bgm
+
+    if kind == "colour":
+        return jax.jit(jax.vmap(bgm.colour_mask))
+    if kind == "none":
+        return jax.jit(jax.vmap(bgm.no_mask))
+    if kind == "gmm":
+        from jaxcr.io.images import read_image
+
+        paths = ds.background_images.get(camera, [])
+        if not paths:
+            raise InputError(
+                f"--background gmm needs robot-free background images for camera '{camera}' "
+                "(dataset.json 'background_images')",
+                file=str(ds.root),
+                field="background_images",
+            )
+        stack = jnp.asarray(np.stack([read_image(p) for p in paths]))
+        model = bgm.fit_background_model(stack, n_components=min(3, len(paths)))
+        return jax.jit(jax.vmap(lambda im: bgm.background_model_mask(model, im)))
+    raise InputError(f"unknown background subtraction {kind!r}", field="background")
+
+
+class Segmenter:
+    """Runs the segmentation of selected frames of a dataset into an output folder.
+
+    Attributes:
+        frame_ids: every frame id of the dataset (bad frames first, then usable frames in
+            file order).
+        compile_s, run_s: accumulated compile and execution seconds of this process.
+    """
+
+    def __init__(
+        self,
+        ds,
+        cameras: list[str],
+        config,
+        background: str,
+        out: str | Path,
+        overlays: bool = True,
+        warm_start: bool = False,
+        batch_size: int = 4,
+    ):
+        if ds.robot is None:
+            raise InputError(
+                f"robot kind {ds.robot_dict.get('kind')!r} is not supported by this build",
+                file=str(ds.root),
+                field="robot",
+            )
+        self.ds = ds
+        self.cams = list(cameras)
+        self.config = config
+        self.layout = R.OutputLayout(out)
+        self.overlays = overlays
+        self.warm_start = warm_start
+        self.batch_size = int(batch_size)
+        self.frames = {f.id: f for f in ds.frames}
+        self.frame_ids = list(ds.bad_frames) + [f.id for f in ds.frames]
+        self.bg_fns = {c: _background_fn(background, ds, c) for c in self.cams}
+        self.cameras = tuple(ds.cameras[c] for c in self.cams)
+        self.compile_s = 0.0
+        self.run_s = 0.0
+        self._coeffs_prev = None  # warm start carried across chunks
+
+    # ------------------------------------------------------------------ per-frame checks
+
+    def _check_frame(self, fid: str):
+        """(images per camera, None) for a usable frame, or (None, reason)."""
+        if fid in self.ds.bad_frames:
+            return None, f"bad frame: {self.ds.bad_frames[fid]}"
+        f = self.frames[fid]
+        q = np.asarray(f.q, np.float64)
+        if q.shape != (self.ds.robot.n_joints,):
+            return None, f"q has {q.size} values, the robot has {self.ds.robot.n_joints} joints"
+        if not np.all(np.isfinite(q)):
+            return None, "non-finite joint values (NaN or inf in q)"
+        images = []
+        for cname, cam in zip(self.cams, self.cameras, strict=True):
+            try:
+                im = f.load_image(cname)
+            except InputError as err:
+                return None, f"image missing or unreadable: {err}"
+            if im.shape[:2] != (cam.height, cam.width):
+                return None, (
+                    f"image of camera '{cname}' is {im.shape[1]}x{im.shape[0]}, "
+                    f"the camera is {cam.width}x{cam.height}"
+                )
+            if not np.all(np.isfinite(im)):
+                return None, f"image of camera '{cname}' has non-finite values"
+            images.append(im)
+        return images, None
+
+    def _failed_record(self, fid: str, reason: str) -> dict:
+        f = self.frames.get(fid)
+        return {
+            "format": R.RESULTS_FORMAT,
+            "frame": fid,
+            "ok": False,
+            "reason": reason,
+            "tags": list(f.tags) if f is not None else [],
+            "cameras": self.cams,
+        }
+
+    # ------------------------------------------------------------------ the loop
+
+    def run(self, frame_ids: list[str], progress: bool = True) -> list[dict]:
+        """Process ``frame_ids`` (in order), appending one record per frame; returns them."""
+        from tqdm import tqdm
+
+        records: list[dict] = []
+        bar = tqdm(
+            total=len(frame_ids),
+            unit="frame",
+            disable=not progress,
+            dynamic_ncols=True,
+            desc="segment",
+        )
+        with R.ResultsLog(self.layout.results) as log:
+
+            def emit(rec):
+                log.append(rec)
+                records.append(rec)
+                bar.update(1)
+
+            pending: list[tuple[str, list[np.ndarray]]] = []
+            for fid in frame_ids:
+                images, reason = self._check_frame(fid)
+                if reason is not None:
+                    emit(self._failed_record(fid, reason))
+                    continue
+                pending.append((fid, images))
+                if len(pending) == self.batch_size:
+                    for rec in self._process_chunk(pending):
+                        emit(rec)
+                    pending = []
+            if pending:
+                for rec in self._process_chunk(pending):
+                    emit(rec)
+        bar.close()
+        return records
+
+    def _process_chunk(self, chunk: list[tuple[str, list[np.ndarray]]]):
+        from jaxcr.refine import FAILURES, refine_batch, refine_sequence
+
+        n = len(chunk)
+        # pad at the end (results discarded): one compiled shape for the whole run
+        full = chunk + [chunk[-1]] * (self.batch_size - n)
+        B = len(full)
+        qs = jnp.asarray(np.stack([self.frames[fid].q for fid, _ in full]), jnp.float32)
+        imgs_np = [np.stack([ims[k] for _, ims in full]) for k in range(len(self.cams))]
+        with CompileTimer() as timer:
+            fk = _fk_batch(self.ds.robot, qs)
+            bgs, subs = [], []
+            for k, cname in enumerate(self.cams):
+                bg, sub = self.bg_fns[cname](jnp.asarray(imgs_np[k]))
+                bgs.append(bg)
+                subs.append(sub)
+            valid = jnp.asarray(fk.ok, bool)
+            if self.warm_start:
+                res = refine_sequence(
+                    fk.centreline,
+                    self.cameras,
+                    tuple(subs),
+                    tuple(bgs),
+                    self.config,
+                    init=self._coeffs_prev,
+                    valid=valid,
+                )
+            else:
+                res = refine_batch(
+                    fk.centreline,
+                    self.cameras,
+                    tuple(subs),
+                    tuple(bgs),
+                    self.config,
+                    valid=valid,
+                )
+            res = jax.block_until_ready(res)
+        self.compile_s += timer.compile_s
+        self.run_s += timer.run_s
+        per_frame = timer.run_s / B
+        compile_share = timer.compile_s / max(n, 1)
+
+        host = jax.tree.map(np.asarray, res)
+        fk_ok = np.asarray(fk.ok)
+        fk_res = np.asarray(fk.residual)
+        fk_steps = np.asarray(fk.num_steps)
+        bgs_np = [np.asarray(b) for b in bgs]
+        nominal_p = np.asarray(fk.centreline.p)
+        if self.warm_start:
+            ok_idx = [i for i in range(n) if bool(host.ok[i])]
+            if ok_idx:
+                self._coeffs_prev = jnp.asarray(host.coeffs[ok_idx[-1]])
+
+        for i, (fid, images) in enumerate(chunk):
+            frame = self.frames[fid]
+            ok = bool(host.ok[i]) and bool(fk_ok[i])
+            if not bool(fk_ok[i]):
+                reason = FK_FAILED
+            elif not ok:
+                reason = FAILURES.get(int(host.failure[i]), f"failure {int(host.failure[i])}")
+            else:
+                reason = None
+            rec = {
+                "format": R.RESULTS_FORMAT,
+                "frame": fid,
+                "ok": ok,
+                "reason": reason,
+                "tags": list(frame.tags),
+                "cameras": self.cams,
+                "status": int(host.status[i]),
+                "failure": int(host.failure[i]),
+                "num_steps": int(host.num_steps[i]),
+                "steps_per_level": host.steps_per_level[i].tolist(),
+                "time_s": per_frame,
+                "compile_s": compile_share,
+                "band_exact": bool(host.band_exact[i]),
+                "energy": {k: float(v[i]) for k, v in host.energy.items()},
+                "coeffs": host.coeffs[i].tolist(),
+                "fk": {
+                    "ok": bool(fk_ok[i]),
+                    "residual": float(fk_res[i]),
+                    "num_steps": int(fk_steps[i]),
+                },
+            }
+            if bool(fk_ok[i]) and np.all(np.isfinite(host.centreline.p[i])):
+                rec["files"] = self._write_frame_files(
+                    fid, frame, images, host, i, bgs_np, nominal_p[i]
+                )
+            yield rec
+
+    def _write_frame_files(self, fid, frame, images, host, i, bgs_np, nominal_p) -> dict:
+        L = self.layout
+        files: dict = {"masks": {}, "nominal": {}, "background": {}}
+        if self.overlays:
+            files["overlays"] = {}
+        for k, cname in enumerate(self.cams):
+            refined = host.masks[k][i]
+            nominal = host.nominal_masks[k][i]
+            fg = ~bgs_np[k][i]
+            for key, arr in (("masks", refined), ("nominal", nominal), ("background", fg)):
+                rel = getattr(L, {"masks": "mask"}.get(key, key))(cname, fid)
+                R.atomic_write_png(L.abs(rel), arr)
+                files[key][cname] = rel
+            if self.overlays:
+                truth = frame.load_mask(cname) if cname in frame.masks else None
+                panel = fig4_panel(images[k], fg, nominal, refined, truth)
+                rel = L.overlay(cname, fid)
+                R.atomic_write_png(L.abs(rel), panel)
+                files["overlays"][cname] = rel
+        rel = L.centreline(fid)
+        R.atomic_write_npy(L.abs(rel), host.centreline.p[i])
+        files["centreline"] = rel
+        rel = L.centreline_nominal(fid)
+        R.atomic_write_npy(L.abs(rel), nominal_p)
+        files["centreline_nominal"] = rel
+        return files

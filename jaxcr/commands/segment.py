@@ -1,0 +1,353 @@
+"""``jaxcr segment DATASET -o OUT``: kinematic-prior segmentation (Watson et al.) of a dataset.
+
+For every frame: nominal kinematics (the robot model's forward kinematics, batched), background
+subtraction (Sec. II-A), refinement of delta-u against the region energy of eq. 5
+(:func:`jaxcr.refine.refine_batch`, compiled once per shape), then the output files of
+:mod:`jaxcr.io.results` are written frame by frame, crash-safe, so ``--resume`` continues an
+interrupted run. Frames that cannot be processed (bad frames reported by the loader, NaN
+joints, missing or unreadable images, kinematics failure, robot out of view, an image that is
+all background) are recorded as failed with a reason; the run goes on.
+
+Exit code: 0 when every frame succeeded, 1 when some failed, 2 on bad usage or input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import math
+import platform
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from jaxcr.errors import InputError
+from jaxcr.io import results as R
+
+HELP = "segment a dataset with the kinematic prior (Watson et al.)"
+BACKGROUNDS = ("colour", "gmm", "none")
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "segment",
+        help=HELP,
+        description=__doc__.split("\n\n")[0] + " Writes OUT/results.jsonl, masks, overlays.",
+    )
+    p.add_argument("dataset", help="dataset folder (containing dataset.json) or dataset.json")
+    p.add_argument("-o", "--out", required=True, help="output folder")
+    p.add_argument(
+        "--camera",
+        action="append",
+        default=None,
+        metavar="NAME",
+        help="camera(s) to use (repeat for several; default: all cameras of the dataset)",
+    )
+    p.add_argument(
+        "--background",
+        choices=BACKGROUNDS,
+        default="colour",
+        help="background subtraction: colour mask (paper's choice, default), per-pixel GMM "
+        "fitted to the dataset's background images, or none",
+    )
+    p.add_argument(
+        "--basis",
+        type=int,
+        default=None,
+        metavar="N",
+        help="Chebyshev coefficients per bending axis of delta-u (default: core's)",
+    )
+    p.add_argument(
+        "--levels",
+        type=int,
+        default=None,
+        metavar="L",
+        help="number of pyramid levels, coarse to fine (default: core's)",
+    )
+    p.add_argument(
+        "--max-steps",
+        type=int,
+        default=None,
+        metavar="K",
+        help="scale the solver's per-level step budget so the finest level has K "
+        "steps (default: core's)",
+    )
+    p.add_argument(
+        "--batch-size",
+        type=int,
+        default=4,
+        metavar="B",
+        help="frames per compiled call (the last chunk is padded; default 4)",
+    )
+    p.add_argument(
+        "--warm-start",
+        action="store_true",
+        help="treat the frames as a sequence: warm-start each frame from the "
+        "previous frame's delta-u",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue an interrupted run in OUT (skips frames in results.jsonl)",
+    )
+    p.add_argument(
+        "--overwrite", action="store_true", help="delete previous results in OUT and start again"
+    )
+    p.add_argument("--no-overlays", action="store_true", help="do not write overlay PNGs")
+    p.add_argument(
+        "--limit",
+        type=int,
+        default=None,
+        metavar="N",
+        help="process at most N new frames, then stop (no DONE marker; continue with --resume)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed (recorded; the refinement itself is deterministic)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+    return p
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+def refine_config(args):
+    """The :class:`jaxcr.refine.RefineConfig` for the CLI options (None = core default)."""
+    from jaxcr.refine import RefineConfig
+
+    base = RefineConfig()
+    kw = {}
+    if args.basis is not None:
+        if args.basis < 1:
+            raise InputError("--basis must be >= 1", field="basis")
+        kw["n_coeffs"] = args.basis
+    levels, steps = base.levels, base.steps
+    outer, tau = base.outer, base.tau
+    if args.levels is not None:
+        n = args.levels
+        if n < 1:
+            raise InputError("--levels must be >= 1", field="levels")
+        # keep the core's schedule for its finest n levels; extend coarser ones if asked
+        if n <= len(levels):
+            levels, steps, outer, tau = (t[-n:] for t in (levels, steps, outer, tau))
+        else:
+            extra = n - len(levels)
+            levels = tuple(range(max(levels) + extra, max(levels), -1)) + levels
+            steps = (steps[0],) * extra + steps
+            outer = (outer[0],) * extra + outer
+            tau = (tau[0],) * extra + tau
+    if args.max_steps is not None:
+        if args.max_steps < 1:
+            raise InputError("--max-steps must be >= 1", field="max-steps")
+        scale = args.max_steps / steps[-1]
+        steps = tuple(max(1, round(s * scale)) for s in steps)
+    kw.update(levels=tuple(levels), steps=tuple(steps), outer=tuple(outer), tau=tuple(tau))
+    return RefineConfig(**kw)
+
+
+def config_dict(cfg) -> dict:
+    import dataclasses
+
+    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
+
+
+def versions() -> dict:
+    import importlib.metadata as md
+
+    out = {"python": platform.python_version(), "platform": platform.platform()}
+    for pkg in (
+        "jaxcr",
+        "jax",
+        "jaxlib",
+        "equinox",
+        "optimistix",
+        "numpy",
+        "opencv-python-headless",
+    ):
+        try:
+            out[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            pass
+    out["git_commit"] = _git_commit()
+    return out
+
+
+def _git_commit() -> str | None:
+    import subprocess
+
+    try:
+        root = Path(__file__).resolve().parents[2]
+        r = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+        return r.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+# --------------------------------------------------------------------------- dataset access
+
+
+def load(path: str):
+    """Load a dataset with :func:`jaxcr.io.dataset.load_dataset` (InputError on bad input)."""
+    from jaxcr.io.dataset import load_dataset
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError("dataset not found", file=path)
+    return load_dataset(p)
+
+
+def select_cameras(ds, names: list[str] | None) -> list[str]:
+    available = list(ds.cameras)
+    if not names:
+        return available
+    for n in names:
+        if n not in ds.cameras:
+            raise InputError(
+                f"no camera '{n}' in the dataset (available: {', '.join(available)})",
+                field="camera",
+            )
+    return list(dict.fromkeys(names))
+
+
+# --------------------------------------------------------------------------- output folder
+
+
+PRODUCTS = ("masks", "nominal", "background", "overlays", "centrelines", "centrelines_nominal")
+
+
+def prepare_output(out: Path, resume: bool, overwrite: bool, run_info: dict) -> list[dict]:
+    """Check/prepare OUT; return the records already there (for ``--resume``)."""
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", file=str(out))
+    layout = R.OutputLayout(out)
+    has_results = layout.results.exists() and layout.results.stat().st_size > 0
+    if resume and overwrite:
+        raise InputError("--resume and --overwrite exclude each other")
+    if has_results and not (resume or overwrite):
+        raise InputError(
+            "output folder already has results; use --resume to continue or --overwrite",
+            file=str(out),
+        )
+    if overwrite and out.exists():
+        for name in PRODUCTS:
+            shutil.rmtree(out / name, ignore_errors=True)
+        for f in (layout.results, layout.summary, layout.done, layout.run):
+            f.unlink(missing_ok=True)
+    records: list[dict] = []
+    if resume and layout.run.exists():
+        import json
+
+        prev = json.loads(layout.run.read_text())
+        for key in ("dataset", "cameras", "background", "config"):
+            if R.to_jsonable(prev.get(key)) != R.to_jsonable(run_info.get(key)):
+                raise InputError(
+                    f"cannot resume: '{key}' differs from the interrupted run "
+                    f"({prev.get(key)!r} vs {run_info.get(key)!r})",
+                    file=str(layout.run),
+                )
+        try:
+            records = R.read_results(layout.results)
+        except ValueError as err:
+            raise InputError(str(err)) from None
+    out.mkdir(parents=True, exist_ok=True)
+    layout.done.unlink(missing_ok=True)
+    layout.summary.unlink(missing_ok=True)
+    if not (resume and layout.run.exists()):
+        R.atomic_write_json(layout.run, run_info)
+    return records
+
+
+# --------------------------------------------------------------------------- the run
+
+
+def run(args) -> int:
+    ds = load(args.dataset)
+    cams = select_cameras(ds, args.camera)
+    if args.batch_size < 1:
+        raise InputError("--batch-size must be >= 1", field="batch-size")
+    if args.limit is not None and args.limit < 0:
+        raise InputError("--limit must be >= 0", field="limit")
+    cfg = refine_config(args)
+    out = Path(args.out)
+    run_info = {
+        "format": R.RUN_FORMAT,
+        "results_format": R.RESULTS_FORMAT,
+        "dataset": str(Path(ds.root).resolve()),
+        "dataset_name": ds.name,
+        "cameras": cams,
+        "background": args.background,
+        "warm_start": bool(args.warm_start),
+        "batch_size": args.batch_size,
+        "seed": args.seed,
+        "config": config_dict(cfg),
+        "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "command": " ".join(sys.argv),
+        "versions": versions(),
+    }
+    previous = prepare_output(out, args.resume, args.overwrite, run_info)
+    from jaxcr.commands._segmenter import Segmenter
+
+    seg = Segmenter(
+        ds,
+        cams,
+        cfg,
+        args.background,
+        out,
+        overlays=not args.no_overlays,
+        warm_start=args.warm_start,
+        batch_size=args.batch_size,
+    )
+    done = R.done_frame_ids(previous)
+    todo = [f for f in seg.frame_ids if f not in done]
+    if args.limit is not None:
+        todo = todo[: args.limit]
+    stopped_early = len(done) + len(todo) < len(seg.frame_ids)
+
+    new_records = seg.run(todo, progress=not args.quiet)
+
+    all_records = R.read_results(R.OutputLayout(out).results)
+    n_failed = sum(1 for r in all_records if not r.get("ok"))
+    if stopped_early:
+        print(
+            f"jaxcr segment: stopped after {len(new_records)} new frames (--limit); "
+            f"{len(seg.frame_ids) - len(all_records)} left, continue with --resume",
+            file=sys.stderr,
+        )
+        return 1 if n_failed else 0
+    summary = {
+        "format": R.RESULTS_FORMAT,
+        "frames": len(all_records),
+        "ok": len(all_records) - n_failed,
+        "failed": n_failed,
+        "failures": {r["frame"]: r.get("reason") for r in all_records if not r.get("ok")},
+        "compile_s": seg.compile_s,
+        "run_s": seg.run_s,
+        "median_time_s": _median(r.get("time_s") for r in all_records if r.get("ok")),
+        "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+    }
+    layout = R.OutputLayout(out)
+    R.atomic_write_json(layout.summary, summary)
+    R.atomic_write_text(layout.done, summary["finished"] + "\n")
+    print(
+        f"jaxcr segment: {summary['ok']}/{summary['frames']} frames ok"
+        + (f", {n_failed} failed" if n_failed else "")
+        + f" -> {out}"
+    )
+    return 1 if n_failed else 0
+
+
+def _median(values) -> float | None:
+    v = [x for x in values if x is not None and math.isfinite(x)]
+    return float(np.median(v)) if v else None
