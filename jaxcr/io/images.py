@@ -22,6 +22,20 @@ import numpy as np
 from jaxcr.errors import InputError
 
 
+def _quiet_decode(data: np.ndarray, flags: int) -> np.ndarray | None:
+    # OpenCV logs its own WARN/ERROR lines for corrupt files; we report one InputError instead.
+    from cv2.utils import logging as cvlog
+
+    level = cvlog.getLogLevel()
+    cvlog.setLogLevel(cvlog.LOG_LEVEL_SILENT)
+    try:
+        return cv2.imdecode(data, flags)
+    except cv2.error:
+        return None
+    finally:
+        cvlog.setLogLevel(level)
+
+
 def _imread(path: str | os.PathLike, flags: int) -> np.ndarray:
     path = os.fspath(path)
     if not os.path.exists(path):
@@ -35,7 +49,7 @@ def _imread(path: str | os.PathLike, flags: int) -> np.ndarray:
         raise InputError(f"cannot read image ({err.strerror})", file=path) from None
     if data.size == 0:
         raise InputError("image file is empty", file=path)
-    img = cv2.imdecode(data, flags)
+    img = _quiet_decode(data, flags)
     if img is None:
         raise InputError("not a readable image (corrupt or unsupported format)", file=path)
     return img
