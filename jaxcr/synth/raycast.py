@@ -48,6 +48,8 @@ def ray_capsule(
     ba = b - a
     oa = o - a
     baba = float(ba @ ba)
+    if baba <= (1e-9 * radius) ** 2:  # degenerate segment: a sphere
+        return ray_sphere(o, d, 0.5 * (a + b), radius)
     bard = d @ ba
     baoa = oa @ ba
     rdoa = np.einsum("ij,ij->i", d, oa)

@@ -1,0 +1,407 @@
+"""Generate one synthetic dataset (format ``jaxcr.dataset/1``) from a preset.
+
+Per preset: a procedural tissue texture, the nominal robot and camera(s) written to
+``dataset.json``, a drawn model error giving the *true* robot and camera(s) used to render
+(:mod:`jaxcr.synth.model_error`), a joint trajectory (nominal q = what the joint sensors
+read; true q = nominal + offsets), the true centrelines (CTR forward kinematics of the true
+robot, then the linearised tip load), occluders (actuation unit; laparoscopic scissors in
+``*_occluded`` presets) and per frame and camera: the ray-cast image with camera noise, the
+visible / full / occluder masks and the true centreline.
+
+Random streams are derived from ``(seed, preset_index, stream)`` with
+``numpy.random.SeedSequence``, so a preset's output depends only on the seed, the preset and
+the requested frame count and size.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcr.errors import InputError
+from jaxcr.synth.model_error import (
+    ModelError,
+    apply_tip_force,
+    bending_stiffness_along,
+    draw_model_error,
+    perturbed_camera_pose,
+    perturbed_robot,
+)
+from jaxcr.synth.occluders import actuation_unit, laparoscopic_instrument
+from jaxcr.synth.presets import PRESETS, PresetConfig, ctr_trajectory
+from jaxcr.synth.render import apply_camera_effects, render, render_static
+from jaxcr.synth.scene import RenderCamera, Scene, Tissue, TubeBody, look_at_pose
+from jaxcr.synth.texture import make_tissue_texture
+
+GENERATOR_VERSION = "jaxcr-synth/1"
+N_BACKGROUND_IMAGES = 3
+_STREAM_TEXTURE, _STREAM_TRAJ, _STREAM_ERROR, _STREAM_OCC, _STREAM_NOISE = range(5)
+
+
+def _rng(seed: int, cfg: PresetConfig, *stream: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([int(seed), cfg.preset_index, *stream]))
+
+
+def camera_names(n: int) -> list[str]:
+    """``main`` for one camera, ``left``/``right`` for two, ``cam0..`` otherwise."""
+    if n == 1:
+        return ["main"]
+    if n == 2:
+        return ["left", "right"]
+    return [f"cam{i}" for i in range(n)]
+
+
+def nominal_cameras(
+    cfg: PresetConfig, size: tuple[int, int], n_cameras: int
+) -> dict[str, RenderCamera]:
+    """The calibrated (nominal) cameras of a preset at image ``size`` = (width, height).
+
+    Several cameras form a rig with parallel optical axes spread along the image x axis of
+    the preset's view over ``baseline`` (metres)."""
+    v = cfg.camera
+    w, h = int(size[0]), int(size[1])
+    # Same field of view at any size (square pixels at 4:3).
+    K = np.array(
+        [
+            [v.fx * w / 640.0, 0.0, (w - 1) / 2.0],
+            [0.0, v.fx * h / 480.0, (h - 1) / 2.0],
+            [0, 0, 1.0],
+        ]
+    )
+    T0 = look_at_pose(v.eye, v.target, v.up)
+    x_axis = T0[0, :3]  # camera x axis in the robot frame
+    out = {}
+    names = camera_names(n_cameras)
+    offsets = [0.0] if n_cameras == 1 else list(np.linspace(-0.5, 0.5, n_cameras) * v.baseline)
+    for name, off in zip(names, offsets, strict=True):
+        eye = np.asarray(v.eye) + off * x_axis
+        target = np.asarray(v.target) + off * x_axis
+        out[name] = RenderCamera(
+            K.copy(), np.asarray(v.dist, float), look_at_pose(eye, target, v.up), w, h
+        )
+    return out
+
+
+def tissue_for(cfg: PresetConfig, texture) -> Tissue:
+    n = np.asarray(cfg.tissue.normal, float)
+    n /= np.linalg.norm(n)
+    helper = np.array([0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    ev = helper - (helper @ n) * n
+    ev /= np.linalg.norm(ev)
+    eu = np.cross(ev, n)  # eu x ev = n
+    return Tissue(np.asarray(cfg.tissue.origin, float), eu, ev, texture)
+
+
+@eqx.filter_jit
+def _forward_batch(model, q):
+    return jax.vmap(model.forward)(q)
+
+
+@dataclass
+class Shapes:
+    """Centrelines of a batch of joint vectors (numpy, robot frame, metres)."""
+
+    s: np.ndarray  # (F, N)
+    p: np.ndarray  # (F, N, 3)
+    rho: np.ndarray  # (F, N)
+    ok: np.ndarray  # (F,)
+
+
+def robot_shapes(
+    robot: dict[str, Any], q: np.ndarray, tip_force: np.ndarray | None = None
+) -> Shapes:
+    """Forward kinematics of ``robot`` (a description dict) at each row of ``q``, optionally
+    with the linearised tip load (:func:`jaxcr.synth.model_error.apply_tip_force`)."""
+    from jaxcr.kinematics.robots import robot_from_dict
+
+    model = robot_from_dict(robot)
+    res = _forward_batch(model, jnp.asarray(q, jnp.float32))
+    cl = res.centreline
+    p = np.asarray(cl.p, np.float64)
+    if tip_force is not None and np.any(tip_force):
+        s_np = np.asarray(cl.s, np.float64)
+        ei = np.stack(
+            [
+                bending_stiffness_along(robot, np.asarray(q[k]), 0.5 * (s_np[k, :-1] + s_np[k, 1:]))
+                for k in range(len(q))
+            ]
+        )
+        forces = np.repeat(np.asarray(tip_force, float)[None], len(q), axis=0)
+        p = np.asarray(apply_tip_force(cl, forces, ei).p, np.float64)
+    return Shapes(
+        np.asarray(cl.s, np.float64), p, np.asarray(cl.rho, np.float64), np.asarray(res.ok)
+    )
+
+
+def tube_body(robot: dict[str, Any], p: np.ndarray, rho: np.ndarray) -> TubeBody:
+    """Capsule chain of one centreline: segment k (samples k..k+1) has the outer radius
+    ``rho[k+1]`` (the step convention of the kinematics) and is drawn in the material of the
+    tube of that outer diameter."""
+    radius = rho[1:]
+    if robot["kind"] == "ctr":
+        od = np.array([t["od"] for t in robot["tubes"]]) / 2.0
+        tube = np.argmin(np.abs(radius[:, None] - od[None, :]), axis=1)
+    else:
+        tube = np.zeros(len(radius), int)
+    return TubeBody(p, radius, tube)
+
+
+def instrument_for_frame(
+    cfg: PresetConfig,
+    rng: np.random.Generator,
+    base_angle: float,
+    p: np.ndarray,
+    eye: np.ndarray,
+    T_cam: np.ndarray,
+):
+    """Laparoscopic scissors crossing the robot between it and the camera: the shaft passes
+    ``instrument_depth`` in front of a point at 35-75% of the robot's length, at an image-plane
+    angle near ``base_angle``, its jaws ending 5-25 mm past the crossing."""
+    n = len(p)
+    c = p[int(rng.uniform(0.35, 0.75) * (n - 1))]
+    to_cam = eye - c
+    to_cam /= np.linalg.norm(to_cam)
+    c_front = c + cfg.instrument_depth * to_cam
+    ang = base_angle + rng.normal(0.0, 0.15)
+    ex, ey = T_cam[0, :3], T_cam[1, :3]
+    direction = np.cos(ang) * ex + np.sin(ang) * ey - 0.25 * to_cam
+    direction /= np.linalg.norm(direction)
+    tip = c_front + rng.uniform(0.005, 0.025) * direction
+    return laparoscopic_instrument(
+        tip, direction, roll=rng.uniform(0, np.pi), open_angle=rng.uniform(0.1, 0.6)
+    )
+
+
+def _json_dump_atomic(obj: Any, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(obj, fh, indent=1)
+        fh.write("\n")
+    os.replace(tmp, path)
+
+
+def _camera_json(cam: RenderCamera) -> dict[str, Any]:
+    return {
+        "K": cam.K.tolist(),
+        "dist": [float(x) for x in cam.dist],
+        "size": [cam.width, cam.height],
+        "T_cam_robot": cam.T_cam_robot.tolist(),
+    }
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"640x480"`` -> (640, 480); raises :class:`InputError` on anything else."""
+    try:
+        w, h = (int(x) for x in str(text).lower().split("x"))
+    except ValueError:
+        raise InputError(
+            f"expected WIDTHxHEIGHT, e.g. 640x480, got {text!r}", field="size"
+        ) from None
+    if w < 16 or h < 16 or w > 8192 or h > 8192:
+        raise InputError(
+            f"image size must be between 16 and 8192 pixels, got {w}x{h}", field="size"
+        )
+    return w, h
+
+
+def generate(
+    preset: str | PresetConfig,
+    out: str | os.PathLike,
+    seed: int = 0,
+    frames: int | None = None,
+    size: tuple[int, int] | None = None,
+    progress: bool = True,
+    model_error_scale: float | None = None,
+    n_cameras: int | None = None,
+) -> Path:
+    """Write the dataset of ``preset`` (a name in :data:`PRESETS` or a config) to folder
+    ``out``; returns the path of its ``dataset.json`` (written last, atomically).
+
+    ``frames``/``size``/``n_cameras`` override the preset (20 frames, 640x480, 1 camera);
+    ``model_error_scale`` multiplies every model-error magnitude (0 gives a perfect model).
+    """
+    cfg = _resolve(preset)
+    frames = cfg.frames if frames is None else int(frames)
+    if frames < 1:
+        raise InputError(f"need at least one frame, got {frames}", field="frames")
+    size = cfg.size if size is None else (int(size[0]), int(size[1]))
+    n_cameras = cfg.n_cameras if n_cameras is None else int(n_cameras)
+    if n_cameras < 1:
+        raise InputError(f"need at least one camera, got {n_cameras}", field="cameras")
+    spec = (
+        cfg.model_error if model_error_scale is None else cfg.model_error.scaled(model_error_scale)
+    )
+    if spec.scale < 0:
+        raise InputError(f"model error scale must be >= 0, got {spec.scale}", field="model_error")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    scene_data = build_scene_data(cfg, seed, frames, size, n_cameras, spec)
+    names = list(scene_data.cameras_nominal)
+    frame_entries = []
+    it = range(frames)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc=f"synth {cfg.name}", unit="frame", leave=False)
+    statics = {
+        name: render_static(scene_data.cameras_true[name], scene_data.scene(None, []))
+        for name in names
+    }
+    from jaxcr.io.images import write_png
+
+    for k in it:
+        fid = f"{k:03d}"
+        scene = scene_data.scene(scene_data.bodies[k], scene_data.instruments[k])
+        entry: dict[str, Any] = {
+            "id": fid,
+            "q": [float(x) for x in scene_data.q_nominal[k]],
+            "images": {},
+            "masks": {},
+            "full_masks": {},
+            "occluders": {},
+            "tags": cfg.tags,
+        }
+        for ci, name in enumerate(names):
+            r = render(scene_data.cameras_true[name], scene, static=statics[name])
+            noise_rng = _rng(seed, cfg, _STREAM_NOISE, k, ci)
+            img = apply_camera_effects(r.image, noise_rng)
+            for key, folder, arr in (
+                ("images", "images", img),
+                ("masks", "masks", r.visible),
+                ("full_masks", "full", r.full),
+                ("occluders", "occluders", r.occluder),
+            ):
+                rel = f"{folder}/{name}/{fid}.png"
+                write_png(out / rel, arr)
+                entry[key][name] = rel
+        rel = f"truth/{fid}.npy"
+        (out / "truth").mkdir(exist_ok=True)
+        np.save(out / rel, scene_data.shapes_true.p[k])
+        entry["truth"] = {"centreline": rel}
+        frame_entries.append(entry)
+    backgrounds: dict[str, list[str]] = {}
+    for ci, name in enumerate(names):
+        backgrounds[name] = []
+        for b in range(N_BACKGROUND_IMAGES):
+            img = apply_camera_effects(
+                statics[name].image, _rng(seed, cfg, _STREAM_NOISE, 10_000 + b, ci)
+            )
+            rel = f"background/{name}/{b:03d}.png"
+            write_png(out / rel, img)
+            backgrounds[name].append(rel)
+    doc = {
+        "format": "jaxcr.dataset/1",
+        "name": cfg.name,
+        "robot": cfg.robot,
+        "cameras": {n: _camera_json(c) for n, c in scene_data.cameras_nominal.items()},
+        "frames": frame_entries,
+        "background_images": backgrounds,
+        "meta": {
+            "generator": "jaxcr synth",
+            "generator_version": GENERATOR_VERSION,
+            "preset": cfg.name,
+            "seed": int(seed),
+            "frames": frames,
+            "size": list(size),
+            "model_error": scene_data.error.to_dict(),
+            "true_robot": scene_data.robot_true,
+            "true_cameras": {n: c.T_cam_robot.tolist() for n, c in scene_data.cameras_true.items()},
+            "true_q": scene_data.q_true.tolist(),
+            "fk_ok_true": [bool(x) for x in scene_data.shapes_true.ok],
+            "tip_load_model": "linearised: du(s) = R(s)^T ((p(L)-p(s)) x F) / EI(s), re-integrated",
+        },
+    }
+    path = out / "dataset.json"
+    _json_dump_atomic(doc, path)
+    return path
+
+
+def _resolve(preset: str | PresetConfig) -> PresetConfig:
+    if isinstance(preset, PresetConfig):
+        return preset
+    if preset not in PRESETS:
+        raise InputError(
+            f"unknown preset {preset!r}; choose from {sorted(PRESETS)}", field="preset"
+        )
+    return PRESETS[preset]
+
+
+@dataclass
+class SceneData:
+    """Everything drawn for one preset before rendering (used by :func:`generate` and by the
+    nominal-IoU experiment)."""
+
+    cfg: PresetConfig
+    tissue: Tissue
+    cameras_nominal: dict[str, RenderCamera]
+    cameras_true: dict[str, RenderCamera]
+    error: ModelError
+    robot_true: dict[str, Any]
+    q_nominal: np.ndarray
+    q_true: np.ndarray
+    shapes_true: Shapes
+    bodies: list[TubeBody]
+    instruments: list[list]
+    static_occluders: list
+
+    def scene(self, body: TubeBody | None, instrument: list) -> Scene:
+        return Scene(self.tissue, body, list(instrument), self.static_occluders)
+
+
+def build_scene_data(
+    cfg: PresetConfig, seed: int, frames: int, size: tuple[int, int], n_cameras: int, spec=None
+) -> SceneData:
+    """Draw texture, trajectory, model error, true shapes and occluders of a preset."""
+    spec = cfg.model_error if spec is None else spec
+    texture = make_tissue_texture(_rng(seed, cfg, _STREAM_TEXTURE))
+    tissue = tissue_for(cfg, texture)
+    cams = nominal_cameras(cfg, size, n_cameras)
+    if cfg.robot["kind"] != "ctr":
+        raise InputError(
+            "the synthetic presets drive a concentric-tube robot ('ctr')", field="robot.kind"
+        )
+    q_nom = ctr_trajectory(cfg, _rng(seed, cfg, _STREAM_TRAJ), frames)
+    err = draw_model_error(
+        _rng(seed, cfg, _STREAM_ERROR), spec, cfg.robot, q_nom.shape[1], list(cams)
+    )
+    robot_true = perturbed_robot(copy.deepcopy(cfg.robot), err)
+    q_true = q_nom + np.asarray(err.joint_offset)[None, :]
+    shapes = robot_shapes(robot_true, q_true, np.asarray(err.tip_force))
+    cams_true = {
+        n: c.with_pose(perturbed_camera_pose(c.T_cam_robot, err, n)) for n, c in cams.items()
+    }
+    bodies = [tube_body(robot_true, shapes.p[k], shapes.rho[k]) for k in range(frames)]
+    instruments: list[list] = [[] for _ in range(frames)]
+    if cfg.occluded:
+        orng = _rng(seed, cfg, _STREAM_OCC)
+        base_angle = orng.uniform(0.0, np.pi)
+        ref = cams[camera_names(n_cameras)[0]]
+        eye = -ref.T_cam_robot[:3, :3].T @ ref.T_cam_robot[:3, 3]
+        for k in range(frames):
+            instruments[k] = instrument_for_frame(
+                cfg, orng, base_angle, shapes.p[k], eye, ref.T_cam_robot
+            )
+    return SceneData(
+        cfg,
+        tissue,
+        cams,
+        cams_true,
+        err,
+        robot_true,
+        q_nom,
+        q_true,
+        shapes,
+        bodies,
+        instruments,
+        actuation_unit(),
+    )
