@@ -335,3 +335,35 @@ def test_read_back_matches_independent_reader(ds):
     f = d.frames[0]
     np.testing.assert_array_equal(read_image(f.images["main"]), f.load_image("main"))
     np.testing.assert_array_equal(read_mask(f.masks["main"]), f.load_mask("main"))
+
+
+def _ctr_dataset(tmp_path, q):
+    from jaxcr.kinematics.ctr import TEST_CTR
+
+    with DatasetWriter(tmp_path / "c", "ctr", TEST_CTR, {"main": camera()}) as w:
+        w.add_frame(0, q, {"main": np.zeros((H, W, 3))})
+    return tmp_path / "c"
+
+
+def test_ctr_robot_joint_count(tmp_path):
+    root = _ctr_dataset(tmp_path, [0.0] * 5)
+    e = _one(validate_dataset(root), frame="000000", field="q")
+    assert "expected 6 joint values" in e.message  # 3 tubes: 3 rotations + 3 translations
+    root2 = _ctr_dataset(tmp_path / "ok", [0.0, 0.1, 0.2, -0.01, -0.02, -0.03])
+    assert validate_dataset(root2) == []
+    assert load_dataset(root2).robot.n_joints == 6
+
+
+def test_robot_kind_only_when_model_module_missing(tmp_path, monkeypatch):
+    """If a kind's module is absent from the build, only 'kind' is checked (robot=None)."""
+    import jaxcr.kinematics.robots as robots
+
+    def missing(kind):
+        raise ModuleNotFoundError(f"No module named 'jaxcr.kinematics.{kind}'")
+
+    monkeypatch.setattr(robots, "_model_class", missing)
+    root = _ctr_dataset(tmp_path, [0.0] * 5)
+    assert validate_dataset(root) == []  # joint count cannot be checked without the model
+    assert load_dataset(root).robot is None
+    edit_json(root, lambda d: d["robot"].update(kind="ctrx"))
+    _one(validate_dataset(root), field="robot.kind", message="unknown robot kind")
