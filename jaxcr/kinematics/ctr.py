@@ -61,7 +61,7 @@ from jaxcr.kinematics.ctr_mechanics import (
     second_moments,
     telescoping_ok,
 )
-from jaxcr.kinematics.newton import damped_newton, implicit_newton_step
+from jaxcr.kinematics.newton import NewtonResult, damped_newton, implicit_newton_step
 
 #: Public 3-tube test robot (innermost first), SI units, in the dataset robot schema.
 TEST_CTR: dict[str, Any] = {
@@ -114,9 +114,11 @@ class ConcentricTubeRobot(eqx.Module):
         n_points: centreline samples N (static). The 2n pieces between breakpoints get
             ``(N - 1) / 2n`` RK4 steps each (the remainder to the first pieces).
         transmission_torsion: let the transmission behind s = 0 twist (static).
-        tol: converged when ``||u_z(l)||_2 <= tol`` (1/m) (static).
+        tol: converged when the base-angle mismatch is at most ``tol`` (rad) (static).
         warm_steps: iteration bound of warm-started Newton (static).
         cold_steps: iteration bound of each cold start (static).
+        scan_points: tip angles per tube in the cold-start residual scan (static).
+        n_starts: cold starts refined by Newton (static); see :meth:`initial_guesses`.
     """
 
     kind: ClassVar[str] = "ctr"
@@ -130,9 +132,11 @@ class ConcentricTubeRobot(eqx.Module):
     kappa: Float[Array, " n"]
     n_points: int = eqx.field(static=True, default=97)
     transmission_torsion: bool = eqx.field(static=True, default=False)
-    tol: float = eqx.field(static=True, default=1e-3)
+    tol: float = eqx.field(static=True, default=1e-4)
     warm_steps: int = eqx.field(static=True, default=12)
-    cold_steps: int = eqx.field(static=True, default=40)
+    cold_steps: int = eqx.field(static=True, default=20)
+    scan_points: int = eqx.field(static=True, default=16)
+    n_starts: int = eqx.field(static=True, default=4)
 
     def __check_init__(self):
         steps_per_piece(2 * self.n_tubes, self.n_points)  # raises if n_points is too small
@@ -216,8 +220,8 @@ class ConcentricTubeRobot(eqx.Module):
                 f"expected true or false, got {tt!r}", file=file, field="transmission_torsion"
             )
         n_points = get_int(d, "n_points", file=file, default=97, minimum=2 * len(rows) + 1)
-        n_points = kwargs.pop("n_points", n_points)
-        return cls.make(rows, transmission_torsion=tt, n_points=n_points, **kwargs)
+        options = {"transmission_torsion": tt, "n_points": n_points} | kwargs
+        return cls.make(rows, **options)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready description (``from_dict(to_dict())`` rebuilds the same model)."""
@@ -270,59 +274,90 @@ class ConcentricTubeRobot(eqx.Module):
 
     # ------------------------------------------------------------------ shooting
 
-    def shooting_residual(self, q: Float[Array, " m"], uz0: Float[Array, " n"]) -> Array:
-        """``u_iz(l_i)`` (1/m) for initial twist rates ``uz0``: zero at an equilibrium."""
+    def _trajectory(self, q: Array, x: Array, with_centreline: bool):
+        """Integrate from the tip angles ``x`` (n - 1,) to the base; also the grid and psi(0)."""
         beta, alpha = self._split(q)
         tubes = self.mechanics(beta.dtype)
         grid = make_grid(tubes, beta, self.n_points)
-        psi0 = self._base_angles(beta, alpha, uz0)
-        traj = integrate_torsion(tubes, grid, uz0, psi0 - psi0[0], with_centreline=False)
-        return traj.uz_end
+        theta_tip = jnp.concatenate([jnp.zeros(1, beta.dtype), x.astype(beta.dtype)])
+        traj = integrate_torsion(tubes, grid, theta_tip, with_centreline=with_centreline)
+        psi0 = self._base_angles(beta, alpha, traj.uz0)
+        return tubes, grid, traj, psi0
 
-    def initial_guesses(self, q: Float[Array, " m"]) -> Float[Array, "k n"]:
-        """Cold-start guesses for ``u_z(0)`` (1/m): the zero-twist state plus twisted states.
+    def shooting_residual(self, q: Float[Array, " m"], x: Float[Array, " n-1"]) -> Array:
+        """Base-angle mismatch (rad, wrapped to (-pi, pi]) for tip angles ``x``.
 
-        The non-zero guesses twist tube ``j > 1`` against the others by about ``+-pi``
-        over the overlap with the next inner tube (balanced so that ``sum GJ u_z = 0``), which
-        is how the snapped (other-branch) equilibria differ from the zero-twist one.
+        ``x_j = theta_{j+1}(l_{j+1})`` is the angle of tube ``j + 1`` relative to the innermost
+        tube at its own distal end. Integrating the torsion ODE from the tips (where all
+        ``u_z = 0``) to ``s = 0`` gives ``theta(0)``; at an equilibrium it equals
+        ``psi(0) - psi_1(0)`` prescribed by the joint values. Zero at an equilibrium.
         """
-        beta, _ = self._split(q)
-        tubes = self.mechanics(beta.dtype)
-        n = self.n_tubes
-        ends = beta + tubes.length
-        guesses = [jnp.zeros(n, beta.dtype)]
-        for j in range(1, n):
-            overlap = jnp.maximum(jnp.minimum(ends[j], ends[j - 1]), 1e-3)
-            for sign in (1.0, -1.0):
-                rate = sign * jnp.pi / overlap
-                # Tube j twists by `rate`, the rest share the balancing moment.
-                others = jnp.arange(n) != j
-                gj_rest = jnp.sum(jnp.where(others, tubes.GJ, 0.0))
-                g = jnp.where(others, -rate * tubes.GJ[j] / gj_rest, rate)
-                guesses.append(g)
-        return jnp.stack(guesses)
+        _, _, traj, psi0 = self._trajectory(q, x, with_centreline=False)
+        d = traj.theta0[1:] - (psi0[1:] - psi0[0])
+        return jnp.arctan2(jnp.sin(d), jnp.cos(d))
 
-    def _solve(self, q: Array, guess: Array, max_steps: int, damping: float):
-        def residual(x):
-            return self.shooting_residual(jax.lax.stop_gradient(q), x)
+    def initial_guesses(self, q: Float[Array, " m"]) -> Float[Array, "k n-1"]:
+        """Cold-start tip angles: the ``n_starts`` best local minima of a residual scan.
 
-        res = damped_newton(residual, guess, max_steps=max_steps, tol=self.tol, damping=damping)
-        return res
-
-    def _result(self, q: Array, res) -> FkResult:
-        """Centreline, energy and flags at the solved twist (differentiable in q)."""
+        The residual is evaluated (no Jacobian) on a regular grid of ``scan_points`` angles per
+        tube on the torus of relative tip angles (``scan_points ** (n - 1)`` points, offset by
+        the untwisted state ``alpha_i - alpha_1``); grid points whose residual norm is no larger
+        than that of every neighbour (periodic) are candidates, and the ``n_starts`` with the
+        smallest residual are returned, best first (padded with the best one if there are
+        fewer). Distinct equilibria lie in distinct basins of this periodic map, which a
+        scan resolves where Newton from a few fixed starts does not.
+        """
         beta, alpha = self._split(q)
-        uz0 = implicit_newton_step(lambda x: self.shooting_residual(q, x), res.x, res.jac)
-        tubes = self.mechanics(beta.dtype)
-        grid = make_grid(tubes, beta, self.n_points)
-        psi0 = self._base_angles(beta, alpha, uz0)
-        traj = integrate_torsion(tubes, grid, uz0, psi0 - psi0[0], with_centreline=True)
+        n, g = self.n_tubes, self.scan_points
+        base = alpha[1:] - alpha[0]
+        offsets = 2.0 * np.pi * (np.arange(g) / g) - np.pi
+        mesh = np.stack(np.meshgrid(*([offsets] * (n - 1)), indexing="ij"), -1)
+        pts = base + jnp.asarray(mesh.reshape(-1, n - 1), beta.dtype)
+        qs = jax.lax.stop_gradient(q)
+        r = jax.vmap(lambda x: jnp.sum(self.shooting_residual(qs, x) ** 2))(pts)
+        r = jnp.where(jnp.isfinite(r), r, jnp.inf).reshape((g,) * (n - 1))
+        is_min = jnp.ones_like(r, dtype=bool)
+        for ax in range(n - 1):
+            for shift in (1, -1):
+                is_min = is_min & (r <= jnp.roll(r, shift, axis=ax))
+        key = jnp.where(is_min, r, jnp.inf).reshape(-1)
+        k = min(self.n_starts, key.shape[0])
+        _, idx = jax.lax.top_k(-key, k)
+        idx = jnp.where(jnp.isfinite(key[idx]), idx, idx[0])
+        return pts[idx]
+
+    def _solve(self, q: Array, guess: Array, max_steps: int, damping: float) -> NewtonResult:
+        q = jax.lax.stop_gradient(q)
+        if self.n_tubes == 1:  # nothing to shoot for
+            z = jnp.zeros((0,), guess.dtype)
+            return NewtonResult(
+                z,
+                jnp.zeros((), guess.dtype),
+                jnp.zeros((0, 0), guess.dtype),
+                jnp.zeros((), jnp.int32),
+            )
+        return damped_newton(
+            lambda x: self.shooting_residual(q, x),
+            guess,
+            max_steps=max_steps,
+            tol=self.tol,
+            damping=damping,
+            max_step=0.5,  # rad: a fraction of the branch spacing on the tip-angle torus
+        )
+
+    def _result(self, q: Array, res: NewtonResult) -> FkResult:
+        """Centreline, energy and flags at the solved tip angles (differentiable in q)."""
+        beta, _ = self._split(q)
+        if self.n_tubes == 1:
+            x = res.x
+        else:
+            x = implicit_newton_step(lambda z: self.shooting_residual(q, z), res.x, res.jac)
+        tubes, grid, traj, psi0 = self._trajectory(q, x, with_centreline=True)
         R0 = rot_z(psi0[0])
         centreline = integrate_centreline(grid.s, traj.u_steps, grid.rho, None, R0)
-        energy = traj.energy
-        if self.transmission_torsion:
-            energy = energy + 0.5 * jnp.sum(tubes.GJ * uz0**2 * (-beta))
-        residual = jnp.linalg.norm(traj.uz_end)
+        energy = traj.energy + self._transmission_energy(tubes, beta, traj.uz0)
+        d = traj.theta0[1:] - (psi0[1:] - psi0[0])
+        residual = jnp.max(jnp.abs(jnp.arctan2(jnp.sin(d), jnp.cos(d))), initial=0.0)
         finite = (
             jnp.all(jnp.isfinite(centreline.p))
             & jnp.all(jnp.isfinite(centreline.R))
@@ -335,57 +370,56 @@ class ConcentricTubeRobot(eqx.Module):
             residual=residual,
             energy=energy,
             num_steps=res.num_steps,
-            state=jax.lax.stop_gradient(uz0),
+            state=jax.lax.stop_gradient(x),
         )
+
+    def _transmission_energy(self, tubes: TubeMechanics, beta: Array, uz0: Array) -> Array:
+        """Torsion energy of the straight transmissions ``[beta_i, 0]`` (J); 0 if rigid."""
+        if not self.transmission_torsion:
+            return jnp.zeros((), beta.dtype)
+        return 0.5 * jnp.sum(tubes.GJ * uz0**2 * (-beta))
 
     def forward(self, q: Float[Array, " m"], guess: Array | None = None) -> FkResult:
         """Equilibrium centreline for joint vector ``q`` (see the module docstring).
 
         Args:
             q: (2n,) ``(beta, alpha)`` in metres and radians.
-            guess: (n,) initial twist rates ``u_z(0)`` (1/m), e.g. a previous ``state``.
+            guess: (n - 1,) tip angles (rad) to start Newton from, e.g. a previous ``state``.
                 ``None``: cold start from every :meth:`initial_guesses` entry, keep the
                 converged solution of least elastic energy.
 
         Returns:
-            :class:`FkResult` with N = ``n_points`` samples; ``state`` = ``u_z(0)``.
+            :class:`FkResult` with N = ``n_points`` samples; ``residual`` = max base-angle
+            mismatch (rad); ``state`` = the tip angles (warm start for a nearby q).
         """
         beta, _ = self._split(q)
         if guess is not None:
             guess = jnp.asarray(guess, beta.dtype)
-            res = self._solve(q, guess, self.warm_steps, 1e-6)
-            return self._result(q, res)
+            if guess.shape != (self.n_tubes - 1,):
+                raise ValueError(f"guess must have shape ({self.n_tubes - 1},), got {guess.shape}")
+            return self._result(q, self._solve(q, guess, self.warm_steps, 1e-6))
         guesses = self.initial_guesses(q)
-        results = jax.vmap(lambda g: self._solve(q, g, self.cold_steps, 1e-3))(guesses)
+        results = jax.vmap(lambda g: self._solve(q, g, self.cold_steps, 1e-4))(guesses)
         best = self._pick_branch(jax.lax.stop_gradient(q), results)
         res = jax.tree.map(lambda a: a[best], results)
         res = res._replace(num_steps=jnp.sum(results.num_steps))
         return self._result(q, res)
 
-    def _branch_energy(self, q: Array, uz0: Array) -> Array:
-        beta, alpha = self._split(q)
-        tubes = self.mechanics(beta.dtype)
-        grid = make_grid(tubes, beta, self.n_points)
-        psi0 = self._base_angles(beta, alpha, uz0)
-        traj = integrate_torsion(tubes, grid, uz0, psi0 - psi0[0], with_centreline=False)
-        energy = traj.energy
-        if self.transmission_torsion:
-            energy = energy + 0.5 * jnp.sum(tubes.GJ * uz0**2 * (-beta))
-        return energy
+    def _branch_energy(self, q: Array, x: Array) -> Array:
+        beta, _ = self._split(q)
+        tubes, _, traj, _ = self._trajectory(q, x, with_centreline=False)
+        return traj.energy + self._transmission_energy(tubes, beta, traj.uz0)
 
-    def _pick_branch(self, q: Array, results) -> Array:
+    def _pick_branch(self, q: Array, results: NewtonResult) -> Array:
         """Index of the converged solution with least energy (least residual if none)."""
         energies = jax.vmap(lambda x: self._branch_energy(q, x))(results.x)
         converged = (results.residual <= self.tol) & jnp.isfinite(energies)
         key = jnp.where(converged, energies, jnp.inf)
-        return jnp.where(
-            jnp.any(converged),
-            jnp.argmin(key),
-            jnp.argmin(jnp.nan_to_num(results.residual, nan=jnp.inf)),
-        )
+        residual = jnp.where(jnp.isfinite(results.residual), results.residual, jnp.inf)
+        return jnp.where(jnp.any(converged), jnp.argmin(key), jnp.argmin(residual))
 
     def forward_branches(
-        self, q: Float[Array, " m"], guesses: Float[Array, "k n"] | None = None
+        self, q: Float[Array, " m"], guesses: Float[Array, "k n-1"] | None = None
     ) -> FkResult:
         """Solve from each of ``guesses`` (default :meth:`initial_guesses`) independently.
 
@@ -395,7 +429,7 @@ class ConcentricTubeRobot(eqx.Module):
         guesses = self.initial_guesses(q) if guesses is None else jnp.asarray(guesses)
 
         def one(g):
-            return self._result(q, self._solve(q, g, self.cold_steps, 1e-3))
+            return self._result(q, self._solve(q, g, self.cold_steps, 1e-4))
 
         return jax.vmap(one)(guesses)
 

@@ -140,7 +140,8 @@ def torsion_rhs(
 
 
 class Trajectory(NamedTuple):
-    uz_end: Float[Array, " n"]  # u_iz at the grid end (= at l_i: frozen after the tube ends)
+    uz0: Float[Array, " n"]  # twist rates u_iz(0) at the base (1/m)
+    theta0: Float[Array, " n"]  # relative angles theta_i(0) at the base (rad)
     energy: Float[Array, ""]  # elastic energy of s in [0, max l_i] (J)
     u_steps: Float[Array, "N-1 3"] | None  # tube-1 curvature at each step midpoint (1/m)
     uz_samples: Float[Array, "N n"] | None  # u_iz at every sample (for checks)
@@ -149,22 +150,30 @@ class Trajectory(NamedTuple):
 def integrate_torsion(
     tubes: TubeMechanics,
     grid: Grid,
-    uz0: Float[Array, " n"],
-    theta0: Float[Array, " n"],
+    theta_tip: Float[Array, " n"],
     with_centreline: bool = True,
 ) -> Trajectory:
-    """Classical RK4 over the grid from ``(u_z(0), theta(0))``.
+    """Classical RK4 over the grid from the distal end ``s = max l_i`` back to ``s = 0``.
 
-    With ``with_centreline`` also returns the tube-1 curvature at each step's midpoint, where
-    ``theta`` and ``u_z`` come from cubic Hermite interpolation of the step's end states
-    (fourth-order accurate), so :func:`jaxcr.kinematics.cosserat.integrate_centreline` can
-    build the backbone from it.
+    The distal state is ``u_z = 0`` for every tube (free ends; a tube that has ended keeps its
+    end value, so this is also right for the shorter tubes) and ``theta = theta_tip``, the
+    relative angle each tube has at its own distal end (``theta_tip[0] = 0``). Integrating
+    towards the base turns the two-point boundary-value problem into a map from tip angles to
+    base angles, which is well conditioned and periodic in each angle; the shooting in
+    :mod:`jaxcr.kinematics.ctr` matches the base angles to the joint values.
+
+    With ``with_centreline`` also returns the tube-1 curvature ``(u1x, u1y, u1z)`` at each
+    step's midpoint, where ``theta`` and ``u_z`` come from cubic Hermite interpolation of the
+    step's end states (fourth-order accurate), for
+    :func:`jaxcr.kinematics.cosserat.integrate_centreline`.
     """
-    dtype = uz0.dtype
-    y0 = (uz0, theta0, jnp.zeros((), dtype))
+    dtype = theta_tip.dtype
+    n = theta_tip.shape[0]
+    y_tip = (jnp.zeros(n, dtype), theta_tip, jnp.zeros((), dtype))
 
     def step(y, inp):
-        h, pres, curv = inp
+        h_pos, pres, curv = inp
+        h = -h_pos  # towards the base
 
         def f(yy):
             return torsion_rhs(tubes, yy, pres, curv)
@@ -187,17 +196,20 @@ def integrate_torsion(
         )
         ux1, uy1 = bending_curvature(tubes, th_mid, pres, curv)
         u_mid = jnp.stack([ux1, uy1, uz_mid[0]])
-        return y_next, (u_mid, y_next[0])
+        return y_next, (u_mid, y[0])
 
-    y_end, out = jax.lax.scan(step, y0, (grid.h, grid.present, grid.curved))
+    y_base, out = jax.lax.scan(step, y_tip, (grid.h, grid.present, grid.curved), reverse=True)
+    uz0, theta0, energy_neg = y_base
+    energy = -energy_neg  # integrated towards decreasing s
     if not with_centreline:
-        return Trajectory(uz_end=y_end[0], energy=y_end[2], u_steps=None, uz_samples=None)
-    u_steps, uz_next = out
+        return Trajectory(uz0=uz0, theta0=theta0, energy=energy, u_steps=None, uz_samples=None)
+    u_steps, uz_after = out  # uz_after[k] = u_z at s[k + 1]
     return Trajectory(
-        uz_end=y_end[0],
-        energy=y_end[2],
+        uz0=uz0,
+        theta0=theta0,
+        energy=energy,
         u_steps=u_steps,
-        uz_samples=jnp.concatenate([uz0[None], uz_next]),
+        uz_samples=jnp.concatenate([uz0[None], uz_after]),
     )
 
 

@@ -37,6 +37,7 @@ def damped_newton(
     max_steps: int,
     tol: float,
     damping: float = 1e-6,
+    max_step: float = jnp.inf,
 ) -> NewtonResult:
     """Minimise ``||fun(x)||^2`` from ``x0`` by Levenberg-Marquardt with Marquardt scaling.
 
@@ -44,7 +45,8 @@ def damped_newton(
     accepted if it lowers the residual (then the damping shrinks by 3), otherwise the damping
     grows by 8. With small ``damping`` and a good ``x0`` this is plain Newton (quadratic
     convergence); with larger ``damping`` it is the safer cold-start variant. Stops when
-    ``||r|| <= tol`` or after ``max_steps`` iterations. Non-finite trials are rejected.
+    ``||r|| <= tol`` or after ``max_steps`` iterations. Non-finite trials are rejected, and
+    steps are shortened to at most ``max_step`` in every component.
     """
     x0 = jax.lax.stop_gradient(x0)
     r0, J0 = _residual_and_jacobian(fun, x0)
@@ -57,7 +59,11 @@ def damped_newton(
         A = J.T @ J
         A = A + mu * (jnp.diag(jnp.diag(A)) + jnp.eye(x.shape[0], dtype=dtype) * 1e-12)
         dx = jnp.linalg.solve(A, J.T @ r)
-        return x - jnp.where(jnp.isfinite(dx), dx, 0.0)
+        dx = jnp.where(jnp.isfinite(dx), dx, 0.0)
+        # Trust region in the max norm: a near-singular Jacobian must not throw x far away.
+        big = jnp.max(jnp.abs(dx), initial=0.0)
+        scale = jnp.minimum(1.0, max_step / jnp.where(big > 0, big, 1.0))
+        return x - scale * dx
 
     def cond(state):
         k, _, _, _, cost, _, _ = state
