@@ -40,13 +40,25 @@ def _safe_angle(w: Vec3) -> tuple[Array, Array, Array]:
     return small, safe_theta, theta2
 
 
+def _one_minus_cos_over_t2(small, t, theta2):
+    """(1 - cos t) / t^2, written as (sin(t/2) / (t/2))^2 / 2: no cancellation in float32."""
+    half = 0.5 * t
+    sinc_half = jnp.sin(half) / half
+    return jnp.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, 0.5 * sinc_half * sinc_half)
+
+
 def so3_exp(w: Vec3) -> Mat3:
     """Rotation matrix exp(hat(w)) (Rodrigues), NaN-free gradient at ``w = 0``."""
     small, t, theta2 = _safe_angle(w)
     a = jnp.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, jnp.sin(t) / t)
-    b = jnp.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - jnp.cos(t)) / (t * t))
+    b = _one_minus_cos_over_t2(small, t, theta2)
     W = hat(w)
     return jnp.eye(3, dtype=w.dtype) + a * W + b * (W @ W)
+
+
+# (t - sin t) / t^3 cancels badly in float32 for small t (t - sin t ~ t^3 / 6): below this
+# angle use its Taylor series, whose first omitted term t^10 / 13! is < 1e-12 here.
+_SERIES_ANGLE = 0.5
 
 
 def so3_left_jacobian(w: Vec3) -> Mat3:
@@ -56,8 +68,17 @@ def so3_left_jacobian(w: Vec3) -> Mat3:
     ``R0 @ so3_left_jacobian(h u) @ (h e3)``, exact for piecewise-constant curvature.
     """
     small, t, theta2 = _safe_angle(w)
-    b = jnp.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - jnp.cos(t)) / (t * t))
-    c = jnp.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - jnp.sin(t)) / (t**3))
+    b = _one_minus_cos_over_t2(small, t, theta2)
+    series = theta2 < _SERIES_ANGLE**2
+    t_c = jnp.where(series, 1.0, t)
+    c_series = (
+        1.0 / 6.0
+        - theta2 / 120.0
+        + theta2**2 / 5040.0
+        - theta2**3 / 362880.0
+        + theta2**4 / 39916800.0
+    )
+    c = jnp.where(series, c_series, (t_c - jnp.sin(t_c)) / (t_c**3))
     W = hat(w)
     return jnp.eye(3, dtype=w.dtype) + b * W + c * (W @ W)
 
