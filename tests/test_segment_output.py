@@ -197,5 +197,6 @@ def test_table2_aggregation_matches_numpy():
 
 def test_paper_table_text():
     md = report.paper_table2_markdown()
-    assert "0.665 ± 0.063" in md and "0.414 ± 0.104 | 0.636 ± 0.153" in md
-    assert "0.300 ± 0.109 | 0.520 ± 0.171" in md
+    assert "0.665 ± 0.063" in md and "0.414 ± 0.104 \\| 0.636 ± 0.153" in md
+    assert "0.300 ± 0.109 \\| 0.520 ± 0.171" in md
+    assert all(line.count(" | ") == 4 for line in md.splitlines()[2:])  # 5 cells per row

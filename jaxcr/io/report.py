@@ -167,8 +167,14 @@ def table2_markdown(table: Table2, title: str | None = None) -> str:
     lines.append("| | " + " | ".join(table.columns) + " |")
     lines.append("|---" * (len(table.columns) + 1) + "|")
     for label, row in table.cells.items():
-        lines.append(f"| {label} | " + " | ".join(row[c] for c in table.columns) + " |")
+        cells = [_md_cell(row[c]) for c in table.columns]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _md_cell(text: str) -> str:
+    """Escape the "raw | adjusted" separator so it does not split a Markdown table cell."""
+    return text.replace("|", "\\|")
 
 
 def paper_table2_markdown() -> str:
@@ -181,7 +187,7 @@ def paper_table2_markdown() -> str:
             text = format_ms(*raw)
             if adj is not None:
                 text += f" | {format_ms(*adj)}"
-            cells.append(text)
+            cells.append(_md_cell(text))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
