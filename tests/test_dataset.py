@@ -289,6 +289,9 @@ def test_corrupt_png_and_size_mismatch(ds):
     assert e.field == "images.main" and "does not match" in e.message
     d = load_dataset(ds)
     assert sorted(d.bad_frames) == ["000000", "000002"]  # the fast path reads PNG headers only
+    with pytest.raises(InputError, match="not a readable image") as ei:
+        d.frame("000001").load_image("main")  # found lazily, naming file, frame and field
+    assert (ei.value.file, ei.value.frame, ei.value.field) == (str(p), "000001", "images.main")
     d = load_dataset(ds, decode_images=True)
     assert sorted(d.bad_frames) == ["000000", "000001", "000002"] and d.frames == []
 

@@ -64,11 +64,23 @@ class Frame:
         """RGB float32 (H, W, 3) in [0, 1] seen by ``camera``."""
         if camera not in self.images:
             raise InputError(f"no image for camera {camera!r}", frame=self.id, field="images")
-        return read_image(self.images[camera])
+        try:
+            return read_image(self.images[camera])
+        except InputError as e:
+            raise InputError(
+                e.message, file=e.file, frame=self.id, field=f"images.{camera}"
+            ) from None
 
     def _load_mask(self, kind: str, camera: str) -> np.ndarray | None:
         paths = getattr(self, kind)
-        return read_mask(paths[camera]) if camera in paths else None
+        if camera not in paths:
+            return None
+        try:
+            return read_mask(paths[camera])
+        except InputError as e:
+            raise InputError(
+                e.message, file=e.file, frame=self.id, field=f"{kind}.{camera}"
+            ) from None
 
     def load_mask(self, camera: str) -> np.ndarray | None:
         """Visible robot pixels (bool (H, W)), or None if the frame has no mask there."""
