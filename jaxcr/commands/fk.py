@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import functools
 import io
 import math
 import os
@@ -110,17 +111,11 @@ def _with_points(model, n_points: int):
         ) from None
 
 
-def batch_forward(
-    model, q: np.ndarray, chunk: int = CHUNK, progress: bool = True
-) -> dict[str, np.ndarray]:
-    """Forward kinematics of every row of ``q`` (B, m) with one jitted ``vmap`` (one compile).
-
-    Rows are processed in chunks of ``chunk`` (the last chunk padded to the same shape, so
-    there is a single trace). Returns numpy arrays keyed as in ``centrelines.npz``.
-    """
+@functools.cache
+def _compiled_forward():
+    """The jitted, vmapped forward pass (built once per process; one compile per model/shape)."""
     import equinox as eqx
     import jax
-    import jax.numpy as jnp
 
     from jaxcr.geometry import so3_log
 
@@ -130,6 +125,20 @@ def batch_forward(
         rotvec = jax.vmap(so3_log)(res.centreline.R[:, -1])
         return res, rotvec
 
+    return run_chunk
+
+
+def batch_forward(
+    model, q: np.ndarray, chunk: int = CHUNK, progress: bool = True
+) -> dict[str, np.ndarray]:
+    """Forward kinematics of every row of ``q`` (B, m) with one jitted ``vmap`` (one compile).
+
+    Rows are processed in chunks of ``chunk`` (the last chunk padded to the same shape, so
+    there is a single trace). Returns numpy arrays keyed as in ``centrelines.npz``.
+    """
+    import jax.numpy as jnp
+
+    run_chunk = _compiled_forward()
     B = q.shape[0]
     chunk = max(1, min(chunk, B))
     outs = []
