@@ -1,10 +1,28 @@
 """Robot kinematic models mapping joint values q to a sampled centreline."""
 
+from jaxcr.kinematics.base import FkResult, RobotModel
+from jaxcr.kinematics.constant_curvature import ConstantCurvature
 from jaxcr.kinematics.cosserat import (
     Centreline,
     integrate_centreline,
     integrate_steps,
     perturb_centreline,
 )
+from jaxcr.kinematics.robots import load_robot, robot_from_dict, robot_to_dict
+from jaxcr.kinematics.single_segment import SingleSegment, angles_to_rotation, rotation_to_angles
 
-__all__ = ["Centreline", "integrate_centreline", "integrate_steps", "perturb_centreline"]
+__all__ = [
+    "Centreline",
+    "ConstantCurvature",
+    "FkResult",
+    "RobotModel",
+    "SingleSegment",
+    "angles_to_rotation",
+    "integrate_centreline",
+    "integrate_steps",
+    "load_robot",
+    "perturb_centreline",
+    "robot_from_dict",
+    "robot_to_dict",
+    "rotation_to_angles",
+]
