@@ -204,3 +204,26 @@ def test_console_script_smoke(files):
     )
     assert r.returncode == 0, r.stderr
     assert (files / "sp" / "tips.csv").exists()
+
+
+def test_batch_forward_traces_once_across_chunks():
+    from jaxcr.kinematics.single_segment import SingleSegment
+
+    traces = []
+
+    class CountingSegment(SingleSegment):
+        def forward(self, q, guess=None):
+            traces.append(q.shape)  # runs at trace time only
+            return super().forward(q, guess)
+
+    model = CountingSegment.make(length=0.03, radius=1e-3, n_points=7)
+    q = np.random.default_rng(0).uniform(-1.0, 1.0, size=(5, 2))
+    out = batch_forward(model, q, chunk=2, progress=False)  # chunks of 2, 2, 1 (padded to 2)
+    assert len(traces) == 1
+    batch_forward(model, q + 0.1, chunk=2, progress=False)  # new values, same shapes
+    assert len(traces) == 1
+    for i in range(5):
+        ref = SingleSegment.make(length=0.03, radius=1e-3, n_points=7).forward(
+            jnp.asarray(q[i], jnp.float32)
+        )
+        np.testing.assert_allclose(out["p"][i], ref.centreline.p, atol=1e-7)
