@@ -52,7 +52,7 @@ def make_dataset(root: Path) -> Path:
     rng = np.random.default_rng(0)
     robot = robot_from_dict(ROBOT)
     cam = Camera.look_at((-0.15, 0.0, 0.04), (0.0, 0.0, 0.04), (0.0, -1.0, 0.0), 110.0, (W, H))
-    qs = [(5.0, 0.0), (-4.0, 0.2), (3.0, -0.3), (-6.0, 0.1), (2.0, 0.0), (4.0, 0.0)]
+    qs = [(5.0, 0.0), (-4.0, 0.2), (3.0, -0.3), (-6.0, 0.1), (2.0, 0.0), (4.0, 0.0), (1.0, 0.0)]
     with DatasetWriter(root, "tiny", ROBOT, {"main": cam}) as w:
         for k, q in enumerate(qs):
             q_true = np.array(q) + np.array([1.5, 0.05])
@@ -67,6 +67,8 @@ def make_dataset(root: Path) -> Path:
             img += 0.05 * rng.standard_normal((H, W, 3)).astype(np.float32)
             img[visible] = [0.7, 0.7, 0.72]
             img[occ] = [0.1, 0.5, 0.1]
+            if k == 6:  # saturated red everywhere: the colour mask leaves nothing
+                img[...] = [0.8, 0.1, 0.1]
             w.add_frame(
                 k, q, {"main": np.clip(img, 0, 1)}, masks={"main": visible},
                 full_masks={"main": full}, occluders={"main": occ},
@@ -81,7 +83,7 @@ def make_dataset(root: Path) -> Path:
 
 
 GOOD = ["000000", "000001", "000002", "000003"]
-BAD = ["000004", "000005"]
+BAD = ["000004", "000005", "000006"]
 
 
 @pytest.fixture(scope="module")
@@ -102,13 +104,15 @@ def _records(out):
 
 def test_segment_writes_everything_and_fails_bad_frames(full_run):
     code, out = full_run
-    assert code == 1  # two bad frames
+    assert code == 1  # three bad frames
     recs = _records(out)
     assert sorted(recs) == sorted(GOOD + BAD)
     for fid in BAD:
         assert recs[fid]["ok"] is False and recs[fid]["reason"]
     assert "NaN" in recs["000004"]["reason"] or "finite" in recs["000004"]["reason"]
     assert "000005.png" in recs["000005"]["reason"]
+    assert "background" in recs["000006"]["reason"]
+    assert "files" not in recs["000006"]
     for fid in GOOD:
         r = recs[fid]
         assert r["format"] == "jaxcr.segment/1"
@@ -126,7 +130,7 @@ def test_segment_writes_everything_and_fails_bad_frames(full_run):
         cl = np.load(out / r["files"]["centreline"])
         assert cl.shape == (24, 3) and np.all(np.isfinite(cl))
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["frames"] == 6 and summary["failed"] == 2
+    assert summary["frames"] == 7 and summary["failed"] == 3
     assert (out / "DONE").exists()
     run = json.loads((out / "run.json").read_text())
     assert run["format"] == "jaxcr.segment-run/1" and run["cameras"] == ["main"]
@@ -160,7 +164,7 @@ def test_limit_then_resume_equals_uninterrupted(full_run, dataset, tmp_path):
     assert code == 1 and (out / "DONE").exists()
     _compare_runs(ref, out)
     lines = (out / "results.jsonl").read_text().splitlines()
-    assert len(lines) == 6  # no frame processed twice
+    assert len(lines) == 7  # no frame processed twice
 
 
 def test_kill_mid_run_then_resume(full_run, dataset, tmp_path, monkeypatch):
@@ -182,7 +186,7 @@ def test_kill_mid_run_then_resume(full_run, dataset, tmp_path, monkeypatch):
     assert main(["segment", str(dataset), "-o", str(out), *FAST]) == 130
     monkeypatch.setattr(R, "atomic_write_npy", real)
     recs = _records(out)
-    assert set(recs) == set(BAD) | {GOOD[0]}
+    assert set(recs) == {BAD[0], BAD[1], GOOD[0]}  # bad frames are recorded first
     assert not (out / "DONE").exists()
     assert main(["segment", str(dataset), "-o", str(out), *FAST, "--resume"]) == 1
     _compare_runs(ref, out)
@@ -241,7 +245,7 @@ def test_evaluate_matches_numpy(full_run, dataset, tmp_path, capsys):
         assert float(got["mean"]) == pytest.approx(np.mean(v), abs=1e-5), k
         assert float(got["std"]) == pytest.approx(np.std(v), abs=1e-5), k
         assert int(got["n"]) == 4
-    assert rows[("tiny", "failed")]["mean"] == "2"
+    assert rows[("tiny", "failed")]["mean"] == "3"
     md = (rep / "table2.md").read_text()
     m, s = np.mean(want["iou_refined"]), np.std(want["iou_refined"])
     assert f"{m:.3f} ± {s:.3f} \\| " in md

@@ -257,7 +257,7 @@ class Segmenter:
                     "num_steps": int(fk_steps[i]),
                 },
             }
-            if bool(fk_ok[i]) and np.all(np.isfinite(host.centreline.p[i])):
+            if ok and np.all(np.isfinite(host.centreline.p[i])):
                 rec["files"] = self._write_frame_files(
                     fid, frame, images, host, i, bgs_np, nominal_p[i]
                 )
