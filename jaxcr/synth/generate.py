@@ -164,10 +164,11 @@ def instrument_for_frame(
     T_cam: np.ndarray,
 ):
     """Laparoscopic scissors crossing the robot between it and the camera: the shaft passes
-    ``instrument_depth`` in front of a point at 35-75% of the robot's length, at an image-plane
+    ``instrument_depth`` in front of a centreline sample (a fraction in ``instrument_span`` of
+    the samples from the base), at an image-plane
     angle near ``base_angle``, its jaws ending 5-25 mm past the crossing."""
     n = len(p)
-    c = p[int(rng.uniform(0.35, 0.75) * (n - 1))]
+    c = p[int(rng.uniform(*cfg.instrument_span) * (n - 1))]
     to_cam = eye - c
     to_cam /= np.linalg.norm(to_cam)
     c_front = c + cfg.instrument_depth * to_cam

@@ -99,6 +99,7 @@ class PresetConfig:
     exposed_step: tuple[float, float] = (0.02, 0.05)
     alpha_amplitude: float = 1.4
     instrument_depth: float = 0.018  # instrument axis this far in front of the robot (m)
+    instrument_span: tuple[float, float] = (0.35, 0.75)  # crossing, fraction of samples
     preset_index: int = 0
 
     @property
@@ -134,7 +135,13 @@ PRESETS: dict[str, PresetConfig] = {
         "endoscopic", "endoscopic", False, _ENDO_VIEW, _ENDO_TISSUE, preset_index=2
     ),
     "endoscopic_occluded": PresetConfig(
-        "endoscopic_occluded", "endoscopic", True, _ENDO_VIEW, _ENDO_TISSUE, preset_index=3
+        "endoscopic_occluded",
+        "endoscopic",
+        True,
+        _ENDO_VIEW,
+        _ENDO_TISSUE,
+        preset_index=3,
+        instrument_span=(0.6, 0.9),
     ),
 }
 

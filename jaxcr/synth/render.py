@@ -31,7 +31,7 @@ _BBOX_MARGIN_PX = 2.0
 _SUPERSAMPLE = 3
 _VOID_RGB = np.array([0.04, 0.035, 0.035])
 _ROOM_RGB = np.array([0.42, 0.42, 0.45])
-_TISSUE_MEAN_RGB = np.array([0.70, 0.38, 0.36])
+_TISSUE_MEAN_RGB = np.array([0.80, 0.50, 0.48])
 
 
 @dataclass
@@ -287,7 +287,6 @@ def trace(cam: RenderCamera, prims: _CamPrims, rays: RaySet, layer: str = "all")
     if layer not in ("all", "dynamic", "static", "robot"):
         raise ValueError(f"unknown layer {layer!r}")
     m = len(rays.row)
-    o = np.zeros((m, 3))
     t_best = np.full(m, np.inf)
     mat = np.full(m, -1)
     normal = np.zeros((m, 3))
@@ -308,7 +307,11 @@ def trace(cam: RenderCamera, prims: _CamPrims, rays: RaySet, layer: str = "all")
             if len(idx) == 0:
                 continue
             t, n = ray_capsule(
-                o[idx], rays.d[idx], prims.caps_a[k], prims.caps_b[k], prims.caps_r[k]
+                np.zeros((len(idx), 3)),
+                rays.d[idx],
+                prims.caps_a[k],
+                prims.caps_b[k],
+                prims.caps_r[k],
             )
             if k < prims.n_robot_caps:
                 t_robot[idx] = np.minimum(t_robot[idx], t)
@@ -329,14 +332,14 @@ def trace(cam: RenderCamera, prims: _CamPrims, rays: RaySet, layer: str = "all")
             idx = rays.select(box)
             if len(idx) == 0:
                 continue
-            t, n = ray_box(o[idx], rays.d[idx], centre, axes, half)
+            t, n = ray_box(np.zeros((len(idx), 3)), rays.d[idx], centre, axes, half)
             better = t < t_best[idx]
             sel = idx[better]
             t_best[sel] = t[better]
             mat[sel] = mi
             normal[sel] = n[better]
     if wanted(True) and np.any(prims.plane_normal):
-        t, n = ray_plane(o, rays.d, prims.plane_point, prims.plane_normal)
+        t, n = ray_plane(np.zeros((m, 3)), rays.d, prims.plane_point, prims.plane_normal)
         better = t < t_best
         t_best[better] = t[better]
         mat[better] = 0

@@ -21,11 +21,11 @@ import numpy as np
 # Linear-ish display RGB in [0, 1].
 PALETTE = np.array(
     [
-        [0.42, 0.07, 0.08],  # deep red muscle
-        [0.62, 0.22, 0.22],  # red
-        [0.80, 0.45, 0.45],  # pink mucosa
-        [0.72, 0.58, 0.58],  # grey-pink fascia (overlaps the metal's reflections)
-        [0.88, 0.74, 0.50],  # yellowish fat
+        [0.50, 0.12, 0.12],  # deep red muscle
+        [0.70, 0.30, 0.30],  # red
+        [0.84, 0.52, 0.50],  # pink mucosa
+        [0.74, 0.62, 0.62],  # grey-pink fascia (overlaps the metal's reflections)
+        [0.90, 0.78, 0.56],  # yellowish fat
     ],
     dtype=np.float32,
 )
@@ -91,16 +91,16 @@ def make_tissue_texture(
     tone = fractal_noise(rng, size, 2, 3, 0.5)
     detail = fractal_noise(rng, size, 48, 3, 0.6)
     # Tone index: mostly red/pink, fat and fascia in patches.
-    idx = 0.15 + 0.55 * base + 0.45 * (tone - 0.5) + 0.12 * (detail - 0.5)
+    idx = 0.1 + 0.75 * base + 0.6 * (tone - 0.5) + 0.12 * (detail - 0.5)
     albedo = _palette_lookup(idx)
     # Vessels: thin dark-red bands where two low-frequency noises cross mid-level.
     vessel = np.zeros((size, size), np.float32)
-    for cells, width in ((3, 0.012), (6, 0.008), (12, 0.006)):
+    for cells, width in ((3, 0.010), (6, 0.007), (10, 0.005)):
         n = fractal_noise(rng, size, cells, 2, 0.4)
-        vessel = np.maximum(vessel, np.exp(-(((n - 0.5) / width) ** 2)))
-    vessel *= fractal_noise(rng, size, 3, 2) > 0.35
+        presence = np.clip((fractal_noise(rng, size, 3, 2) - 0.35) / 0.3, 0.0, 1.0)
+        vessel = np.maximum(vessel, presence * np.exp(-(((n - 0.5) / width) ** 2)))
     vessel_rgb = np.array([0.32, 0.03, 0.06], np.float32)
-    albedo = albedo * (1.0 - 0.8 * vessel[..., None]) + 0.8 * vessel[..., None] * vessel_rgb
+    albedo = albedo * (1.0 - 0.7 * vessel[..., None]) + 0.7 * vessel[..., None] * vessel_rgb
     # Fine speckle so flat regions are not perfectly smooth.
     albedo *= (0.92 + 0.16 * fractal_noise(rng, size, 128, 2))[..., None]
     texel = extent / size
