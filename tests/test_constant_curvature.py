@@ -18,8 +18,8 @@ def wj_transform(kappa, phi, length):
     """Webster & Jones 2010 eq. 1, written out entry by entry (float64)."""
     c, s = np.cos(phi), np.sin(phi)
     ck, sk = np.cos(kappa * length), np.sin(kappa * length)
-    if kappa == 0.0:
-        p = np.array([0.0, 0.0, length])
+    if abs(kappa) < 1e-9:  # series (also avoids denormal kappa): sag kappa L^2 / 2
+        p = np.array([c * kappa * length**2 / 2, s * kappa * length**2 / 2, length])
     else:
         p = np.array([c * (1 - ck) / kappa, s * (1 - ck) / kappa, sk / kappa])
     R = np.array(
@@ -158,6 +158,13 @@ def test_joint_subset_and_energy():
     np.testing.assert_allclose(res.energy, 0.5 * (2e-3 * 100 * 0.05 + 1e-3 * 400 * 0.03), rtol=1e-6)
     with pytest.raises(ValueError, match="shape"):
         robot.forward(jnp.zeros(3))
+
+
+def test_ok_flags_bad_lengths_and_nan(fwd):
+    assert not bool(fwd(_q([1.0, 2.0, 3.0], [0.0, 0.0, 0.0], [0.05, -0.01, 0.03])).ok)
+    assert not bool(fwd(_q([1.0, 2.0, 3.0], [0.0, 0.0, 0.0], [0.05, 0.0, 0.03])).ok)
+    assert not bool(fwd(_q([1.0, np.nan, 3.0], [0.0, 0.0, 0.0], [0.05, 0.04, 0.03])).ok)
+    assert bool(fwd(_q([1.0, 2.0, 3.0], [0.0, 0.0, 0.0], [0.05, 0.04, 0.03])).ok)
 
 
 def test_invalid_construction():

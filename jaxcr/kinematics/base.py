@@ -50,10 +50,14 @@ class RobotModel(Protocol):
     def forward(self, q: Float[Array, " m"], guess: Array | None = None) -> FkResult: ...
 
 
-def closed_form_result(centreline: Centreline, energy: Float[Array, ""]) -> FkResult:
-    """Wrap a closed-form centreline: ok = all outputs finite, residual 0, no solver state."""
+def closed_form_result(
+    centreline: Centreline, energy: Float[Array, ""], valid: Bool[Array, ""] | bool = True
+) -> FkResult:
+    """Wrap a closed-form centreline: ok = ``valid`` and all outputs finite, residual 0, no
+    solver state."""
     finite = (
-        jnp.all(jnp.isfinite(centreline.p))
+        jnp.asarray(valid)
+        & jnp.all(jnp.isfinite(centreline.p))
         & jnp.all(jnp.isfinite(centreline.R))
         & jnp.all(jnp.isfinite(centreline.s))
         & jnp.isfinite(energy)

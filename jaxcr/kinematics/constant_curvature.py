@@ -131,7 +131,10 @@ class ConstantCurvature(eqx.Module):
         return tuple(jnp.asarray(values[k], dtype) for k in SECTION_QUANTITIES)
 
     def forward(self, q: Float[Array, " m"], guess: Array | None = None) -> FkResult:
-        """Centreline for joint vector ``q`` (closed form; ``guess`` is ignored)."""
+        """Centreline for joint vector ``q`` (closed form; ``guess`` is ignored).
+
+        ``ok`` is False when an output is non-finite or a section length is <= 0.
+        """
         del guess
         kappa, phi, length = self.section_parameters(q)
         counts = steps_per_piece(self.n_sections, self.n_points)
@@ -145,7 +148,8 @@ class ConstantCurvature(eqx.Module):
         rho = jnp.concatenate([radius[:1], radius[idx]])
         centreline = integrate_centreline(s, u_steps, rho)
         energy = 0.5 * jnp.sum(self.bending_stiffness.astype(s.dtype) * kappa**2 * length)
-        return closed_form_result(centreline, energy)
+        # A non-positive section length (possible when length is a joint) is not a robot.
+        return closed_form_result(centreline, energy, valid=jnp.all(length > 0))
 
     # ---------------------------------------------------------------- robot.json
 

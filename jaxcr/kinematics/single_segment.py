@@ -16,6 +16,8 @@ arclength s is ``Rz Ry(s/L (theta_0 - theta_L)) Rz^T``: constant body curvature
 ``u = ((theta_0 - theta_L)/L) (sin delta, cos delta, 0)``.
 
 Workspace: bending angle in [0, pi] (theta_L in [-pi/2, pi/2]), delta in (-pi, pi].
+Outside it ``forward`` and ``angles_to_rotation`` still follow the formulas (theta_L > pi/2
+bends towards delta + pi), and ``rotation_to_angles`` returns the equivalent workspace angles.
 """
 
 from __future__ import annotations
