@@ -1,0 +1,42 @@
+"""Eigen-feature pose estimation of a single-segment continuum robot (Reiter et al.):
+colour segmentation, contour, angular-histogram stereo descriptor, PCA, thin-plate spline
+manifold and k-NN inverse-distance query."""
+
+from jaxcr.eigen.colour import ColourModel, fit_colour_model, label_batch, label_image, rgb_to_lab
+from jaxcr.eigen.descriptor import angular_histogram, mask_descriptors, stereo_descriptor
+from jaxcr.eigen.manifold import Manifold, build_manifold, idw_weights, knn, query, query_batch
+from jaxcr.eigen.model import EigenModel, TrainConfig, estimate, train
+from jaxcr.eigen.model_file import FORMAT, load_model, save_model
+from jaxcr.eigen.pca import PCA, components_for_variance, fit_pca, project
+from jaxcr.eigen.tps import ThinPlateSpline, evaluate_tps, fit_tps
+
+__all__ = [
+    "ColourModel",
+    "EigenModel",
+    "FORMAT",
+    "Manifold",
+    "PCA",
+    "ThinPlateSpline",
+    "TrainConfig",
+    "angular_histogram",
+    "build_manifold",
+    "components_for_variance",
+    "estimate",
+    "evaluate_tps",
+    "fit_colour_model",
+    "fit_pca",
+    "fit_tps",
+    "idw_weights",
+    "knn",
+    "label_batch",
+    "label_image",
+    "mask_descriptors",
+    "project",
+    "query",
+    "query_batch",
+    "rgb_to_lab",
+    "save_model",
+    "load_model",
+    "stereo_descriptor",
+    "train",
+]
