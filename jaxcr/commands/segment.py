@@ -174,23 +174,30 @@ def versions() -> dict:
             out[pkg] = md.version(pkg)
         except md.PackageNotFoundError:
             pass
-    out["git_commit"] = _git_commit()
+    out["git_commit"] = (_git("rev-parse", "HEAD") or "").strip() or None
+    dirty = _git("status", "--porcelain", "--untracked-files=no", "--", "jaxcr")
+    # modified tracked files under jaxcr/ (the code that ran differs from the commit)
+    out["git_dirty"] = (
+        None if dirty is None else sorted(line[3:] for line in dirty.splitlines() if line.strip())
+    )
     return out
 
 
-def _git_commit() -> str | None:
+def _git(*args: str) -> str | None:
     import subprocess
 
     try:
         root = Path(__file__).resolve().parents[2]
+        if not (root / ".git").exists():
+            return None
         r = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"],
+            ["git", "-C", str(root), *args],
             capture_output=True,
             text=True,
             timeout=5,
             check=False,
         )
-        return r.stdout.strip() or None
+        return r.stdout.rstrip("\n") if r.returncode == 0 else None
     except (OSError, subprocess.SubprocessError):
         return None
 
