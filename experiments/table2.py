@@ -89,6 +89,8 @@ def main(argv=None) -> int:
         f"- jaxcr {v.get('jaxcr')} commit `{v.get('git_commit')}`, jax {v.get('jax')}, "
         f"Python {platform.python_version()}, {platform.machine()}, "
         f"{platform.processor() or 'cpu'}",
+        "- uncommitted changes in the code that ran: "
+        + (", ".join(f"`{f}`" for f in v.get("git_dirty") or []) or "none"),
         f"- {a.frames} frames per preset at {size[0]}x{size[1]}, background subtraction: "
         f"colour mask, refinement: `jaxcr.refine.RefineConfig()` defaults "
         f"(`{json.dumps(R.to_jsonable(infos[0]['config']))}`)",
