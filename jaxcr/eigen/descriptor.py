@@ -14,6 +14,8 @@ encode. ``normalise=False`` gives the paper's raw counts.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -58,19 +60,38 @@ _hist_batch = jax.jit(
 )
 
 
-def mask_descriptors(
-    masks: np.ndarray, n_bins: int, spacing: float = 2.0, normalise: bool = True
-) -> tuple[np.ndarray, np.ndarray]:
-    """Histograms of a batch of binary marker images (B, H, W) -> ((B, n_bins), ok (B,)).
+@dataclass
+class Contours:
+    """Contour points of a batch of binary images: ``points[i]`` (n_i, 2) int (x, y),
+    ``centres`` (B, 2) region centroids (pixels), ``ok`` (B,) False where the image had
+    fewer than :data:`MIN_MARKER_PIXELS` marker pixels, ``marker_pixels`` (B,) counts."""
 
-    ``ok`` is False where the image has fewer than :data:`MIN_MARKER_PIXELS` marker pixels
-    (fully occluded, wrong colour model): those rows are zeros and must not be estimated.
-    """
+    points: list[np.ndarray]
+    centres: np.ndarray
+    ok: np.ndarray
+    marker_pixels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @staticmethod
+    def concat(parts: list[Contours]) -> Contours:
+        return Contours(
+            [p for c in parts for p in c.points],
+            np.concatenate([c.centres for c in parts]) if parts else np.zeros((0, 2)),
+            np.concatenate([c.ok for c in parts]) if parts else np.zeros(0, bool),
+            np.concatenate([c.marker_pixels for c in parts]) if parts else np.zeros(0, int),
+        )
+
+
+def mask_contours(masks: np.ndarray, spacing: float = 2.0) -> Contours:
+    """Contour points (:func:`jaxcr.eigen.contour.contour_points`) of binary images (B, H, W)."""
     masks = np.asarray(masks, bool)
     edges = np.asarray(sobel_edges_batch(jnp.asarray(masks)))
-    pts, centres, ok = [], [], []
+    pts, centres, ok, npx = [], [], [], []
     for m, e in zip(masks, edges, strict=True):
         n = int(m.sum())
+        npx.append(n)
         if n < MIN_MARKER_PIXELS:
             pts.append(np.zeros((0, 2), np.int64))
             centres.append(np.zeros(2))
@@ -80,15 +101,35 @@ def mask_descriptors(
         centres.append(np.array([xs.mean(), ys.mean()]))
         pts.append(contour_points(m, spacing=spacing, edges=e))
         ok.append(True)
-    # Pad to a power-of-two-ish length so the jitted histogram compiles for few shapes.
-    p = max(1, max(len(q) for q in pts))
+    return Contours(
+        pts, np.asarray(centres, np.float64).reshape(-1, 2), np.asarray(ok, bool), np.asarray(npx)
+    )
+
+
+def contour_histograms(c: Contours, n_bins: int, normalise: bool = True) -> np.ndarray:
+    """Angular histograms (B, n_bins) of contours; rows of failed images are zeros."""
+    if len(c) == 0:
+        return np.zeros((0, n_bins), np.float32)
+    # Pad to a power of two so the jitted histogram compiles for few shapes.
+    p = max(1, max(len(q) for q in c.points))
     p = int(2 ** np.ceil(np.log2(p)))
-    P = np.zeros((len(pts), p, 2), np.float32)
-    V = np.zeros((len(pts), p), bool)
-    for i, q in enumerate(pts):
+    P = np.zeros((len(c), p, 2), np.float32)
+    V = np.zeros((len(c), p), bool)
+    for i, q in enumerate(c.points):
         P[i, : len(q)] = q
         V[i, : len(q)] = True
-    H = np.array(_hist_batch(P, V, np.asarray(centres, np.float32), n_bins, normalise))
-    ok = np.asarray(ok, bool)
-    H[~ok] = 0.0
-    return H, ok
+    H = np.array(_hist_batch(P, V, np.asarray(c.centres, np.float32), n_bins, normalise))
+    H[~c.ok] = 0.0
+    return H
+
+
+def mask_descriptors(
+    masks: np.ndarray, n_bins: int, spacing: float = 2.0, normalise: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Histograms of a batch of binary marker images (B, H, W) -> ((B, n_bins), ok (B,)).
+
+    ``ok`` is False where the image has fewer than :data:`MIN_MARKER_PIXELS` marker pixels
+    (fully occluded, wrong colour model): those rows are zeros and must not be estimated.
+    """
+    c = mask_contours(masks, spacing)
+    return contour_histograms(c, n_bins, normalise), c.ok

@@ -1,0 +1,319 @@
+"""``jaxcr manifold``: eigen-feature pose estimation of a single-segment robot from stereo
+pairs (Reiter et al.).
+
+    jaxcr manifold train DATASET -o MODEL.npz [--bins 120 --variance 0.9 --params angles]
+    jaxcr manifold query MODEL.npz DATASET -o OUTDIR
+    jaxcr manifold synth -o DIR --frames N --split train|test [--occluded --size 512x384]
+
+``train`` clusters the first frame's colours (k-means in CIELAB a*b*), extracts the stereo
+angular-histogram descriptors of every frame, keeps the PCA components for the variance
+fraction, fits the thin-plate spline manifold and resamples it; the model file is
+versioned (``jaxcr.manifold/1``). ``query`` estimates psi = (theta_L, delta) (or the tip
+position) of every frame and, where the dataset has the truth, the errors; frames without
+marker pixels in a view are reported as failed (exit code 1 if any failed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxcr.errors import InputError
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "manifold",
+        help="eigen-feature manifold pose estimation (Reiter et al.): train, query, synth",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = p.add_subparsers(dest="manifold_command", metavar="ACTION")
+
+    t = sub.add_parser("train", help="train a manifold model from a stereo dataset")
+    t.add_argument("dataset", help="training dataset (folder or dataset.json)")
+    t.add_argument("-o", "--out", required=True, help="model file to write (.npz)")
+    t.add_argument("--bins", type=int, default=120, help="histogram bins per image (default 120)")
+    t.add_argument(
+        "--variance", type=float, default=0.90, help="PCA variance fraction (default 0.90)"
+    )
+    t.add_argument(
+        "--smoothing", type=float, default=1e-4, help="thin-plate smoothing lambda (default 1e-4)"
+    )
+    t.add_argument(
+        "--step",
+        type=float,
+        default=None,
+        help="resampling step (rad or m; default 0.5 deg / 0.5 mm)",
+    )
+    t.add_argument(
+        "--params", choices=["angles", "position"], default="angles", help="manifold parameters"
+    )
+    t.add_argument(
+        "--neighbours",
+        type=int,
+        default=3,
+        help="b nearest manifold points in the query (default 3)",
+    )
+    t.add_argument("--clusters", type=int, default=5, help="k-means colour clusters (default 5)")
+    t.add_argument(
+        "--colour-frame", type=int, default=0, help="index of the frame clustered for colours"
+    )
+    g = t.add_mutually_exclusive_group()
+    g.add_argument(
+        "--marker-rgb", default="0.55,0.85,0.12", help="marker reference colour r,g,b in [0,1]"
+    )
+    g.add_argument(
+        "--marker-index", type=int, default=None, help="marker cluster index instead of a colour"
+    )
+    t.add_argument("--cameras", default="left,right", help="the two views, left first")
+    t.add_argument("--seed", type=int, default=0, help="seed of the colour clustering")
+    t.set_defaults(func=run_train)
+
+    q = sub.add_parser("query", help="estimate every frame of a dataset with a model")
+    q.add_argument("model", help="model file from 'jaxcr manifold train'")
+    q.add_argument("dataset", help="dataset to estimate (folder or dataset.json)")
+    q.add_argument(
+        "-o", "--out", required=True, help="output folder (estimates.csv/.jsonl, summary.json/.md)"
+    )
+    q.set_defaults(func=run_query)
+
+    s = sub.add_parser("synth", help="generate an IREP stereo dataset (jaxcr.synth.irep)")
+    s.add_argument("-o", "--out", required=True, help="output dataset folder")
+    s.add_argument("--frames", type=int, default=100, help="number of frames")
+    s.add_argument("--split", choices=["train", "test"], default="train", help="random stream")
+    s.add_argument("--size", default="1024x768", help="image size WIDTHxHEIGHT (default 1024x768)")
+    s.add_argument("--occluded", action="store_true", help="add a laparoscopic instrument")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    s.set_defaults(func=run_synth)
+    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+
+
+def _load(path):
+    from jaxcr.io.dataset import load_dataset
+
+    return load_dataset(path)
+
+
+def _params(ds, kind: str, frames) -> np.ndarray:
+    if kind == "angles":
+        if ds.robot_dict.get("kind") != "single_segment":
+            raise InputError(
+                "angle manifolds need a single_segment robot (q = theta_L, delta)",
+                file=str(ds.root),
+                field="robot.kind",
+            )
+        return np.array([f.q for f in frames], np.float64)
+    out = []
+    for f in frames:
+        tip = f.truth.get("tip")
+        if tip is None or np.shape(tip) != (3,):
+            raise InputError(
+                "position manifolds need truth.tip = [x, y, z] in every frame",
+                file=str(ds.root),
+                frame=f.id,
+                field="truth.tip",
+            )
+        out.append(tip)
+    return np.asarray(out, np.float64)
+
+
+def _cameras(text: str) -> tuple[str, str]:
+    cams = tuple(c.strip() for c in text.split(",") if c.strip())
+    if len(cams) != 2:
+        raise InputError(f"need exactly two cameras, got {text!r}", field="cameras")
+    return cams  # type: ignore[return-value]
+
+
+def run_train(args) -> int:
+    from jaxcr.eigen.colour import fit_colour_model
+    from jaxcr.eigen.model import TrainConfig, train
+    from jaxcr.eigen.model_file import save_model
+    from jaxcr.eigen.pipeline import check_cameras, dataset_contours, stereo_histograms
+
+    cams = _cameras(args.cameras)
+    cfg = TrainConfig(
+        n_bins=args.bins,
+        variance=args.variance,
+        smoothing=args.smoothing,
+        step=args.step,
+        b=args.neighbours,
+        params=args.params,
+        cameras=cams,
+    )
+    cfg.check()
+    ds = _load(args.dataset)
+    check_cameras(ds, cams)
+    if not ds.frames:
+        raise InputError("dataset has no usable frames", file=args.dataset)
+    if not 0 <= args.colour_frame < len(ds.frames):
+        raise InputError(f"colour frame must be in 0..{len(ds.frames) - 1}", field="colour-frame")
+    marker_rgb = None
+    if args.marker_index is None:
+        try:
+            marker_rgb = tuple(float(x) for x in args.marker_rgb.split(","))
+            assert len(marker_rgb) == 3
+        except (ValueError, AssertionError):
+            raise InputError(
+                f"marker colour must be r,g,b, got {args.marker_rgb!r}", field="marker-rgb"
+            ) from None
+    t0 = time.perf_counter()
+    colour = fit_colour_model(
+        ds.frames[args.colour_frame].load_image(cams[0]),
+        k=args.clusters,
+        marker_rgb=marker_rgb,
+        marker_index=args.marker_index,
+        seed=args.seed,
+    )
+    P = _params(ds, cfg.params, ds.frames)
+    sc = dataset_contours(ds, colour, cams, cfg.spacing)
+    H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise)
+    t1 = time.perf_counter()
+    if ok.sum() < 10:
+        raise InputError(
+            f"only {int(ok.sum())} frames have marker pixels in both views; check the colour model",
+            file=args.dataset,
+        )
+    model = train(H[ok], P[ok], colour, cfg)
+    t2 = time.perf_counter()
+    meta = {
+        "dataset": str(Path(args.dataset).resolve()),
+        "frames_used": int(ok.sum()),
+        "frames_failed": [i for i, o in zip(sc.ids, ok, strict=True) if not o],
+        "descriptor_s": t1 - t0,
+        "train_s": t2 - t1,
+    }
+    save_model(model, args.out, meta=meta)
+    print(
+        f"manifold: {int(ok.sum())}/{len(ok)} frames, {cfg.n_bins} bins, {model.n_components} components "
+        f"({cfg.variance:.0%} variance), {model.manifold.psi.shape[0]} manifold points; "
+        f"descriptors {t1 - t0:.1f} s, training {t2 - t1:.2f} s -> {args.out}"
+    )
+    return 0
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def run_query(args) -> int:
+    from jaxcr.eigen.model import PARAM_KINDS, estimate
+    from jaxcr.eigen.model_file import load_model
+    from jaxcr.eigen.pipeline import check_cameras, dataset_contours, stereo_histograms
+
+    model = load_model(args.model)
+    cfg = model.config
+    ds = _load(args.dataset)
+    check_cameras(ds, cfg.cameras)
+    t0 = time.perf_counter()
+    sc = dataset_contours(ds, model.colour, cfg.cameras, cfg.spacing)
+    H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise)
+    t1 = time.perf_counter()
+    names = PARAM_KINDS[cfg.params]
+    est = np.full((len(ok), len(names)), np.nan)
+    if ok.any():
+        est[ok] = estimate(model, H[ok])
+    t2 = time.perf_counter()
+    truth = None
+    try:
+        truth = _params(ds, cfg.params, ds.frames)
+    except InputError:
+        truth = None
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    unit = "deg" if cfg.params == "angles" else "mm"
+    scale = np.rad2deg(1.0) if cfg.params == "angles" else 1e3
+    rows, lines = [], []
+    header = ["id", "ok", *names] + (
+        [f"err_{n}_{unit}" for n in names] if truth is not None else []
+    )
+    errs = []
+    for i, fid in enumerate(sc.ids):
+        rec = {"id": fid, "ok": bool(ok[i])}
+        if ok[i]:
+            rec.update({n: float(v) for n, v in zip(names, est[i], strict=True)})
+        else:
+            npx = (int(sc.views[0].marker_pixels[i]), int(sc.views[1].marker_pixels[i]))
+            rec["error"] = f"too few marker pixels (left {npx[0]}, right {npx[1]})"
+        row = [fid, int(ok[i])] + [f"{v:.6g}" if ok[i] else "" for v in est[i]]
+        if truth is not None:
+            e = np.abs(est[i] - truth[i]) * scale
+            if ok[i]:
+                errs.append(e)
+                rec["errors_" + unit] = {n: float(v) for n, v in zip(names, e, strict=True)}
+            row += [f"{v:.6g}" if ok[i] else "" for v in e]
+        rows.append(",".join(str(x) for x in row))
+        lines.append(json.dumps(rec))
+    bad = {k: v for k, v in ds.bad_frames.items()}
+    for fid, msg in bad.items():
+        lines.append(json.dumps({"id": fid, "ok": False, "error": msg}))
+        rows.append(",".join([fid, "0"] + [""] * (len(header) - 2)))
+    _atomic_text(out / "estimates.csv", ",".join(header) + "\n" + "\n".join(rows) + "\n")
+    _atomic_text(out / "estimates.jsonl", "\n".join(lines) + "\n")
+    n_fail = int((~ok).sum()) + len(bad)
+    summary = {
+        "model": str(args.model),
+        "dataset": str(args.dataset),
+        "frames": len(ok) + len(bad),
+        "failed": n_fail,
+        "params": cfg.params,
+        "descriptor_s_per_frame": (t1 - t0) / max(len(ok), 1),
+        "query_s_per_frame": (t2 - t1) / max(int(ok.sum()), 1),
+    }
+    md = [
+        f"# jaxcr manifold query: {ds.name}",
+        "",
+        f"model `{args.model}`, {len(ok) + len(bad)} frames, {n_fail} failed",
+        "",
+    ]
+    if errs:
+        E = np.array(errs)
+        summary["median_error_" + unit] = {
+            n: float(np.median(E[:, j])) for j, n in enumerate(names)
+        }
+        summary["median_error_" + unit]["combined"] = float(np.median(E.ravel()))
+        if cfg.params == "position":
+            summary["median_error_" + unit]["euclidean"] = float(
+                np.median(np.linalg.norm(E, axis=1))
+            )
+        md += [f"| quantity | median error ({unit}) |", "|---|---|"]
+        md += [f"| {k} | {v:.3f} |" for k, v in summary["median_error_" + unit].items()]
+    _atomic_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
+    _atomic_text(out / "summary.md", "\n".join(md) + "\n")
+    msg = f"manifold query: {len(ok) + len(bad) - n_fail}/{len(ok) + len(bad)} frames estimated"
+    if errs:
+        msg += ", median errors " + ", ".join(
+            f"{k} {v:.3f} {unit}" for k, v in summary["median_error_" + unit].items()
+        )
+    print(msg + f" -> {out}")
+    return 1 if n_fail else 0
+
+
+def run_synth(args) -> int:
+    from jaxcr.synth.generate import parse_size
+    from jaxcr.synth.irep import generate_irep
+
+    size = parse_size(args.size)
+    if (Path(args.out) / "dataset.json").exists() and not args.overwrite:
+        raise InputError("a dataset exists there (use --overwrite)", file=args.out)
+    info = generate_irep(
+        args.out,
+        args.frames,
+        args.split,
+        args.seed,
+        size,
+        occluded=args.occluded,
+        overwrite=args.overwrite,
+    )
+    print(
+        f"manifold synth: {info['frames']} frames {size[0]}x{size[1]} in {info['total_s']:.1f} s -> {args.out}"
+    )
+    return 0
