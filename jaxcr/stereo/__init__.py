@@ -1,0 +1,34 @@
+"""Stereo shape sensing of tubular continuum robots with an ArUco base frame (issue 4;
+"Shape Sensing of Tubular Continuum Robots using Stereo Vision").
+
+One concept per module: :mod:`~jaxcr.stereo.aruco` (base frame), :mod:`~jaxcr.stereo.chroma`
+(chroma key, background plate), :mod:`~jaxcr.stereo.base_locate` (flood fill, Canny,
+Hough), :mod:`~jaxcr.stereo.thinning` (Zhang-Suen in JAX), :mod:`~jaxcr.stereo.ordering`
+(base-to-tip walk), :mod:`~jaxcr.stereo.correspondence` and
+:mod:`~jaxcr.stereo.triangulation`, :mod:`~jaxcr.stereo.diameter`,
+:mod:`~jaxcr.stereo.segments`, :mod:`~jaxcr.stereo.shadow` (slope-angle segmentation),
+:mod:`~jaxcr.stereo.fits` (plane, circular arc), :mod:`~jaxcr.stereo.pipeline` (one stereo
+pair end to end), :mod:`~jaxcr.stereo.overlay` (drawings).
+"""
+
+from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
+from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
+from jaxcr.stereo.ordering import order_skeleton
+from jaxcr.stereo.pipeline import StereoConfig, StereoFailure, reconstruct_pair
+from jaxcr.stereo.thinning import zhang_suen_thin
+from jaxcr.stereo.triangulation import triangulate_points
+
+__all__ = [
+    "MarkerLayout",
+    "StereoConfig",
+    "StereoFailure",
+    "detect_markers",
+    "fit_arc",
+    "fit_plane",
+    "order_skeleton",
+    "plane_angles",
+    "reconstruct_pair",
+    "stereo_base_pose",
+    "triangulate_points",
+    "zhang_suen_thin",
+]

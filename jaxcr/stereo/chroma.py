@@ -1,0 +1,88 @@
+"""Foreground (robot) alpha from a chroma-key background and from a background plate.
+
+Chroma key (stereo report sec. 3.1.2): a pixel belongs to the background when its colour
+lies close to the key colour's hue with enough saturation. The score is brightness
+invariant, so the tube's shadow on the cloth (darker, same hue) stays background, while the
+metal tube, even with a green cast from reflected cloth, has low saturation and is kept::
+
+    c      = rgb - mean(rgb)                    (chroma vector, removes grey)
+    along  = c . k_hat / (max(rgb) + eps)       (saturation towards the key hue)
+    across = |c - (c . k_hat) k_hat| / (max(rgb) + eps)
+    score  = (along - across) / score(key)      (1 for the key colour, <= 0 for grey)
+
+``alpha = clip((tol_hi - score) / (tol_hi - tol_lo), 0, 1)``: 1 on the robot, 0 on the cloth,
+fractional on anti-aliased edge pixels (used for sub-pixel widths by
+:mod:`jaxcr.stereo.diameter`). ``tolerance`` is the report's chroma tolerance: the score
+below which a pixel counts as foreground.
+
+Background plate (for real rigs where tubes are dark metal with a green cast and a pure
+colour key fails): ``alpha = clip((|I - B| - lo) / (hi - lo), 0, 1)`` with the empty-scene
+image ``B``. Shadows differ from the plate and are segmented with the tube; they are removed
+afterwards (:mod:`jaxcr.stereo.shadow`).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxcr._types import Array, Float
+
+__all__ = ["KEY_COLOURS", "chroma_score", "chroma_alpha", "key_projection", "plate_alpha"]
+
+KEY_COLOURS = {"green": (0.15, 0.62, 0.22), "blue": (0.12, 0.25, 0.70)}
+_EPS = 1e-3
+
+
+def _raw_score(rgb: Float[Array, "... 3"], k_hat: Float[Array, "3"]) -> Float[Array, "..."]:
+    c = rgb - jnp.mean(rgb, axis=-1, keepdims=True)
+    bright = jnp.max(rgb, axis=-1) + _EPS
+    along = c @ k_hat
+    perp = c - along[..., None] * k_hat
+    across = jnp.sqrt(jnp.sum(perp * perp, axis=-1) + 1e-12)
+    return (along - across) / bright
+
+
+def chroma_score(image: Float[Array, "h w 3"], key_rgb: Float[Array, "3"]) -> Float[Array, "h w"]:
+    """Key-likeness of every pixel (1 = the key colour, <= 0 = grey or another hue).
+
+    ``image`` RGB in [0, 1]; ``key_rgb`` the cloth colour (need not be exact: only its hue
+    direction matters, and the normalisation by its own score)."""
+    key = jnp.asarray(key_rgb, image.dtype)
+    kc = key - jnp.mean(key)
+    k_hat = kc / jnp.linalg.norm(kc)
+    return _raw_score(image, k_hat) / _raw_score(key, k_hat)
+
+
+@jax.jit
+def chroma_alpha(
+    image: Float[Array, "h w 3"],
+    key_rgb: Float[Array, "3"],
+    tol_lo: float = 0.25,
+    tol_hi: float = 0.55,
+) -> Float[Array, "h w"]:
+    """Foreground alpha in [0, 1] from the chroma key (see module docstring)."""
+    s = chroma_score(image, key_rgb)
+    return jnp.clip((tol_hi - s) / (tol_hi - tol_lo), 0.0, 1.0)
+
+
+@jax.jit
+def key_projection(image: Float[Array, "h w 3"], key_rgb: Float[Array, "3"]) -> Float[Array, "h w"]:
+    """``(rgb - mean(rgb)) . k_hat``: linear in RGB, hence linear in the coverage of an
+    edge pixel that mixes tube and cloth (used for sub-pixel widths)."""
+    key = jnp.asarray(key_rgb, image.dtype)
+    kc = key - jnp.mean(key)
+    k_hat = kc / jnp.linalg.norm(kc)
+    return (image - jnp.mean(image, axis=-1, keepdims=True)) @ k_hat
+
+
+@jax.jit
+def plate_alpha(
+    image: Float[Array, "h w 3"],
+    plate: Float[Array, "h w 3"],
+    lo: float = 0.06,
+    hi: float = 0.15,
+) -> Float[Array, "h w"]:
+    """Foreground alpha from the colour distance to a background plate (empty scene)."""
+    d = jnp.sqrt(jnp.sum((image - plate) ** 2, axis=-1) + 1e-12)
+    return jnp.clip((d - lo) / (hi - lo), 0.0, 1.0)

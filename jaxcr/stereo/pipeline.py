@@ -1,0 +1,411 @@
+"""The stereo shape-sensing pipeline for one stereo pair (issue 4, method steps 2-7).
+
+``reconstruct_pair(image1, image2, cam1, cam2, config)`` runs, per view and then jointly:
+
+1. base frame from the ArUco markers (:mod:`jaxcr.stereo.aruco`), both views combined;
+2. foreground alpha from the chroma key and/or the background plate
+   (:mod:`jaxcr.stereo.chroma`); marker squares (projected from the base pose) removed;
+3. base localisation (Hough in a ROI at the projected robot base) and flood fill of the
+   robot (:mod:`jaxcr.stereo.base_locate`);
+4. Zhang-Suen thinning in JAX (:mod:`jaxcr.stereo.thinning`);
+5. ordering of the skeleton from the base (:mod:`jaxcr.stereo.ordering`);
+6. monotone epipolar correspondence and DLT triangulation in the base frame
+   (:mod:`jaxcr.stereo.correspondence`, :mod:`jaxcr.stereo.triangulation`), then
+   smoothing and resampling along the arclength;
+7. diameters along the backbone (:mod:`jaxcr.stereo.diameter`), segments from diameter
+   steps (:mod:`jaxcr.stereo.segments`), and per segment a plane fit (angles with the X-Y,
+   Z-X, Y-Z planes) and a circular-arc fit (curvature, arc length) (:mod:`jaxcr.stereo.fits`).
+
+Per-frame problems raise :class:`StereoFailure` with a short ``reason`` code
+(``calibration_size``, ``markers``, ``robot_not_found``, ``correspondence``) for the batch
+driver to record; nothing else is expected to raise. Stage timings (seconds, wall clock,
+JAX results blocked) are returned in ``result["timings"]``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from jaxcr.camera import Camera, project_points
+from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
+from jaxcr.stereo.base_locate import flood_component, locate_base
+from jaxcr.stereo.chroma import KEY_COLOURS, chroma_alpha, key_projection, plate_alpha
+from jaxcr.stereo.correspondence import match_backbones
+from jaxcr.stereo.diameter import (
+    cylinder_diameters,
+    profile_widths,
+    report_interpolation_diameters,
+    view_weights,
+)
+from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
+from jaxcr.stereo.ordering import order_skeleton
+from jaxcr.stereo.segments import segment_backbone
+from jaxcr.stereo.thinning import zhang_suen_thin
+from jaxcr.stereo.triangulation import essential_matrix, triangulate_points
+
+__all__ = ["StereoConfig", "StereoFailure", "reconstruct_pair"]
+
+
+class StereoFailure(Exception):
+    """A frame that cannot be reconstructed: ``reason`` code and a one-line message."""
+
+    def __init__(self, reason: str, message: str):
+        self.reason = reason
+        super().__init__(f"{reason}: {message}")
+
+
+@dataclass
+class StereoConfig:
+    """Pipeline settings. Lengths in metres.
+
+    ``segmentation``: ``"chroma"`` (key colour ``key_rgb`` with ``tol_lo``/``tol_hi``),
+    ``"plate"`` (background plate difference) or ``"both"`` (the product of the two
+    alphas: foreground must differ from the plate and not be the key colour).
+    ``robot_base``: where the robot leaves the plate, base frame (default: base centre).
+    ``n_segments``: number of tubes if known (else chosen from the diameter profile).
+    """
+
+    layout: MarkerLayout = field(default_factory=MarkerLayout)
+    key_rgb: tuple[float, float, float] = KEY_COLOURS["green"]
+    tol_lo: float = 0.5
+    tol_hi: float = 0.8
+    segmentation: str = "chroma"
+    plate_lo: float = 0.06
+    plate_hi: float = 0.15
+    robot_base: tuple[float, float, float] | None = None
+    roi_half_px: int = 24
+    n_segments: int | None = None
+    max_segments: int = 4
+    step: float = 5e-4
+    smooth_sigma: float = 1.0e-3
+    trim: float = 1.5e-3
+    min_robot_pixels: int = 40
+
+
+def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
+    return eqx.tree_at(lambda c: c.T_cam_robot, cam, jnp.asarray(T, cam.K.dtype))
+
+
+def _tick(timings: dict, name: str, t0: float) -> float:
+    t = time.perf_counter()
+    timings[name] = timings.get(name, 0.0) + (t - t0)
+    return t
+
+
+def _as_float(img: np.ndarray) -> np.ndarray:
+    return img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
+
+
+def _project_np(cam: Camera, pts: np.ndarray) -> np.ndarray:
+    """Pixels (n, 2) of base-frame points through ``cam`` (cv2.projectPoints, float64)."""
+    T = np.asarray(cam.T_cam_robot, np.float64)
+    uv, _ = cv2.projectPoints(
+        np.ascontiguousarray(pts, np.float64).reshape(-1, 3),
+        cv2.Rodrigues(T[:3, :3])[0],
+        T[:3, 3],
+        np.asarray(cam.K, np.float64),
+        np.asarray(cam.dist, np.float64),
+    )
+    return uv.reshape(-1, 2)
+
+
+def _marker_mask(cam: Camera, layout: MarkerLayout, shape, margin: float = 0.003) -> np.ndarray:
+    """Projected white marker squares (+ margin) of the plate: True inside."""
+    m = np.zeros(shape, np.uint8)
+    t = np.linspace(0, 1, 8)[:, None]
+    polys = []
+    for cx, cy in layout.centres.values():
+        h = layout.size * 2.0 / 3.0 + margin
+        sq = np.array(
+            [[cx - h, cy - h, 0], [cx + h, cy - h, 0], [cx + h, cy + h, 0], [cx - h, cy + h, 0]]
+        )
+        # Densified edges, so that lens distortion bends them correctly.
+        polys.append(np.concatenate([sq[k] + t * (sq[(k + 1) % 4] - sq[k]) for k in range(4)]))
+    uv = _project_np(cam, np.concatenate(polys)).reshape(len(polys), -1, 2)
+    cv2.fillPoly(m, [np.round(q).astype(np.int32) for q in uv], 1)
+    return m.astype(bool)
+
+
+def _bucket(n: int, size: int = 256) -> int:
+    return max(size, -(-n // size) * size)
+
+
+def _pad_rows(x: np.ndarray, n: int) -> np.ndarray:
+    return np.concatenate([x, np.repeat(x[-1:], n - len(x), axis=0)]) if n > len(x) else x
+
+
+@jax.jit
+def _view_diameters(cam, alpha, kproj, p, tang):
+    """Per view: widths across the silhouette at the projections of the backbone points
+    ``p`` (n, 3) with tangents ``tang``, the cylinder-method diameters, the view weights
+    and the report's 3-D-interpolation diameters (see :mod:`jaxcr.stereo.diameter`)."""
+    uv0, ok0 = project_points(cam, p)
+    uv1, _ = project_points(cam, p + 1e-4 * tang)
+    du = uv1 - uv0
+    nrm = jnp.stack([-du[:, 1], du[:, 0]], 1)
+    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    wdt, off = profile_widths(alpha, uv0, nrm, kproj)
+    d = cylinder_diameters(cam, p, tang, uv0, nrm, wdt, off)
+    wv = view_weights(cam, p, tang) ** 2
+    wv = jnp.where(ok0 & (wdt > 0.5) & jnp.isfinite(d), wv, 0.0)
+    rep = report_interpolation_diameters(cam, p, uv0, wdt)
+    return jnp.where(jnp.isfinite(d), d, 0.0), wv, rep
+
+
+_FIT_PAD = 1024
+
+
+@jax.jit
+def _segment_fit(points, weights):
+    _, n = fit_plane(points, weights)
+    arc = fit_arc(points, weights)
+    return plane_angles(n), n, arc
+
+
+def _smooth_path(rc: np.ndarray, sigma: float = 1.5) -> np.ndarray:
+    """Ordered pixels (n, 2) row/col -> smoothed (u, v) (n, 2) (removes the staircase)."""
+    uv = rc[:, ::-1].astype(np.float64)
+    if len(uv) < 5:
+        return uv
+    return gaussian_filter1d(uv, sigma, axis=0, mode="nearest")
+
+
+def _resample(p: np.ndarray, step: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth ordered 3-D points along their arclength (Gaussian kernel, local linear) and
+    resample at ``step``. Returns ``(s (k,), p (k, 3))``, s from the first point."""
+    seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    for _ in range(2):
+        grid = np.arange(0.0, s[-1] + 1e-12, step)
+        w = np.exp(-0.5 * ((grid[:, None] - s[None]) / sigma) ** 2)
+        # Local linear regression (unbiased at the ends).
+        ds = s[None] - grid[:, None]
+        sw, sx, sxx = w.sum(1), (w * ds).sum(1), (w * ds * ds).sum(1)
+        sy = w @ p
+        sxy = (w * ds) @ p
+        det = sw * sxx - sx * sx
+        q = (sxx[:, None] * sy - sx[:, None] * sxy) / np.maximum(det, 1e-300)[:, None]
+        p = q
+        seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+    return s, p
+
+
+def reconstruct_pair(
+    image1: np.ndarray,
+    image2: np.ndarray,
+    cam1: Camera,
+    cam2: Camera,
+    config: StereoConfig | None = None,
+    plates: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict:
+    """Reconstruct the backbone of one stereo pair (see module docstring).
+
+    ``image1``/``image2``: RGB (H, W, 3) uint8 or float [0, 1]. ``cam1``/``cam2``: the
+    stereo calibration (extrinsics in any common frame; the base frame is found from the
+    markers). ``plates``: background images of the empty scene (needed for
+    ``segmentation="plate"``/``"both"``). Returns a dict (numpy arrays, base frame, metres).
+    """
+    cfg = config or StereoConfig()
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    imgs = [_as_float(image1), _as_float(image2)]
+    cams = [cam1, cam2]
+    for k, (im, cam) in enumerate(zip(imgs, cams, strict=True)):
+        if im.ndim != 3 or (im.shape[1], im.shape[0]) != (cam.width, cam.height):
+            raise StereoFailure(
+                "calibration_size",
+                f"view {k + 1} image is {im.shape[1]}x{im.shape[0]} but its calibration is "
+                f"{cam.width}x{cam.height}",
+            )
+    if cfg.segmentation in ("plate", "both") and plates is None:
+        raise StereoFailure("plate", "segmentation needs background plates, none given")
+    # 1. Base frame.
+    dets = [detect_markers(im, cfg.layout) for im in imgs]
+    t0 = _tick(timings, "markers_detect", t0)
+    try:
+        pose = stereo_base_pose(cam1, cam2, dets[0], dets[1], cfg.layout)
+    except ValueError as err:
+        raise StereoFailure("markers", str(err)) from None
+    cams = [_with_pose(cam1, pose["T_cam1_base"]), _with_pose(cam2, pose["T_cam2_base"])]
+    t0 = _tick(timings, "markers_pose", t0)
+    base = np.asarray(
+        cfg.robot_base if cfg.robot_base is not None else cfg.layout.base_centre, float
+    )
+    # 2-5. Per view: alpha, mask, base, flood fill, thinning, ordering.
+    views = []
+    for k, (im, cam) in enumerate(zip(imgs, cams, strict=True)):
+        key = jnp.asarray(cfg.key_rgb, jnp.float32)
+        if cfg.segmentation == "chroma":
+            alpha = chroma_alpha(jnp.asarray(im), key, cfg.tol_lo, cfg.tol_hi)
+        elif cfg.segmentation == "plate":
+            alpha = plate_alpha(
+                jnp.asarray(im), jnp.asarray(_as_float(plates[k])), cfg.plate_lo, cfg.plate_hi
+            )
+        else:
+            alpha = chroma_alpha(jnp.asarray(im), key, cfg.tol_lo, cfg.tol_hi) * plate_alpha(
+                jnp.asarray(im), jnp.asarray(_as_float(plates[k])), cfg.plate_lo, cfg.plate_hi
+            )
+        kproj = key_projection(jnp.asarray(im), key)
+        alpha = np.asarray(alpha.block_until_ready())
+        t0 = _tick(timings, "segmentation", t0)
+        # Closing fills pinholes where the metal mirrors the cloth.
+        mask = (
+            cv2.morphologyEx(
+                (alpha > 0.5).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)
+            )
+            > 0
+        )
+        mask &= ~_marker_mask(cam, cfg.layout, mask.shape)
+        buv = _project_np(cam, base[None])[0]
+        loc = locate_base(mask, (buv[0], buv[1]), cfg.roi_half_px)
+        if not loc.found:
+            raise StereoFailure("robot_not_found", f"no robot pixels near the base in view {k + 1}")
+        robot = flood_component(mask, loc.seed)
+        if robot.sum() < cfg.min_robot_pixels:
+            raise StereoFailure("robot_not_found", f"robot region too small in view {k + 1}")
+        t0 = _tick(timings, "base_floodfill", t0)
+        skel = np.asarray(zhang_suen_thin(jnp.asarray(robot)).block_until_ready())
+        t0 = _tick(timings, "thinning", t0)
+        try:
+            rc = order_skeleton(skel, loc.seed)
+        except ValueError:
+            raise StereoFailure("robot_not_found", f"empty skeleton in view {k + 1}") from None
+        t0 = _tick(timings, "ordering", t0)
+        uv = _smooth_path(rc)
+        views.append(
+            {
+                "alpha": alpha,
+                "kproj": kproj,
+                "robot": robot,
+                "skeleton_rc": rc,
+                "uv": uv,
+                "loc": loc,
+            }
+        )
+    # 6. Correspondence and triangulation (normalised coordinates).
+    xn = [
+        cv2.undistortPoints(
+            v["uv"].reshape(-1, 1, 2), np.asarray(c.K, np.float64), np.asarray(c.dist, np.float64)
+        ).reshape(-1, 2)
+        for c, v in zip(cams, views, strict=True)
+    ]
+    T1, T2 = pose["T_cam1_base"], pose["T_cam2_base"]
+    E = np.asarray(essential_matrix(jnp.asarray(T1), jnp.asarray(T2)), np.float64)
+    f = float(cam1.K[0, 0])
+    y1, y2, quality = match_backbones(E, xn[0], xn[1], cap=8.0 / f)
+    t0 = _tick(timings, "correspondence", t0)
+    nb = _bucket(len(y1))
+    P = np.asarray(
+        triangulate_points(
+            jnp.asarray(T1[:3], jnp.float32),
+            jnp.asarray(T2[:3], jnp.float32),
+            jnp.asarray(_pad_rows(y1, nb), jnp.float32),
+            jnp.asarray(_pad_rows(y2, nb), jnp.float32),
+        ),
+        np.float64,
+    )[: len(y1)]
+    # Reject points whose reprojection misses either view by > 2 px (bad matches).
+    err = []
+    for c, y in zip(cams, (y1, y2), strict=True):
+        Pc = P @ np.asarray(c.R, np.float64).T + np.asarray(c.t, np.float64)
+        err.append(np.linalg.norm(Pc[:, :2] / Pc[:, 2:] - y, axis=1) * f)
+    good = (err[0] < 2.0) & (err[1] < 2.0) & np.all(np.isfinite(P), axis=1)
+    if good.sum() < 10:
+        raise StereoFailure("correspondence", f"only {int(good.sum())} consistent stereo matches")
+    s, p = _resample(P[good], cfg.step, cfg.smooth_sigma)
+    s0 = float(np.linalg.norm(p[0] - base))  # the part hidden at the base, assumed straight
+    s = s + s0
+    t0 = _tick(timings, "triangulation", t0)
+    # 7. Diameters.
+    tang = np.gradient(p, axis=0)
+    tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
+    diam_views, wts, rep = [], [], []
+    nb = _bucket(len(p))
+    pj = jnp.asarray(_pad_rows(p, nb), jnp.float32)
+    tj = jnp.asarray(_pad_rows(tang, nb), jnp.float32)
+    for c, v in zip(cams, views, strict=True):
+        a = v["alpha"] * cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))).astype(np.float32)
+        d, wv, rp = _view_diameters(c, jnp.asarray(a), v["kproj"], pj, tj)
+        diam_views.append(np.asarray(d, np.float64)[: len(p)])
+        wts.append(np.asarray(wv, np.float64)[: len(p)])
+        rep.append(np.asarray(rp, np.float64)[: len(p)])
+    W = wts[0] + wts[1]
+    diam = (wts[0] * diam_views[0] + wts[1] * diam_views[1]) / np.maximum(W, 1e-12)
+    diam = np.where(W > 1e-6, diam, np.nan)
+    fill = np.isnan(diam)
+    if fill.all():
+        raise StereoFailure("correspondence", "no usable silhouette widths")
+    if fill.any():
+        diam[fill] = np.interp(s[fill], s[~fill], diam[~fill])
+    diam_report = 0.5 * (rep[0] + rep[1])
+    t0 = _tick(timings, "diameter", t0)
+    # Segments, planes, arcs.
+    seg = segment_backbone(s, diam, cfg.n_segments, cfg.max_segments)
+    starts = list(seg["starts"]) + [len(s)]
+    table = []
+    for k in range(len(seg["starts"])):
+        a, b = starts[k], starts[k + 1]
+        sa = s[a] if k > 0 else s[0]
+        sb = s[b - 1] if b < len(s) else s[-1]
+        keep = (s >= sa + (cfg.trim if k > 0 else 0.0)) & (
+            s <= sb - (cfg.trim if b < len(s) else 0.0)
+        )
+        keep &= (np.arange(len(s)) >= a) & (np.arange(len(s)) < b)
+        pts = p[keep] if keep.sum() >= 5 else p[a:b]
+        pts = pts[:_FIT_PAD]
+        wfit = np.zeros(_FIT_PAD, np.float32)
+        wfit[: len(pts)] = 1.0
+        ang, n, arc = _segment_fit(
+            jnp.asarray(_pad_rows(pts, _FIT_PAD), jnp.float32), jnp.asarray(wfit)
+        )
+        ang = np.asarray(ang, np.float64)
+        s_start = 0.0 if k == 0 else float(seg["boundaries_s"][k - 1])
+        s_end = float(s[-1]) if k == len(seg["starts"]) - 1 else float(seg["boundaries_s"][k])
+        table.append(
+            {
+                "segment": k + 1,
+                "s_start_mm": 1e3 * s_start,
+                "s_end_mm": 1e3 * s_end,
+                "length_mm": 1e3 * (s_end - s_start),
+                "diameter_mm": 1e3 * float(seg["diameters"][k]),
+                "phi_xy_deg": float(ang[0]),
+                "phi_zx_deg": float(ang[1]),
+                "phi_yz_deg": float(ang[2]),
+                "curvature_1pm": float(arc["curvature"]),
+                "arc_length_fit_mm": 1e3 * float(arc["arc_length"]),
+                "arc_rms_mm": 1e3 * float(arc["rms"]),
+                "normal": np.asarray(n, np.float64).tolist(),
+            }
+        )
+    boundary_p = np.array(
+        [[np.interp(b, s, p[:, i]) for i in range(3)] for b in seg["boundaries_s"]]
+    ).reshape(-1, 3)
+    _tick(timings, "segments_fits", t0)
+    return {
+        "s": s,
+        "p": p,
+        "diameter": diam,
+        "diameter_views": np.stack(diam_views),
+        "diameter_weights": np.stack(wts),
+        "diameter_report": diam_report,
+        "segments": table,
+        "boundary_s": np.asarray(seg["boundaries_s"]),
+        "boundary_p": boundary_p,
+        "T_cam1_base": pose["T_cam1_base"],
+        "T_cam2_base": pose["T_cam2_base"],
+        "marker_rms_px": pose["rms_px"],
+        "n_markers": pose["n_markers"],
+        "skeleton_rc": [v["skeleton_rc"] for v in views],
+        "seed_rc": [v["loc"].seed for v in views],
+        "n_matches": int(good.sum()),
+        "timings": timings,
+    }
