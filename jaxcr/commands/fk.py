@@ -178,14 +178,22 @@ def batch_forward(
     return out
 
 
-def _atomic_write(path: str, write) -> None:
-    tmp = os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.tmp{os.getpid()}")
+def _atomic_write_all(writers: dict[str, object]) -> None:
+    """Write every file to a temp name first, then rename them all (tips.csv last), so an
+    interrupted run never leaves a new file next to a stale one that looks complete."""
+    tmps = {
+        path: os.path.join(os.path.dirname(path), f".{os.path.basename(path)}.tmp{os.getpid()}")
+        for path in writers
+    }
     try:
-        write(tmp)
-        os.replace(tmp, path)
+        for path, write in writers.items():
+            write(tmps[path])
+        for path in writers:
+            os.replace(tmps[path], path)
     finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+        for tmp in tmps.values():
+            if os.path.exists(tmp):
+                os.remove(tmp)
 
 
 def _fmt(x: float) -> str:
@@ -230,8 +238,12 @@ def run(args) -> int:
                     + [_fmt(out["residual"][i]), _fmt(out["energy"][i])]
                 )
 
-    _atomic_write(npz_path, write_npz)
-    _atomic_write(csv_path, write_csv)
+    # Remove stale outputs of an earlier run first: a crash below then leaves nothing that
+    # looks complete.
+    for path in (csv_path, npz_path):
+        if os.path.exists(path):
+            os.remove(path)
+    _atomic_write_all({npz_path: write_npz, csv_path: write_csv})
 
     failed = np.flatnonzero(~out["ok"])
     B = q.shape[0]
