@@ -1,0 +1,201 @@
+"""Reading motion-segmentation datasets (format ``jaxcr.motion/1``, docs/motion-format.md).
+
+A dataset is a folder with ``motion.json``; the frames come from a video file (any format
+OpenCV's VideoCapture reads) or an image folder (PNG/JPEG, sorted by name). Unreadable frames
+are reported per frame (``None`` from :meth:`MotionDataset.frame` plus a reason), never
+fatal; malformed metadata raises :class:`jaxcr.errors.InputError` naming file and field.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from jaxcr.errors import InputError
+from jaxcr.motion.arm import ArmModel, arm_from_dict
+
+FORMAT = "jaxcr.motion/1"
+_IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+@dataclass
+class MotionDataset:
+    """A loaded dataset. ``x`` (n, 5) joints (rad), ``touch`` (n,) bool, ``P`` (3, 4),
+    ``masks`` per frame (path or None), ``eval_frame`` (ground-truth frame used for scoring;
+    default the first touch frame), ``scene`` free-form metadata."""
+
+    root: Path
+    P: np.ndarray
+    arm: ArmModel
+    x: np.ndarray
+    touch: np.ndarray
+    masks: list[Path | None]
+    eval_frame: int | None
+    scene: dict
+    width: int
+    height: int
+    _images: list[Path] | None
+    _video: Path | None
+    _cache: dict
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def frames(self):
+        """Yield (index, rgb float32 (H, W, 3) or None, reason) for every frame in order."""
+        if self._images is not None:
+            for i, p in enumerate(self._images[: len(self)]):
+                img = _read_rgb(p)
+                if img is None:
+                    yield i, None, f"unreadable image {p.name}"
+                elif img.shape[:2] != (self.height, self.width):
+                    yield (
+                        i,
+                        None,
+                        f"image size {img.shape[1]}x{img.shape[0]} != {self.width}x{self.height}",
+                    )
+                else:
+                    yield i, img, ""
+            return
+        cap = cv2.VideoCapture(str(self._video))
+        try:
+            for i in range(len(self)):
+                ok, bgr = cap.read()
+                if not ok or bgr is None:
+                    yield i, None, "corrupt or missing video frame"
+                    continue
+                if bgr.shape[:2] != (self.height, self.width):
+                    yield (
+                        i,
+                        None,
+                        f"frame size {bgr.shape[1]}x{bgr.shape[0]} != {self.width}x{self.height}",
+                    )
+                    continue
+                yield i, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0, ""
+        finally:
+            cap.release()
+
+    def mask(self, i: int) -> np.ndarray | None:
+        p = self.masks[i]
+        if p is None:
+            return None
+        m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if m is None:
+            raise InputError("unreadable ground-truth mask", file=str(p), frame=i)
+        return m >= 128
+
+
+def _read_rgb(path: Path) -> np.ndarray | None:
+    from cv2.utils import logging as cvlog
+
+    level = cvlog.getLogLevel()
+    cvlog.setLogLevel(cvlog.LOG_LEVEL_SILENT)
+    try:
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    finally:
+        cvlog.setLogLevel(level)
+    if bgr is None:
+        return None
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+
+
+def _matrix(v, shape, file, field) -> np.ndarray:
+    try:
+        a = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"must be a {shape[0]}x{shape[1]} number array", file=file, field=field
+        ) from None
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        raise InputError(
+            f"must be a finite {'x'.join(map(str, shape))} array", file=file, field=field
+        )
+    return a
+
+
+def load_motion_dataset(path: str | os.PathLike) -> MotionDataset:
+    """Load ``path`` (the folder or its motion.json)."""
+    path = Path(path)
+    meta_path = path / "motion.json" if path.is_dir() else path
+    root = meta_path.parent
+    if not meta_path.exists():
+        raise InputError(
+            "no motion.json (expected a jaxcr.motion/1 dataset folder)", file=str(path)
+        )
+    f = str(meta_path)
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise InputError(
+            f"not valid JSON ({err.msg if hasattr(err, 'msg') else err})", file=f
+        ) from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise InputError(f"format must be '{FORMAT}'", file=f, field="format")
+    P = _matrix(meta.get("P"), (3, 4), f, "P")
+    if np.linalg.matrix_rank(P[:, :3]) < 3:
+        raise InputError("P[:, :3] must be invertible", file=f, field="P")
+    arm = arm_from_dict(meta.get("arm"), file=f)
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or len(frames) < 2:
+        raise InputError("needs a list of at least 2 frames", file=f, field="frames")
+    xs, touch, masks = [], [], []
+    for i, fr in enumerate(frames):
+        if not isinstance(fr, dict):
+            raise InputError("frame entry must be an object", file=f, frame=i, field="frames")
+        xs.append(_matrix(fr.get("x"), (5,), f, f"frames[{i}].x"))
+        t = fr.get("touch", False)
+        if not isinstance(t, bool):
+            raise InputError("touch must be true or false", file=f, frame=i, field="touch")
+        touch.append(t)
+        m = fr.get("mask")
+        masks.append(None if m is None else root / m)
+    try:
+        width, height = int(meta["width"]), int(meta["height"])
+    except (KeyError, TypeError, ValueError):
+        raise InputError("width and height (pixels) are required", file=f, field="width") from None
+    if width < 16 or height < 16:
+        raise InputError("image size must be at least 16x16", file=f, field="width")
+    src = meta.get("source")
+    images = video = None
+    if isinstance(src, dict) and "video" in src:
+        video = root / src["video"]
+        if not video.exists():
+            raise InputError("video file not found", file=str(video), field="source.video")
+    elif isinstance(src, dict) and "images" in src:
+        folder = root / src["images"]
+        if not folder.is_dir():
+            raise InputError("image folder not found", file=str(folder), field="source.images")
+        images = sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_EXT)
+        if len(images) < len(frames):
+            raise InputError(
+                f"{len(images)} images for {len(frames)} frames",
+                file=str(folder),
+                field="source.images",
+            )
+    else:
+        raise InputError(
+            "source must be {'video': file} or {'images': folder}", file=f, field="source"
+        )
+    ev = meta.get("eval_frame")
+    if ev is not None and not (isinstance(ev, int) and 0 <= ev < len(frames)):
+        raise InputError("eval_frame must be a frame index", file=f, field="eval_frame")
+    return MotionDataset(
+        root,
+        P,
+        arm,
+        np.asarray(xs),
+        np.asarray(touch, bool),
+        masks,
+        ev,
+        meta.get("scene", {}),
+        width,
+        height,
+        images,
+        video,
+        {},
+    )

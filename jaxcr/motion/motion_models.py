@@ -1,0 +1,134 @@
+"""Per-segment motion models Q_j^i and the end-effector prediction error (M-L eqs. 4-9).
+
+Each segment's model is fitted to the flow vectors of the grid points lying in it:
+
+* translation (eq. 4): Q(a) = a + b_j, with b_j the mean flow of the segment;
+* homography (eqs. 7-8): Q(a) = pi(H_j [a; 1]), H_j fitted to the segment's point
+  correspondences (p, p + f) by the normalised DLT (Hartley normalisation per segment), made
+  robust by iteratively reweighted least squares with Cauchy weights on the transfer error.
+  Segments with fewer than ``min_points`` valid points fall back to their translation.
+
+The error (eqs. 5 and 9) is rho = |Q_j(x_i) - x_{i+1}|^2 in px^2, x_i the end-effector image
+position h(x) at frame i. All segments are handled at once with ``jax.ops.segment_sum`` over
+a static number of segments.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+
+def segment_translation(
+    flow: Float[Array, "n 2"], seg: Int[Array, " n"], weight: Float[Array, " n"], n_segments: int
+) -> tuple[Float[Array, "k 2"], Float[Array, " k"]]:
+    """Mean flow b_j of every segment (eq. 4) and its total weight (number of valid points)."""
+    wsum = jax.ops.segment_sum(weight, seg, n_segments)
+    fsum = jax.ops.segment_sum(flow * weight[:, None], seg, n_segments)
+    return fsum / jnp.maximum(wsum, 1e-12)[:, None], wsum
+
+
+def _similarity(c: Float[Array, "k 2"], s: Float[Array, " k"]) -> Float[Array, "k 3 3"]:
+    z, o = jnp.zeros_like(s), jnp.ones_like(s)
+    return jnp.stack(
+        [
+            jnp.stack([s, z, -s * c[:, 0]], -1),
+            jnp.stack([z, s, -s * c[:, 1]], -1),
+            jnp.stack([z, z, o], -1),
+        ],
+        axis=1,
+    )
+
+
+def _dlt_rows(src: Float[Array, "n 2"], dst: Float[Array, "n 2"]) -> Float[Array, "n 9 9"]:
+    """Sum of the outer products of the two DLT rows of each correspondence."""
+    x, y = src[:, 0], src[:, 1]
+    u, v = dst[:, 0], dst[:, 1]
+    z, o = jnp.zeros_like(x), jnp.ones_like(x)
+    r1 = jnp.stack([z, z, z, -x, -y, -o, v * x, v * y, v], -1)
+    r2 = jnp.stack([x, y, o, z, z, z, -u * x, -u * y, -u], -1)
+    return r1[:, :, None] * r1[:, None, :] + r2[:, :, None] * r2[:, None, :]
+
+
+def apply_homography(H: Float[Array, "3 3"], a: Float[Array, "2"]) -> Float[Array, "2"]:
+    """pi(H [a; 1]) with a double where so that w ~ 0 gives a finite (far) point."""
+    q = H @ jnp.array([a[0], a[1], 1.0], dtype=H.dtype)
+    ok = jnp.abs(q[2]) > 1e-9
+    w = jnp.where(ok, q[2], 1.0)
+    return jnp.where(ok, q[:2] / w, jnp.full(2, 1e6, H.dtype))
+
+
+def weighted_homographies(
+    src: Float[Array, "n 2"],
+    dst: Float[Array, "n 2"],
+    seg: Int[Array, " n"],
+    weight: Float[Array, " n"],
+    n_segments: int,
+) -> Float[Array, "k 3 3"]:
+    """Weighted normalised DLT homography of every segment (dst ~ H src), ||H||_F = 1."""
+    wsum = jnp.maximum(jax.ops.segment_sum(weight, seg, n_segments), 1e-12)
+
+    def norm(p):
+        c = jax.ops.segment_sum(p * weight[:, None], seg, n_segments) / wsum[:, None]
+        d = (
+            jax.ops.segment_sum(jnp.linalg.norm(p - c[seg], axis=1) * weight, seg, n_segments)
+            / wsum
+        )
+        return _similarity(c, jnp.sqrt(2.0) / jnp.maximum(d, 1e-6))
+
+    Ts, Td = norm(src), norm(dst)
+    sn = jnp.einsum("nij,nj->ni", Ts[seg], jnp.concatenate([src, jnp.ones_like(src[:, :1])], 1))
+    dn = jnp.einsum("nij,nj->ni", Td[seg], jnp.concatenate([dst, jnp.ones_like(dst[:, :1])], 1))
+    M = jax.ops.segment_sum(
+        _dlt_rows(sn[:, :2], dn[:, :2]) * weight[:, None, None], seg, n_segments
+    )
+    _, vecs = jnp.linalg.eigh(M)
+    Hn = vecs[:, :, 0].reshape(-1, 3, 3)
+    H = jnp.linalg.inv(Td) @ Hn @ Ts
+    H = H / jnp.linalg.norm(H, axis=(1, 2), keepdims=True)
+    return H * jnp.sign(H[:, 2, 2])[:, None, None]
+
+
+def segment_homography(
+    pts: Float[Array, "n 2"],
+    flow: Float[Array, "n 2"],
+    seg: Int[Array, " n"],
+    valid: Bool[Array, " n"],
+    n_segments: int,
+    n_irls: int = 3,
+    scale: float = 1.0,
+    min_points: int = 6,
+) -> Float[Array, "k 3 3"]:
+    """Robust homography per segment (eqs. 7-8): weighted normalised DLT, then ``n_irls``
+    reweightings with Cauchy weights 1 / (1 + (e / scale)^2), e the transfer error in px.
+    Segments with fewer than ``min_points`` valid points get their mean-flow translation."""
+    w0 = valid.astype(pts.dtype)
+    dst = pts + flow
+    H = weighted_homographies(pts, dst, seg, w0, n_segments)
+
+    def body(_, H):
+        pred = jax.vmap(apply_homography)(H[seg], pts)
+        e2 = jnp.sum((pred - dst) ** 2, axis=1)
+        return weighted_homographies(pts, dst, seg, w0 / (1.0 + e2 / scale**2), n_segments)
+
+    H = jax.lax.fori_loop(0, n_irls, body, H)
+    b, count = segment_translation(flow, seg, w0, n_segments)
+    Ht = jnp.tile(jnp.eye(3, dtype=pts.dtype), (n_segments, 1, 1)).at[:, :2, 2].set(b)
+    good = (count >= min_points) & jnp.all(jnp.isfinite(H), axis=(1, 2))
+    return jnp.where(good[:, None, None], H, Ht)
+
+
+def translation_error(
+    b: Float[Array, "k 2"], x_now: Float[Array, "2"], x_next: Float[Array, "2"]
+) -> Float[Array, " k"]:
+    """rho_j = |x_i + b_j - x_{i+1}|^2 (eq. 5), px^2."""
+    return jnp.sum((x_now + b - x_next) ** 2, axis=-1)
+
+
+def homography_error(
+    H: Float[Array, "k 3 3"], x_now: Float[Array, "2"], x_next: Float[Array, "2"]
+) -> Float[Array, " k"]:
+    """rho_j = |pi(H_j x_i) - x_{i+1}|^2 (eq. 9), px^2."""
+    pred = jax.vmap(apply_homography, in_axes=(0, None))(H, x_now)
+    return jnp.sum((pred - x_next) ** 2, axis=-1)

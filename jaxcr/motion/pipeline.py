@@ -1,0 +1,238 @@
+"""The Motion-Likelihood pipeline, frame by frame (M-L Fig. 3).
+
+:class:`MotionTracker` keeps the tracked label map and, per motion model, the running
+average of every segment's probability. Each :meth:`MotionTracker.step` takes the next image
+and the end-effector pixels of the two frames, and
+
+1. computes the LK grid flow (:mod:`~jaxcr.motion.flow`, OpenCV),
+2. evaluates the motion models, the likelihood and arm removal for all segments and
+   updates the running averages (:func:`frame_probabilities`, one jitted JAX call),
+3. warps the labels with the flow and refines them with SLIC on the new frame (JAX).
+
+The per-frame times of the three parts are recorded separately. A frame pair is *used* only
+if the end-effector is in view in both frames and moved at least ``min_motion`` px; otherwise
+the step is recorded with the reason and only the tracking advances.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from jaxcr.motion import flow as flowmod
+from jaxcr.motion.likelihood import gaussian_likelihood, remove_arm, running_average
+from jaxcr.motion.motion_models import (
+    homography_error,
+    segment_homography,
+    segment_translation,
+    translation_error,
+)
+from jaxcr.motion.propagate import labels_at_points, warp_labels
+from jaxcr.motion.superpixels import grid_labels, grid_shape, rgb_to_lab, slic
+
+MODELS = ("translation", "homography")
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Settings of M-L. Lengths in pixels, lambda in px^2 (Sigma = lambda I, eq. 10)."""
+
+    superpixel_step: int = 12
+    compactness: float = 10.0
+    slic_iters_first: int = 6
+    slic_iters_track: int = 2
+    flow: flowmod.FlowConfig = field(default_factory=flowmod.FlowConfig)
+    models: tuple[str, ...] = MODELS
+    lam: float = 15.0
+    kappa: float = 1.0
+    min_motion: float = 0.5
+    threshold: float = 0.75
+    homography_irls: int = 3
+
+
+@functools.partial(jax.jit, static_argnames=("n_segments", "models", "n_irls"))
+def frame_probabilities(
+    pts: Float[Array, "n 2"],
+    flow: Float[Array, "n 2"],
+    valid: Bool[Array, " n"],
+    labels: Int[Array, "h w"],
+    x_now: Float[Array, "2"],
+    x_next: Float[Array, "2"],
+    touch: Bool[Array, ""],
+    lam: float,
+    kappa: float,
+    n_segments: int,
+    models: tuple[str, ...] = MODELS,
+    n_irls: int = 3,
+) -> tuple[Float[Array, "m k"], Bool[Array, " k"]]:
+    """Arm-removed membership probability of every segment for one frame pair, one row per
+    model in ``models`` (eqs. 4-13), and which segments had valid flow (``present``)."""
+    seg = labels_at_points(labels, pts)
+    w = valid.astype(flow.dtype)
+    b, count = segment_translation(flow, seg, w, n_segments)
+    rows = []
+    for m in models:
+        if m == "translation":
+            rho = translation_error(b, x_now, x_next)
+        elif m == "homography":
+            H = segment_homography(pts, flow, seg, valid, n_segments, n_irls=n_irls)
+            rho = homography_error(H, x_now, x_next)
+        else:
+            raise ValueError(f"unknown motion model {m!r}")
+        rows.append(remove_arm(gaussian_likelihood(rho, lam), touch, kappa))
+    return jnp.stack(rows), count > 0
+
+
+_running_average = jax.jit(jax.vmap(running_average, in_axes=(0, 0, 0, None)))
+
+
+@functools.partial(jax.jit, static_argnames=("n_segments", "step", "n_iter"))
+def _track(labels, dense_flow, rgb_next, n_segments, step, compactness, n_iter):
+    warped = warp_labels(labels, dense_flow)
+    return slic(rgb_to_lab(rgb_next), warped, n_segments, step, compactness, n_iter)
+
+
+@functools.partial(jax.jit, static_argnames=("n_segments", "step", "n_iter"))
+def _first(rgb, n_segments, step, compactness, n_iter):
+    h, w = rgb.shape[:2]
+    return slic(rgb_to_lab(rgb), grid_labels(h, w, step), n_segments, step, compactness, n_iter)
+
+
+@dataclass
+class StepRecord:
+    """What happened between frames ``index - 1`` and ``index``."""
+
+    index: int
+    used: bool
+    reason: str
+    touch: bool
+    flow_ms: float
+    segmentation_ms: float
+    likelihood_ms: float
+    valid_flow: float
+
+
+class MotionTracker:
+    """Incremental M-L over a video (see the module docstring).
+
+    Args:
+        cfg: settings.
+        first_rgb: the first frame, float32 RGB in [0, 1], (H, W, 3).
+    """
+
+    def __init__(self, cfg: MotionConfig, first_rgb: np.ndarray):
+        self.cfg = cfg
+        h, w = first_rgb.shape[:2]
+        self.height, self.width = h, w
+        gh, gw = grid_shape(h, w, cfg.superpixel_step)
+        self.n_segments = gh * gw
+        t0 = time.perf_counter()
+        self.labels = _first(
+            jnp.asarray(first_rgb),
+            self.n_segments,
+            cfg.superpixel_step,
+            cfg.compactness,
+            cfg.slic_iters_first,
+        ).block_until_ready()
+        self.first_segmentation_ms = 1e3 * (time.perf_counter() - t0)
+        self.gray = flowmod.to_gray_u8(first_rgb)
+        m = len(cfg.models)
+        self.mean = jnp.zeros((m, self.n_segments), jnp.float32)
+        self.count = jnp.zeros((m, self.n_segments), jnp.float32)
+        self.records: list[StepRecord] = []
+
+    def in_view(self, uv) -> bool:
+        return bool(
+            np.all(np.isfinite(uv))
+            and 0 <= uv[0] <= self.width - 1
+            and 0 <= uv[1] <= self.height - 1
+        )
+
+    def step(
+        self,
+        index: int,
+        next_rgb: np.ndarray,
+        x_now,
+        x_next,
+        touch: bool,
+        now_visible: bool = True,
+        next_visible: bool = True,
+    ) -> StepRecord:
+        """Advance to ``next_rgb``; ``x_now``/``x_next`` are h(x) at the two frames (px)."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        gray = flowmod.to_gray_u8(next_rgb)
+        pts, fl, valid = flowmod.grid_flow(self.gray, gray, cfg.flow)
+        dense = flowmod.dense_from_grid(fl, valid, self.height, self.width, cfg.flow.step)
+        t1 = time.perf_counter()
+        reason = ""
+        x_now = np.asarray(x_now, np.float32)
+        x_next = np.asarray(x_next, np.float32)
+        if not (now_visible and next_visible and self.in_view(x_now) and self.in_view(x_next)):
+            reason = "end-effector out of view"
+        elif np.linalg.norm(x_next - x_now) < cfg.min_motion:
+            reason = f"end-effector still (< {cfg.min_motion:g} px)"
+        elif not valid.any():
+            reason = "no valid flow"
+        if not reason:
+            p, present = frame_probabilities(
+                jnp.asarray(pts),
+                jnp.asarray(fl),
+                jnp.asarray(valid),
+                self.labels,
+                jnp.asarray(x_now),
+                jnp.asarray(x_next),
+                jnp.asarray(bool(touch)),
+                cfg.lam,
+                cfg.kappa,
+                self.n_segments,
+                cfg.models,
+                cfg.homography_irls,
+            )
+            self.mean, self.count = _running_average(self.mean, self.count, p, present)
+            self.mean.block_until_ready()
+        t2 = time.perf_counter()
+        self.labels = _track(
+            self.labels,
+            jnp.asarray(dense),
+            jnp.asarray(next_rgb, jnp.float32),
+            self.n_segments,
+            cfg.superpixel_step,
+            cfg.compactness,
+            cfg.slic_iters_track,
+        ).block_until_ready()
+        t3 = time.perf_counter()
+        self.gray = gray
+        rec = StepRecord(
+            index,
+            not reason,
+            reason,
+            bool(touch),
+            1e3 * (t1 - t0),
+            1e3 * (t3 - t2),
+            1e3 * (t2 - t1),
+            float(valid.mean()),
+        )
+        self.records.append(rec)
+        return rec
+
+    def skip(self, index: int, reason: str, touch: bool = False) -> StepRecord:
+        """Record an unreadable frame (tracking continues from the last good frame)."""
+        rec = StepRecord(index, False, reason, bool(touch), 0.0, 0.0, 0.0, 0.0)
+        self.records.append(rec)
+        return rec
+
+    def segment_probability(self, model: str) -> np.ndarray:
+        """Integrated probability of every segment (eq. 16) for one model, (n_segments,)."""
+        return np.asarray(self.mean[self.cfg.models.index(model)])
+
+    def probability_map(self, model: str, labels=None) -> np.ndarray:
+        """(H, W) float32 map of the integrated probability on ``labels`` (default: current)."""
+        lbl = self.labels if labels is None else labels
+        return np.asarray(jnp.asarray(self.segment_probability(model))[lbl])
