@@ -172,5 +172,11 @@ def test_ctr_dispatch():
     ctr = pytest.importorskip("jaxcr.kinematics.ctr")
     if not hasattr(ctr.ConcentricTubeRobot, "from_dict"):
         pytest.skip("ConcentricTubeRobot.from_dict not available yet")
-    with pytest.raises(InputError):
-        robot_from_dict({"kind": "ctr"}, file="robot.json")
+    with pytest.raises(InputError) as err:
+        robot_from_dict({"kind": "ctr", "tubes": []}, file="robot.json")
+    assert err.value.field == "tubes" and err.value.file == "robot.json"
+    model = robot_from_dict(ctr.TEST_CTR)
+    assert isinstance(model, ctr.ConcentricTubeRobot) and model.n_joints == 6
+    d = robot_to_dict(model)
+    assert d["kind"] == "ctr"
+    assert robot_to_dict(robot_from_dict(json.loads(json.dumps(d)))) == d
