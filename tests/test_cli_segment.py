@@ -249,3 +249,18 @@ def test_evaluate_matches_numpy(full_run, dataset, tmp_path, capsys):
     md = (rep / "table2.md").read_text()
     m, s = np.mean(want["iou_refined"]), np.std(want["iou_refined"])
     assert f"{m:.3f} ± {s:.3f} \\| " in md
+
+
+def test_evaluate_several_runs_one_column_each(full_run, tmp_path):
+    _, out = full_run
+    other = tmp_path / "again"
+    shutil.copytree(out, other)
+    rep = tmp_path / "rep"
+    assert main(["evaluate", str(out), str(other), "-o", str(rep), "--no-plot"]) == 0
+    rows = list(csv.DictReader(open(rep / "table2.csv")))
+    cols = list(dict.fromkeys(r["column"] for r in rows))
+    assert cols == ["tiny", "tiny (again)", "all"]
+    get = {(r["column"], r["metric"]): r for r in rows}
+    assert get[("tiny", "iou_refined")]["mean"] == get[("tiny (again)", "iou_refined")]["mean"]
+    assert int(get[("all", "iou_refined")]["n"]) == 8
+    assert not (rep / "iou.png").exists()

@@ -257,6 +257,9 @@ class Segmenter:
                     "num_steps": int(fk_steps[i]),
                 },
             }
+            cc = getattr(host, "camera_correction", None)
+            if cc is not None:  # per-camera pose correction (rotation vector, translation)
+                rec["camera_correction"] = {c: cc[i][k].tolist() for k, c in enumerate(self.cams)}
             if ok and np.all(np.isfinite(host.centreline.p[i])):
                 rec["files"] = self._write_frame_files(
                     fid, frame, images, host, i, bgs_np, nominal_p[i]
