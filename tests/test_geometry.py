@@ -88,7 +88,7 @@ _log_jit = jax.jit(so3_log)
 _rotvec = arrays(np.float64, (3,), elements=st.floats(-4.0, 4.0))
 
 
-@settings(max_examples=60, deadline=None)
+@settings(derandomize=True, max_examples=60, deadline=None)
 @given(w=_rotvec)
 def test_exp_is_orthonormal_and_matches_scipy_property(w):
     R = np.asarray(_exp_jit(jnp.asarray(w, jnp.float32)), np.float64)
@@ -97,7 +97,7 @@ def test_exp_is_orthonormal_and_matches_scipy_property(w):
     np.testing.assert_allclose(R, Rotation.from_rotvec(w).as_matrix(), atol=2e-6)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(derandomize=True, max_examples=60, deadline=None)
 @given(w=_rotvec)
 def test_log_exp_round_trip_property(w):
     # Canonical rotation vector (angle in [0, pi)); skip the measure-zero band right at pi.
