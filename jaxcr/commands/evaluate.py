@@ -223,6 +223,9 @@ def iou_plot(rows: list[dict], path: Path) -> None:
         ax2.plot(x, [r["iou_refined"] for r in gr], "o-", color=c, label=f"{g}: optimised")
         ax2.plot(x, [r["iou_nominal"] for r in gr], "x--", color=c, alpha=0.6,
                  label=f"{g}: unoptimised")  # fmt: skip
+    from matplotlib.ticker import MaxNLocator
+
+    ax2.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax2.set_xlabel("frame (per column, in run order)")
     ax2.set_ylabel("IoU")
     ax2.set_ylim(0, 1)
