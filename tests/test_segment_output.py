@@ -200,3 +200,28 @@ def test_paper_table_text():
     assert "0.665 ± 0.063" in md and "0.414 ± 0.104 \\| 0.636 ± 0.153" in md
     assert "0.300 ± 0.109 \\| 0.520 ± 0.171" in md
     assert all(line.count(" | ") == 4 for line in md.splitlines()[2:])  # 5 cells per row
+
+
+def test_refine_config_from_cli_options():
+    import argparse
+
+    from jaxcr.commands.segment import refine_config
+    from jaxcr.errors import InputError
+    from jaxcr.refine import RefineConfig
+
+    base = RefineConfig()
+
+    def cfg(**kw):
+        return refine_config(argparse.Namespace(**({"basis": None, "levels": None,
+                                                   "max_steps": None} | kw)))  # fmt: skip
+
+    assert cfg() == base
+    c = cfg(levels=2, max_steps=4, basis=3)
+    assert c.levels == base.levels[-2:] and c.n_coeffs == 3
+    assert c.steps[-1] == 4 and len(c.steps) == 2
+    assert c.tau == base.tau[-2:]
+    c = cfg(levels=len(base.levels) + 1)
+    assert c.levels == (max(base.levels) + 1, *base.levels)
+    for bad in ({"levels": 0}, {"max_steps": 0}, {"basis": 0}):
+        with pytest.raises(InputError):
+            cfg(**bad)

@@ -119,6 +119,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def refine_config(args):
     """The :class:`jaxcr.refine.RefineConfig` for the CLI options (None = core default)."""
+    import dataclasses
+
     from jaxcr.refine import RefineConfig
 
     base = RefineConfig()
@@ -127,27 +129,32 @@ def refine_config(args):
         if args.basis < 1:
             raise InputError("--basis must be >= 1", field="basis")
         kw["n_coeffs"] = args.basis
-    levels, steps = base.levels, base.steps
-    outer, tau = base.outer, base.tau
+    # per-level schedules: every tuple field as long as ``levels`` (steps, outer, tau, ...)
+    n_lev = len(base.levels)
+    sched = {
+        f.name: tuple(getattr(base, f.name))
+        for f in dataclasses.fields(base)
+        if isinstance(getattr(base, f.name), tuple) and len(getattr(base, f.name)) == n_lev
+    }
     if args.levels is not None:
         n = args.levels
         if n < 1:
             raise InputError("--levels must be >= 1", field="levels")
         # keep the core's schedule for its finest n levels; extend coarser ones if asked
-        if n <= len(levels):
-            levels, steps, outer, tau = (t[-n:] for t in (levels, steps, outer, tau))
+        if n <= n_lev:
+            sched = {k: v[-n:] for k, v in sched.items()}
         else:
-            extra = n - len(levels)
-            levels = tuple(range(max(levels) + extra, max(levels), -1)) + levels
-            steps = (steps[0],) * extra + steps
-            outer = (outer[0],) * extra + outer
-            tau = (tau[0],) * extra + tau
+            extra = n - n_lev
+            top = max(base.levels)
+            sched = {k: (v[0],) * extra + v for k, v in sched.items()}
+            sched["levels"] = tuple(range(top + extra, top, -1)) + tuple(base.levels)
     if args.max_steps is not None:
         if args.max_steps < 1:
             raise InputError("--max-steps must be >= 1", field="max-steps")
+        steps = sched["steps"]
         scale = args.max_steps / steps[-1]
-        steps = tuple(max(1, round(s * scale)) for s in steps)
-    kw.update(levels=tuple(levels), steps=tuple(steps), outer=tuple(outer), tau=tuple(tau))
+        sched["steps"] = tuple(max(1, round(s * scale)) for s in steps)
+    kw.update(sched)
     return RefineConfig(**kw)
 
 
