@@ -148,6 +148,9 @@ class Segmenter:
             disable=not progress,
             dynamic_ncols=True,
             desc="segment",
+            # always frames/s (tqdm would switch to s/frame below 1 frame/s)
+            bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, "
+            "{rate_noinv_fmt}]",
         )
         with R.ResultsLog(self.layout.results) as log:
 
