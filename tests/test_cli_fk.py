@@ -129,6 +129,7 @@ def test_nan_row_fails_that_row_only(files, capsys):
         ),
         ("0.3\n", "row 0 (line 1): expected 2 joint values, got 1"),
         ("0.3,1\nabc,1\n", "row 1 (line 2): non-numeric value"),
+        ("0.3,abc\n0.3,1\n", "row 0 (line 1): non-numeric value"),
         ("theta_L,delta\n", "no joint rows found"),
         ("", "no joint rows found"),
     ],

@@ -2,7 +2,7 @@
 
 ROBOT is a robot.json, a dataset.json, or a dataset folder (robot from its dataset.json).
 Q.csv holds one joint vector per row, comma-separated; blank lines and lines starting with
-``#`` are skipped; an optional first line of column names (any non-numeric field) is a header.
+``#`` are skipped; an optional first line of column names (no field numeric) is a header.
 ``nan`` entries are allowed: that row is reported as failed (ok = 0), not an error.
 
 Outputs (format ``jaxcr.fk/1``), written atomically (temp file, then rename):
@@ -55,6 +55,14 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def read_q_csv(path: str, n_joints: int) -> np.ndarray:
     """Rows of ``n_joints`` floats from ``path`` (see module docstring). NaN allowed."""
     try:
@@ -78,7 +86,8 @@ def read_q_csv(path: str, n_joints: int) -> np.ndarray:
         try:
             values = [float(f) for f in fields]
         except ValueError:
-            if header_allowed and not seen_data:
+            # A header is a first line of names only; a half-numeric first line is a typo.
+            if header_allowed and not seen_data and not any(map(_is_number, fields)):
                 header_allowed = False
                 continue
             raise InputError(
