@@ -42,14 +42,14 @@ from jaxcr.kinematics.cosserat import Centreline, perturb_centreline
 class ModelErrorSpec:
     """Magnitudes of each error source at ``scale = 1`` (SI units)."""
 
-    kappa_rel: float = 0.06
-    stiffness_rel: float = 0.06
-    beta_offset: float = 1.5e-3
-    alpha_offset: float = np.deg2rad(4.0)
+    kappa_rel: float = 0.10
+    stiffness_rel: float = 0.10
+    beta_offset: float = 2.5e-3
+    alpha_offset: float = np.deg2rad(6.0)
     joint_rel: float = 0.03
-    tip_force: float = 0.03
-    camera_rotation: float = np.deg2rad(1.0)
-    camera_translation: float = 1.5e-3
+    tip_force: float = 0.05
+    camera_rotation: float = np.deg2rad(0.3)
+    camera_translation: float = 1.0e-3
     scale: float = 1.0
 
     def scaled(self, scale: float) -> ModelErrorSpec:

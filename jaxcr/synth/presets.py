@@ -111,12 +111,16 @@ class PresetConfig:
 
 
 _ORTHO_VIEW = ViewSpec(
-    eye=(-0.20, 0.0, 0.06), target=(0.0, 0.0, 0.06), up=(0.0, -1.0, 0.0), fx=700.0, baseline=0.06
+    eye=(-0.21, -0.042, 0.055),
+    target=(0.0, -0.042, 0.055),
+    up=(0.0, -1.0, 0.0),
+    fx=700.0,
+    baseline=0.06,
 )
-_ORTHO_TISSUE = TissueSpec(origin=(0.075, 0.0, 0.06), normal=(-1.0, 0.0, 0.0))
+_ORTHO_TISSUE = TissueSpec(origin=(0.075, -0.04, 0.06), normal=(-1.0, 0.0, 0.0))
 _ENDO_VIEW = ViewSpec(
-    eye=(-0.055, 0.006, -0.06),
-    target=(0.0, 0.0, 0.09),
+    eye=(-0.075, 0.006, -0.06),
+    target=(0.01, 0.0, 0.10),
     up=(-1.0, 0.0, 0.0),
     fx=500.0,
     dist=(-0.12, 0.08, 3e-4, -2e-4, -0.01),

@@ -41,9 +41,10 @@ def nominal_mask(dataset_dir: str | Path, frame: int = 0, camera: str | None = N
         int(c["size"][0]),
         int(c["size"][1]),
     )
-    q = np.asarray(doc["frames"][frame]["q"], float)[None]
+    # All frames at once: the same batch shape as the generator, so its compilation is reused.
+    q = np.asarray([f["q"] for f in doc["frames"]], float)
     shapes = robot_shapes(doc["robot"], q)
-    return robot_mask(cam, tube_body(doc["robot"], shapes.p[0], shapes.rho[0]))
+    return robot_mask(cam, tube_body(doc["robot"], shapes.p[frame], shapes.rho[frame]))
 
 
 def write_preview(dataset_dir: str | Path, out_dir: str | Path, frame: int = 0) -> list[Path]:

@@ -156,4 +156,4 @@ class Scene:
     robot: TubeBody | None = None
     occluders: list[Capsule | Box] = field(default_factory=list)
     static_occluders: list[Capsule | Box] = field(default_factory=list)
-    light_dir: np.ndarray = field(default_factory=lambda: np.array([0.3, -0.6, 0.75]))
+    light_dir: np.ndarray = field(default_factory=lambda: np.array([-0.7, -0.35, 0.25]))

@@ -91,7 +91,7 @@ def make_tissue_texture(
     tone = fractal_noise(rng, size, 2, 3, 0.5)
     detail = fractal_noise(rng, size, 48, 3, 0.6)
     # Tone index: mostly red/pink, fat and fascia in patches.
-    idx = 0.1 + 0.75 * base + 0.6 * (tone - 0.5) + 0.12 * (detail - 0.5)
+    idx = 0.2 + 0.75 * base + 0.6 * (tone - 0.5) + 0.12 * (detail - 0.5)
     albedo = _palette_lookup(idx)
     # Vessels: thin dark-red bands where two low-frequency noises cross mid-level.
     vessel = np.zeros((size, size), np.float32)
