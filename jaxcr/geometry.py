@@ -90,8 +90,11 @@ def so3_log(R: Mat3) -> Vec3:
     """
     cos_t = jnp.clip(0.5 * (jnp.trace(R) - 1.0), -1.0, 1.0)
     v = vee(R)  # = sin(t) * axis
-    sin_t = jnp.linalg.norm(jnp.where(jnp.abs(cos_t) > 0.999999, jnp.ones(3), v))
-    sin_t = jnp.where(jnp.abs(cos_t) > 0.999999, 0.0, sin_t)
+    # |v| with a finite gradient where v = 0 (identity, exactly pi). Earlier this zeroed sin_t
+    # whenever |cos| > 0.999999, which snapped every angle within 1.4e-3 rad of pi to pi.
+    n2 = jnp.dot(v, v)
+    zero_v = n2 < 1e-30
+    sin_t = jnp.where(zero_v, 0.0, jnp.sqrt(jnp.where(zero_v, 1.0, n2)))
     theta = jnp.arctan2(sin_t, cos_t)
     small = theta < _SMALL_ANGLE
     near_pi = cos_t < -0.99

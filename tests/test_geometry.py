@@ -109,8 +109,7 @@ def test_log_exp_round_trip_property(w):
         return
     R = Rotation.from_rotvec(w).as_matrix()
     w_back = np.asarray(_log_jit(jnp.asarray(R, jnp.float32)), np.float64)
-    # float32: the near-pi fallback (cos < -0.99) is the least accurate branch.
-    np.testing.assert_allclose(w_back, w, atol=5e-4 if theta > 3.0 else 2e-5)
+    np.testing.assert_allclose(w_back, w, atol=1e-5)
     np.testing.assert_allclose(Rotation.from_rotvec(w_back).as_matrix(), R, atol=2e-5)
 
 
@@ -205,3 +204,12 @@ def test_float32_accuracy_across_small_angles(theta):
     w32 = jnp.asarray(w, jnp.float32)
     np.testing.assert_allclose(so3_left_jacobian(w32), J, atol=1e-7)
     np.testing.assert_allclose(so3_exp(w32), Rotation.from_rotvec(w).as_matrix(), atol=3e-7)
+
+
+@pytest.mark.parametrize("gap", [1e-4, 5e-4, 1.4e-3, 1e-2])
+def test_log_float32_close_to_pi(gap):
+    # Regression: angles within 1.4e-3 rad of pi used to come back as exactly pi.
+    axis = np.array([0.48, -0.6, 0.64])
+    w = axis / np.linalg.norm(axis) * (np.pi - gap)
+    R = Rotation.from_rotvec(w).as_matrix()
+    np.testing.assert_allclose(so3_log(jnp.asarray(R, jnp.float32)), w, atol=2e-6)
