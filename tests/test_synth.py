@@ -287,11 +287,11 @@ def test_dataset_written_completely(small_dataset):
         truth = np.load(small_dataset / fr["truth"]["centreline"])
         assert truth.shape[1] == 3 and np.all(np.isfinite(truth))
     assert len(doc["background_images"]["main"]) == 3
-    try:
-        from jaxcr.io.dataset import validate_dataset
-    except ImportError:
-        return
-    validate_dataset(small_dataset)
+    from jaxcr.io.dataset import load_dataset, validate_dataset
+
+    assert validate_dataset(small_dataset) == []
+    ds = load_dataset(small_dataset)
+    assert len(ds.frames) == FRAMES and not ds.bad_frames
 
 
 def test_generation_is_deterministic(small_dataset, tmp_path):
@@ -334,7 +334,7 @@ def test_cli_stereo_and_bad_input(tmp_path, capsys):
     assert sorted(doc["cameras"]) == ["left", "right"]
     T = [np.asarray(doc["cameras"][c]["T_cam_robot"]) for c in ("left", "right")]
     base = np.linalg.norm(T[0][:3, :3].T @ T[0][:3, 3] - T[1][:3, :3].T @ T[1][:3, 3])
-    assert base == pytest.approx(PRESETS["endoscopic_occluded"].camera.baseline, rel=1e-9)
+    assert base == pytest.approx(PRESETS["endoscopic_occluded"].camera.baseline, rel=1e-4)
     assert (
         main(["synth", "--preset", "orthogonal", "--size", "big", "-o", str(tmp_path / "x")]) == 2
     )

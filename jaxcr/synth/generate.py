@@ -16,8 +16,8 @@ the requested frame count and size.
 from __future__ import annotations
 
 import copy
-import json
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -182,23 +182,6 @@ def instrument_for_frame(
     )
 
 
-def _json_dump_atomic(obj: Any, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(obj, fh, indent=1)
-        fh.write("\n")
-    os.replace(tmp, path)
-
-
-def _camera_json(cam: RenderCamera) -> dict[str, Any]:
-    return {
-        "K": cam.K.tolist(),
-        "dist": [float(x) for x in cam.dist],
-        "size": [cam.width, cam.height],
-        "T_cam_robot": cam.T_cam_robot.tolist(),
-    }
-
-
 def parse_size(text: str) -> tuple[int, int]:
     """``"640x480"`` -> (640, 480); raises :class:`InputError` on anything else."""
     try:
@@ -248,7 +231,6 @@ def generate(
 
     scene_data = build_scene_data(cfg, seed, frames, size, n_cameras, spec)
     names = list(scene_data.cameras_nominal)
-    frame_entries = []
     it = range(frames)
     if progress:
         from tqdm import tqdm
@@ -258,73 +240,59 @@ def generate(
         name: render_static(scene_data.cameras_true[name], scene_data.scene(None, []))
         for name in names
     }
-    from jaxcr.io.images import write_png
+    from jaxcr.camera import camera_from_arrays
+    from jaxcr.io.dataset import DatasetWriter
 
+    cameras = {
+        n: camera_from_arrays(c.K, c.dist, c.T_cam_robot, c.width, c.height)
+        for n, c in scene_data.cameras_nominal.items()
+    }
+    meta = {
+        "generator": "jaxcr synth",
+        "generator_version": GENERATOR_VERSION,
+        "preset": cfg.name,
+        "seed": int(seed),
+        "frames": frames,
+        "size": list(size),
+        "model_error": scene_data.error.to_dict(),
+        "true_robot": scene_data.robot_true,
+        "true_cameras": {n: c.T_cam_robot.tolist() for n, c in scene_data.cameras_true.items()},
+        "tip_load_model": "linearised: du(s) = R(s)^T ((p(L)-p(s)) x F) / EI(s), re-integrated",
+    }
+    if not np.all(scene_data.shapes_true.ok):
+        bad = np.nonzero(~scene_data.shapes_true.ok)[0].tolist()
+        warnings.warn(
+            f"{cfg.name}: true-robot kinematics did not converge for frames {bad}", stacklevel=2
+        )
+    writer = DatasetWriter(out, cfg.name, cfg.robot, cameras, meta=meta, overwrite=True)
     for k in it:
-        fid = f"{k:03d}"
         scene = scene_data.scene(scene_data.bodies[k], scene_data.instruments[k])
-        entry: dict[str, Any] = {
-            "id": fid,
-            "q": [float(x) for x in scene_data.q_nominal[k]],
-            "images": {},
-            "masks": {},
-            "full_masks": {},
-            "occluders": {},
-            "tags": cfg.tags,
-        }
+        images, masks, full, occ = {}, {}, {}, {}
         for ci, name in enumerate(names):
             r = render(scene_data.cameras_true[name], scene, static=statics[name])
-            noise_rng = _rng(seed, cfg, _STREAM_NOISE, k, ci)
-            img = apply_camera_effects(r.image, noise_rng)
-            for key, folder, arr in (
-                ("images", "images", img),
-                ("masks", "masks", r.visible),
-                ("full_masks", "full", r.full),
-                ("occluders", "occluders", r.occluder),
-            ):
-                rel = f"{folder}/{name}/{fid}.png"
-                write_png(out / rel, arr)
-                entry[key][name] = rel
-        rel = f"truth/{fid}.npy"
-        (out / "truth").mkdir(exist_ok=True)
-        np.save(out / rel, scene_data.shapes_true.p[k])
-        entry["truth"] = {"centreline": rel}
-        frame_entries.append(entry)
-    backgrounds: dict[str, list[str]] = {}
+            images[name] = apply_camera_effects(r.image, _rng(seed, cfg, _STREAM_NOISE, k, ci))
+            masks[name], full[name], occ[name] = r.visible, r.full, r.occluder
+        writer.add_frame(
+            f"{k:03d}",
+            scene_data.q_nominal[k],
+            images,
+            masks=masks,
+            full_masks=full,
+            occluders=occ,
+            tags=cfg.tags,
+            truth={"centreline": scene_data.shapes_true.p[k]},
+            meta={
+                "q_true": [float(x) for x in scene_data.q_true[k]],
+                "fk_ok_true": bool(scene_data.shapes_true.ok[k]),
+            },
+        )
     for ci, name in enumerate(names):
-        backgrounds[name] = []
         for b in range(N_BACKGROUND_IMAGES):
             img = apply_camera_effects(
                 statics[name].image, _rng(seed, cfg, _STREAM_NOISE, 10_000 + b, ci)
             )
-            rel = f"background/{name}/{b:03d}.png"
-            write_png(out / rel, img)
-            backgrounds[name].append(rel)
-    doc = {
-        "format": "jaxcr.dataset/1",
-        "name": cfg.name,
-        "robot": cfg.robot,
-        "cameras": {n: _camera_json(c) for n, c in scene_data.cameras_nominal.items()},
-        "frames": frame_entries,
-        "background_images": backgrounds,
-        "meta": {
-            "generator": "jaxcr synth",
-            "generator_version": GENERATOR_VERSION,
-            "preset": cfg.name,
-            "seed": int(seed),
-            "frames": frames,
-            "size": list(size),
-            "model_error": scene_data.error.to_dict(),
-            "true_robot": scene_data.robot_true,
-            "true_cameras": {n: c.T_cam_robot.tolist() for n, c in scene_data.cameras_true.items()},
-            "true_q": scene_data.q_true.tolist(),
-            "fk_ok_true": [bool(x) for x in scene_data.shapes_true.ok],
-            "tip_load_model": "linearised: du(s) = R(s)^T ((p(L)-p(s)) x F) / EI(s), re-integrated",
-        },
-    }
-    path = out / "dataset.json"
-    _json_dump_atomic(doc, path)
-    return path
+            writer.add_background(name, img)
+    return writer.close()
 
 
 def _resolve(preset: str | PresetConfig) -> PresetConfig:
