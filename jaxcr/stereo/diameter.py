@@ -94,7 +94,9 @@ def profile_widths(
         bg = jnp.nanmedian(jnp.where(bg_sel, g, jnp.nan), axis=1)
         fg = jnp.nanmedian(jnp.where(fg_sel, g, jnp.nan), axis=1)
         fg = jnp.where(jnp.isnan(fg), jnp.nanmin(jnp.where(run > 0, g, jnp.nan), axis=1), fg)
-        zone = (outside > -1.25) & (outside < 2.0)
+        # Grid samples at outside = -1.25, -1.0, ..., 1.75 (the edge sample is on the grid)
+        # each stand for a cell of one step: together [-1.25 - step/2, 2 - step/2).
+        zone = (outside > -1.25 - 1e-3) & (outside < 2.0 - 1e-3)
         den = bg - fg
         cover = jnp.clip(
             (bg[:, None] - g) / jnp.where(jnp.abs(den) > 1e-6, den, 1e-6)[:, None], 0, 1
@@ -104,8 +106,9 @@ def profile_widths(
 
     cl = side(lo[:, None], -1.0)
     cr = side(hi[:, None], 1.0)
-    left_edge = lo - (cl - 1.25)
-    right_edge = hi + (cr - 1.25)
+    inner = 1.25 + step / 2
+    left_edge = lo - (cl - inner)
+    right_edge = hi + (cr - inner)
     width = jnp.maximum(right_edge - left_edge, 0.0)
     offset = 0.5 * (left_edge + right_edge)
     return width, offset

@@ -86,8 +86,10 @@ def _hyper_circle(q: Float[Array, "n 2"], w: Float[Array, " n"]) -> Float[Array,
     w, U = jnp.linalg.eigh(Y @ Ninv @ Y)
     # The smallest positive eigenvalue.
     k = jnp.argmin(jnp.where(w > 0, w, jnp.inf))
-    a = jnp.linalg.solve(Y, U[:, k])
-    return jnp.where(S[3] < 1e-10 * S[0], exact, a)
+    a = V @ ((V.T @ U[:, k]) / Sg)
+    # (Nearly) exact circle: the null vector itself (the hyper step is then ill-posed).
+    tiny = 100.0 * jnp.finfo(q.dtype).eps * S[0]
+    return jnp.where(S[3] < tiny, exact, a)
 
 
 @jax.jit

@@ -77,11 +77,10 @@ def order_skeleton(skel: np.ndarray, seed_rc: tuple[float, float]) -> np.ndarray
     d0, _ = skeleton_bfs(skel, (int(rr[i0]), int(cc[i0])))
     tip = int(np.argmax(d0))
     d1, par1 = skeleton_bfs(skel, divmod(tip, w))
-    # The base end: farthest from the tip, preferring ends near the seed among near-ties
-    # (the tube's base end is where the seed is).
+    # The base end: farthest from the tip (ties: the one nearest the seed).
     reach = d1.ravel()
     far = reach.max()
-    cand = np.nonzero(reach >= far - 3)[0]
+    cand = np.nonzero(reach == far)[0]
     cr, ccol = np.divmod(cand, w)
     base = int(cand[np.argmin((cr - seed_rc[0]) ** 2 + (ccol - seed_rc[1]) ** 2)])
     # Orient by geodesic distance from the seed pixel (never by image distance: a curled

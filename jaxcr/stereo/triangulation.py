@@ -45,8 +45,6 @@ def triangulate_point(
             x2[1] * P2[2] - P2[1],
         ]
     )
-    # Row scaling does not change the solution; it keeps float32 well conditioned.
-    A = A / jnp.linalg.norm(A, axis=1, keepdims=True)
     _, _, vt = jnp.linalg.svd(A)
     X = vt[-1]
     return X[:3] / X[3]
