@@ -53,6 +53,12 @@ def add_parser(subparsers) -> None:
         metavar="SCALE",
         help="scale of every model-error source (default 1; 0 = nominal model is exact)",
     )
+    p.add_argument(
+        "--robot",
+        default=None,
+        metavar="ROBOT.json",
+        help="render this robot (any kind) instead of the presets' concentric-tube robot",
+    )
     p.add_argument("--stereo", action="store_true", help="a two-camera rig (left, right)")
     p.add_argument("--cameras", type=int, default=None, help="number of cameras in the rig")
     p.add_argument(
@@ -105,6 +111,11 @@ def run(args) -> int:
         n_cameras = n_cameras or 2
     if n_cameras is not None and n_cameras < 1:
         raise InputError(f"need at least one camera, got {n_cameras}", field="cameras")
+    robot = None
+    if args.robot is not None:
+        from jaxcr.kinematics.robots import load_robot, robot_to_dict
+
+        robot = robot_to_dict(load_robot(args.robot))
     several = len(names) > 1 or args.all
     _enable_compile_cache()
     t0 = time.perf_counter()
@@ -120,6 +131,7 @@ def run(args) -> int:
             progress=not args.quiet,
             model_error_scale=args.model_error,
             n_cameras=n_cameras,
+            robot=robot,
         )
         written.append(path)
         print(f"{name}: {path}", file=sys.stderr if args.quiet else sys.stdout)

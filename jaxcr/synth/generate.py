@@ -16,6 +16,7 @@ the requested frame count and size.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import os
 import warnings
 from dataclasses import dataclass
@@ -37,7 +38,7 @@ from jaxcr.synth.model_error import (
     perturbed_robot,
 )
 from jaxcr.synth.occluders import actuation_unit, laparoscopic_instrument
-from jaxcr.synth.presets import PRESETS, PresetConfig, ctr_trajectory
+from jaxcr.synth.presets import PRESETS, PresetConfig, ctr_trajectory, generic_trajectory
 from jaxcr.synth.render import apply_camera_effects, render, render_static
 from jaxcr.synth.scene import RenderCamera, Scene, Tissue, TubeBody, look_at_pose
 from jaxcr.synth.texture import make_tissue_texture
@@ -206,14 +207,22 @@ def generate(
     progress: bool = True,
     model_error_scale: float | None = None,
     n_cameras: int | None = None,
+    robot: dict[str, Any] | None = None,
 ) -> Path:
     """Write the dataset of ``preset`` (a name in :data:`PRESETS` or a config) to folder
     ``out``; returns the path of its ``dataset.json`` (written last, atomically).
+
+    ``robot`` (a robot description dict, any kind of docs/dataset-format.md) replaces the
+    preset's CTR; the scene (cameras, tissue, occluders) stays that of the preset.
 
     ``frames``/``size``/``n_cameras`` override the preset (20 frames, 640x480, 1 camera);
     ``model_error_scale`` multiplies every model-error magnitude (0 gives a perfect model).
     """
     cfg = _resolve(preset)
+    if robot is not None:
+        from jaxcr.kinematics.robots import robot_from_dict, robot_to_dict
+
+        cfg = dataclasses.replace(cfg, robot=robot_to_dict(robot_from_dict(robot)))
     frames = cfg.frames if frames is None else int(frames)
     if frames < 1:
         raise InputError(f"need at least one frame, got {frames}", field="frames")
@@ -335,13 +344,15 @@ def build_scene_data(
     texture = make_tissue_texture(_rng(seed, cfg, _STREAM_TEXTURE))
     tissue = tissue_for(cfg, texture)
     cams = nominal_cameras(cfg, size, n_cameras)
-    if cfg.robot["kind"] != "ctr":
-        raise InputError(
-            "the synthetic presets drive a concentric-tube robot ('ctr')", field="robot.kind"
-        )
-    q_nom = ctr_trajectory(cfg, _rng(seed, cfg, _STREAM_TRAJ), frames)
+    if cfg.robot["kind"] == "ctr":
+        q_nom = ctr_trajectory(cfg, _rng(seed, cfg, _STREAM_TRAJ), frames)
+        ranges = None
+    elif cfg.robot["kind"] in ("constant_curvature", "single_segment"):
+        q_nom, ranges = generic_trajectory(cfg.robot, _rng(seed, cfg, _STREAM_TRAJ), frames)
+    else:
+        raise InputError(f"unsupported robot kind {cfg.robot['kind']!r}", field="robot.kind")
     err = draw_model_error(
-        _rng(seed, cfg, _STREAM_ERROR), spec, cfg.robot, q_nom.shape[1], list(cams)
+        _rng(seed, cfg, _STREAM_ERROR), spec, cfg.robot, q_nom.shape[1], list(cams), ranges
     )
     robot_true = perturbed_robot(copy.deepcopy(cfg.robot), err)
     q_true = q_nom + np.asarray(err.joint_offset)[None, :]

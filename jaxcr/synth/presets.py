@@ -11,7 +11,7 @@ the +x side ("below" the robot).
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -106,9 +106,6 @@ class PresetConfig:
     def tags(self) -> list[str]:
         return [self.view] + (["occluded"] if self.occluded else [])
 
-    def with_overrides(self, **kw) -> PresetConfig:
-        return replace(self, **{k: v for k, v in kw.items() if v is not None})
-
 
 _ORTHO_VIEW = ViewSpec(
     eye=(-0.21, -0.042, 0.055),
@@ -180,3 +177,43 @@ def ctr_trajectory(cfg: PresetConfig, rng: np.random.Generator, frames: int) -> 
         amp = cfg.alpha_amplitude * (1.0 if i == 0 else 0.7)
         alpha[:, i] = amp * np.sin(freq * ph + phases[n + i])
     return np.concatenate([beta, alpha], axis=1)
+
+
+def generic_trajectory(
+    robot: dict[str, Any], rng: np.random.Generator, frames: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nominal joint values (frames, m) and per-joint ranges (m,) for the other robot kinds,
+    on random-phase sinusoids:
+
+    * ``constant_curvature``: per section and declared joint, ``kappa`` in +-(1.2 rad /
+      length), ``phi`` sweeping +-pi/2 about a random plane, ``length`` in 85-100 % of the
+      section length;
+    * ``single_segment``: ``theta_L`` in pi/2 - [0.2, 1.4] rad (bending angle), ``delta``
+      sweeping +-pi/2 (Reiter et al. eq. 1).
+    """
+    ph = 2.0 * np.pi * np.arange(frames) / max(frames, 1)
+    cols, ranges = [], []
+    if robot["kind"] == "constant_curvature":
+        joints = robot.get("joints", ["kappa", "phi", "length"])
+        for sec in robot["sections"]:
+            L = float(sec["length"])
+            for j in joints:
+                p0, freq = rng.uniform(0, 2 * np.pi), rng.integers(1, 3)
+                if j == "kappa":
+                    amp = 1.2 / L
+                    cols.append(amp * np.sin(freq * ph + p0))
+                elif j == "phi":
+                    amp = np.pi / 2
+                    cols.append(rng.uniform(-np.pi, np.pi) + amp * np.sin(freq * ph + p0))
+                else:
+                    amp = 0.075 * L
+                    cols.append(0.925 * L + amp * np.sin(freq * ph + p0))
+                ranges.append(amp)
+    elif robot["kind"] == "single_segment":
+        p0, p1 = rng.uniform(0, 2 * np.pi, 2)
+        cols.append(np.pi / 2 - (0.8 + 0.6 * np.sin(ph + p0)))
+        cols.append(rng.uniform(-np.pi, np.pi) + np.pi / 2 * np.sin(2 * ph + p1))
+        ranges += [0.6, np.pi / 2]
+    else:
+        raise ValueError(f"no trajectory for robot kind {robot['kind']!r}")
+    return np.stack(cols, axis=1), np.asarray(ranges)

@@ -37,17 +37,6 @@ class RenderCamera:
             self.K, self.dist, np.asarray(T_cam_robot, float), self.width, self.height
         )
 
-    def scaled(self, width: int, height: int) -> RenderCamera:
-        """Same field of view at another resolution (intrinsics scaled, pixel-centre aware)."""
-        sx, sy = width / self.width, height / self.height
-        K = self.K.copy()
-        K[0, 0] *= sx
-        K[1, 1] *= sy
-        K[0, 1] *= sx
-        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-        return RenderCamera(K, self.dist.copy(), self.T_cam_robot.copy(), width, height)
-
 
 def look_at_pose(eye, target, up) -> np.ndarray:
     """(4, 4) robot->camera transform of a camera at ``eye`` looking at ``target`` (robot
