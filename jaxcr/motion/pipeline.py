@@ -33,7 +33,7 @@ from jaxcr.motion.motion_models import (
     segment_translation,
     translation_error,
 )
-from jaxcr.motion.propagate import labels_at_points, warp_labels
+from jaxcr.motion.propagate import labels_at_points, splat_labels
 from jaxcr.motion.superpixels import grid_labels, grid_shape, rgb_to_lab, slic
 
 MODELS = ("translation", "homography")
@@ -94,7 +94,7 @@ _running_average = jax.jit(jax.vmap(running_average, in_axes=(0, 0, 0, None)))
 
 @functools.partial(jax.jit, static_argnames=("n_segments", "step", "n_iter"))
 def _track(labels, dense_flow, rgb_next, n_segments, step, compactness, n_iter):
-    warped = warp_labels(labels, dense_flow)
+    warped = splat_labels(labels, dense_flow)
     return slic(rgb_to_lab(rgb_next), warped, n_segments, step, compactness, n_iter)
 
 

@@ -390,8 +390,8 @@ def generate_motion_video(
         T_ee_grip = np.asarray(_ee_frame(arm_inverse(ARM, grip, elev0)))
         lift_dir = np.array([rng.uniform(-0.3, 0.3), rng.choice([-1.0, 1.0]), 0.6])
         lift_dir /= np.linalg.norm(lift_dir)
-        roll_amp = float(rng.uniform(0.3, 0.45)) * rng.choice([-1, 1])
-        elev_amp = float(rng.uniform(0.25, 0.4))
+        roll_amp = float(rng.uniform(0.9, 1.2)) * rng.choice([-1, 1])
+        elev_amp = float(rng.uniform(0.15, 0.3))
     # scale the step so that the tip moves ``speed_px`` (x width / 320) pixels per frame
     xs, touch, obj_T = trajectory(0.01)
     uv = np.asarray(_tip_pixels(P, xs))
