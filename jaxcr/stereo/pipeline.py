@@ -11,7 +11,9 @@
 5. ordering of the skeleton from the base (:mod:`jaxcr.stereo.ordering`);
 6. monotone epipolar correspondence and DLT triangulation in the base frame
    (:mod:`jaxcr.stereo.correspondence`, :mod:`jaxcr.stereo.triangulation`), then
-   smoothing and resampling along the arclength;
+   smoothing and resampling along the arclength, then sub-pixel refinement: the backbone's
+   projections are moved to the silhouette centres measured across the tube and
+   re-triangulated;
 7. diameters along the backbone (:mod:`jaxcr.stereo.diameter`), segments from diameter
    steps (:mod:`jaxcr.stereo.segments`), and per segment a plane fit (angles with the X-Y,
    Z-X, Y-Z planes) and a circular-arc fit (curvature, arc length) (:mod:`jaxcr.stereo.fits`).
@@ -71,6 +73,7 @@ class StereoConfig:
     alphas: foreground must differ from the plate and not be the key colour).
     ``robot_base``: where the robot leaves the plate, base frame (default: base centre).
     ``n_segments``: number of tubes if known (else chosen from the diameter profile).
+    ``refine_iterations``: sub-pixel refinement passes (silhouette centres, re-triangulate).
     """
 
     layout: MarkerLayout = field(default_factory=MarkerLayout)
@@ -88,6 +91,7 @@ class StereoConfig:
     smooth_sigma: float = 1.0e-3
     trim: float = 1.5e-3
     min_robot_pixels: int = 40
+    refine_iterations: int = 2
 
 
 def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
@@ -157,7 +161,7 @@ def _view_diameters(cam, alpha, kproj, p, tang):
     wv = view_weights(cam, p, tang) ** 2
     wv = jnp.where(ok0 & (wdt > 0.5) & jnp.isfinite(d), wv, 0.0)
     rep = report_interpolation_diameters(cam, p, uv0, wdt)
-    return jnp.where(jnp.isfinite(d), d, 0.0), wv, rep
+    return jnp.where(jnp.isfinite(d), d, 0.0), wv, rep, uv0, nrm, off
 
 
 _FIT_PAD = 1024
@@ -325,6 +329,46 @@ def reconstruct_pair(
     s0 = float(np.linalg.norm(p[0] - base))  # the part hidden at the base, assumed straight
     s = s + s0
     t0 = _tick(timings, "triangulation", t0)
+    # Sub-pixel refinement: move each backbone point's projections onto the centre of the
+    # silhouette across the tube (from the width profiles) and re-triangulate. Views that
+    # see the tube nearly end-on (small weight) keep the projection.
+    alphas = [
+        v["alpha"] * cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))).astype(np.float32)
+        for v in views
+    ]
+    for _ in range(cfg.refine_iterations):
+        tang = np.gradient(p, axis=0)
+        tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
+        nb = _bucket(len(p))
+        pj = jnp.asarray(_pad_rows(p, nb), jnp.float32)
+        tj = jnp.asarray(_pad_rows(tang, nb), jnp.float32)
+        ys = []
+        for c, v, a in zip(cams, views, alphas, strict=True):
+            _, wv, _, uv0, nrm, off = _view_diameters(c, jnp.asarray(a), v["kproj"], pj, tj)
+            wv, off = np.asarray(wv, np.float64), np.asarray(off, np.float64)
+            shift = np.where(wv > 0.25**2, np.clip(off, -2.0, 2.0), 0.0)
+            uv = np.asarray(uv0, np.float64) + shift[:, None] * np.asarray(nrm, np.float64)
+            ys.append(
+                cv2.undistortPoints(
+                    np.ascontiguousarray(uv).reshape(-1, 1, 2),
+                    np.asarray(c.K, np.float64),
+                    np.asarray(c.dist, np.float64),
+                ).reshape(-1, 2)
+            )
+        Pr = np.asarray(
+            triangulate_points(
+                jnp.asarray(T1[:3], jnp.float32),
+                jnp.asarray(T2[:3], jnp.float32),
+                jnp.asarray(ys[0], jnp.float32),
+                jnp.asarray(ys[1], jnp.float32),
+            ),
+            np.float64,
+        )[: len(p)]
+        if not np.all(np.isfinite(Pr)):
+            break
+        s, p = _resample(Pr, cfg.step, cfg.smooth_sigma)
+        s = s + float(np.linalg.norm(p[0] - base))
+    t0 = _tick(timings, "refinement", t0)
     # 7. Diameters.
     tang = np.gradient(p, axis=0)
     tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
@@ -334,7 +378,7 @@ def reconstruct_pair(
     tj = jnp.asarray(_pad_rows(tang, nb), jnp.float32)
     for c, v in zip(cams, views, strict=True):
         a = v["alpha"] * cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))).astype(np.float32)
-        d, wv, rp = _view_diameters(c, jnp.asarray(a), v["kproj"], pj, tj)
+        d, wv, rp, _, _, _ = _view_diameters(c, jnp.asarray(a), v["kproj"], pj, tj)
         diam_views.append(np.asarray(d, np.float64)[: len(p)])
         wts.append(np.asarray(wv, np.float64)[: len(p)])
         rep.append(np.asarray(rp, np.float64)[: len(p)])

@@ -14,8 +14,9 @@ Scene (base frame: metres, origin at the centre of ArUco marker 2, Z up out of t
   floor, laid out by :class:`jaxcr.stereo.aruco.MarkerLayout`;
 * a 2- or 3-tube robot standing on the base centre, tubes of outer diameter 2.4 mm and
   smaller, each exposed tube a constant-curvature arc (Webster & Jones closed form) with
-  its own bending plane; the surface is reflective metal that mirrors the cloth (green
-  cast). A small random mounting tilt, as on real rigs.
+  its own bending plane, drawn as a chain of 1 mm capsules with flat tube ends (an annular
+  end face where the next tube leaves, a disc at the tip); the surface is reflective metal
+  that mirrors the cloth (green cast). A small random mounting tilt, as on real rigs.
 
 Rendering reuses :mod:`jaxcr.synth` primitives: exact ray-capsule (robot) and ray-plane
 (cloth) intersections (:mod:`jaxcr.synth.raycast`), pixel rays through the distorted lens,
@@ -284,11 +285,17 @@ def _marker_texture(layout: MarkerLayout, marker_id: int, px: int = 240) -> np.n
 class _Scene:
     """Cloth planes, marker squares, robot capsules and light for one frame (base frame)."""
 
-    def __init__(self, layout, key_rgb, robot_p, robot_r, seed):
+    def __init__(self, layout, key_rgb, robot_p, robot_r, seed, section=None):
         self.layout = layout
         self.key = np.asarray(key_rgb, float)
         self.p = robot_p
         self.r = robot_r
+        # Capsule k ends its tube (flat end face) where the next capsule is thinner or at
+        # the tip; ``r_next`` is the radius of the tube continuing through the face.
+        if robot_r is not None:
+            r_next = np.r_[robot_r[1:], 0.0]
+            self.flat_end = r_next < robot_r - 1e-12
+            self.r_next = r_next
         self.light = _LIGHT / np.linalg.norm(_LIGHT)
         bc = layout.base_centre
         self.planes = [
@@ -381,6 +388,23 @@ def _shade(scene: _Scene, cam: RenderCamera, d_cam: np.ndarray) -> np.ndarray:
             if not len(sel):
                 continue
             tt, n = ray_capsule(o[sel], d[sel], a, b, r)
+            if scene.flat_end[k]:
+                # A tube's flat end: drop hits on the capsule's far cap, add the end face
+                # (an annulus around the next, thinner tube; a disc at the tip).
+                ab = b - a
+                hit_p = o[sel] + np.where(np.isfinite(tt), tt, 0.0)[:, None] * d[sel]
+                beyond = ((hit_p - a) @ ab) > ab @ ab
+                tt = np.where(beyond, np.inf, tt)
+                axis = ab / np.linalg.norm(ab)
+                den = d[sel] @ axis
+                front = den < -1e-12
+                tf = np.where(front, ((b - o[sel]) @ axis) / np.where(front, den, -1.0), np.inf)
+                pf = o[sel] + np.where(np.isfinite(tf), tf, 0.0)[:, None] * d[sel]
+                rr = np.linalg.norm(pf - b, axis=1)
+                face = front & (tf > 0) & (rr <= r) & (rr >= scene.r_next[k])
+                use = face & (tf < tt)
+                tt = np.where(use, tf, tt)
+                n = np.where(use[:, None], axis[None], n)
             better = tt < t_rob[sel]
             t_rob[sel[better]] = tt[better]
             n_rob[sel[better]] = n[better]
@@ -534,12 +558,9 @@ def generate_stereo_set(
         bb = cc_backbone(robot)
         # Render capsules at 1 mm chords (sagitta < 0.02 mm at the tightest curl).
         fine = cc_backbone(robot, 1e-3)
-        radius = np.minimum(fine["diameter"][:-1], fine["diameter"][1:]) / 2
-        # A capsule between sections belongs to the outer (earlier) tube up to the boundary.
+        # Capsule k spans fine points k..k+1; the boundary point is the last point of its
+        # section, so capsule k belongs to the section of point k+1.
         radius = fine["diameter"][1:] / 2
-        radius[fine["section"][1:] != fine["section"][:-1]] = (
-            fine["diameter"][:-1][fine["section"][1:] != fine["section"][:-1]] / 2
-        )
         scene = _Scene(layout, key, fine["p"], radius, seed)
         fid = f"{f:03d}"
         entry = {"id": fid, "tags": [kind], "images": {}}

@@ -1,0 +1,317 @@
+"""``jaxcr stereo DATASET -o OUT``: 3-D backbone shape sensing from calibrated stereo pairs
+(ArUco base frame, chroma key, thinning, triangulation, diameters, segments, plane and arc
+fits; see :mod:`jaxcr.stereo.pipeline`). ``jaxcr stereo synth -o OUT`` writes a synthetic
+stereo set (:mod:`jaxcr.synth.stereo_ctr`).
+
+DATASET is a folder with ``stereo.json`` (format ``jaxcr.stereo/1``)::
+
+    {"format": "jaxcr.stereo/1", "calibration": "calib/stereo.yaml",
+     "cameras": ["cam1", "cam2"],
+     "markers": {"centres": {"2": [0, 0], "3": [0.06, 0], ...}, "size": 0.024,
+                 "dictionary": "DICT_4X4_50"},
+     "robot_base": [x, y, z],                       # optional, base frame (m)
+     "background": {"key": "green"} | {"key_rgb": [r, g, b]},
+     "background_plates": {"cam1": "background/cam1.png", ...},   # optional
+     "frames": [{"id": "000", "images": {"cam1": "...png", "cam2": "...png"}}, ...]}
+
+The calibration is an OpenCV FileStorage stereo file as ``cv2.stereoCalibrate`` users
+save it (``K1 D1 K2 D2 R T [E F]``, image sizes; read by :mod:`jaxcr.io.calibration`).
+
+Outputs in OUT (written as frames complete; a rerun skips frames already done):
+
+- ``results.jsonl``: one line per frame: ``id``, ``ok``, ``reason`` and ``message`` on
+  failure (``calibration_size``, ``markers``, ``robot_not_found``, ``correspondence``,
+  ``image``), marker RMS, number of segments, stage timings;
+- ``frames/<id>.json`` and ``frames/<id>.npz``: the 3-D backbone (base frame, metres:
+  ``s``, ``p``, ``diameter``), boundaries, the per-segment table, the base pose;
+- ``overlays/<id>_<cam>.png``: backbone coloured by segment on both views;
+- ``segments.csv`` and ``segments.md``: the per-segment parameter table of all frames.
+
+Exit code 0 when every frame succeeded, 1 when any frame failed, 2 on bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from jaxcr.errors import InputError
+
+FORMAT = "jaxcr.stereo/1"
+TABLE_FIELDS = [
+    "frame", "segment", "s_start_mm", "s_end_mm", "length_mm", "diameter_mm",
+    "phi_xy_deg", "phi_zx_deg", "phi_yz_deg", "curvature_1pm", "arc_length_fit_mm",
+    "arc_rms_mm",
+]  # fmt: skip
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "stereo",
+        help="3-D backbone shape sensing from stereo pairs (or 'synth' for a synthetic set)",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("\n", 1)[1],
+    )
+    p.add_argument("dataset", help="stereo dataset folder (stereo.json), or 'synth'")
+    p.add_argument("-o", "--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--segmentation", choices=["chroma", "plate", "both"], default="chroma")
+    p.add_argument("--tolerance", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                   help="chroma-key score ramp (default 0.5 0.8)")  # fmt: skip
+    p.add_argument("--segments", type=int, default=None, help="number of tubes if known")
+    p.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs")
+    p.add_argument("--frames", type=int, default=8, help="synth: number of frames")
+    p.add_argument("--seed", type=int, default=0, help="synth: random seed")
+    p.add_argument("--size", default="640x480", help="synth: image size WxH")
+    p.add_argument("--background", choices=["green", "blue"], default="green",
+                   help="synth: chroma cloth colour")  # fmt: skip
+    p.set_defaults(func=run)
+
+
+# ------------------------------------------------------------------------------ loading
+
+
+def _read_rgb(path: Path, frame=None) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError("cannot read image", file=str(path), frame=frame)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def load_stereo_dataset(folder: str | os.PathLike) -> dict:
+    """Parse ``stereo.json`` (see module docstring): returns ``{"root", "meta", "cam1",
+    "cam2", "config", "plates", "frames"}``. Bad input raises :class:`InputError`."""
+    from jaxcr.io.calibration import load_stereo
+    from jaxcr.stereo.aruco import MarkerLayout
+    from jaxcr.stereo.chroma import KEY_COLOURS
+    from jaxcr.stereo.pipeline import StereoConfig
+
+    root = Path(folder)
+    path = root / "stereo.json" if root.is_dir() else root
+    root = path.parent
+    if not path.exists():
+        raise InputError("no stereo.json found", file=str(path))
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise InputError(f"invalid JSON ({err.msg}, line {err.lineno})", file=str(path)) from None
+    if meta.get("format") != FORMAT:
+        raise InputError(f"expected format {FORMAT!r}", file=str(path), field="format")
+    if "calibration" not in meta:
+        raise InputError("missing required key", file=str(path), field="calibration")
+    cam1, cam2 = load_stereo(root / meta["calibration"])
+    names = meta.get("cameras", ["cam1", "cam2"])
+    if len(names) != 2:
+        raise InputError("exactly two cameras expected", file=str(path), field="cameras")
+    try:
+        layout = MarkerLayout.from_dict(meta["markers"]) if "markers" in meta else MarkerLayout()
+    except (KeyError, TypeError, ValueError, IndexError):
+        raise InputError("bad marker layout", file=str(path), field="markers") from None
+    bg = meta.get("background", {})
+    if "key_rgb" in bg:
+        key = tuple(float(v) for v in bg["key_rgb"])
+    else:
+        name = bg.get("key", "green")
+        if name not in KEY_COLOURS:
+            raise InputError(f"unknown key colour {name!r}", file=str(path), field="background.key")
+        key = KEY_COLOURS[name]
+    cfg = StereoConfig(layout=layout, key_rgb=key)
+    if meta.get("robot_base") is not None:
+        cfg.robot_base = tuple(float(v) for v in meta["robot_base"])
+    plates = None
+    if meta.get("background_plates"):
+        plates = tuple(_read_rgb(root / meta["background_plates"][n]) for n in names)
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise InputError("no frames", file=str(path), field="frames")
+    for k, fr in enumerate(frames):
+        if "id" not in fr or "images" not in fr or any(n not in fr["images"] for n in names):
+            raise InputError(
+                f"frame {k} needs an id and images for {names}", file=str(path), field="frames"
+            )
+    return {"root": root, "meta": meta, "names": names, "cam1": cam1, "cam2": cam2,
+            "config": cfg, "plates": plates, "frames": frames}  # fmt: skip
+
+
+# ------------------------------------------------------------------------------ outputs
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def _frame_json(fid: str, r: dict) -> dict:
+    return {
+        "format": FORMAT,
+        "id": fid,
+        "frame": "base (origin: centre of ArUco marker 2; metres)",
+        "s": r["s"].tolist(),
+        "p": r["p"].tolist(),
+        "diameter": r["diameter"].tolist(),
+        "boundary_s": r["boundary_s"].tolist(),
+        "boundary_p": r["boundary_p"].tolist(),
+        "segments": r["segments"],
+        "T_cam1_base": np.asarray(r["T_cam1_base"]).tolist(),
+        "T_cam2_base": np.asarray(r["T_cam2_base"]).tolist(),
+        "marker_rms_px": r["marker_rms_px"],
+    }
+
+
+def _write_frame(out: Path, fid: str, r: dict) -> None:
+    (out / "frames").mkdir(exist_ok=True)
+    buf = io.BytesIO()
+    np.savez(buf, s=r["s"], p=r["p"], diameter=r["diameter"], diameter_views=r["diameter_views"],
+             diameter_report=r["diameter_report"], boundary_s=r["boundary_s"],
+             boundary_p=r["boundary_p"], T_cam1_base=r["T_cam1_base"], T_cam2_base=r["T_cam2_base"])  # fmt: skip
+    _atomic_write(out / "frames" / f"{fid}.npz", buf.getvalue())
+    _atomic_write(out / "frames" / f"{fid}.json", (json.dumps(_frame_json(fid, r)) + "\n").encode())
+
+
+def _write_overlays(out: Path, fid: str, names, images, cams, r) -> None:
+    from jaxcr.stereo.overlay import draw_overlay
+
+    (out / "overlays").mkdir(exist_ok=True)
+    for k, (n, im, cam) in enumerate(zip(names, images, cams, strict=True)):
+        ov = draw_overlay(im, cam, r, k, scale=1)
+        ok, png = cv2.imencode(".png", cv2.cvtColor(ov, cv2.COLOR_RGB2BGR))
+        _atomic_write(out / "overlays" / f"{fid}_{n}.png", png.tobytes())
+
+
+def _read_log(path: Path) -> dict[str, dict]:
+    done: dict[str, dict] = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line cut by an interrupted run
+            done[rec["id"]] = rec
+    return done
+
+
+def write_tables(out: Path, frame_ids: list[str]) -> int:
+    """Collect ``frames/<id>.json`` into ``segments.csv`` and ``segments.md``; returns rows."""
+    rows = []
+    for fid in frame_ids:
+        f = out / "frames" / f"{fid}.json"
+        if f.exists():
+            for seg in json.loads(f.read_text())["segments"]:
+                rows.append({"frame": fid, **{k: seg[k] for k in TABLE_FIELDS if k != "frame"}})
+    sio = io.StringIO()
+    w = csv.DictWriter(sio, fieldnames=TABLE_FIELDS, lineterminator="\n")
+    w.writeheader()
+    for row in rows:
+        w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in row.items()})
+    _atomic_write(out / "segments.csv", sio.getvalue().encode())
+    md = ["| " + " | ".join(TABLE_FIELDS) + " |", "|" + "---|" * len(TABLE_FIELDS)]
+    for row in rows:
+        md.append(
+            "| "
+            + " | ".join(
+                f"{row[k]:.3f}" if isinstance(row[k], float) else str(row[k]) for k in TABLE_FIELDS
+            )
+            + " |"
+        )
+    _atomic_write(out / "segments.md", ("\n".join(md) + "\n").encode())
+    return len(rows)
+
+
+# ------------------------------------------------------------------------------ running
+
+
+def run_batch(
+    dataset: dict, out: str | os.PathLike, overlays: bool = True, progress: bool = True
+) -> list[dict]:
+    """Reconstruct every frame of a loaded dataset into ``out`` (see module docstring);
+    returns the log records of all frames (including ones done by an earlier run)."""
+    from jaxcr.stereo.pipeline import StereoFailure, reconstruct_pair
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / "results.jsonl"
+    done = _read_log(log_path)
+    todo = [
+        fr
+        for fr in dataset["frames"]
+        if str(fr["id"]) not in done
+        or not (out / "frames" / f"{fr['id']}.json").exists()
+        and done[str(fr["id"])].get("ok")
+    ]
+    it = todo
+    if progress and todo:
+        from tqdm import tqdm
+
+        it = tqdm(todo, desc="stereo", unit="pair")
+    names = dataset["names"]
+    cams = (dataset["cam1"], dataset["cam2"])
+    with open(log_path, "a", encoding="utf-8") as log:
+        for fr in it:
+            fid = str(fr["id"])
+            rec: dict = {"id": fid}
+            try:
+                images = [_read_rgb(dataset["root"] / fr["images"][n], fid) for n in names]
+                r = reconstruct_pair(
+                    images[0], images[1], cams[0], cams[1], dataset["config"], dataset["plates"]
+                )
+                _write_frame(out, fid, r)
+                if overlays:
+                    _write_overlays(out, fid, names, images, cams, r)
+                rec.update(ok=True, marker_rms_px=r["marker_rms_px"], n_segments=len(r["segments"]),
+                           n_markers=list(r["n_markers"]), timings=r["timings"])  # fmt: skip
+            except StereoFailure as err:
+                rec.update(ok=False, reason=err.reason, message=str(err))
+            except InputError as err:
+                rec.update(ok=False, reason="image", message=str(err))
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+            done[fid] = rec
+    write_tables(out, [str(fr["id"]) for fr in dataset["frames"]])
+    return [done[str(fr["id"])] for fr in dataset["frames"]]
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"bad size {text!r}, expected WxH", field="--size") from None
+    if w < 64 or h < 48:
+        raise InputError("size must be at least 64x48", field="--size")
+    return w, h
+
+
+def run(args) -> int:
+    if args.dataset == "synth":
+        from jaxcr.synth.stereo_ctr import generate_stereo_set
+
+        if args.frames < 1:
+            raise InputError("--frames must be >= 1", field="--frames")
+        path = generate_stereo_set(args.out, args.frames, args.seed, _parse_size(args.size),
+                                   args.background, progress=True)  # fmt: skip
+        print(f"wrote {path / 'stereo.json'}")
+        return 0
+    ds = load_stereo_dataset(args.dataset)
+    ds["config"].segmentation = args.segmentation
+    if args.tolerance is not None:
+        ds["config"].tol_lo, ds["config"].tol_hi = args.tolerance
+    if args.segments is not None:
+        if args.segments < 1:
+            raise InputError("--segments must be >= 1", field="--segments")
+        ds["config"].n_segments = args.segments
+    if args.segmentation != "chroma" and ds["plates"] is None:
+        raise InputError("--segmentation plate/both needs background_plates in stereo.json")
+    recs = run_batch(ds, args.out, overlays=not args.no_overlays)
+    n_ok = sum(r["ok"] for r in recs)
+    print(f"{n_ok}/{len(recs)} frames reconstructed; results in {args.out}")
+    for r in recs:
+        if not r["ok"]:
+            print(f"  frame {r['id']}: {r['message']}")
+    return 0 if n_ok == len(recs) else 1
