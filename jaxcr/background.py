@@ -40,8 +40,8 @@ class HSVRange(eqx.Module):
     v_hi: float = 1.0
 
 
-#: Robot colours by default: greys/metals/whites (saturation <= 0.40) not near-black.
-ROBOT_HSV: tuple[HSVRange, ...] = (HSVRange(s_hi=0.40, v_lo=0.06),)
+#: Robot colours by default: greys/metals/whites (saturation <= 0.30) not near-black.
+ROBOT_HSV: tuple[HSVRange, ...] = (HSVRange(s_hi=0.30, v_lo=0.06),)
 
 
 def rgb_to_hsv(image: Float[Array, "... 3"]) -> Float[Array, "... 3"]:

@@ -28,30 +28,31 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from jaxcr._types import Array, Bool, Float
+from jaxcr._types import Array, Bool, Float, Int
 from jaxcr.silhouette import Band, TileGrid, TubeImage, band_margin
 
 
 class RegionData(eqx.Module):
-    """One image at one pyramid level, in tile layout, ready for region sums.
+    """One image at one pyramid level, padded to whole tiles, ready for region sums.
 
     Attributes:
         grid: the tiling (static).
-        w: (n_tiles, p) data weight of each pixel: fraction of the pixel outside B (0 on
-            padding).
-        b: (n_tiles, p) background weight: fraction of the pixel in B (0 on padding).
-        img: (n_tiles, p, 3) centred colour ``I' - c`` (weighted mean over the data part).
+        w: (H, W) data weight of each pixel: fraction of the pixel outside B (0 on padding).
+        b: (H, W) background weight: fraction of the pixel in B (0 on padding).
+        img: (H, W, 3) centred colour ``I' - centre`` (0 where w = 0).
         tile_w, tile_b, tile_s2: (n_tiles,) per-tile sums of w, b and w |img|^2.
         tile_s1: (n_tiles, 3) per-tile sums of w img.
         total_w, total_s2: scalars, image totals of w and w |img|^2; total_s1: (3,).
-        centre: (3,) the colour subtracted.
+        centre: (3,) the colour subtracted (weighted mean colour of the data pixels).
         pix_area: full-resolution pixels per pixel at this level (``4**level``).
+
+    ``H, W`` are the image size rounded up to whole tiles.
     """
 
     grid: TileGrid
-    w: Float[Array, "n p"]
-    b: Float[Array, "n p"]
-    img: Float[Array, "n p 3"]
+    w: Float[Array, "H W"]
+    b: Float[Array, "H W"]
+    img: Float[Array, "H W 3"]
     tile_w: Float[Array, " n"]
     tile_b: Float[Array, " n"]
     tile_s1: Float[Array, "n 3"]
@@ -61,6 +62,20 @@ class RegionData(eqx.Module):
     total_s2: Float[Array, ""]
     centre: Float[Array, " 3"]
     pix_area: float = eqx.field(static=True)
+
+    def gather(self, tiles: Int[Array, " k"]) -> tuple[Array, Array, Array]:
+        """Pixels of the given tiles: w (k, p), b (k, p), img (k, p, 3), p = tile**2, in
+        row-major order within each tile (as :meth:`TileGrid.pixel_offsets`)."""
+        t = self.grid.tile
+        r0 = (tiles // self.grid.cols) * t
+        c0 = (tiles % self.grid.cols) * t
+        stack = jnp.concatenate([self.w[..., None], self.b[..., None], self.img], axis=-1)
+
+        def one(r, c):
+            return jax.lax.dynamic_slice(stack, (r, c, 0), (t, t, 5)).reshape(t * t, 5)
+
+        g = jax.vmap(one)(r0, c0)
+        return g[..., 0], g[..., 1], g[..., 2:]
 
 
 def downsample(
@@ -83,8 +98,60 @@ def downsample(
 
     sw = pool(w)
     si = pool(image * w[..., None])
-    img = jnp.where(sw[..., None] > 0, si / jnp.where(sw > 0, sw, 1.0)[..., None], 0.0)
+    img = si / jnp.where(sw > 0, sw, 1.0)[..., None]
     return img, sw / 4.0, pool(b) / 4.0
+
+
+def pyramid(
+    image: Float[Array, "h w 3"], background: Bool[Array, "h w"], levels: int
+) -> list[tuple[Array, Array, Array]]:
+    """Levels 0..levels-1 of ``(image, w, b)`` with w = not B and b = B as weights."""
+    b = background.astype(image.dtype)
+    out = [(image, 1.0 - b, b)]
+    for _ in range(1, levels):
+        out.append(downsample(*out[-1]))
+    return out
+
+
+def region_data_from_level(
+    img: Float[Array, "h w 3"],
+    w: Float[Array, "h w"],
+    b: Float[Array, "h w"],
+    level: int,
+    tile: int,
+) -> RegionData:
+    """:class:`RegionData` from one pyramid level ``(img, w, b)`` (see :func:`pyramid`)."""
+    h, wd = w.shape
+    grid = TileGrid(h, wd, tile)
+    H, W = grid.rows * tile, grid.cols * tile
+    w = jnp.pad(w, ((0, H - h), (0, W - wd)))
+    b = jnp.pad(b, ((0, H - h), (0, W - wd)))
+    img = jnp.pad(img, ((0, H - h), (0, W - wd), (0, 0)))
+    wi = w[..., None] * img
+    total_w = jnp.sum(w)
+    centre = jnp.sum(wi, axis=(0, 1)) / jnp.maximum(total_w, 1e-6)
+    img = jnp.where(w[..., None] > 0, img - centre, 0.0)
+
+    def tsum(x):
+        return x.reshape((grid.rows, tile, grid.cols, tile) + x.shape[2:]).sum(axis=(1, 3))
+
+    tile_s1 = tsum(w[..., None] * img).reshape(grid.n_tiles, 3)
+    tile_s2 = tsum(w * jnp.sum(img * img, axis=-1)).reshape(grid.n_tiles)
+    return RegionData(
+        grid=grid,
+        w=w,
+        b=b,
+        img=img,
+        tile_w=tsum(w).reshape(grid.n_tiles),
+        tile_b=tsum(b).reshape(grid.n_tiles),
+        tile_s1=tile_s1,
+        tile_s2=tile_s2,
+        total_w=total_w,
+        total_s1=jnp.sum(tile_s1, axis=0),
+        total_s2=jnp.sum(tile_s2),
+        centre=centre,
+        pix_area=float(4**level),
+    )
 
 
 def prepare_region_data(
@@ -101,36 +168,8 @@ def prepare_region_data(
         level: pyramid level (0 = full resolution).
         tile: tile size in pixels (static).
     """
-    b = background.astype(image.dtype)
-    w = 1.0 - b
-    img = image
-    for _ in range(level):
-        img, w, b = downsample(img, w, b)
-    h, wd = w.shape
-    grid = TileGrid(h, wd, tile)
-    tw = grid.to_tiles(w)
-    tb = grid.to_tiles(b)
-    ti = grid.to_tiles(img)
-    total_w = jnp.sum(tw)
-    centre = jnp.sum(tw[..., None] * ti, axis=(0, 1)) / jnp.maximum(total_w, 1e-6)
-    ti = (ti - centre) * (tw[..., None] > 0)
-    tile_s1 = jnp.sum(tw[..., None] * ti, axis=1)
-    tile_s2 = jnp.sum(tw * jnp.sum(ti * ti, axis=-1), axis=1)
-    return RegionData(
-        grid=grid,
-        w=tw,
-        b=tb,
-        img=ti,
-        tile_w=jnp.sum(tw, axis=1),
-        tile_b=jnp.sum(tb, axis=1),
-        tile_s1=tile_s1,
-        tile_s2=tile_s2,
-        total_w=total_w,
-        total_s1=jnp.sum(tile_s1, axis=0),
-        total_s2=jnp.sum(tile_s2),
-        centre=centre,
-        pix_area=float(4**level),
-    )
+    img, w, b = pyramid(image, background, level + 1)[level]
+    return region_data_from_level(img, w, b, level, tile)
 
 
 class RegionTerms(eqx.Module):
@@ -151,24 +190,37 @@ class RegionTerms(eqx.Module):
     e_out_empty: Float[Array, ""]
 
 
-def region_terms(soft: Float[Array, "k p"], band: Band, data: RegionData) -> RegionTerms:
+def region_terms(
+    soft: Float[Array, "k p"], band: Band, data: RegionData, local: bool = False
+) -> RegionTerms:
     """Chan-Vese region terms (eq. 6) for a soft silhouette on the band and hard tiles inside.
 
     ``soft`` holds the silhouette value in [0, 1] of each band pixel (``band.tiles`` order).
+    With ``local``, the outside region R^c is restricted to the band (the pixels near the
+    silhouette), as in localised region-based active contours (Lankton & Tannenbaum 2008):
+    mu_out is then the mean colour *around* the robot, not over the whole image.
     """
     ins = band.inside.astype(soft.dtype)
-    w = data.w[band.tiles] * soft
-    img = data.img[band.tiles]
+    bw, bb, img = data.gather(band.tiles)
+    w = bw * soft
     s0 = jnp.sum(w) + jnp.dot(ins, data.tile_w)
     s1 = jnp.einsum("kp,kpc->c", w, img) + ins @ data.tile_s1
     s2 = jnp.sum(w * jnp.sum(img * img, axis=-1)) + jnp.dot(ins, data.tile_s2)
-    pen = jnp.sum(data.b[band.tiles] * soft) + jnp.dot(ins, data.tile_b)
+    pen = jnp.sum(bb * soft) + jnp.dot(ins, data.tile_b)
     eps = 1e-6
     e_in = s2 - jnp.sum(s1 * s1) / jnp.maximum(s0, eps)
-    s0o = data.total_w - s0
-    s1o = data.total_s1 - s1
-    e_out = (data.total_s2 - s2) - jnp.sum(s1o * s1o) / jnp.maximum(s0o, eps)
-    e_out_empty = data.total_s2 - jnp.sum(data.total_s1**2) / jnp.maximum(data.total_w, eps)
+    if local:
+        wo = bw * (1.0 - soft)
+        s0o = jnp.sum(wo)
+        s1o = jnp.einsum("kp,kpc->c", wo, img)
+        s2o = jnp.sum(wo * jnp.sum(img * img, axis=-1))
+        e_out = s2o - jnp.sum(s1o * s1o) / jnp.maximum(s0o, eps)
+        e_out_empty = jnp.zeros_like(e_out)
+    else:
+        s0o = data.total_w - s0
+        s1o = data.total_s1 - s1
+        e_out = (data.total_s2 - s2) - jnp.sum(s1o * s1o) / jnp.maximum(s0o, eps)
+        e_out_empty = data.total_s2 - jnp.sum(data.total_s1**2) / jnp.maximum(data.total_w, eps)
     a = data.pix_area
     return RegionTerms(
         e_in=a * jnp.maximum(e_in, 0.0),
@@ -201,6 +253,7 @@ def chan_vese_energy(
     weights: Weights,
     tau: float,
     area_ref: Float[Array, ""],
+    local: bool = False,
 ) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
     """Watson et al. eq. 5 (with eq. 6) for one image at one pyramid level.
 
@@ -212,6 +265,7 @@ def chan_vese_energy(
         weights: gamma_1..4.
         tau: soft-silhouette temperature in this level's pixels.
         area_ref: reference silhouette area (full-resolution pixels) normalising the terms.
+        local: restrict R^c to the band (see :func:`region_terms`).
 
     Returns:
         ``(J, terms)``: the normalised objective minimised by the solver, and a dict with the
@@ -219,7 +273,7 @@ def chan_vese_energy(
         ``area_in``.
     """
     soft = soft_band(tube, band, data.grid, tau)
-    t = region_terms(soft, band, data)
+    t = region_terms(soft, band, data, local)
     var = data.pix_area * data.total_s2 / jnp.maximum(data.pix_area * data.total_w, 1e-6)
     scale = jnp.maximum(area_ref, 1.0)
     data_term = (weights.g_in * t.e_in + weights.g_out * (t.e_out - t.e_out_empty)) / (

@@ -49,8 +49,16 @@ import optimistix as optx
 
 from jaxcr._types import Array, Bool, Float, Int
 from jaxcr.camera import Camera
-from jaxcr.energy import RegionData, Weights, chan_vese_energy, prepare_region_data, region_terms
+from jaxcr.energy import (
+    RegionData,
+    Weights,
+    chan_vese_energy,
+    pyramid,
+    region_data_from_level,
+    region_terms,
+)
 from jaxcr.errors import InputError
+from jaxcr.geometry import so3_exp
 from jaxcr.kinematics.cosserat import Centreline
 from jaxcr.shape import delta_u_steps, n_axes, perturbed_centreline, regularisation
 from jaxcr.silhouette import (
@@ -89,6 +97,12 @@ class RefineConfig(eqx.Module):
         g_in, g_out, g_reg, g_pen: gamma_1..4 of eq. 5 on the normalised terms
             (:mod:`jaxcr.energy`).
         rtol, atol: BFGS tolerances (coefficients are dimensionless, see :mod:`jaxcr.shape`).
+        local: mu_out over the band around the silhouette instead of the whole image
+            (:func:`jaxcr.energy.region_terms`).
+        camera_correction: also estimate a small per-camera pose correction (rotation about
+            the optical centre and translation) so that camera calibration error is not
+            absorbed by the shape; regularised by ``g_cam`` (units: 0.01 rad and 1 % of
+            the robot's depth).
     """
 
     n_coeffs: int = eqx.field(static=True, default=4)
@@ -107,6 +121,9 @@ class RefineConfig(eqx.Module):
     g_pen: float = eqx.field(static=True, default=1.0)
     rtol: float = eqx.field(static=True, default=1e-4)
     atol: float = eqx.field(static=True, default=1e-4)
+    local: bool = eqx.field(static=True, default=False)
+    camera_correction: bool = eqx.field(static=True, default=False)
+    g_cam: float = eqx.field(static=True, default=0.01)
 
     def __check_init__(self):
         n = len(self.levels)
@@ -152,6 +169,9 @@ class RefineResult(eqx.Module):
         ok: frame usable: no failure and finite output.
         failure: code from :data:`FAILURES` (0 = none).
         band_exact: the final masks are exact rasterisations (band reached every boundary tile).
+        camera_correction: (n_cameras, 6) estimated camera pose correction: rotation vector
+            (rad, about the optical centre) and translation (m), camera frame; zeros unless
+            ``config.camera_correction``. Masks use the corrected cameras.
         time_s: wall time per frame in seconds (set by the Python entry points; 0 inside jit).
     """
 
@@ -167,6 +187,7 @@ class RefineResult(eqx.Module):
     ok: Bool[Array, ""]
     failure: Int[Array, ""]
     band_exact: Bool[Array, ""]
+    camera_correction: Float[Array, "c 6"]
     time_s: Float[Array, ""]
 
 
@@ -194,9 +215,23 @@ def _tube_area(tube: TubeImage, camera: Camera) -> Float[Array, ""]:
     return jnp.sum(jnp.where(inside & tube.valid, a, 0.0))
 
 
-def _hard_terms(tube: TubeImage, band: Band, data: RegionData):
+def _hard_terms(tube: TubeImage, band: Band, data: RegionData, local: bool):
     m = band_margin(tube, data.grid, band)
-    return region_terms((m > 0).astype(m.dtype), band, data)
+    return region_terms((m > 0).astype(m.dtype), band, data, local)
+
+
+CAM_ROT_UNIT = 0.01  # rad per unit of the camera-correction rotation parameters
+CAM_T_UNIT = 0.01  # fraction of the robot's depth per unit of the translation parameters
+
+
+def _corrected_camera(camera: Camera, p6: Float[Array, "6"], z_ref) -> Camera:
+    """``camera`` with X_cam' = exp(w) X_cam + d, w = CAM_ROT_UNIT p6[:3] (rad) and
+    d = CAM_T_UNIT z_ref p6[3:] (m)."""
+    E = so3_exp(CAM_ROT_UNIT * p6[:3])
+    d = CAM_T_UNIT * z_ref * p6[3:]
+    T = camera.T_cam_robot
+    top = jnp.concatenate([E @ T[:3, :3], (E @ T[:3, 3] + d)[:, None]], axis=1)
+    return eqx.tree_at(lambda c: c.T_cam_robot, camera, jnp.concatenate([top, T[3:]], axis=0))
 
 
 def _mask(tube: TubeImage, band: Band, data: RegionData) -> Bool[Array, "h w"]:
@@ -247,51 +282,65 @@ def refine_frame(
     images = tuple(jnp.where(jnp.isfinite(im), im, 0.0).astype(dtype) for im in images)
 
     shape = config.coeff_shape
+    n_cam = len(cameras)
     c0 = jnp.zeros(shape, dtype) if init is None else jnp.asarray(init, dtype).reshape(shape)
     c0 = jnp.where(jnp.all(jnp.isfinite(c0)), c0, 0.0)
     weights = config.weights
+    z_ref = jax.lax.stop_gradient(tuple(jnp.mean(base.p @ cam.R[2] + cam.t[2]) for cam in cameras))
 
-    def tubes_of(c):
-        cl = perturbed_centreline(base, c, config.torsion)
-        return cl, tuple(project_tube(cam, cl) for cam in cameras)
+    def cameras_of(params):
+        if not config.camera_correction:
+            return cameras
+        return tuple(
+            _corrected_camera(cam, params["cam"][i], z_ref[i]) for i, cam in enumerate(cameras)
+        )
 
-    _, nominal_tubes = tubes_of(jnp.zeros(shape, dtype))
+    def tubes_of(params):
+        cl = perturbed_centreline(base, params["c"], config.torsion)
+        return cl, tuple(project_tube(cam, cl) for cam in cameras_of(params))
+
+    def reg_of(params):
+        r = weights.g_reg * regularisation(params["c"], base.s, config.torsion)
+        if config.camera_correction:
+            r = r + config.g_cam * jnp.sum(params["cam"] ** 2)
+        return r
+
+    params0 = {"c": c0}
+    if config.camera_correction:
+        params0["cam"] = jnp.zeros((n_cam, 6), dtype)
+    zeros = jax.tree.map(jnp.zeros_like, params0)
+
+    _, nominal_tubes = tubes_of(zeros)
     area_ref = sum(_tube_area(t, cam) for t, cam in zip(nominal_tubes, cameras, strict=True))
     area_ref = jax.lax.stop_gradient(jnp.maximum(area_ref, 1.0))
     in_view = area_ref > 1.0
 
-    def objective(c, args):
+    def objective(params, args):
         bands, datas, level, tau = args
-        _, tubes = tubes_of(c)
-        reg = regularisation(c, base.s, config.torsion)
-        J = reg * weights.g_reg
+        _, tubes = tubes_of(params)
+        J = reg_of(params)
         for tube, band, data in zip(tubes, bands, datas, strict=True):
             Jc, _ = chan_vese_energy(
-                scale_tube(tube, level), band, data, 0.0, weights, tau, area_ref
+                scale_tube(tube, level), band, data, 0.0, weights, tau, area_ref, config.local
             )
             J = J + Jc
         return J
 
     solver = optx.BFGS(rtol=config.rtol, atol=config.atol)
-    c = c0
+    params = params0
     steps = []
     status = jnp.asarray(0, jnp.int32)
-    data_ok = jnp.asarray(True)
-    level_data = {}
+    n_levels = max(config.levels) + 1
+    pyramids = [pyramid(im, bg, n_levels) for im, bg in zip(images, backgrounds, strict=True)]
+    data_ok = sum(jnp.sum(p[0][1]) for p in pyramids) > 0.5
     for li, level in enumerate(config.levels):
-        datas = tuple(
-            prepare_region_data(im, bg, level, config.tile)
-            for im, bg in zip(images, backgrounds, strict=True)
-        )
-        level_data[level] = datas
-        if li == 0:
-            data_ok = sum(d.total_w for d in datas) > 0.5
+        datas = tuple(region_data_from_level(*p[level], level, config.tile) for p in pyramids)
         k_tiles = config.tiles_at(level)
         tau = config.tau[li]
 
         def solve(carry, _, datas=datas, level=level, k_tiles=k_tiles, tau=tau, li=li):
-            c, nsteps, _ = carry
-            _, tubes = tubes_of(c)
+            params, nsteps, _ = carry
+            _, tubes = tubes_of(params)
             bands = tuple(
                 select_band(scale_tube(t, level), d.grid, k_tiles, config.k_seg)
                 for t, d in zip(tubes, datas, strict=True)
@@ -299,39 +348,39 @@ def refine_frame(
             sol = optx.minimise(
                 objective,
                 solver,
-                c,
+                params,
                 args=(bands, datas, level, tau),
                 max_steps=config.steps[li],
                 throw=False,
             )
-            c_new = jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, c)
-            return (c_new, nsteps + sol.stats["num_steps"], _result_int(sol.result)), None
+            good = jnp.all(
+                jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(sol.value)])
+            )
+            new = jax.tree.map(lambda a, b: jnp.where(good, a, b), sol.value, params)
+            return (new, nsteps + sol.stats["num_steps"], _result_int(sol.result)), None
 
-        (c, n, status), _ = jax.lax.scan(
+        (params, n, status), _ = jax.lax.scan(
             solve,
-            (c, jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32)),
+            (params, jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32)),
             None,
             length=config.outer[li],
         )
         steps.append(n)
 
     # final outputs at full resolution
-    datas0 = level_data.get(0) or tuple(
-        prepare_region_data(im, bg, 0, config.tile)
-        for im, bg in zip(images, backgrounds, strict=True)
-    )
+    datas0 = tuple(region_data_from_level(*p[0], 0, config.tile) for p in pyramids)
     k0 = config.tiles_at(0)
 
-    def outputs(c):
-        cl, tubes = tubes_of(c)
+    def outputs(params):
+        cl, tubes = tubes_of(params)
         masks, exact = [], jnp.asarray(True)
         e = {"e_in": 0.0, "e_out": 0.0, "e_pen": 0.0, "J": 0.0}
         for tube, data in zip(tubes, datas0, strict=True):
             band = select_band(tube, data.grid, k0, config.k_seg)
             masks.append(_mask(tube, band, data))
             exact = exact & band.exact
-            t = _hard_terms(tube, band, data)
-            var = t.e_out_empty / jnp.maximum(data.total_w, 1e-6)
+            t = _hard_terms(tube, band, data, config.local)
+            var = data.total_s2 / jnp.maximum(data.total_w, 1e-6)
             e["e_in"] = e["e_in"] + t.e_in
             e["e_out"] = e["e_out"] + t.e_out
             e["e_pen"] = e["e_pen"] + t.e_pen
@@ -341,15 +390,14 @@ def refine_frame(
                 / (area_ref * jnp.maximum(var, 1e-8))
                 + weights.g_pen * t.e_pen / area_ref
             )
-        reg = regularisation(c, base.s, config.torsion)
-        e["e_reg"] = reg
-        e["J"] = e["J"] + weights.g_reg * reg
+        e["e_reg"] = regularisation(params["c"], base.s, config.torsion)
+        e["J"] = e["J"] + reg_of(params)
         return cl, tuple(masks), exact, e
 
-    finite_out = jnp.all(jnp.isfinite(c))
-    c = jnp.where(finite_out, c, 0.0)
-    cl, masks, exact, e = outputs(c)
-    _, nominal_masks, _, e_nom = outputs(jnp.zeros(shape, dtype))
+    finite_out = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(params)]))
+    params = jax.tree.map(lambda x: jnp.where(finite_out, x, 0.0), params)
+    cl, masks, exact, e = outputs(params)
+    _, nominal_masks, _, e_nom = outputs(zeros)
 
     failure = jnp.where(
         ~finite_in,
@@ -365,6 +413,17 @@ def refine_frame(
         "total": e["J"],
         "total_nominal": e_nom["J"],
     }
+    if config.camera_correction:
+        cam_corr = jnp.concatenate(
+            [
+                CAM_ROT_UNIT * params["cam"][:, :3],
+                CAM_T_UNIT * jnp.stack(z_ref)[:, None] * params["cam"][:, 3:],
+            ],
+            axis=1,
+        )
+    else:
+        cam_corr = jnp.zeros((n_cam, 6), dtype)
+    c = params["c"]
     return RefineResult(
         masks=masks,
         nominal_masks=nominal_masks,
@@ -378,6 +437,7 @@ def refine_frame(
         ok=ok,
         failure=failure,
         band_exact=exact,
+        camera_correction=cam_corr,
         time_s=jnp.asarray(0.0, dtype),
     )
 
