@@ -6,8 +6,9 @@ length, metres) is part of the rig description (:class:`MarkerLayout`).
 
 Per camera, markers are found with ``cv2.aruco.ArucoDetector`` (sub-pixel corner
 refinement) and the pose of the base frame is solved with ``cv2.solvePnP`` (SQPNP) on all
-corners of all found markers. Robust combination: markers whose own reprojection RMS is
-far above the others' (> 3 x median + 0.5 px) are dropped and the pose re-solved. With both
+corners of all found markers. Robust combination: when the joint fit leaves more than
+1 px RMS, a marker whose removal makes the others consistent (RMS below a third) is dropped
+and the pose re-solved. With both
 views, :func:`stereo_base_pose` refines one pose ``T_cam1_base`` by Gauss-Newton (float64, through
 ``cv2.projectPoints``) over the
 reprojection errors of all corners in both images (the stereo extrinsics are fixed), and
@@ -82,6 +83,9 @@ def _detector(layout: MarkerLayout) -> cv2.aruco.ArucoDetector:
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, layout.dictionary))
     p = cv2.aruco.DetectorParameters()
     p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    # Markers seen at grazing angles come out small and close together in the image; the
+    # default minimum distance (0.125 of the perimeter) drops some of them.
+    p.minMarkerDistanceRate = 0.01
     return cv2.aruco.ArucoDetector(d, p)
 
 
@@ -124,30 +128,43 @@ def _per_marker_rms(camera, T, layout, det):
     return out
 
 
+def _fit_rms(camera, layout, det) -> tuple[np.ndarray | None, float]:
+    """Pose from the markers ``det`` and its reprojection RMS over the same corners (px)."""
+    ids = sorted(det)
+    obj = np.concatenate([marker_object_corners(layout, i) for i in ids])
+    img = np.concatenate([det[i] for i in ids])
+    T = _cv_pose(camera, obj, img)
+    if T is None:
+        return None, np.inf
+    r = _per_marker_rms(camera, T, layout, det)
+    return T, float(np.sqrt(np.mean(np.square(list(r.values())))))
+
+
 def camera_base_pose(
     camera: Camera, detections: dict[int, np.ndarray], layout: MarkerLayout
 ) -> tuple[np.ndarray, dict[int, np.ndarray]] | None:
-    """``T_cam_base`` (4, 4) of one camera from its detections (SQPNP on all corners, then
-    outlier markers dropped), and the detections kept; ``None`` without any marker."""
+    """``T_cam_base`` (4, 4) of one camera from its detections (SQPNP on all corners plus
+    Levenberg-Marquardt refinement) and the detections kept; ``None`` without markers.
+
+    Robust combination: with three or more markers whose joint fit leaves more than 1 px
+    RMS, the marker whose removal makes the others consistent (their fit RMS drops below a
+    third) is dropped; this repeats while three markers remain."""
     det = dict(detections)
     if not det:
         return None
-    for _ in range(2):
-        ids = sorted(det)
-        obj = np.concatenate([marker_object_corners(layout, i) for i in ids])
-        img = np.concatenate([det[i] for i in ids])
-        T = _cv_pose(camera, obj, img)
-        if T is None:
-            return None
-        if len(det) < 3:
+    T, rms = _fit_rms(camera, layout, det)
+    while len(det) >= 3 and rms > 1.0:
+        trials = {
+            i: _fit_rms(camera, layout, {k: v for k, v in det.items() if k != i}) for i in det
+        }
+        best = min(trials, key=lambda i: trials[i][1])
+        if trials[best][1] < rms / 3.0:
+            det.pop(best)
+            T, rms = trials[best]
+        else:
             break
-        rms = _per_marker_rms(camera, T, layout, det)
-        med = float(np.median(list(rms.values())))
-        bad = [i for i, r in rms.items() if r > 3 * med + 0.5]
-        if not bad:
-            break
-        for i in bad:
-            det.pop(i)
+    if T is None:
+        return None
     return T, det
 
 
