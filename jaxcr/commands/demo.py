@@ -20,7 +20,11 @@ DEFAULT_PRESET = "orthogonal_occluded"
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser("demo", help=HELP, description=__doc__.split("\n\n")[1])
+    p = subparsers.add_parser(
+        "demo",
+        help=HELP,
+        description=__doc__.split("\n\n")[1].replace("``", "").replace(":mod:", ""),
+    )
     p.add_argument(
         "-o",
         "--out",

@@ -38,7 +38,9 @@ PER_FRAME_FIELDS = [
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser("evaluate", help=HELP, description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser(
+        "evaluate", help=HELP, description=__doc__.split("\n\n")[0].replace("``", "")
+    )
     p.add_argument("outs", nargs="+", metavar="OUT", help="output folder(s) of jaxcr segment")
     p.add_argument(
         "-o", "--out", default=None, metavar="REPORT_DIR",

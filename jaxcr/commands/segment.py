@@ -34,7 +34,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "segment",
         help=HELP,
-        description=__doc__.split("\n\n")[0] + " Writes OUT/results.jsonl, masks, overlays.",
+        description=__doc__.split("\n\n")[0].replace("``", "")
+        + " Writes OUT/results.jsonl, masks, overlays.",
     )
     p.add_argument("dataset", help="dataset folder (containing dataset.json) or dataset.json")
     p.add_argument("-o", "--out", required=True, help="output folder")
