@@ -10,7 +10,8 @@ patterns. ``--pattern chessboard`` uses ``--cols x --rows`` inner corners
 (``cv2.findChessboardCornersSB``); ``circles``/``acircles`` a symmetric/asymmetric circle
 grid (``cv2.findCirclesGrid``). ``--square`` is the corner (or circle) spacing in metres.
 Pairs where the pattern is not found in both images are skipped and listed; at least 3
-usable pairs are required. Exit 0 on success, 1 if calibration failed, 2 on bad input.
+usable pairs are required. Exit 0 on success, 1 if calibration failed (too few pairs, or
+stereo RMS above ``--max-rms``), 2 on bad input.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--cols", type=int, required=True, help="inner corners (circles) per row")
     p.add_argument("--rows", type=int, required=True, help="inner corners (circles) per column")
     p.add_argument("--square", type=float, required=True, help="spacing in metres")
+    p.add_argument("--max-rms", type=float, default=2.0,
+                   help="fail (exit 1) when the stereo RMS exceeds this (px, default %(default)s)")  # fmt: skip
     p.set_defaults(func=run)
 
 
@@ -163,6 +166,10 @@ def run(args) -> int:
         res = calibrate_stereo(left, right, args.pattern, args.cols, args.rows, args.square)
     except ValueError as err:
         print(f"jaxcr calibrate: {err}")
+        return 1
+    if not res["rms_stereo"] <= args.max_rms:
+        print(f"jaxcr calibrate: stereo RMS {res['rms_stereo']:.3f} px exceeds --max-rms "
+              f"{args.max_rms}; nothing written (wrong pattern size?)")  # fmt: skip
         return 1
     save_calibration(res, args.out)
     skipped = sorted(set(range(len(lf))) - set(res["used"]))

@@ -1,0 +1,147 @@
+"""End to end: ``jaxcr stereo synth``, ``jaxcr stereo DATASET -o OUT`` (outputs, accuracy
+against the truth, per-frame failures that do not stop the batch, resume, bad input) and
+``jaxcr calibrate`` on rendered chessboard pairs."""
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from jaxcr.cli import main
+from jaxcr.io.calibration import load_stereo
+from jaxcr.stereo.evaluate import evaluate_frame
+
+
+@pytest.fixture(scope="module")
+def synth_set(tmp_path_factory):
+    d = tmp_path_factory.mktemp("stereo") / "set"
+    code = main(
+        ["stereo", "synth", "-o", str(d), "--frames", "1", "--size", "480x360", "--seed", "4"]
+    )
+    assert code == 0
+    return d
+
+
+def test_stereo_cli_outputs_and_accuracy(synth_set, tmp_path):
+    out = tmp_path / "out"
+    assert main(["stereo", str(synth_set), "-o", str(out)]) == 0
+    rec = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+    assert len(rec) == 1 and rec[0]["ok"]
+    fj = json.loads((out / "frames" / "000.json").read_text())
+    assert fj["format"] == "jaxcr.stereo/1" and len(fj["segments"]) >= 1
+    npz = np.load(out / "frames" / "000.npz")
+    assert npz["p"].shape[1] == 3
+    for cam in ("cam1", "cam2"):
+        assert cv2.imread(str(out / "overlays" / f"000_{cam}.png")) is not None
+    assert (out / "segments.csv").read_text().startswith("frame,segment,")
+    assert (out / "segments.md").read_text().startswith("| frame |")
+    truth = dict(np.load(synth_set / "truth" / "000.npz"))
+    res = {
+        "p": npz["p"],
+        "s": npz["s"],
+        "segments": fj["segments"],
+        "boundary_p": npz["boundary_p"],
+    }
+    ev = evaluate_frame(res, truth)
+    assert ev["backbone_rms_mm"] < 0.5
+    assert ev["coverage"] > 0.95
+
+
+def test_per_frame_failures_and_resume(synth_set, tmp_path):
+    d = tmp_path / "bad"
+    shutil.copytree(synth_set, d)
+    meta = json.loads((d / "stereo.json").read_text())
+    good = meta["frames"][0]
+    img1 = cv2.imread(str(d / good["images"]["cam1"]))
+    img2 = cv2.imread(str(d / good["images"]["cam2"]))
+    (d / "bad").mkdir()
+    # Markers unreadable in both views.
+    cv2.imwrite(str(d / "bad" / "blur1.png"), cv2.GaussianBlur(img1, (0, 0), 6))
+    cv2.imwrite(str(d / "bad" / "blur2.png"), cv2.GaussianBlur(img2, (0, 0), 6))
+    # Calibration does not match the image size.
+    cv2.imwrite(str(d / "bad" / "small1.png"), cv2.resize(img1, (400, 300)))
+    # Empty scene: no robot.
+    frames = [
+        good,
+        {"id": "nomarkers", "images": {"cam1": "bad/blur1.png", "cam2": "bad/blur2.png"}},
+        {"id": "size", "images": {"cam1": "bad/small1.png", "cam2": good["images"]["cam2"]}},
+        {"id": "norobot", "images": {"cam1": "background/cam1.png", "cam2": "background/cam2.png"}},
+        {"id": "missing", "images": {"cam1": "bad/none.png", "cam2": "bad/none.png"}},
+    ]
+    meta["frames"] = frames
+    (d / "stereo.json").write_text(json.dumps(meta))
+    out = tmp_path / "out"
+    assert main(["stereo", str(d), "-o", str(out), "--no-overlays"]) == 1
+    recs = {r["id"]: r for r in map(json.loads, (out / "results.jsonl").read_text().splitlines())}
+    assert recs["000"]["ok"]
+    assert recs["nomarkers"]["reason"] == "markers"
+    assert recs["size"]["reason"] == "calibration_size"
+    assert recs["norobot"]["reason"] == "robot_not_found"
+    assert recs["missing"]["reason"] == "image"
+    # Resume: nothing is redone.
+    n = len((out / "results.jsonl").read_text().splitlines())
+    assert main(["stereo", str(d), "-o", str(out), "--no-overlays"]) == 1
+    assert len((out / "results.jsonl").read_text().splitlines()) == n
+
+
+def test_bad_input_exit_2(tmp_path, capsys):
+    assert main(["stereo", str(tmp_path), "-o", str(tmp_path / "o")]) == 2
+    (tmp_path / "stereo.json").write_text('{"format": "other"}')
+    assert main(["stereo", str(tmp_path), "-o", str(tmp_path / "o")]) == 2
+    assert "format" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- calibrate
+
+
+def _board_image(cols, rows, px):
+    sq = np.indices((rows + 1, cols + 1)).sum(axis=0) % 2
+    img = np.kron(sq, np.ones((px, px))) * 255
+    return np.pad(img, px, constant_values=255).astype(np.uint8)
+
+
+def _render_board(K, R, t, cols, rows, square, size, px=40):
+    """Perspective image of a chessboard (inner corners cols x rows, spacing square) whose
+    first inner corner is the board origin; homography from board pixels to the image."""
+    board = _board_image(cols, rows, px)
+    # Board pixel (x, y) -> board metres: first inner corner at pixel (2 px, 2 px) (pad + 1 sq)
+    S = np.array([[square / px, 0, -2 * square], [0, square / px, -2 * square], [0, 0, 1]])
+    H = K @ np.c_[R[:, :2], t] @ S
+    return cv2.warpPerspective(board, H, size, flags=cv2.INTER_AREA, borderValue=255)
+
+
+def test_calibrate_on_rendered_chessboards(tmp_path):
+    cols, rows, square, size = 8, 6, 0.02, (480, 360)
+    K = np.array([[420.0, 0, 239.5], [0, 420.0, 179.5], [0, 0, 1]])
+    R21 = cv2.Rodrigues(np.array([0.0, 0.35, 0.0]))[0]
+    t21 = np.array([-0.12, 0.0, 0.02])
+    rng = np.random.default_rng(0)
+    (tmp_path / "L").mkdir()
+    (tmp_path / "R").mkdir()
+    for k in range(8):
+        Rb = cv2.Rodrigues(rng.normal(0, 0.25, 3) + np.array([np.pi, 0, 0]))[0]
+        tb = np.array([-0.07, -0.05, 0.45]) + rng.normal(0, 0.02, 3)
+        cv2.imwrite(
+            str(tmp_path / "L" / f"{k:02d}.png"), _render_board(K, Rb, tb, cols, rows, square, size)
+        )
+        cv2.imwrite(
+            str(tmp_path / "R" / f"{k:02d}.png"),
+            _render_board(K, R21 @ Rb, R21 @ tb + t21, cols, rows, square, size),
+        )
+    out = str(tmp_path / "stereo.yaml")
+    code = main(["calibrate", str(tmp_path / "L"), str(tmp_path / "R"), "-o", out,
+                 "--cols", str(cols), "--rows", str(rows), "--square", str(square)])  # fmt: skip
+    assert code == 0
+    c1, c2 = load_stereo(out)
+    np.testing.assert_allclose(np.asarray(c1.K), K, rtol=0.01, atol=1.5)
+    T21 = np.asarray(c2.T_cam_robot) @ np.linalg.inv(np.asarray(c1.T_cam_robot))
+    np.testing.assert_allclose(T21[:3, 3], t21, atol=2e-3)
+    fs = cv2.FileStorage(out, cv2.FILE_STORAGE_READ)
+    assert fs.getNode("rms_stereo").real() < 0.5 and fs.getNode("rms_1").real() < 0.5
+    # Too few usable pairs: exit 1; bad arguments: exit 2.
+    assert main(["calibrate", str(tmp_path / "L"), str(tmp_path / "R"), "-o", out,
+                 "--cols", "10", "--rows", "8", "--square", "0.02"]) == 1  # fmt: skip
+    assert main(["calibrate", str(tmp_path / "L"), str(tmp_path / "R"), "-o", out,
+                 "--cols", "8", "--rows", "6", "--square", "-1"]) == 2  # fmt: skip
