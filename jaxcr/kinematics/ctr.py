@@ -16,7 +16,8 @@ leaves s = 0 along +z, ``R(s)`` is the innermost tube's material frame and
 Mechanics and the aligned integration grid: :mod:`jaxcr.kinematics.ctr_mechanics`. Shooting
 unknowns: ``x = u_z(0)`` (n twist rates, 1/m); residual: ``u_iz(l_i)`` (free distal ends carry
 no torsional moment). The solve is a damped Newton with a bounded iteration count
-(:mod:`jaxcr.kinematics.newton`), followed by one implicit-function Newton step so that
+(:mod:`jaxcr.kinematics.newton`); its derivative is the implicit-function one
+(:func:`jaxcr.kinematics.newton.implicit_solution`), so that
 ``forward`` is differentiable in ``q`` at the solution.
 
 Several equilibria. For some ``q`` the rod has several (two stable, one unstable) solutions.
@@ -61,7 +62,7 @@ from jaxcr.kinematics.ctr_mechanics import (
     second_moments,
     telescoping_ok,
 )
-from jaxcr.kinematics.newton import NewtonResult, damped_newton, implicit_newton_step
+from jaxcr.kinematics.newton import NewtonResult, damped_newton, implicit_solution
 
 #: Public 3-tube test robot (innermost first), SI units, in the dataset robot schema.
 TEST_CTR: dict[str, Any] = {
@@ -135,8 +136,8 @@ class ConcentricTubeRobot(eqx.Module):
     tol: float = eqx.field(static=True, default=1e-4)
     warm_steps: int = eqx.field(static=True, default=12)
     cold_steps: int = eqx.field(static=True, default=20)
-    scan_points: int = eqx.field(static=True, default=16)
-    n_starts: int = eqx.field(static=True, default=4)
+    scan_points: int = eqx.field(static=True, default=24)
+    n_starts: int = eqx.field(static=True, default=6)
 
     def __check_init__(self):
         steps_per_piece(2 * self.n_tubes, self.n_points)  # raises if n_points is too small
@@ -292,20 +293,29 @@ class ConcentricTubeRobot(eqx.Module):
         ``u_z = 0``) to ``s = 0`` gives ``theta(0)``; at an equilibrium it equals
         ``psi(0) - psi_1(0)`` prescribed by the joint values. Zero at an equilibrium.
         """
-        _, _, traj, psi0 = self._trajectory(q, x, with_centreline=False)
+        return self._residual_and_energy(q, x)[0]
+
+    def _residual_and_energy(self, q: Array, x: Array) -> tuple[Array, Array]:
+        beta, _ = self._split(q)
+        tubes, _, traj, psi0 = self._trajectory(q, x, with_centreline=False)
         d = traj.theta0[1:] - (psi0[1:] - psi0[0])
-        return jnp.arctan2(jnp.sin(d), jnp.cos(d))
+        energy = traj.energy + self._transmission_energy(tubes, beta, traj.uz0)
+        return jnp.arctan2(jnp.sin(d), jnp.cos(d)), energy
 
     def initial_guesses(self, q: Float[Array, " m"]) -> Float[Array, "k n-1"]:
-        """Cold-start tip angles: the ``n_starts`` best local minima of a residual scan.
+        """Cold-start tip angles: the most promising local minima of a residual scan.
 
-        The residual is evaluated (no Jacobian) on a regular grid of ``scan_points`` angles per
-        tube on the torus of relative tip angles (``scan_points ** (n - 1)`` points, offset by
-        the untwisted state ``alpha_i - alpha_1``); grid points whose residual norm is no larger
-        than that of every neighbour (periodic) are candidates, and the ``n_starts`` with the
-        smallest residual are returned, best first (padded with the best one if there are
-        fewer). Distinct equilibria lie in distinct basins of this periodic map, which a
-        scan resolves where Newton from a few fixed starts does not.
+        The base-angle residual and the elastic energy are evaluated (no Jacobian) on a regular
+        grid of ``scan_points`` angles per tube on the torus of relative tip angles
+        (``scan_points ** (n - 1)`` points, offset by the untwisted state
+        ``alpha_i - alpha_1``). Grid points whose residual norm is no larger than that of every
+        (periodic) neighbour are candidates; the ``n_starts - n_starts // 2`` candidates of
+        least energy and the ``n_starts // 2`` of least residual are returned (repeating the
+        first one if there are fewer). Distinct equilibria lie in distinct basins of this
+        periodic map, which a scan resolves where Newton from a few fixed starts does not;
+        ranking by energy favours the basin of the least-energy equilibrium (the one
+        :meth:`forward` returns), ranking by residual guards against local minima of the
+        residual that are not equilibria.
         """
         beta, alpha = self._split(q)
         n, g = self.n_tubes, self.scan_points
@@ -314,33 +324,37 @@ class ConcentricTubeRobot(eqx.Module):
         mesh = np.stack(np.meshgrid(*([offsets] * (n - 1)), indexing="ij"), -1)
         pts = base + jnp.asarray(mesh.reshape(-1, n - 1), beta.dtype)
         qs = jax.lax.stop_gradient(q)
-        r = jax.vmap(lambda x: jnp.sum(self.shooting_residual(qs, x) ** 2))(pts)
+        r, energy = jax.vmap(lambda x: self._residual_and_energy(qs, x))(pts)
+        r = jnp.sum(r**2, axis=-1)
         r = jnp.where(jnp.isfinite(r), r, jnp.inf).reshape((g,) * (n - 1))
-        is_min = jnp.ones_like(r, dtype=bool)
+        is_min = jnp.isfinite(r)
         for ax in range(n - 1):
             for shift in (1, -1):
                 is_min = is_min & (r <= jnp.roll(r, shift, axis=ax))
-        key = jnp.where(is_min, r, jnp.inf).reshape(-1)
-        k = min(self.n_starts, key.shape[0])
-        _, idx = jax.lax.top_k(-key, k)
-        idx = jnp.where(jnp.isfinite(key[idx]), idx, idx[0])
+        cand = is_min.reshape(-1) & jnp.isfinite(energy)
+        by_energy = jnp.where(cand, energy, jnp.inf)
+        by_residual = jnp.where(cand, r.reshape(-1), jnp.inf)
+        k_res = self.n_starts // 2
+        k_en = min(self.n_starts - k_res, by_energy.shape[0])
+        _, idx_r = jax.lax.top_k(-by_residual, min(k_res, by_residual.shape[0]))
+        _, idx_e = jax.lax.top_k(-by_energy, k_en)
+        idx = jnp.concatenate([idx_e, idx_r])
+        idx = jnp.where(jnp.isfinite(by_energy[idx]), idx, idx_e[0])
         return pts[idx]
 
     def _solve(self, q: Array, guess: Array, max_steps: int, damping: float) -> NewtonResult:
         q = jax.lax.stop_gradient(q)
         if self.n_tubes == 1:  # nothing to shoot for
             z = jnp.zeros((0,), guess.dtype)
-            return NewtonResult(
-                z,
-                jnp.zeros((), guess.dtype),
-                jnp.zeros((0, 0), guess.dtype),
-                jnp.zeros((), jnp.int32),
-            )
+            zero = jnp.zeros((), guess.dtype)
+            return NewtonResult(z, zero, jnp.zeros((0, 0), guess.dtype), jnp.int32(0), zero)
+        # Iterate well below the `ok` tolerance (a converged solve lands near rounding).
+        solve_tol = self.tol * (1e-8 if guess.dtype == jnp.float64 else 0.1)
         return damped_newton(
-            lambda x: self.shooting_residual(q, x),
+            lambda x: self._residual_and_energy(q, x),
             guess,
             max_steps=max_steps,
-            tol=self.tol,
+            tol=solve_tol,
             damping=damping,
             max_step=0.5,  # rad: a fraction of the branch spacing on the tip-angle torus
         )
@@ -351,7 +365,9 @@ class ConcentricTubeRobot(eqx.Module):
         if self.n_tubes == 1:
             x = res.x
         else:
-            x = implicit_newton_step(lambda z: self.shooting_residual(q, z), res.x, res.jac)
+            x = implicit_solution(
+                lambda p, z: p[0].shooting_residual(p[1], z), (self, q), res.x, res.jac
+            )
         tubes, grid, traj, psi0 = self._trajectory(q, x, with_centreline=True)
         R0 = rot_z(psi0[0])
         centreline = integrate_centreline(grid.s, traj.u_steps, grid.rho, None, R0)
@@ -372,6 +388,15 @@ class ConcentricTubeRobot(eqx.Module):
             num_steps=res.num_steps,
             state=jax.lax.stop_gradient(x),
         )
+
+    def twist_profile(
+        self, q: Float[Array, " m"], state: Float[Array, " n-1"]
+    ) -> tuple[Float[Array, " N"], Float[Array, "N n"]]:
+        """Arclengths (m) and every tube's twist rate ``u_iz`` (1/m) at the samples, for the
+        solution with tip angles ``state`` (e.g. ``forward(q).state``). A tube that has ended
+        keeps its end value (0). Useful to check ``sum_i GJ_i u_iz = 0`` along s."""
+        _, grid, traj, _ = self._trajectory(q, jnp.asarray(state), with_centreline=True)
+        return grid.s, traj.uz_samples
 
     def _transmission_energy(self, tubes: TubeMechanics, beta: Array, uz0: Array) -> Array:
         """Torsion energy of the straight transmissions ``[beta_i, 0]`` (J); 0 if rigid."""
@@ -398,6 +423,8 @@ class ConcentricTubeRobot(eqx.Module):
             if guess.shape != (self.n_tubes - 1,):
                 raise ValueError(f"guess must have shape ({self.n_tubes - 1},), got {guess.shape}")
             return self._result(q, self._solve(q, guess, self.warm_steps, 1e-6))
+        if self.n_tubes == 1:  # a single tube has no twist: nothing to search
+            return self._result(q, self._solve(q, jnp.zeros((0,), beta.dtype), 0, 0.0))
         guesses = self.initial_guesses(q)
         results = jax.vmap(lambda g: self._solve(q, g, self.cold_steps, 1e-4))(guesses)
         best = self._pick_branch(jax.lax.stop_gradient(q), results)
@@ -405,14 +432,9 @@ class ConcentricTubeRobot(eqx.Module):
         res = res._replace(num_steps=jnp.sum(results.num_steps))
         return self._result(q, res)
 
-    def _branch_energy(self, q: Array, x: Array) -> Array:
-        beta, _ = self._split(q)
-        tubes, _, traj, _ = self._trajectory(q, x, with_centreline=False)
-        return traj.energy + self._transmission_energy(tubes, beta, traj.uz0)
-
     def _pick_branch(self, q: Array, results: NewtonResult) -> Array:
         """Index of the converged solution with least energy (least residual if none)."""
-        energies = jax.vmap(lambda x: self._branch_energy(q, x))(results.x)
+        energies = results.aux
         converged = (results.residual <= self.tol) & jnp.isfinite(energies)
         key = jnp.where(converged, energies, jnp.inf)
         residual = jnp.where(jnp.isfinite(results.residual), results.residual, jnp.inf)
