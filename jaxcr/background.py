@@ -179,6 +179,9 @@ def fit_background_model(
 
     if k > 1:
         wts, mu, var = jax.lax.fori_loop(0, iterations, em, (wts, mu, var))
+    else:
+        mu = jnp.mean(x, axis=2, keepdims=True)
+        var = jnp.maximum(jnp.var(x, axis=2, keepdims=True), min_var)
     return BackgroundModel(weights=wts, means=mu, variances=var)
 
 

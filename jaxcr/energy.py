@@ -72,7 +72,7 @@ class RegionData(eqx.Module):
         stack = jnp.concatenate([self.w[..., None], self.b[..., None], self.img], axis=-1)
 
         def one(r, c):
-            return jax.lax.dynamic_slice(stack, (r, c, 0), (t, t, 5)).reshape(t * t, 5)
+            return jax.lax.dynamic_slice(stack, (r, c, jnp.zeros_like(r)), (t, t, 5)).reshape(t * t, 5)
 
         g = jax.vmap(one)(r0, c0)
         return g[..., 0], g[..., 1], g[..., 2:]
