@@ -101,6 +101,8 @@ def test_label_batch_jit_vmap_equal_loop(scene):
     out = np.asarray(label_batch(model, jnp.asarray(batch)))
     loop = np.stack([np.asarray(label_image(model, jnp.asarray(b))) for b in batch])
     np.testing.assert_array_equal(out, loop)
+    vm = jax.vmap(label_image, in_axes=(None, 0))(model, jnp.asarray(batch))
+    np.testing.assert_array_equal(out, np.asarray(vm))
     # One trace for many frames of one shape.
     f = eqx.filter_jit(eqx.debug.assert_max_traces(label_image, max_traces=1))
     for b in batch:

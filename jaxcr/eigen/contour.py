@@ -26,6 +26,7 @@ def convex_hull(points: np.ndarray) -> np.ndarray:
     p = np.unique(np.asarray(points, np.int64), axis=0)  # sorted by x, then y
     if len(p) < 3:
         return p
+    p = [tuple(q) for q in p.tolist()]  # python ints: the scan below is scalar work
 
     def half(seq):
         out: list = []
@@ -60,14 +61,18 @@ def densify_polygon(vertices: np.ndarray, spacing: float) -> np.ndarray:
     return np.concatenate(out, axis=0)
 
 
-def snap_to_nearest(points: np.ndarray, targets: np.ndarray, chunk: int = 512) -> np.ndarray:
-    """For each point (m, 2), the nearest of ``targets`` (t, 2) (Euclidean; ties -> lowest
-    index). Brute force in chunks: both sets are small (hundreds to thousands)."""
+def snap_to_nearest(points: np.ndarray, targets: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """For each point (m, 2), the nearest of ``targets`` (t, 2) (Euclidean; exact ties may
+    go to either). Brute force via |p|^2 - 2 p.t + |t|^2 (one small matmul per chunk): both
+    sets are small (hundreds to thousands) and the coordinates are pixel-sized, so float64
+    rounding cannot reorder distinct squared integer-ish distances."""
     p = np.asarray(points, np.float64)
     t = np.asarray(targets, np.float64)
+    t2 = (t * t).sum(1)
     idx = np.empty(len(p), np.int64)
     for i in range(0, len(p), chunk):
-        d2 = ((p[i : i + chunk, None, :] - t[None, :, :]) ** 2).sum(-1)
+        q = p[i : i + chunk]
+        d2 = t2[None, :] - 2.0 * (q @ t.T)  # |q|^2 is constant per row
         idx[i : i + chunk] = np.argmin(d2, axis=1)
     return np.asarray(targets)[idx]
 
@@ -148,7 +153,8 @@ def contour_points(
     e = np.asarray(sobel_edges(jnp.asarray(m))) if edges is None else np.asarray(edges, bool)
     ey, ex = np.nonzero(e)
     border = np.stack([ex, ey], axis=1) if len(ex) else pix
-    hull = convex_hull(pix)
+    # The hull of a region is the hull of its boundary pixels (far fewer).
+    hull = convex_hull(border)
     ctrl = densify_polygon(hull, spacing)
     snapped = snap_to_nearest(ctrl, border)
     # Consecutive duplicates add nothing to the Bresenham chain.
