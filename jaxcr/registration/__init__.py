@@ -1,0 +1,3 @@
+"""Progressive object modelling with a continuum manipulator (issue 6): arm kinematics and
+arc planning (Algorithm 1), RGB-D point clouds, keypoint/RANSAC/ICP pairwise registration,
+loop closure with virtual mates (Algorithm 2), model merging and PLY output."""

@@ -1,0 +1,119 @@
+"""Point clouds from RGB-D frames (paper Sec. III.A / IV): back-projection with the pinhole
+intrinsics, per-pixel normals from the organised depth image, voxel down-sampling and
+fixed-size padding (so the jitted registration compiles once per size).
+
+Frames: camera frame (OpenCV: z forward, x right, y down), metres. Colours RGB in [0, 1].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from jaxcr.errors import InputError
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """A coloured point cloud with normals, in one frame. ``points``/``normals`` (n, 3),
+    ``colours`` (n, 3); normals are unit and point towards the camera that saw them."""
+
+    points: np.ndarray
+    colours: np.ndarray
+    normals: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def transformed(self, T: np.ndarray) -> Cloud:
+        return Cloud(self.points @ T[:3, :3].T + T[:3, 3], self.colours, self.normals @ T[:3, :3].T)
+
+    def subset(self, idx) -> Cloud:
+        return Cloud(self.points[idx], self.colours[idx], self.normals[idx])
+
+
+def cloud_from_rgbd(
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    max_depth: float = 3.0,
+    frame: int | str | None = None,
+) -> Cloud:
+    """Camera-frame cloud of the valid pixels of ``depth`` (H, W) in metres (0 or NaN =
+    invalid) with ``rgb`` (H, W, 3) in [0, 1] and intrinsics ``K`` (3, 3).
+
+    Normals: cross product of the central differences of the back-projected image along
+    u and v (needs both neighbours valid), oriented towards the camera. Raises
+    :class:`InputError` for mismatched shapes or a frame without a single valid depth.
+    """
+    depth = np.asarray(depth, np.float64)
+    rgb = np.asarray(rgb, np.float64)
+    if depth.ndim != 2 or rgb.shape[:2] != depth.shape or rgb.ndim != 3:
+        raise InputError(
+            f"rgb {rgb.shape} and depth {depth.shape} do not form an RGB-D pair",
+            frame=frame,
+            field="depth",
+        )
+    h, w = depth.shape
+    valid = np.isfinite(depth) & (depth > 0) & (depth < max_depth)
+    if not valid.any():
+        raise InputError(
+            "depth image has no valid pixel (all NaN/zero)", frame=frame, field="depth"
+        )
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = np.where(valid, depth, np.nan)
+    x = (u - K[0, 2]) / K[0, 0] * z
+    y = (v - K[1, 2]) / K[1, 1] * z
+    P = np.stack([x, y, z], axis=-1)
+    du = np.full_like(P, np.nan)
+    dv = np.full_like(P, np.nan)
+    du[:, 1:-1] = P[:, 2:] - P[:, :-2]
+    dv[1:-1, :] = P[2:, :] - P[:-2, :]
+    n = np.cross(du, dv)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    ok = valid & np.isfinite(norm[..., 0]) & (norm[..., 0] > 0)
+    n = np.where(ok[..., None], n / np.where(norm > 0, norm, 1.0), 0.0)
+    flip = np.sum(n * P, axis=-1) > 0  # the normal must face the camera (P points away)
+    n = np.where(flip[..., None], -n, n)
+    keep = ok
+    if not keep.any():
+        raise InputError("depth image has no pixel with a valid normal", frame=frame, field="depth")
+    return Cloud(P[keep], rgb[keep], n[keep])
+
+
+def voxel_downsample(cloud: Cloud, voxel: float) -> Cloud:
+    """One point per occupied voxel of edge ``voxel`` (m): the mean position and colour, the
+    renormalised mean normal."""
+    if len(cloud) == 0:
+        return cloud
+    key = np.floor(cloud.points / voxel).astype(np.int64)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+
+    def mean(a):
+        out = np.zeros((counts.size, a.shape[1]))
+        np.add.at(out, inv, a)
+        return out / counts[:, None]
+
+    nrm = mean(cloud.normals)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    return Cloud(mean(cloud.points), mean(cloud.colours), nrm)
+
+
+def pad_cloud(
+    cloud: Cloud, size: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(points, colours, normals, mask) arrays of exactly ``size`` rows (float32): a random
+    subset when the cloud is larger, zero rows with mask False when smaller."""
+    n = len(cloud)
+    idx = np.sort(rng.choice(n, size, replace=False)) if n > size else np.arange(n)
+    m = len(idx)
+    out = []
+    for a in (cloud.points, cloud.colours, cloud.normals):
+        b = np.zeros((size, 3), np.float32)
+        b[:m] = a[idx]
+        out.append(b)
+    mask = np.zeros(size, bool)
+    mask[:m] = True
+    return out[0], out[1], out[2], mask

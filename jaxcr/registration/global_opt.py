@@ -1,0 +1,162 @@
+"""Loop closure refinement: Algorithm 2 of the paper with virtual mates (ref. [34]).
+
+Clouds C_0..C_{m-1} form a ring (C_m = C_0). ``rel[i]`` is the pairwise registration
+``T_{i+1 <- i}`` (the last one, ``T_{0 <- m-1}``, is the loop-closure registration).
+Initial poses follow eqs. (1)-(2): ``T_O,m-1 = I``, ``T_O,i = T_O,i+1 T_{i+1 <- i}``.
+
+For cloud i, points p are sampled in its overlaps with both neighbours; each gets a virtual
+mate q = T_{j <- i} p in the neighbour's frame, carried into O by the neighbour's current
+pose. Align(i) is the Kabsch fit of p (frame i) to all mates (frame O). A double-ended queue
+holds the poses to refine: start with the last cloud; whenever a pose changes by more than
+``tol`` (sum of absolute matrix element differences) its two neighbours are queued.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcr._types import Array, Bool, Float, Mat4
+from jaxcr.geometry import invert_transform, kabsch, transform_points
+
+
+def overlap_mask(
+    src: Float[Array, "n 3"],
+    src_mask: Bool[Array, " n"],
+    tgt: Float[Array, "m 3"],
+    tgt_mask: Bool[Array, " m"],
+    T: Mat4,
+    radius: float,
+) -> Bool[Array, " n"]:
+    """Source points whose transform ``T src`` has a target point within ``radius`` (m)."""
+    ps = transform_points(T, src)
+    d2 = jnp.sum((ps[:, None, :] - tgt[None, :, :]) ** 2, -1)
+    d2 = jnp.where(tgt_mask[None, :], d2, jnp.inf)
+    return src_mask & (jnp.min(d2, axis=1) < radius**2)
+
+
+overlap_mask_jit = jax.jit(overlap_mask)
+
+
+@jax.jit
+def align(
+    p_prev: Float[Array, "k 3"],
+    w_prev: Float[Array, " k"],
+    p_next: Float[Array, "k 3"],
+    w_next: Float[Array, " k"],
+    T_O_prev: Mat4,
+    T_prev_i: Mat4,
+    T_O_next: Mat4,
+    T_next_i: Mat4,
+) -> Mat4:
+    """Align(C_i, C_i-1, C_i+1): the pose T_O,i best mapping the sampled points to their
+    virtual mates in O (weighted Kabsch)."""
+    q_prev = transform_points(T_O_prev @ T_prev_i, p_prev)
+    q_next = transform_points(T_O_next @ T_next_i, p_next)
+    p = jnp.concatenate([p_prev, p_next])
+    q = jnp.concatenate([q_prev, q_next])
+    w = jnp.concatenate([w_prev, w_next])
+    return kabsch(p, q, w + 1e-12)
+
+
+class GlobalResult(NamedTuple):
+    poses: list[np.ndarray]  # T_O,i
+    initial: list[np.ndarray]
+    n_refinements: int
+    converged: bool
+
+
+def _sample(points: np.ndarray, mask: np.ndarray, k: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    idx = np.flatnonzero(mask)
+    out = np.zeros((k, 3), np.float32)
+    w = np.zeros(k, np.float32)
+    if len(idx):
+        pick = rng.choice(idx, min(k, len(idx)), replace=False)
+        out[: len(pick)] = points[pick]
+        w[: len(pick)] = 1.0
+    return out, w
+
+
+def chain_poses(rel: list[np.ndarray]) -> list[np.ndarray]:
+    """Eqs. (1)-(2): T_O,m-1 = I and T_O,i = T_O,i+1 T_{i+1 <- i} (the closure is unused)."""
+    m = len(rel)
+    poses = [None] * m
+    poses[m - 1] = np.eye(4)
+    for i in range(m - 2, -1, -1):
+        poses[i] = poses[i + 1] @ rel[i]
+    return poses
+
+
+def global_optimize(
+    clouds: list[tuple[np.ndarray, np.ndarray]],
+    rel: list[np.ndarray],
+    overlap_radius: float = 0.004,
+    n_samples: int = 256,
+    tol: float = 1e-5,
+    max_refinements: int = 5000,
+    seed: int = 0,
+) -> GlobalResult:
+    """Algorithm 2 over the ring of ``clouds`` (padded points (n, 3), mask (n,)) with
+    pairwise transforms ``rel`` (see module docstring)."""
+    m = len(clouds)
+    if m < 3 or len(rel) != m:
+        raise ValueError(f"a loop needs >= 3 clouds and one transform per edge, got {m}/{len(rel)}")
+    rng = np.random.default_rng(seed)
+    inv = [np.asarray(invert_transform(jnp.asarray(T)), np.float64) for T in rel]
+    # Samples of C_i overlapping C_{i+1} (mates via rel[i]) and C_{i-1} (via inv[i-1]).
+    samples = []
+    for i in range(m):
+        pts, msk = clouds[i]
+        nxt, prv = (i + 1) % m, (i - 1) % m
+        o_next = np.asarray(
+            overlap_mask_jit(
+                pts, msk, clouds[nxt][0], clouds[nxt][1], rel[i].astype(np.float32), overlap_radius
+            )
+        )
+        o_prev = np.asarray(
+            overlap_mask_jit(
+                pts,
+                msk,
+                clouds[prv][0],
+                clouds[prv][1],
+                inv[prv].astype(np.float32),
+                overlap_radius,
+            )
+        )
+        samples.append((_sample(pts, o_prev, n_samples, rng), _sample(pts, o_next, n_samples, rng)))
+    poses = chain_poses(rel)
+    initial = [P.copy() for P in poses]
+    queue = deque([m - 1])
+    queued = {m - 1}
+    count = 0
+    while queue and count < max_refinements:
+        i = queue.popleft()
+        queued.discard(i)
+        prv, nxt = (i - 1) % m, (i + 1) % m
+        (pp, wp), (pn, wn) = samples[i]
+        new = np.asarray(
+            align(
+                pp,
+                wp,
+                pn,
+                wn,
+                poses[prv].astype(np.float32),
+                inv[prv].astype(np.float32),
+                poses[nxt].astype(np.float32),
+                rel[i].astype(np.float32),
+            ),
+            np.float64,
+        )
+        count += 1
+        change = float(np.abs(new - poses[i]).sum())
+        poses[i] = new
+        if change > tol:
+            for j in (prv, nxt):
+                if j not in queued:
+                    queue.append(j)
+                    queued.add(j)
+    return GlobalResult(poses, initial, count, not queue)

@@ -1,0 +1,108 @@
+"""Keypoint matching between two colour images (paper Sec. IV.A, Fig. 4): SIFT from OpenCV
+(Lowe's ratio test, mutual check), optionally affine-simulated SIFT (ASIFT, Morel & Yu 2009,
+the paper's ref. [29]): keypoints are also detected on affinely tilted copies of each image
+and mapped back to the original pixels. Keypoints are lifted to 3-D with the depth image.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+_SIFT = None
+
+
+def _sift():
+    global _SIFT
+    if _SIFT is None:
+        _SIFT = cv2.SIFT_create(nfeatures=2000)
+    return _SIFT
+
+
+def _gray(rgb: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor((np.clip(rgb, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+def _affine_views(tilts=(1.0, 2.0**0.5, 2.0), n_rot=(1, 3, 5)):
+    """(tilt, angle) pairs sampled as in ASIFT (fewer angles, for speed)."""
+    out = []
+    for t, k in zip(tilts, n_rot, strict=True):
+        for j in range(k):
+            out.append((t, 0.0 if t == 1.0 else 180.0 * j / k))
+    return out
+
+
+def detect(rgb: np.ndarray, mask: np.ndarray | None = None, asift: bool = False):
+    """Keypoint pixels (n, 2) (u, v) and SIFT descriptors (n, 128) of an RGB image in [0, 1].
+    ``mask`` (H, W) bool restricts detection (e.g. to valid depth)."""
+    g = _gray(rgb)
+    m = None if mask is None else mask.astype(np.uint8) * 255
+    uvs, descs = [], []
+    views = _affine_views() if asift else [(1.0, 0.0)]
+    h, w = g.shape
+    for t, ang in views:
+        if t == 1.0:
+            A = np.array([[1.0, 0, 0], [0, 1.0, 0]])
+            img, mm = g, m
+        else:
+            R = cv2.getRotationMatrix2D((w / 2, h / 2), ang, 1.0)
+            A = np.array([[1.0, 0, 0], [0, 1.0 / t, 0]]) @ np.vstack([R, [0, 0, 1]])
+            img = cv2.warpAffine(g, A, (w, h), flags=cv2.INTER_LINEAR)
+            mm = None if m is None else cv2.warpAffine(m, A, (w, h), flags=cv2.INTER_NEAREST)
+        kps, d = _sift().detectAndCompute(img, mm)
+        if d is None or not kps:
+            continue
+        uv = np.array([k.pt for k in kps], np.float64)
+        Ai = cv2.invertAffineTransform(A)
+        uvs.append(uv @ Ai[:, :2].T + Ai[:, 2])
+        descs.append(d)
+    if not uvs:
+        return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
+    return np.concatenate(uvs), np.concatenate(descs)
+
+
+def match(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:
+    """Index pairs (k, 2) of mutual nearest neighbours passing Lowe's ratio test."""
+    if len(desc_a) < 2 or len(desc_b) < 2:
+        return np.zeros((0, 2), np.int64)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+    ab = bf.knnMatch(desc_a, desc_b, k=2)
+    ba = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(desc_b, desc_a, k=1) if m}
+    pairs = [
+        (m[0].queryIdx, m[0].trainIdx)
+        for m in ab
+        if len(m) == 2
+        and m[0].distance < ratio * m[1].distance
+        and ba.get(m[0].trainIdx) == m[0].queryIdx
+    ]
+    return np.asarray(pairs, np.int64).reshape(-1, 2)
+
+
+def lift(uv: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame 3-D points (n, 3) of keypoints at pixels ``uv`` (nearest pixel depth) and
+    a validity mask (finite, positive depth inside the image)."""
+    h, w = depth.shape
+    ui = np.clip(np.rint(uv[:, 0]).astype(int), 0, w - 1)
+    vi = np.clip(np.rint(uv[:, 1]).astype(int), 0, h - 1)
+    z = depth[vi, ui]
+    ok = np.isfinite(z) & (z > 0)
+    z = np.where(ok, z, 0.0)
+    x = (uv[:, 0] - K[0, 2]) / K[0, 0] * z
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1] * z
+    return np.stack([x, y, z], axis=1), ok
+
+
+def matched_points(rgb_a, depth_a, rgb_b, depth_b, K, asift: bool = False):
+    """3-D keypoint correspondences (k, 3), (k, 3) between two RGB-D frames (each in its own
+    camera frame)."""
+    va = np.isfinite(depth_a) & (depth_a > 0)
+    vb = np.isfinite(depth_b) & (depth_b > 0)
+    uva, da = detect(rgb_a, va, asift)
+    uvb, db = detect(rgb_b, vb, asift)
+    pairs = match(da, db)
+    if len(pairs) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    pa, oka = lift(uva[pairs[:, 0]], depth_a, K)
+    pb, okb = lift(uvb[pairs[:, 1]], depth_b, K)
+    ok = oka & okb
+    return pa[ok], pb[ok]

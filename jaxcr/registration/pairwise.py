@@ -1,0 +1,132 @@
+"""Forward pairwise registration C_i -> C_j (paper Sec. IV.A): keypoints matched between the
+colour images (SIFT, or ASIFT), RANSAC + Kabsch on their 3-D positions, then weighted ICP
+seeded with that estimate (or with the caller's prior, identity by default, when there are
+too few keypoint inliers).
+
+Degenerate inputs fail loudly: an empty cloud raises :class:`RegistrationFailed` before any
+pose is produced, and so does a final overlap (ICP fitness) below ``min_fitness``: a pose
+from clouds that do not overlap is garbage and is never returned.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcr.registration.clouds import Cloud, cloud_from_rgbd, pad_cloud, voxel_downsample
+from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, IcpConfig, Keypoints, icp_jit
+from jaxcr.registration.keypoints import matched_points
+from jaxcr.registration.ransac import estimate_transform, inlier_set
+
+
+class RegistrationFailed(Exception):
+    """Two frames could not be registered (no overlap, empty cloud)."""
+
+
+@dataclass
+class Frame:
+    """One RGB-D capture: images, the camera-frame cloud and its padded arrays."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    cloud: Cloud
+    arrays: CloudArrays
+    label: str = ""
+
+
+def make_frame(
+    rgb, depth, K, voxel: float = 0.003, size: int = 1536, seed: int = 0, label: str = ""
+) -> Frame:
+    """Build a :class:`Frame` (raises :class:`jaxcr.errors.InputError` for an all-invalid
+    depth image)."""
+    full = cloud_from_rgbd(rgb, depth, K, frame=label or None)
+    down = voxel_downsample(full, voxel)
+    p, c, n, m = pad_cloud(down, size, np.random.default_rng(seed))
+    arrays = CloudArrays(jnp.asarray(p), jnp.asarray(c), jnp.asarray(n), jnp.asarray(m))
+    return Frame(np.asarray(rgb), np.asarray(depth), full, arrays, label)
+
+
+def _keypoint_arrays(ka, kb, T_kp, size: int = 256) -> Keypoints:
+    """RANSAC inliers padded to ``size`` (no keypoints when RANSAC failed)."""
+    s = np.zeros((size, 3), np.float32)
+    t = np.zeros((size, 3), np.float32)
+    m = np.zeros(size, bool)
+    if T_kp is not None:
+        idx = np.flatnonzero(inlier_set(ka, kb, T_kp))[:size]
+        s[: len(idx)], t[: len(idx)] = ka[idx], kb[idx]
+        m[: len(idx)] = True
+    return Keypoints(jnp.asarray(s), jnp.asarray(t), jnp.asarray(m))
+
+
+@dataclass
+class PairResult:
+    T: np.ndarray  # target <- source (camera frames)
+    n_matches: int
+    n_inliers: int
+    seeded_by_keypoints: bool
+    fitness: float
+    rmse: float
+    seconds: float
+
+
+def register_pair(
+    src: Frame,
+    tgt: Frame,
+    K: np.ndarray,
+    prior: np.ndarray | None = None,
+    cfg: IcpConfig = DEFAULT_ICP,
+    asift: bool = False,
+    min_fitness: float = 0.2,
+    seed: int = 0,
+) -> PairResult:
+    """``T`` with ``tgt ~ T src`` (see module docstring)."""
+    t0 = time.perf_counter()
+    for f in (src, tgt):
+        if not bool(np.asarray(f.arrays.mask).any()):
+            raise RegistrationFailed(f"frame {f.label or '?'} has an empty point cloud")
+    ka, kb = matched_points(src.rgb, src.depth, tgt.rgb, tgt.depth, K, asift=asift)
+    T_kp, n_in = estimate_transform(ka, kb, seed=seed) if len(ka) else (None, 0)
+    T0 = T_kp if T_kp is not None else (np.eye(4) if prior is None else prior)
+    kp = _keypoint_arrays(ka, kb, T_kp)
+    res = icp_jit(src.arrays, tgt.arrays, jnp.asarray(T0, jnp.float32), cfg, kp)
+    T = np.asarray(res.T, np.float64)
+    fitness = float(res.fitness)
+    if not np.all(np.isfinite(T)) or fitness < min_fitness:
+        raise RegistrationFailed(
+            f"no overlap between frames {src.label or '?'} and {tgt.label or '?'} "
+            f"(ICP fitness {fitness:.2f} < {min_fitness}; {len(ka)} keypoint matches, "
+            f"{n_in} RANSAC inliers)"
+        )
+    return PairResult(
+        T, len(ka), n_in, T_kp is not None, fitness, float(res.rmse), time.perf_counter() - t0
+    )
+
+
+def merge_models(
+    model_a: Cloud,
+    model_b: Cloud,
+    T_init: np.ndarray,
+    size: int = 2048,
+    voxel: float = 0.003,
+    seed: int = 0,
+    min_fitness: float = 0.2,
+) -> tuple[np.ndarray, float]:
+    """Register partial model A to partial model B by ICP from ``T_init`` (paper Sec. IV.C:
+    the change of the robot's initial pose between routes); returns (T_B<-A, fitness)."""
+    rng = np.random.default_rng(seed)
+    arrs = []
+    for m in (model_a, model_b):
+        if len(m) == 0:
+            raise RegistrationFailed("cannot merge an empty partial model")
+        p, c, n, k = pad_cloud(voxel_downsample(m, voxel), size, rng)
+        arrs.append(CloudArrays(jnp.asarray(p), jnp.asarray(c), jnp.asarray(n), jnp.asarray(k)))
+    cfg = IcpConfig(iterations=40, max_dist=0.03, min_dist=0.005)
+    res = icp_jit(arrs[0], arrs[1], jnp.asarray(T_init, jnp.float32), cfg)
+    if float(res.fitness) < min_fitness:
+        raise RegistrationFailed(
+            f"partial models do not overlap (fitness {float(res.fitness):.2f})"
+        )
+    return np.asarray(res.T, np.float64), float(res.fitness)
