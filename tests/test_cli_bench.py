@@ -48,3 +48,23 @@ def test_bench_missing_provider_is_input_error(monkeypatch, capsys):
 def test_markdown_without_reference():
     md = bench.to_markdown({"name": "x", "median_s": 2.5}, {"jax": "0"}, "p")
     assert "| median per call | 2.500 s |" in md and "reference" not in md
+
+
+def test_bench_script_provider_main(tmp_path, monkeypatch, capsys):
+    prov = tmp_path / "script_bench.py"
+    prov.write_text(
+        "import argparse\n"
+        "def main(argv=None):\n"
+        "    ap = argparse.ArgumentParser()\n"
+        "    ap.add_argument('--batch', type=int, default=4)\n"
+        "    ap.add_argument('--seed', type=int, default=0)\n"
+        "    ap.add_argument('-o', '--out')\n"
+        "    a = ap.parse_args(argv)\n"
+        "    open(a.out, 'w').write(f'batch {a.batch} seed {a.seed}')\n"
+        "    return 0\n"
+    )
+    monkeypatch.setitem(bench.PROVIDERS, "fk", [(str(prov), "run_fk_benchmark")])
+    out = tmp_path / "fk.md"
+    assert main(["bench", "fk", "--batch", "32", "--seed", "3", "-o", str(out)]) == 0
+    assert out.read_text() == "batch 32 seed 3"
+    assert "script_bench.py:main" in capsys.readouterr().out

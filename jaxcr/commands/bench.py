@@ -10,6 +10,9 @@ A provider returns a dict. Recognised keys (all optional besides ``name``): ``na
 ``reference_median_s``, ``ratio`` (reference / ours; computed if both medians are given),
 ``unit`` (what one timed call does, e.g. "frame"), ``rows`` (a list of dicts: one table row
 each, e.g. per batch size) and ``notes``. Every other scalar is listed as a key/value.
+An experiment script without such a function but with ``main(argv)`` is run as a script
+(``-o REPORT.md``, plus ``--batch/--repeats/--frames/--size/--seed`` when given); it prints
+and writes its own report.
 """
 
 from __future__ import annotations
@@ -85,8 +88,30 @@ def find_provider(what: str):
                 continue
         if hasattr(module, fn):
             return getattr(module, fn), f"{mod}:{fn}"
+        if mod.endswith(".py") and hasattr(module, "main"):
+            # a script benchmark: main(argv) -> int, writing its own Markdown to -o
+            return _ScriptProvider(module.main), f"{mod}:main"
     where = ", ".join(f"{m}:{f}" for m, f in PROVIDERS[what])
     raise InputError(f"no '{what}' benchmark in this build (looked for {where})", field="what")
+
+
+class _ScriptProvider:
+    """Wraps an experiment script's ``main(argv)``: passes ``--batch/--repeats/--seed`` (when
+    given) and ``-o``; the script writes the Markdown report itself."""
+
+    def __init__(self, main):
+        self.main = main
+
+    def __call__(self, args, out: Path) -> int:
+        argv = ["-o", str(out)]
+        for opt in ("batch", "repeats", "frames"):
+            v = getattr(args, opt)
+            if v is not None:
+                argv += [f"--{opt}", str(v)]
+        argv += ["--seed", str(args.seed)]
+        if args.size is not None:
+            argv += ["--size", args.size]
+        return int(self.main(argv) or 0)
 
 
 def _call(fn, args) -> dict:
@@ -184,6 +209,11 @@ def to_markdown(result: dict, meta: dict, provider: str) -> str:
 
 def run(args) -> int:
     fn, provider = find_provider(args.what)
+    if isinstance(fn, _ScriptProvider):
+        out = Path(args.out or f"bench_{args.what}.md")
+        code = fn(args, out)
+        print(f"report: {out} (written by {provider})")
+        return code
     result = normalise(_call(fn, args))
     meta = metadata()
     from rich.console import Console
