@@ -173,6 +173,12 @@ def test_match_backbones_recovers_curve():
     d = np.min(np.linalg.norm(Y[:, None] - Xd[None], axis=2), axis=1)
     assert np.percentile(d, 95) < 1e-4
     assert len(y1) >= max(len(x1), len(x2))
+    # Arclength interpolation between well-conditioned matches stays on the curve too.
+    z1, z2, _ = match_backbones(E, x1, x2, cap=0.02, min_quality=0.25)
+    Z = cv2.triangulatePoints(P1, P2, z1.T.copy(), z2.T.copy())
+    Z = (Z[:3] / Z[3]).T
+    dz = np.min(np.linalg.norm(Z[:, None] - Xd[None], axis=2), axis=1)
+    assert np.percentile(dz, 95) < 3e-4
 
 
 # ----------------------------------------------------------------------------- fits

@@ -123,3 +123,15 @@ def test_jit_eager_vmap_and_no_retrace(masks):
     g = jax.jit(f)
     for k in range(len(masks)):
         g(m[k])
+
+
+def test_cropped_thinning_equals_full_image():
+    from jaxcr.stereo.pipeline import _thin_cropped
+
+    m = np.zeros((120, 160), np.uint8)
+    cv2.polylines(m, [np.array([[20, 110], [30, 50], [150, 20]], np.int32)], False, 1, 6)
+    cv2.circle(m, (155, 115), 6, 1, -1)  # touches the image border
+    m = m.astype(bool)
+    np.testing.assert_array_equal(
+        _thin_cropped(m, block=32), np.asarray(zhang_suen_thin(jnp.asarray(m)))
+    )

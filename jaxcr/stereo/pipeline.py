@@ -74,6 +74,8 @@ class StereoConfig:
     ``robot_base``: where the robot leaves the plate, base frame (default: base centre).
     ``n_segments``: number of tubes if known (else chosen from the diameter profile).
     ``refine_iterations``: sub-pixel refinement passes (silhouette centres, re-triangulate).
+    ``tip_extension_px``: image-space extrapolation of each view's tip for the matching
+    (recovers tips foreshortened in one view; see :func:`match_backbones`).
     """
 
     layout: MarkerLayout = field(default_factory=MarkerLayout)
@@ -92,6 +94,7 @@ class StereoConfig:
     trim: float = 1.5e-3
     min_robot_pixels: int = 40
     refine_iterations: int = 2
+    tip_extension_px: int = 12
 
 
 def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
@@ -138,6 +141,22 @@ def _marker_mask(cam: Camera, layout: MarkerLayout, shape, margin: float = 0.003
     return m.astype(bool)
 
 
+def _thin_cropped(mask: np.ndarray, block: int = 64) -> np.ndarray:
+    """Zhang-Suen thinning of ``mask`` on its bounding box only (plus a 2-pixel margin,
+    rounded up to multiples of ``block`` so that few shapes get compiled). Thinning is
+    local, so the result equals thinning the whole image."""
+    rr, cc = np.nonzero(mask)
+    h, w = mask.shape
+    r0, c0 = max(int(rr.min()) - 2, 0), max(int(cc.min()) - 2, 0)
+    bh = min(_bucket(int(rr.max()) + 3 - r0, block), h)
+    bw = min(_bucket(int(cc.max()) + 3 - c0, block), w)
+    r0, c0 = min(r0, h - bh), min(c0, w - bw)
+    crop = np.ascontiguousarray(mask[r0 : r0 + bh, c0 : c0 + bw])
+    out = np.zeros_like(mask, dtype=bool)
+    out[r0 : r0 + bh, c0 : c0 + bw] = np.asarray(zhang_suen_thin(jnp.asarray(crop)))
+    return out
+
+
 def _bucket(n: int, size: int = 256) -> int:
     return max(size, -(-n // size) * size)
 
@@ -180,6 +199,15 @@ def _smooth_path(rc: np.ndarray, sigma: float = 1.5) -> np.ndarray:
     if len(uv) < 5:
         return uv
     return gaussian_filter1d(uv, sigma, axis=0, mode="nearest")
+
+
+def _extend_tip(uv: np.ndarray, n: int) -> np.ndarray:
+    """Append ``n`` samples (1 px apart) continuing the path's last 5 px straight on."""
+    if n <= 0 or len(uv) < 6:
+        return uv
+    d = uv[-1] - uv[-6]
+    d = d / max(np.linalg.norm(d), 1e-9)
+    return np.concatenate([uv, uv[-1] + np.arange(1, n + 1)[:, None] * d[None]])
 
 
 def _resample(p: np.ndarray, step: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -277,7 +305,7 @@ def reconstruct_pair(
         if robot.sum() < cfg.min_robot_pixels:
             raise StereoFailure("robot_not_found", f"robot region too small in view {k + 1}")
         t0 = _tick(timings, "base_floodfill", t0)
-        skel = np.asarray(zhang_suen_thin(jnp.asarray(robot)).block_until_ready())
+        skel = _thin_cropped(robot)
         t0 = _tick(timings, "thinning", t0)
         try:
             rc = order_skeleton(skel, loc.seed)
@@ -298,14 +326,18 @@ def reconstruct_pair(
     # 6. Correspondence and triangulation (normalised coordinates).
     xn = [
         cv2.undistortPoints(
-            v["uv"].reshape(-1, 1, 2), np.asarray(c.K, np.float64), np.asarray(c.dist, np.float64)
+            _extend_tip(v["uv"], cfg.tip_extension_px).reshape(-1, 1, 2),
+            np.asarray(c.K, np.float64),
+            np.asarray(c.dist, np.float64),
         ).reshape(-1, 2)
         for c, v in zip(cams, views, strict=True)
     ]
     T1, T2 = pose["T_cam1_base"], pose["T_cam2_base"]
     E = np.asarray(essential_matrix(jnp.asarray(T1), jnp.asarray(T2)), np.float64)
     f = float(cam1.K[0, 0])
-    y1, y2, quality = match_backbones(E, xn[0], xn[1], cap=8.0 / f)
+    y1, y2, quality = match_backbones(
+        E, xn[0], xn[1], cap=8.0 / f, n_real1=len(views[0]["uv"]), n_real2=len(views[1]["uv"])
+    )
     t0 = _tick(timings, "correspondence", t0)
     nb = _bucket(len(y1))
     P = np.asarray(
