@@ -173,3 +173,14 @@ def test_slope_angle_segments():
     assert len(slope_angle_segments(arc, 60)) == 1
     assert len(slope_angle_segments(arc, 10)) > 1
     assert len(slope_angle_segments(np.stack([np.arange(20.0), np.zeros(20)], 1), 1)) == 1
+
+
+def test_segment_backbone_ignores_a_widening_bump():
+    # A curled tip touching the silhouette widens the profile locally; tubes only get
+    # thinner towards the tip, so the bump is not a segment.
+    s = np.arange(0, 0.065, 5e-4)
+    d = np.where(s < 0.048, 2.4e-3, 1.8e-3)
+    d = np.where((s > 0.042) & (s < 0.047), 3.0e-3, d)
+    seg = segment_backbone(s, d)
+    assert len(seg["starts"]) == 2
+    np.testing.assert_allclose(seg["boundaries_s"], [0.048], atol=1e-3)

@@ -416,6 +416,13 @@ def reconstruct_pair(
         rep.append(np.asarray(rp, np.float64)[: len(p)])
     W = wts[0] + wts[1]
     diam = (wts[0] * diam_views[0] + wts[1] * diam_views[1]) / np.maximum(W, 1e-12)
+    # Another part of the robot touching the silhouette (a curled tip crossing) can only
+    # widen a view's profile: where both views are usable and disagree by > 15 %, trust
+    # the narrower one.
+    both = (wts[0] > 0.1) & (wts[1] > 0.1)
+    lo_d = np.minimum(diam_views[0], diam_views[1])
+    disagree = np.abs(diam_views[0] - diam_views[1]) > 0.15 * np.maximum(lo_d, 1e-12)
+    diam = np.where(both & disagree, lo_d, diam)
     diam = np.where(W > 1e-6, diam, np.nan)
     fill = np.isnan(diam)
     if fill.all():

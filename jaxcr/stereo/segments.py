@@ -65,7 +65,8 @@ def segment_backbone(
     (midway between samples), "diameters": (k,) median diameter per segment}``. With
     ``n_segments=None`` the number is chosen by ``SSE + penalty * k`` (default penalty:
     ``n * (0.08 * median diameter)^2 / 4``, i.e. a step must explain more than about an
-    8 % diameter change over a quarter of the samples)."""
+    8 % diameter change over a quarter of the samples), and then reduced while a step is
+    not a clear decrease (telescoping tubes only get thinner towards the tip)."""
     d = median_filter(np.asarray(diameters, np.float64), size=filter_len, mode="nearest")
     n = len(d)
     if n_segments is None:
@@ -79,6 +80,14 @@ def segment_backbone(
             if best is None or score < best[0]:
                 best = (score, st)
         starts = best[1]
+        # A concentric-tube robot's diameter only steps down from base to tip: fewer
+        # pieces while some step is not a clear decrease (> 4 %).
+        while len(starts) > 1:
+            ends = list(starts[1:]) + [n]
+            lv = np.array([np.median(d[a:b]) for a, b in zip(starts, ends, strict=True)])
+            if np.all(lv[1:] < 0.96 * lv[:-1]):
+                break
+            starts, _ = piecewise_constant(d, len(starts) - 1)
     else:
         starts, _ = piecewise_constant(d, n_segments)
     bounds = np.array([(s[i - 1] + s[i]) / 2 for i in starts[1:]])
