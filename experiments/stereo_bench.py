@@ -45,40 +45,30 @@ def main() -> int:
     t_first = time.perf_counter() - t0
     for im in pairs[1:]:  # warm every shape bucket
         reconstruct_pair(im[0], im[1], ds["cam1"], ds["cam2"], ds["config"])
-    totals, stages, masks = [], {}, []
+    totals, cpu, stages, masks = [], [], {}, []
     for _ in range(args.repeats):
         for im in pairs:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             r = reconstruct_pair(im[0], im[1], ds["cam1"], ds["cam2"], ds["config"])
             totals.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
             for k, v in r["timings"].items():
                 stages.setdefault(k, []).append(v)
-    # Thinning: JAX vs skimage on the robot masks (rebuilt from the pipeline's skeleton
-    # inputs: the flood-filled masks of the last run are not returned, so re-key here).
-    from jaxcr.stereo.chroma import chroma_alpha
-
-    for im in pairs:
-        for v in im:
-            a = np.asarray(
-                chroma_alpha(
-                    jnp.asarray(v.astype(np.float32) / 255),
-                    jnp.asarray(ds["config"].key_rgb, jnp.float32),
-                    ds["config"].tol_lo,
-                    ds["config"].tol_hi,
-                )
-            )
-            masks.append(a > 0.5)
+            if len(masks) < 2 * len(pairs):
+                masks.extend(r["robot_masks"])
     jx, sk = [], []
     zhang_suen_thin(jnp.asarray(masks[0])).block_until_ready()
+    agree = []
     for m in masks:
         mj = jnp.asarray(m)
         for _ in range(args.repeats):
             t0 = time.perf_counter()
-            zhang_suen_thin(mj).block_until_ready()
+            a = zhang_suen_thin(mj).block_until_ready()
             jx.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            skeletonize(m)
+            b = skeletonize(m)
             sk.append(time.perf_counter() - t0)
+        agree.append(float(np.mean(np.asarray(a)[b])))
     ms = lambda x: 1e3 * np.asarray(x)  # noqa: E731
     commit = subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
@@ -108,15 +98,20 @@ def main() -> int:
     )
     lines += [
         "",
-        f"Target: <= 100 ms per pair: {'met' if np.median(t) <= 100 else 'NOT met'} (median).",
+        f"Target: <= 100 ms per pair: {'met' if np.median(t) <= 100 else 'NOT met'} (median wall clock); "
+        f"load average during the run: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs.",
         "",
-        f"## Thinning on {len(masks)} chroma-key masks ({w}x{h}), same run",
+        f"## Thinning on the {len(masks)} full-image robot masks ({w}x{h}, flood-filled, as the pipeline produces them), same run",
         "",
         "| implementation | median (ms) | p90 (ms) |",
         "|---|---|---|",
         f"| jaxcr Zhang-Suen (JAX, jit, vectorised iterations) | {np.median(ms(jx)):.2f} | {np.percentile(ms(jx), 90):.2f} |",
         f"| scikit-image skeletonize (Cython) | {np.median(ms(sk)):.2f} | {np.percentile(ms(sk), 90):.2f} |",
         f"| ratio JAX / skimage | {np.median(ms(jx)) / np.median(ms(sk)):.2f} | |",
+        "",
+        f"Fraction of skimage's skeleton pixels also in ours: mean {np.mean(agree):.3f} (the two are different"
+        " Zhang-Suen variants; ours equals a literal per-pixel loop of the paper, see tests).",
+        "The pipeline thins only the robot's bounding box (rounded up to 64 px), not the full image.",
     ]
     Path(args.out).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

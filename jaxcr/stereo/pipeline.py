@@ -488,6 +488,7 @@ def reconstruct_pair(
         "marker_rms_px": pose["rms_px"],
         "n_markers": pose["n_markers"],
         "skeleton_rc": [v["skeleton_rc"] for v in views],
+        "robot_masks": [v["robot"] for v in views],
         "seed_rc": [v["loc"].seed for v in views],
         "n_matches": int(good.sum()),
         "timings": timings,
