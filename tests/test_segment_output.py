@@ -32,6 +32,13 @@ def test_atomic_write_png_roundtrip_and_no_temp_left(tmp_path):
     assert os.listdir(tmp_path / "a") == ["m.png"]
 
 
+def test_atomic_write_gives_ordinary_file_mode(tmp_path):
+    p = results.atomic_write_text(tmp_path / "a.txt", "x")
+    q = tmp_path / "b.txt"
+    q.write_text("x")
+    assert (p.stat().st_mode & 0o777) == (q.stat().st_mode & 0o777)
+
+
 def test_atomic_write_failure_keeps_old_file(tmp_path, monkeypatch):
     p = tmp_path / "x.npy"
     results.atomic_write_npy(p, np.arange(3))
