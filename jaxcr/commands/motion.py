@@ -47,7 +47,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--model", choices=["translation", "homography", "both"], default="both")
     p.add_argument("--lambda", dest="lam", type=float, default=15.0, help="Sigma = lambda I, px^2")
     p.add_argument("--threshold", type=float, default=0.75, help="fraction of the map maximum")
-    p.add_argument("--superpixel-step", type=int, default=12, help="SLIC grid step, px")
+    p.add_argument("--superpixel-step", type=int, default=20, help="SLIC grid step, px")
     p.add_argument("--flow-step", type=int, default=4, help="LK grid step, px")
     p.add_argument("--flow", choices=["lk", "dis"], default="lk", help="optical flow method")
     p.add_argument("--no-baseline", action="store_true", help="skip the grabCut baseline")

@@ -18,13 +18,16 @@ import numpy as np
 @dataclass(frozen=True)
 class FlowConfig:
     """Flow settings: grid step (px), LK window (px), pyramid levels, forward-backward check
-    threshold (px; 0 disables it), method "lk" or "dis"."""
+    threshold (px; 0 disables it), method "lk" or "dis", and LK's minimum eigenvalue of the
+    gradient matrix (OpenCV's minEigThreshold; points in textureless areas, whose flow the
+    aperture problem leaves undetermined, are marked invalid)."""
 
     step: int = 4
     window: int = 15
     levels: int = 3
     fb_threshold: float = 0.0
     method: str = "lk"
+    min_eig: float = 1e-3
 
 
 def grid_points(height: int, width: int, step: int) -> np.ndarray:
@@ -71,7 +74,12 @@ def grid_flow(
     if cfg.method != "lk":
         raise ValueError(f"unknown flow method {cfg.method!r}")
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
-    lk = dict(winSize=(cfg.window, cfg.window), maxLevel=cfg.levels, criteria=crit)
+    lk = dict(
+        winSize=(cfg.window, cfg.window),
+        maxLevel=cfg.levels,
+        criteria=crit,
+        minEigThreshold=cfg.min_eig,
+    )
     nxt, status, _ = cv2.calcOpticalFlowPyrLK(prev_gray, next_gray, pts[:, None, :], None, **lk)
     nxt = nxt.reshape(-1, 2)
     valid = status.reshape(-1).astype(bool)

@@ -65,8 +65,15 @@ def weighted_homographies(
     seg: Int[Array, " n"],
     weight: Float[Array, " n"],
     n_segments: int,
+    perspective_penalty: float = 0.0,
 ) -> Float[Array, "k 3 3"]:
-    """Weighted normalised DLT homography of every segment (dst ~ H src), ||H||_F = 1."""
+    """Weighted normalised DLT homography of every segment (dst ~ H src), ||H||_F = 1.
+
+    ``perspective_penalty`` (>= 0) adds penalty x (sum of weights) x (h31^2 + h32^2) in the
+    normalised coordinates to the algebraic error: a ridge prior towards an affine map that
+    keeps the homographies of small segments (a few px across, whose perspective terms the
+    flow barely constrains) from extrapolating wildly to a distant end-effector. 0 gives the
+    plain DLT."""
     wsum = jnp.maximum(jax.ops.segment_sum(weight, seg, n_segments), 1e-12)
 
     def norm(p):
@@ -83,6 +90,8 @@ def weighted_homographies(
     M = jax.ops.segment_sum(
         _dlt_rows(sn[:, :2], dn[:, :2]) * weight[:, None, None], seg, n_segments
     )
+    ridge = jnp.zeros(9, src.dtype).at[6].set(1.0).at[7].set(1.0)
+    M = M + perspective_penalty * wsum[:, None, None] * jnp.diag(ridge)[None]
     _, vecs = jnp.linalg.eigh(M)
     Hn = vecs[:, :, 0].reshape(-1, 3, 3)
     H = jnp.linalg.inv(Td) @ Hn @ Ts
@@ -99,23 +108,37 @@ def segment_homography(
     n_irls: int = 3,
     scale: float = 1.0,
     min_points: int = 6,
+    perspective_penalty: float = 0.0,
+    select_sigma: float = 0.0,
 ) -> Float[Array, "k 3 3"]:
     """Robust homography per segment (eqs. 7-8): weighted normalised DLT, then ``n_irls``
     reweightings with Cauchy weights 1 / (1 + (e / scale)^2), e the transfer error in px.
-    Segments with fewer than ``min_points`` valid points get their mean-flow translation."""
+    Segments with fewer than ``min_points`` valid points get their mean-flow translation;
+    ``perspective_penalty`` see :func:`weighted_homographies`.
+
+    With ``select_sigma`` > 0 (the flow noise, px) each segment keeps the homography only if it
+    explains its flow better than the translation by more than the AIC penalty for the six
+    extra parameters, sum w (e_t^2 - e_h^2) > 2 * 6 * sigma^2 (model selection in the spirit of
+    Torr 1998, which M-L cites); otherwise the segment's model is its translation."""
     w0 = valid.astype(pts.dtype)
     dst = pts + flow
-    H = weighted_homographies(pts, dst, seg, w0, n_segments)
+    H = weighted_homographies(pts, dst, seg, w0, n_segments, perspective_penalty)
 
     def body(_, H):
         pred = jax.vmap(apply_homography)(H[seg], pts)
         e2 = jnp.sum((pred - dst) ** 2, axis=1)
-        return weighted_homographies(pts, dst, seg, w0 / (1.0 + e2 / scale**2), n_segments)
+        w = w0 / (1.0 + e2 / scale**2)
+        return weighted_homographies(pts, dst, seg, w, n_segments, perspective_penalty)
 
     H = jax.lax.fori_loop(0, n_irls, body, H)
     b, count = segment_translation(flow, seg, w0, n_segments)
     Ht = jnp.tile(jnp.eye(3, dtype=pts.dtype), (n_segments, 1, 1)).at[:, :2, 2].set(b)
     good = (count >= min_points) & jnp.all(jnp.isfinite(H), axis=(1, 2))
+    if select_sigma > 0:
+        pred = jax.vmap(apply_homography)(H[seg], pts)
+        rss_h = jax.ops.segment_sum(w0 * jnp.sum((pred - dst) ** 2, axis=1), seg, n_segments)
+        rss_t = jax.ops.segment_sum(w0 * jnp.sum((flow - b[seg]) ** 2, axis=1), seg, n_segments)
+        good = good & (rss_t - rss_h > 12.0 * select_sigma**2)
     return jnp.where(good[:, None, None], H, Ht)
 
 

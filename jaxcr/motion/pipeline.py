@@ -43,7 +43,7 @@ MODELS = ("translation", "homography")
 class MotionConfig:
     """Settings of M-L. Lengths in pixels, lambda in px^2 (Sigma = lambda I, eq. 10)."""
 
-    superpixel_step: int = 12
+    superpixel_step: int = 20
     compactness: float = 10.0
     slic_iters_first: int = 6
     slic_iters_track: int = 2
@@ -54,9 +54,13 @@ class MotionConfig:
     min_motion: float = 0.5
     threshold: float = 0.75
     homography_irls: int = 3
+    perspective_penalty: float = 1.0
+    select_sigma: float = 0.5
 
 
-@functools.partial(jax.jit, static_argnames=("n_segments", "models", "n_irls"))
+@functools.partial(
+    jax.jit, static_argnames=("n_segments", "models", "n_irls", "penalty", "select_sigma")
+)
 def frame_probabilities(
     pts: Float[Array, "n 2"],
     flow: Float[Array, "n 2"],
@@ -70,6 +74,8 @@ def frame_probabilities(
     n_segments: int,
     models: tuple[str, ...] = MODELS,
     n_irls: int = 3,
+    penalty: float = 0.0,
+    select_sigma: float = 0.0,
 ) -> tuple[Float[Array, "m k"], Bool[Array, " k"]]:
     """Arm-removed membership probability of every segment for one frame pair, one row per
     model in ``models`` (eqs. 4-13), and which segments had valid flow (``present``)."""
@@ -81,7 +87,16 @@ def frame_probabilities(
         if m == "translation":
             rho = translation_error(b, x_now, x_next)
         elif m == "homography":
-            H = segment_homography(pts, flow, seg, valid, n_segments, n_irls=n_irls)
+            H = segment_homography(
+                pts,
+                flow,
+                seg,
+                valid,
+                n_segments,
+                n_irls=n_irls,
+                perspective_penalty=penalty,
+                select_sigma=select_sigma,
+            )
             rho = homography_error(H, x_now, x_next)
         else:
             raise ValueError(f"unknown motion model {m!r}")
@@ -194,6 +209,8 @@ class MotionTracker:
                 self.n_segments,
                 cfg.models,
                 cfg.homography_irls,
+                cfg.perspective_penalty,
+                cfg.select_sigma,
             )
             self.mean, self.count = _running_average(self.mean, self.count, p, present)
             self.mean.block_until_ready()
