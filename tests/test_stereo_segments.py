@@ -8,7 +8,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcr.camera import Camera, project_points
-from jaxcr.stereo.chroma import KEY_COLOURS, chroma_alpha, chroma_score, key_projection, plate_alpha
+from jaxcr.stereo.chroma import (
+    KEY_COLOURS,
+    chroma_alpha,
+    chroma_score,
+    key_projection,
+    plate_alpha,
+    plate_alpha_shadow_invariant,
+)
 from jaxcr.stereo.diameter import cylinder_diameters, profile_widths, view_weights
 from jaxcr.stereo.segments import piecewise_constant, segment_backbone
 from jaxcr.stereo.shadow import slope_angle_segments
@@ -184,3 +191,12 @@ def test_segment_backbone_ignores_a_widening_bump():
     seg = segment_backbone(s, d)
     assert len(seg["starts"]) == 2
     np.testing.assert_allclose(seg["boundaries_s"], [0.048], atol=1e-3)
+
+
+def test_shadow_invariant_plate():
+    plate = jnp.asarray(np.tile(np.array(KEY_COLOURS["green"]), (1, 3, 1)), jnp.float32)
+    img = plate.at[0, 1].multiply(0.45).at[0, 2].set(jnp.asarray([0.4, 0.4, 0.42]))
+    a_plain = np.asarray(plate_alpha(img, plate))[0]
+    a_inv = np.asarray(plate_alpha_shadow_invariant(img, plate))[0]
+    np.testing.assert_allclose(a_plain, [0, 1, 1])  # the shadow counts as foreground
+    np.testing.assert_allclose(a_inv, [0, 0, 1])  # not any more; the grey tube still does

@@ -62,7 +62,9 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("dataset", help="stereo dataset folder (stereo.json), or 'synth'")
     p.add_argument("-o", "--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--segmentation", choices=["chroma", "plate", "both"], default="chroma")
+    p.add_argument(
+        "--segmentation", choices=["chroma", "plate", "plate_shadow", "both"], default="chroma"
+    )
     p.add_argument("--tolerance", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                    help="chroma-key score ramp (default 0.5 0.8)")  # fmt: skip
     p.add_argument("--segments", type=int, default=None, help="number of tubes if known")
@@ -307,7 +309,9 @@ def run(args) -> int:
             raise InputError("--segments must be >= 1", field="--segments")
         ds["config"].n_segments = args.segments
     if args.segmentation != "chroma" and ds["plates"] is None:
-        raise InputError("--segmentation plate/both needs background_plates in stereo.json")
+        raise InputError(
+            f"--segmentation {args.segmentation} needs background_plates in stereo.json"
+        )
     recs = run_batch(ds, args.out, overlays=not args.no_overlays)
     n_ok = sum(r["ok"] for r in recs)
     print(f"{n_ok}/{len(recs)} frames reconstructed; results in {args.out}")

@@ -28,7 +28,14 @@ import jax.numpy as jnp
 
 from jaxcr._types import Array, Float
 
-__all__ = ["KEY_COLOURS", "chroma_score", "chroma_alpha", "key_projection", "plate_alpha"]
+__all__ = [
+    "KEY_COLOURS",
+    "chroma_score",
+    "chroma_alpha",
+    "key_projection",
+    "plate_alpha",
+    "plate_alpha_shadow_invariant",
+]
 
 KEY_COLOURS = {"green": (0.15, 0.62, 0.22), "blue": (0.12, 0.25, 0.70)}
 _EPS = 1e-3
@@ -85,4 +92,21 @@ def plate_alpha(
 ) -> Float[Array, "h w"]:
     """Foreground alpha from the colour distance to a background plate (empty scene)."""
     d = jnp.sqrt(jnp.sum((image - plate) ** 2, axis=-1) + 1e-12)
+    return jnp.clip((d - lo) / (hi - lo), 0.0, 1.0)
+
+
+@jax.jit
+def plate_alpha_shadow_invariant(
+    image: Float[Array, "h w 3"],
+    plate: Float[Array, "h w 3"],
+    lo: float = 0.06,
+    hi: float = 0.15,
+    min_gain: float = 0.25,
+) -> Float[Array, "h w"]:
+    """Background-plate alpha that ignores shadows: a shadow darkens the plate without
+    changing its colour, ``I ~ g B`` with a gain ``g`` in ``[min_gain, 1]``, so the
+    distance is taken to the best-scaled plate ``g B`` (``g = I.B / B.B`` clipped)."""
+    g = jnp.sum(image * plate, axis=-1) / jnp.maximum(jnp.sum(plate * plate, axis=-1), 1e-9)
+    g = jnp.clip(g, min_gain, 1.0)[..., None]
+    d = jnp.sqrt(jnp.sum((image - g * plate) ** 2, axis=-1) + 1e-12)
     return jnp.clip((d - lo) / (hi - lo), 0.0, 1.0)

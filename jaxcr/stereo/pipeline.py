@@ -39,7 +39,13 @@ from scipy.ndimage import gaussian_filter1d
 from jaxcr.camera import Camera, project_points
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_locate import flood_component, locate_base
-from jaxcr.stereo.chroma import KEY_COLOURS, chroma_alpha, key_projection, plate_alpha
+from jaxcr.stereo.chroma import (
+    KEY_COLOURS,
+    chroma_alpha,
+    key_projection,
+    plate_alpha,
+    plate_alpha_shadow_invariant,
+)
 from jaxcr.stereo.correspondence import match_backbones
 from jaxcr.stereo.diameter import (
     cylinder_diameters,
@@ -69,8 +75,10 @@ class StereoConfig:
     """Pipeline settings. Lengths in metres.
 
     ``segmentation``: ``"chroma"`` (key colour ``key_rgb`` with ``tol_lo``/``tol_hi``),
-    ``"plate"`` (background plate difference) or ``"both"`` (the product of the two
-    alphas: foreground must differ from the plate and not be the key colour).
+    ``"plate"`` (background plate difference; shadows are segmented with the tube),
+    ``"plate_shadow"`` (plate difference after the best shadow gain, which ignores
+    shadows) or ``"both"`` (the product of chroma and plate alphas: foreground must differ
+    from the plate and not be the key colour).
     ``robot_base``: where the robot leaves the plate, base frame (default: base centre).
     ``n_segments``: number of tubes if known (else chosen from the diameter profile).
     ``refine_iterations``: sub-pixel refinement passes (silhouette centres, re-triangulate).
@@ -247,6 +255,8 @@ def reconstruct_pair(
     ``segmentation="plate"``/``"both"``). Returns a dict (numpy arrays, base frame, metres).
     """
     cfg = config or StereoConfig()
+    if cfg.segmentation not in ("chroma", "plate", "plate_shadow", "both"):
+        raise ValueError(f"unknown segmentation {cfg.segmentation!r}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     imgs = [_as_float(image1), _as_float(image2)]
@@ -258,7 +268,7 @@ def reconstruct_pair(
                 f"view {k + 1} image is {im.shape[1]}x{im.shape[0]} but its calibration is "
                 f"{cam.width}x{cam.height}",
             )
-    if cfg.segmentation in ("plate", "both") and plates is None:
+    if cfg.segmentation in ("plate", "plate_shadow", "both") and plates is None:
         raise StereoFailure("plate", "segmentation needs background plates, none given")
     # 1. Base frame.
     dets = [detect_markers(im, cfg.layout) for im in imgs]
@@ -278,6 +288,10 @@ def reconstruct_pair(
         key = jnp.asarray(cfg.key_rgb, jnp.float32)
         if cfg.segmentation == "chroma":
             alpha = chroma_alpha(jnp.asarray(im), key, cfg.tol_lo, cfg.tol_hi)
+        elif cfg.segmentation == "plate_shadow":
+            alpha = plate_alpha_shadow_invariant(
+                jnp.asarray(im), jnp.asarray(_as_float(plates[k])), cfg.plate_lo, cfg.plate_hi
+            )
         elif cfg.segmentation == "plate":
             alpha = plate_alpha(
                 jnp.asarray(im), jnp.asarray(_as_float(plates[k])), cfg.plate_lo, cfg.plate_hi
