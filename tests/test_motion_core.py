@@ -370,3 +370,36 @@ def test_warp_labels_constant_flow_is_a_shift():
     out = np.asarray(warp_labels(jnp.asarray(lbl), jnp.asarray(flow)))
     np.testing.assert_array_equal(out[1:, 2:], lbl[:-1, :-2])
     np.testing.assert_array_equal(out[0, 2:], lbl[0, :-2])  # clamped at the border
+
+
+def test_homography_model_selection_and_affine_prior():
+    rng = np.random.default_rng(11)
+    pts = rng.uniform(0, 16, (30, 2))
+    seg = np.zeros(30, int)
+    valid = np.ones(30, bool)
+    flow_t = np.array([3.0, -1.0]) + rng.normal(0, 0.3, (30, 2))  # a noisy translation
+    args = (
+        jnp.asarray(pts, jnp.float32),
+        jnp.asarray(flow_t, jnp.float32),
+        jnp.asarray(seg),
+        jnp.asarray(valid),
+        1,
+    )
+    H = np.asarray(segment_homography(*args, select_sigma=0.5))[0]
+    np.testing.assert_allclose(H[:2, :2], np.eye(2), atol=1e-6)  # the translation was selected
+    np.testing.assert_allclose(H[:2, 2], flow_t.mean(0), atol=1e-5)
+    # a 0.1 rad rotation about the patch centre is explained by the homography: kept
+    c, s = np.cos(0.1), np.sin(0.1)
+    R = np.array([[c, -s], [s, c]])
+    flow_r = (pts - 8) @ R.T + 8 - pts
+    args_r = (args[0], jnp.asarray(flow_r, jnp.float32), *args[2:])
+    H = np.asarray(segment_homography(*args_r, select_sigma=0.5))[0]
+    np.testing.assert_allclose(
+        _transfer(H, np.array([[40.0, 30.0]])), (np.array([[32.0, 22.0]]) @ R.T) + 8, atol=1e-3
+    )
+    # the perspective ridge shrinks h31, h32 monotonically
+    Hs = [
+        np.asarray(segment_homography(*args, perspective_penalty=p))[0] for p in (0.0, 1.0, 100.0)
+    ]
+    mag = [np.abs(h[2, :2] / h[2, 2]).sum() for h in Hs]
+    assert mag[0] >= mag[1] >= mag[2] and mag[2] < 1e-3
