@@ -85,7 +85,9 @@ def test_margin_gradients_finite_at_singular_points():
         (jnp.array(10.0), jnp.array(10.0), jnp.array(20.0), jnp.array(10.0), 2.0, 2.0),
         (jnp.array(10.0), jnp.array(10.0), jnp.array(10.0), jnp.array(10.0), 2.0, 2.0),
     ]:
-        g = jax.grad(lambda a, b, c, d: f((a, b, c, d) + args[4:]), argnums=(0, 1, 2, 3))(*args[:4])
+        g = jax.grad(lambda a, b, c, d, r=args[4:]: f((a, b, c, d) + r), argnums=(0, 1, 2, 3))(
+            *args[:4]
+        )
         assert all(np.isfinite(np.asarray(x)) for x in g)
 
 

@@ -1,0 +1,210 @@
+"""jaxcr.refine: recovery of a known delta-u, nominal projection at delta-u = 0, batch (vmap)
+== per frame, no retracing across frames, bad frames reported and skipped.
+
+Small images (160x120) and a small config keep this file fast; the compiled functions are
+module-level fixtures shared by all tests.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from skimage.draw import polygon
+
+from jaxcr.background import colour_mask
+from jaxcr.camera import Camera, project_points, project_xy, surface_points
+from jaxcr.errors import InputError
+from jaxcr.kinematics.cosserat import Centreline, integrate_centreline
+from jaxcr.metrics import iou
+from jaxcr.refine import RefineConfig, refine_batch, refine_frame
+from jaxcr.shape import perturbed_centreline
+from jaxcr.silhouette import project_tube, rasterise_dense
+
+W, H = 160, 120
+CFG = RefineConfig(
+    n_coeffs=3,
+    levels=(1, 0),
+    steps=(30, 15),
+    outer=(2, 1),
+    tau=(1.0, 0.8),
+    band_tiles=96,
+    min_tiles=24,
+    g_reg=0.5,
+)
+# Row 0 bends about the body x axis, which points at the camera: an in-image-plane bend.
+TRUE_COEFFS = [
+    np.array([[0.35, -0.15, 0.05], [0.0, 0.0, 0.0]], np.float32),
+    np.array([[-0.3, 0.1, 0.0], [0.0, 0.0, 0.0]], np.float32),
+]
+
+
+def _base(n=41):
+    s = jnp.linspace(0.0, 0.12, n)
+    u = jnp.tile(jnp.array([6.0, 0.0, 0.0]), (n - 1, 1))
+    R0 = jnp.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # tangent +x, body x towards -z
+    return integrate_centreline(s, u, jnp.full(n, 2.5e-3), jnp.array([-0.06, 0.01, 0.0]), R0)
+
+
+def _camera():
+    return Camera.look_at([0, 0, -0.3], [0, 0, 0], [0, -1, 0], fx=200.0, size=(W, H))
+
+
+def _render(cl, cam, seed):
+    """Independent renderer: eq. 7 surface points, projected, convex hull per segment filled
+    at pixel centres (scikit-image), grey tube over a noisy red background."""
+    pts = surface_points(cl, 16)
+    uv, _ = project_points(cam, pts.reshape(-1, 3))
+    uv = np.asarray(uv).reshape(pts.shape[0], 16, 2)
+    mask = np.zeros((H, W), bool)
+    import cv2
+
+    for i in range(pts.shape[0] - 1):
+        hull = cv2.convexHull(np.concatenate([uv[i], uv[i + 1]]).astype(np.float32))[:, 0]
+        rr, cc = polygon(hull[:, 1], hull[:, 0], mask.shape)
+        mask[rr, cc] = True
+    rng = np.random.default_rng(seed)
+    img = np.empty((H, W, 3), np.float32)
+    img[:] = [0.70, 0.25, 0.25]
+    img += rng.normal(0, 0.05, img.shape).astype(np.float32)
+    img[mask] = [0.6, 0.6, 0.62]
+    img[mask] += rng.normal(0, 0.03, (mask.sum(), 3)).astype(np.float32)
+    return np.clip(img, 0, 1), mask
+
+
+@pytest.fixture(scope="module")
+def scene():
+    base, cam = _base(), _camera()
+    frames = []
+    for k, c in enumerate(TRUE_COEFFS):
+        truth_cl = perturbed_centreline(base, jnp.asarray(c))
+        img, mask = _render(truth_cl, cam, k)
+        bg, ip = colour_mask(jnp.asarray(img))
+        frames.append(dict(img=ip, bg=bg, mask=mask, truth=truth_cl))
+    return base, cam, frames
+
+
+@pytest.fixture(scope="module")
+def run_frame():
+    """One compiled per-frame function; asserting a single trace across all frames."""
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def run(base, cam, img, bg):
+        return refine_frame(base, cam, img, bg, CFG)
+
+    return run
+
+
+@pytest.fixture(scope="module")
+def per_frame(scene, run_frame):
+    base, cam, frames = scene
+    return [run_frame(base, cam, f["img"], f["bg"]) for f in frames]
+
+
+@pytest.fixture(scope="module")
+def batch(scene):
+    """vmap batch of 5 frames: the two good ones, NaN centreline, all background, out of view."""
+    base, cam, frames = scene
+    nan_base = jax.tree.map(lambda x: x * jnp.nan, base)
+    far = Centreline(base.s, base.p + jnp.array([5.0, 5.0, 0.0]), base.R, base.u, base.rho)
+    bases = jax.tree.map(lambda *x: jnp.stack(x), base, base, nan_base, base, far)
+    imgs = jnp.stack(
+        [
+            frames[0]["img"],
+            frames[1]["img"],
+            frames[0]["img"],
+            jnp.zeros_like(frames[0]["img"]),
+            frames[0]["img"],
+        ]
+    )
+    bgs = jnp.stack(
+        [
+            frames[0]["bg"],
+            frames[1]["bg"],
+            frames[0]["bg"],
+            jnp.ones_like(frames[0]["bg"]),
+            frames[0]["bg"],
+        ]
+    )
+    return bases, cam, imgs, bgs, refine_batch(bases, cam, imgs, bgs, CFG, mode="vmap")
+
+
+def test_zero_perturbation_reproduces_nominal_projection(scene, per_frame):
+    base, cam, _ = scene
+    ref = np.asarray(rasterise_dense(project_tube(cam, base), H, W))
+    np.testing.assert_array_equal(np.asarray(per_frame[0].nominal_masks[0]), ref)
+    np.testing.assert_allclose(perturbed_centreline(base, jnp.zeros((2, 3))).p, base.p, atol=1e-7)
+
+
+def test_recovers_known_delta_u(scene, per_frame):
+    base, cam, frames = scene
+    for f, r, c in zip(frames, per_frame, TRUE_COEFFS, strict=True):
+        assert bool(r.ok) and int(r.failure) == 0
+        nominal_iou = float(iou(r.nominal_masks[0], f["mask"]))
+        refined_iou = float(iou(r.masks[0], f["mask"]))
+        assert nominal_iou < 0.5
+        assert refined_iou > 0.85, (nominal_iou, refined_iou)
+        # The in-plane bend is recovered to within half of the perturbation; the out-of-plane
+        # row is only weakly observable from one view (perspective) and trades off against it
+        # under the regulariser, so the coefficients are not recovered exactly.
+        err = np.linalg.norm(np.asarray(r.coeffs)[0] - c[0])
+        assert err < 0.5 * np.linalg.norm(c[0]), (np.asarray(r.coeffs), c)
+        # projected centreline within 1.5 px of the truth (tube radius here ~1.7 px)
+        u1, v1, _ = project_xy(cam, r.centreline.p)
+        u2, v2, _ = project_xy(cam, f["truth"].p)
+        assert float(jnp.mean(jnp.hypot(u1 - u2, v1 - v2))) < 1.5
+        assert float(r.energy["total"]) < float(r.energy["total_nominal"])
+        assert int(r.num_steps) == int(jnp.sum(r.steps_per_level)) > 0
+
+
+def test_batch_vmap_equals_per_frame(per_frame, batch):
+    *_, out = batch
+    # vmapped matmuls round differently from unbatched ones, and BFGS stopped at its step
+    # limit amplifies those last-bit differences along the weakly observed (out-of-plane)
+    # direction; the masks, energies and in-plane bend agree closely.
+    for k, r in enumerate(per_frame):
+        assert float(iou(out.masks[0][k], r.masks[0])) > 0.97
+        np.testing.assert_allclose(
+            float(out.energy["total"][k]), float(r.energy["total"]), rtol=0.03, atol=0.01
+        )
+        np.testing.assert_allclose(np.asarray(out.coeffs[k])[0], np.asarray(r.coeffs)[0], atol=0.06)
+        np.testing.assert_array_equal(
+            np.asarray(out.nominal_masks[0][k]), np.asarray(r.nominal_masks[0])
+        )
+        assert bool(out.ok[k])
+
+
+def test_bad_frames_are_reported_and_batch_goes_on(batch):
+    bases, cam, imgs, bgs, out = batch
+    assert [int(x) for x in out.failure] == [0, 0, 1, 3, 2]
+    assert [bool(x) for x in out.ok] == [True, True, False, False, False]
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(out.coeffs))
+    # a missing image is passed as valid=False: same compiled function, frame skipped
+    out2 = refine_batch(
+        bases, cam, imgs, bgs, CFG, valid=jnp.array([True, False, True, True, True]), mode="vmap"
+    )
+    assert int(out2.failure[1]) == 1 and bool(out2.ok[0])
+
+
+def test_no_retrace_across_frames(scene, run_frame, per_frame):
+    base, cam, frames = scene
+    # a third call with new data must reuse the trace (assert_max_traces raises otherwise)
+    run_frame(base, cam, frames[1]["img"], frames[0]["bg"])
+
+
+def test_bad_arguments_raise_input_error(scene):
+    base, cam, frames = scene
+    with pytest.raises(InputError):
+        RefineConfig(levels=(1, 0), steps=(3,))
+    with pytest.raises(InputError):
+        refine_frame(base, (cam, cam), frames[0]["img"], frames[0]["bg"], CFG)
+    with pytest.raises(InputError):
+        refine_batch(
+            jax.tree.map(lambda x: x[None], base),
+            cam,
+            frames[0]["img"][None],
+            frames[0]["bg"][None],
+            CFG,
+            mode="pmap",
+        )
