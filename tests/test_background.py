@@ -60,9 +60,9 @@ def test_gmm_one_component_is_mean_and_variance():
 def test_gmm_two_components_and_mask():
     rng = np.random.default_rng(3)
     # a flickering background pixel: half the images dark, half bright
-    ims = np.where(
-        (np.arange(10) % 2 == 0)[:, None, None, None], 0.2, 0.8
-    ) + rng.normal(0, 0.01, (10, 4, 4, 3))
+    ims = np.where((np.arange(10) % 2 == 0)[:, None, None, None], 0.2, 0.8) + rng.normal(
+        0, 0.01, (10, 4, 4, 3)
+    )
     ims = ims.astype(np.float32)
     m = fit_background_model(jnp.asarray(ims), 2, iterations=20)
     mu = np.sort(np.asarray(m.means)[0, 0, :, 0])

@@ -73,7 +73,9 @@ def test_local_out_region_is_band():
     # dense reference: R^c restricted to the band tiles
     in_band = np.zeros(d.grid.n_tiles, bool)
     in_band[np.asarray(band.tiles)] = True
-    band_img = np.asarray(d.grid.from_tiles(jnp.broadcast_to(jnp.asarray(in_band)[:, None], (d.grid.n_tiles, 64))))
+    band_img = np.asarray(
+        d.grid.from_tiles(jnp.broadcast_to(jnp.asarray(in_band)[:, None], (d.grid.n_tiles, 64)))
+    )
     mask = np.asarray(rasterise_dense(tube, H, W))
     Rc = ~mask & ~bg & band_img
     e_out = ((img[Rc] - img[Rc].mean(0)) ** 2).sum()

@@ -39,7 +39,9 @@ def test_delta_u_constant_term_and_torsion_flag():
     np.testing.assert_allclose(du[:, 1], -0.25 / L, rtol=1e-5)
     np.testing.assert_allclose(du[:, 2], 0.0)
     c3 = jnp.zeros((3, 2)).at[2, 0].set(1.0)
-    np.testing.assert_allclose(np.asarray(delta_u_steps(c3, base.s, torsion=True))[:, 2], 1 / L, rtol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(delta_u_steps(c3, base.s, torsion=True))[:, 2], 1 / L, rtol=1e-5
+    )
 
 
 def test_regularisation_closed_form():
