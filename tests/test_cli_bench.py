@@ -45,6 +45,19 @@ def test_bench_missing_provider_is_input_error(monkeypatch, capsys):
     assert "no 'segment' benchmark" in capsys.readouterr().err
 
 
+def test_normalise_maps_aliases_and_flattens():
+    r = bench.normalise(
+        {"batch_ms_per_frame_median": 250.0, "compile_s_batch": 30.0,
+         "reference_ms_per_frame_median": 5000.0, "warm_start": {"warm_steps_mean": 12.0},
+         "image": [640, 480]}
+    )  # fmt: skip
+    assert r["median_s"] == pytest.approx(0.25) and r["compile_s"] == 30.0
+    assert r["ratio"] == pytest.approx(20.0) and r["unit"] == "frame"
+    md = bench.to_markdown(r, {}, "p")
+    assert "| warm_start.warm_steps_mean | 12 |" in md and "| image | 640, 480 |" in md
+    assert "batch_ms_per_frame_median" not in md
+
+
 def test_markdown_without_reference():
     md = bench.to_markdown({"name": "x", "median_s": 2.5}, {"jax": "0"}, "p")
     assert "| median per call | 2.500 s |" in md and "reference" not in md

@@ -144,9 +144,29 @@ def _fmt_s(v) -> str:
     return f"{1e3 * v:.3f} ms" if v < 1.0 else f"{v:.3f} s"
 
 
+#: other spellings of the recognised keys: key -> (recognised key, scale to seconds)
+ALIASES = {
+    "batch_ms_per_frame_median": ("median_s", 1e-3),
+    "compile_s_batch": ("compile_s", 1.0),
+    "reference_ms_per_frame_median": ("reference_median_s", 1e-3),
+    "speedup_vs_reference": ("ratio", 1.0),
+}
+
+
 def normalise(result: dict) -> dict:
-    """Fill ``ratio`` from the medians when missing."""
-    r = dict(result)
+    """Map :data:`ALIASES` onto the recognised keys, fill ``ratio`` from the medians when
+    missing, and flatten nested dicts (``warm_start.cold_steps_mean``)."""
+    r = {}
+    for k, v in result.items():
+        if isinstance(v, dict) and k != "meta":
+            r.update({f"{k}.{kk}": vv for kk, vv in v.items()})
+        else:
+            r[k] = v
+    for alias, (key, scale) in ALIASES.items():
+        if r.get(key) is None and isinstance(r.get(alias), (int, float)):
+            r[key] = r[alias] * scale
+            if key == "median_s":
+                r.setdefault("unit", "frame")
     if r.get("ratio") is None and r.get("median_s") and r.get("reference_median_s"):
         r["ratio"] = r["reference_median_s"] / r["median_s"]
     return r
@@ -181,7 +201,7 @@ def to_markdown(result: dict, meta: dict, provider: str) -> str:
     lines += ["| | value |", "|---|---|"]
     lines.append(f"| median per {unit} | {_fmt_s(r.get('median_s'))} |")
     if r.get("spread_s") is not None:
-        lines.append(f"| spread (IQR) | {_fmt_s(r.get('spread_s'))} |")
+        lines.append(f"| spread | {_fmt_s(r.get('spread_s'))} |")
     if r.get("compile_s") is not None:
         lines.append(f"| compile (excluded above) | {_fmt_s(r.get('compile_s'))} |")
     if r.get("reference") is not None:
@@ -192,8 +212,12 @@ def to_markdown(result: dict, meta: dict, provider: str) -> str:
     known = {"name", "median_s", "spread_s", "compile_s", "reference", "reference_median_s",
              "ratio", "unit", "rows", "notes"}  # fmt: skip
     for k, v in r.items():
-        if k not in known and isinstance(v, (int, float, str, bool)):
+        if k in known or k in ALIASES or k == "meta":
+            continue
+        if isinstance(v, (int, float, str, bool)):
             lines.append(f"| {k} | {_fmt(v)} |")
+        elif isinstance(v, (list, tuple)) and all(isinstance(x, (int, float)) for x in v):
+            lines.append(f"| {k} | {', '.join(_fmt(x) for x in v)} |")
     rows = r.get("rows") or []
     if rows:
         cols = list(dict.fromkeys(k for row in rows for k in row))
