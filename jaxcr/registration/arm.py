@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -154,6 +155,11 @@ def camera_from_tip(pan: float, tilt: float) -> np.ndarray:
     return T
 
 
+@eqx.filter_jit
+def _centreline(model: ConstantCurvature, q):
+    return model.forward(q).centreline
+
+
 def tip_camera_pose(
     spec: ArmSpec,
     kappa: np.ndarray,
@@ -167,8 +173,7 @@ def tip_camera_pose(
     curvatures/lengths, via :class:`ConstantCurvature` forward kinematics. ``mount`` is an
     extra tip <- camera-mount transform (a calibration error in the simulator)."""
     model = spec.model() if model is None else model
-    fk = model.forward(jnp.asarray(joint_vector(kappa, length), jnp.float32))
-    c = fk.centreline
+    c = _centreline(model, jnp.asarray(joint_vector(kappa, length), jnp.float32))
     T_base_tip = np.eye(4)
     T_base_tip[:3, :3] = np.asarray(c.R[-1], np.float64)
     T_base_tip[:3, 3] = np.asarray(c.p[-1], np.float64)

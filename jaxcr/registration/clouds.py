@@ -39,6 +39,8 @@ def cloud_from_rgbd(
     K: np.ndarray,
     max_depth: float = 3.0,
     frame: int | str | None = None,
+    normal_window: int = 7,
+    normal_step: int = 2,
 ) -> Cloud:
     """Camera-frame cloud of the valid pixels of ``depth`` (H, W) in metres (0 or NaN =
     invalid) with ``rgb`` (H, W, 3) in [0, 1] and intrinsics ``K`` (3, 3).
@@ -66,10 +68,15 @@ def cloud_from_rgbd(
     x = (u - K[0, 2]) / K[0, 0] * z
     y = (v - K[1, 2]) / K[1, 1] * z
     P = np.stack([x, y, z], axis=-1)
+    # Normals from a smoothed depth (normalised box filter over valid pixels; consumer depth
+    # noise would otherwise dominate 1-pixel differences), differenced over +-normal_step px.
+    zs = smooth_depth(np.where(valid, depth, 0.0), valid, normal_window)
+    Ps = np.stack([(u - K[0, 2]) / K[0, 0] * zs, (v - K[1, 2]) / K[1, 1] * zs, zs], axis=-1)
+    k = normal_step
     du = np.full_like(P, np.nan)
     dv = np.full_like(P, np.nan)
-    du[:, 1:-1] = P[:, 2:] - P[:, :-2]
-    dv[1:-1, :] = P[2:, :] - P[:-2, :]
+    du[:, k:-k] = Ps[:, 2 * k :] - Ps[:, : -2 * k]
+    dv[k:-k, :] = Ps[2 * k :, :] - Ps[: -2 * k, :]
     n = np.cross(du, dv)
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     ok = valid & np.isfinite(norm[..., 0]) & (norm[..., 0] > 0)
@@ -80,6 +87,18 @@ def cloud_from_rgbd(
     if not keep.any():
         raise InputError("depth image has no pixel with a valid normal", frame=frame, field="depth")
     return Cloud(P[keep], rgb[keep], n[keep])
+
+
+def smooth_depth(z: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
+    """Normalised box filter of ``z`` over the ``valid`` pixels (NaN where a window holds
+    no valid pixel or straddles a depth jump larger than 2 cm)."""
+    import cv2
+
+    zf = cv2.boxFilter(np.where(valid, z, 0.0), -1, (window, window), normalize=False)
+    cnt = cv2.boxFilter(valid.astype(np.float64), -1, (window, window), normalize=False)
+    out = np.where(cnt > 0, zf / np.maximum(cnt, 1e-12), np.nan)
+    jump = np.abs(out - z) > 0.02
+    return np.where(valid & ~jump, out, np.nan)
 
 
 def voxel_downsample(cloud: Cloud, voxel: float) -> Cloud:

@@ -96,7 +96,7 @@ def global_optimize(
     rel: list[np.ndarray],
     overlap_radius: float = 0.004,
     n_samples: int = 256,
-    tol: float = 1e-5,
+    tol: float = 1e-4,
     max_refinements: int = 5000,
     seed: int = 0,
 ) -> GlobalResult:
@@ -159,4 +159,7 @@ def global_optimize(
                 if j not in queued:
                     queue.append(j)
                     queued.add(j)
+    # Re-anchor so that O is again the frame of the last cloud (eq. 1): Align also moves it.
+    anchor = np.linalg.inv(poses[m - 1])
+    poses = [anchor @ P for P in poses]
     return GlobalResult(poses, initial, count, not queue)

@@ -37,7 +37,7 @@ class IcpConfig(eqx.Module):
     colour_scale: float = eqx.field(static=True, default=0.01)
     point_weight: float = eqx.field(static=True, default=0.1)
     damping: float = eqx.field(static=True, default=1e-6)
-    keypoint_weight: float = eqx.field(static=True, default=1.0)
+    keypoint_weight: float = eqx.field(static=True, default=0.3)
     sigma_keypoint: float = eqx.field(static=True, default=0.005)
 
 

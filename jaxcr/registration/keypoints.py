@@ -9,13 +9,15 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from jaxcr.registration.clouds import smooth_depth
+
 _SIFT = None
 
 
 def _sift():
     global _SIFT
     if _SIFT is None:
-        _SIFT = cv2.SIFT_create(nfeatures=2000)
+        _SIFT = cv2.SIFT_create(nfeatures=3000, contrastThreshold=0.02)
     return _SIFT
 
 
@@ -92,7 +94,7 @@ def lift(uv: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, 
     return np.stack([x, y, z], axis=1), ok
 
 
-def matched_points(rgb_a, depth_a, rgb_b, depth_b, K, asift: bool = False):
+def matched_points(rgb_a, depth_a, rgb_b, depth_b, K, asift: bool = False, smooth: int = 5):
     """3-D keypoint correspondences (k, 3), (k, 3) between two RGB-D frames (each in its own
     camera frame)."""
     va = np.isfinite(depth_a) & (depth_a > 0)
@@ -102,7 +104,10 @@ def matched_points(rgb_a, depth_a, rgb_b, depth_b, K, asift: bool = False):
     pairs = match(da, db)
     if len(pairs) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    pa, oka = lift(uva[pairs[:, 0]], depth_a, K)
-    pb, okb = lift(uvb[pairs[:, 1]], depth_b, K)
+    # Lift with locally averaged depth: a keypoint's depth is its noisiest coordinate.
+    za = smooth_depth(np.nan_to_num(depth_a), va, smooth)
+    zb = smooth_depth(np.nan_to_num(depth_b), vb, smooth)
+    pa, oka = lift(uva[pairs[:, 0]], za, K)
+    pb, okb = lift(uvb[pairs[:, 1]], zb, K)
     ok = oka & okb
     return pa[ok], pb[ok]

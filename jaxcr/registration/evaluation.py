@@ -1,0 +1,107 @@
+"""Numbers for the report of a modelling run: Table I (images, Delta-s, planning time),
+Fig. 13 statistics before/after Algorithm 2, pose errors against ground truth and the
+model-to-truth surface distance."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxcr.registration.clouds import Cloud, voxel_downsample
+from jaxcr.registration.metrics import knn_mean_distance, neighbour_counts, pose_error
+from jaxcr.registration.pipeline import ModelResult, _capture
+
+
+def model_cloud(result: ModelResult, poses: list[np.ndarray], voxel: float = 0.002) -> Cloud:
+    """All ring clouds in frame O (each down-sampled to ``voxel`` first, then concatenated
+    without merging, so overlaps that do not coincide stay visible to the Fig. 13 stats)."""
+    parts = []
+    for key, P in zip(result.ring, poses, strict=True):
+        parts.append(voxel_downsample(_capture(result.runs, key).frame.cloud, voxel).transformed(P))
+    return Cloud(
+        *(np.concatenate([getattr(p, k) for p in parts]) for k in ("points", "colours", "normals"))
+    )
+
+
+def pose_errors(result: ModelResult, poses: list[np.ndarray]) -> dict:
+    """Rotation (deg) / translation (m) errors of T_O,i against the truth expressed in the
+    frame of the anchor view (O = the last ring view, paper eq. 1)."""
+    anchor = _capture(result.runs, result.ring[-1]).T_true
+    rot, tra = [], []
+    for key, P in zip(result.ring, poses, strict=True):
+        truth = np.linalg.inv(anchor) @ _capture(result.runs, key).T_true
+        r, t = pose_error(P, truth)
+        rot.append(r)
+        tra.append(t)
+    return {
+        "rot_deg": rot,
+        "trans_m": tra,
+        "max_rot_deg": max(rot),
+        "max_trans_m": max(tra),
+        "mean_rot_deg": float(np.mean(rot)),
+        "mean_trans_m": float(np.mean(tra)),
+    }
+
+
+def evaluate_result(
+    sim,
+    result: ModelResult,
+    k: int = 100,
+    radius: float = 0.003,
+    max_points: int = 20000,
+    seed: int = 0,
+) -> dict:
+    out: dict = {"runs": [], "notes": list(result.notes)}
+    for r in result.runs:
+        out["runs"].append(
+            {
+                "name": r.name,
+                "images": len(r.captures),
+                "delta_s_m": r.delta_s,
+                "planning_ms": 1000 * r.planning_time,
+                "status": r.status,
+                "events": r.events,
+                "pair_seconds": [p.seconds for p in r.pairs],
+                "pair_fitness": [p.fitness for p in r.pairs],
+                "pair_keypoint_seeded": [p.seeded_by_keypoints for p in r.pairs],
+            }
+        )
+    g = result.global_result
+    if g is None:
+        return out
+    rng = np.random.default_rng(seed)
+    anchor = _capture(result.runs, result.ring[-1]).T_true
+    for tag, poses in (("before", g.initial), ("after", g.poses)):
+        cloud = model_cloud(result, poses)
+        pts = cloud.points
+        if len(pts) > max_points:
+            pts = pts[rng.choice(len(pts), max_points, replace=False)]
+        knn = knn_mean_distance(pts, k)
+        cnt = neighbour_counts(pts, radius)
+        world = pts @ anchor[:3, :3].T + anchor[:3, 3]
+        sd = sim.surface_distance(world)
+        out[tag] = {
+            "pose": pose_errors(result, poses),
+            "knn_mean_mm": 1000 * float(np.mean(knn)),
+            "knn_median_mm": 1000 * float(np.median(knn)),
+            "neigh3mm_mean": float(np.mean(cnt)),
+            "neigh3mm_median": float(np.median(cnt)),
+            "surface_mean_mm": 1000 * float(np.mean(sd)),
+            "surface_median_mm": 1000 * float(np.median(sd)),
+            "surface_p95_mm": 1000 * float(np.percentile(sd, 95)),
+            "_knn": knn,
+            "_cnt": cnt,
+        }
+    edge_err = []
+    for j, e in enumerate(result.edges):
+        a = _capture(result.runs, result.ring[j])
+        b = _capture(result.runs, result.ring[(j + 1) % len(result.ring)])
+        edge_err.append(pose_error(e.T, np.linalg.inv(b.T_true) @ a.T_true))
+    out["edge_errors"] = {"rot_deg": [r for r, _ in edge_err], "trans_m": [t for _, t in edge_err]}
+    out["global"] = {
+        "seconds": result.global_seconds,
+        "refinements": g.n_refinements,
+        "converged": g.converged,
+        "views": len(result.ring),
+    }
+    out["merge"] = {k: v for k, v in result.merge.items() if k != "T_B_A"}
+    return out
