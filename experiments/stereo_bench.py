@@ -71,7 +71,9 @@ def main() -> int:
         agree.append(float(np.mean(np.asarray(a)[b])))
     ms = lambda x: 1e3 * np.asarray(x)  # noqa: E731
     commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+        ["git", "log", "-1", "--format=%h", "--", "jaxcr/stereo", "experiments/stereo_bench.py"],
+        capture_output=True,
+        text=True,
     ).stdout.strip()
     h, w = pairs[0][0].shape[:2]
     lines = [
@@ -95,6 +97,10 @@ def main() -> int:
     t = ms(totals)
     lines.append(
         f"| **total per stereo pair** | **{np.median(t):.1f}** | {np.percentile(t, 10):.1f} | {np.percentile(t, 90):.1f} |"
+    )
+    c = ms(cpu)
+    lines.append(
+        f"| process CPU time per pair | {np.median(c):.1f} | {np.percentile(c, 10):.1f} | {np.percentile(c, 90):.1f} |"
     )
     lines += [
         "",

@@ -191,11 +191,13 @@ def _view_diameters(cam, alpha, kproj, p, tang):
     return jnp.where(jnp.isfinite(d), d, 0.0), wv, rep, uv0, nrm, off
 
 
-_FIT_PAD = 1024
+_FIT_PAD = 512
 
 
 @jax.jit
-def _segment_fit(points, weights):
+@jax.vmap
+def _segment_fits(points, weights):
+    """Plane angles, plane normal and arc fit of each segment (vmapped over segments)."""
     _, n = fit_plane(points, weights)
     arc = fit_arc(points, weights)
     return plane_angles(n), n, arc
@@ -448,8 +450,22 @@ def reconstruct_pair(
     # Segments, planes, arcs.
     seg = segment_backbone(s, diam, cfg.n_segments, cfg.max_segments)
     starts = list(seg["starts"]) + [len(s)]
-    table = []
-    for k in range(len(seg["starts"])):
+    # Conditioning of the correspondence: |cos| between the backbone tangent and the
+    # normal of the epipolar plane through the point (0: the backbone runs along the
+    # epipolar lines, where matching cannot fix the position along it).
+    C1 = np.linalg.inv(T1)[:3, 3]
+    C2 = np.linalg.inv(T2)[:3, 3]
+    n_epi = np.cross(C1 - p, C2 - p)
+    n_epi /= np.maximum(np.linalg.norm(n_epi, axis=1, keepdims=True), 1e-12)
+    epi_cond = np.abs(np.sum(tang * n_epi, axis=1))
+    # All segments' plane and arc fits in one vmapped call (zero-weight padding).
+    n_seg = len(seg["starts"])
+    k_pad = max(cfg.max_segments, n_seg)
+    pts_all = np.zeros((k_pad, _FIT_PAD, 3), np.float32)
+    w_all = np.zeros((k_pad, _FIT_PAD), np.float32)
+    w_all[:, :3] = 1.0  # dummy rows for unused slots (never read)
+    pts_all[:, 1, 0] = pts_all[:, 2, 1] = 1e-3
+    for k in range(n_seg):
         a, b = starts[k], starts[k + 1]
         sa = s[a] if k > 0 else s[0]
         sb = s[b - 1] if b < len(s) else s[-1]
@@ -457,14 +473,18 @@ def reconstruct_pair(
             s <= sb - (cfg.trim if b < len(s) else 0.0)
         )
         keep &= (np.arange(len(s)) >= a) & (np.arange(len(s)) < b)
-        pts = p[keep] if keep.sum() >= 5 else p[a:b]
-        pts = pts[:_FIT_PAD]
-        wfit = np.zeros(_FIT_PAD, np.float32)
-        wfit[: len(pts)] = 1.0
-        ang, n, arc = _segment_fit(
-            jnp.asarray(_pad_rows(pts, _FIT_PAD), jnp.float32), jnp.asarray(wfit)
-        )
-        ang = np.asarray(ang, np.float64)
+        pts = (p[keep] if keep.sum() >= 5 else p[a:b])[:_FIT_PAD]
+        pts_all[k] = _pad_rows(pts, _FIT_PAD)
+        w_all[k] = 0.0
+        w_all[k, : len(pts)] = 1.0
+    angs, normals, arcs = _segment_fits(jnp.asarray(pts_all), jnp.asarray(w_all))
+    angs, normals = np.asarray(angs, np.float64), np.asarray(normals, np.float64)
+    arcs = {key: np.asarray(v, np.float64) for key, v in arcs.items()}
+    table = []
+    for k in range(n_seg):
+        a, b = starts[k], starts[k + 1]
+        ang, n = angs[k], normals[k]
+        arc = {key: v[k] for key, v in arcs.items()}
         s_start = 0.0 if k == 0 else float(seg["boundaries_s"][k - 1])
         s_end = float(s[-1]) if k == len(seg["starts"]) - 1 else float(seg["boundaries_s"][k])
         table.append(
@@ -480,6 +500,8 @@ def reconstruct_pair(
                 "curvature_1pm": float(arc["curvature"]),
                 "arc_length_fit_mm": 1e3 * float(arc["arc_length"]),
                 "arc_rms_mm": 1e3 * float(arc["rms"]),
+                "epipolar_conditioning": float(np.median(epi_cond[a:b])),
+                "view_weight_min": float(np.median(np.minimum(wts[0][a:b], wts[1][a:b]))),
                 "normal": np.asarray(n, np.float64).tolist(),
             }
         )
