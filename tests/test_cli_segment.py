@@ -134,7 +134,10 @@ def test_segment_writes_everything_and_fails_bad_frames(full_run):
     assert (out / "DONE").exists()
     run = json.loads((out / "run.json").read_text())
     assert run["format"] == "jaxcr.segment-run/1" and run["cameras"] == ["main"]
-    assert run["config"]["levels"] == [1, 0] and "jax" in run["versions"]
+    from jaxcr.refine import RefineConfig
+
+    assert run["config"]["levels"] == list(RefineConfig().levels[-2:])  # --levels 2
+    assert "jax" in run["versions"]
     assert not list(out.rglob("*.tmp"))
 
 
