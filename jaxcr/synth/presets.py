@@ -18,43 +18,22 @@ import numpy as np
 
 from jaxcr.synth.model_error import ModelErrorSpec
 
+
 #: The scene robot: the tubes of jaxcr's public TEST_CTR (diameters, moduli, precurvatures)
 #: with lengths cut so that 8-16 cm are exposed in front of the actuation unit (the tip then
 #: sweeps a ~10 cm wide workspace, fitting a 640x480 view at 20 cm).
-SCENE_CTR: dict[str, Any] = {
-    "kind": "ctr",
-    "tubes": [
-        {
-            "length": 0.30,
-            "curved_length": 0.103,
-            "id": 0.70e-3,
-            "od": 1.10e-3,
-            "E": 64.3e9,
-            "G": 25.0e9,
-            "kappa": 21.3,
-        },
-        {
-            "length": 0.22,
-            "curved_length": 0.113,
-            "id": 1.40e-3,
-            "od": 1.80e-3,
-            "E": 52.5e9,
-            "G": 21.4e9,
-            "kappa": 13.108,
-        },
-        {
-            "length": 0.12,
-            "curved_length": 0.09,
-            "id": 2.0e-3,
-            "od": 2.2e-3,
-            "E": 47.1e9,
-            "G": 29.7e9,
-            "kappa": 3.5,
-        },
-    ],
-    "transmission_torsion": False,
-    "n_points": 97,
-}
+def _scene_ctr() -> dict[str, Any]:
+    from jaxcr.kinematics.ctr import TEST_CTR
+
+    robot = copy.deepcopy(TEST_CTR)
+    for tube, length in zip(robot["tubes"], (0.30, 0.22, 0.12), strict=True):
+        tube["length"] = length
+        tube["curved_length"] = min(tube["curved_length"], 0.75 * length)
+    robot["n_points"] = 97
+    return robot
+
+
+SCENE_CTR: dict[str, Any] = _scene_ctr()
 
 
 @dataclass(frozen=True)
