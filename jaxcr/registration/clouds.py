@@ -70,8 +70,7 @@ def cloud_from_rgbd(
     P = np.stack([x, y, z], axis=-1)
     # Normals from a smoothed depth (normalised box filter over valid pixels; consumer depth
     # noise would otherwise dominate 1-pixel differences), differenced over +-normal_step px.
-    zs = smooth_depth(np.where(valid, depth, 0.0), valid, normal_window)
-    Ps = np.stack([(u - K[0, 2]) / K[0, 0] * zs, (v - K[1, 2]) / K[1, 1] * zs, zs], axis=-1)
+    Ps = smooth_points(P, valid, normal_window)
     k = normal_step
     du = np.full_like(P, np.nan)
     dv = np.full_like(P, np.nan)
@@ -87,6 +86,34 @@ def cloud_from_rgbd(
     if not keep.any():
         raise InputError("depth image has no pixel with a valid normal", frame=frame, field="depth")
     return Cloud(P[keep], rgb[keep], n[keep])
+
+
+def smooth_points(P: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
+    """Mean of the valid back-projected points (H, W, 3) in a ``window`` box (zeros outside
+    the image). The mean of points on a plane lies on that plane, so normals from
+    differences of smoothed points stay exact on planar patches; NaN across depth jumps."""
+    import cv2
+
+    cnt = cv2.boxFilter(
+        valid.astype(np.float64),
+        -1,
+        (window, window),
+        normalize=False,
+        borderType=cv2.BORDER_CONSTANT,
+    )
+    out = np.empty_like(P)
+    for c in range(3):
+        s = cv2.boxFilter(
+            np.where(valid, P[..., c], 0.0),
+            -1,
+            (window, window),
+            normalize=False,
+            borderType=cv2.BORDER_CONSTANT,
+        )
+        out[..., c] = np.where(cnt > 0, s / np.maximum(cnt, 1e-12), np.nan)
+    jump = ~(np.abs(out[..., 2] - P[..., 2]) <= 0.02)
+    out[jump | ~valid] = np.nan
+    return out
 
 
 def smooth_depth(z: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:

@@ -21,7 +21,7 @@ def arc_clearance(
     cloud: Float[Array, "m 3"],
     mask: Bool[Array, " m"],
     height: Float[Array, ""],
-    n_samples: int = 48,
+    n_samples: int = 24,
 ) -> Float[Array, ""]:
     """Smallest distance (m) between the centreline of one arc (planar, at ``height``) and the
     masked cloud points (world frame). ``inf`` for an empty cloud."""

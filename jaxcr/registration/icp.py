@@ -35,7 +35,7 @@ class IcpConfig(eqx.Module):
     sigma_colour: float = eqx.field(static=True, default=0.2)
     sigma_plane: float = eqx.field(static=True, default=0.003)
     colour_scale: float = eqx.field(static=True, default=0.01)
-    point_weight: float = eqx.field(static=True, default=0.1)
+    point_weight: float = eqx.field(static=True, default=0.0)
     damping: float = eqx.field(static=True, default=1e-6)
     keypoint_weight: float = eqx.field(static=True, default=0.3)
     sigma_keypoint: float = eqx.field(static=True, default=0.005)

@@ -43,9 +43,9 @@ class PlannerConfig:
     min_range: float = 0.1
     clearance: float = 0.01
     tangent_tol: float = 0.6
-    n_kappa: int = 41
-    n_length: int = 16
-    cloud_size: int = 1024
+    n_kappa: int = 25
+    n_length: int = 10
+    cloud_size: int = 512
 
 
 @dataclass
