@@ -43,7 +43,10 @@ def _load(path: Path) -> StereoContours:
     views = []
     for v in ("l", "r"):
         off = np.concatenate([[0], np.cumsum(z[f"{v}_len"])])
-        pts = [z[f"{v}_pts"][off[i] : off[i + 1]] for i in range(len(off) - 1)]
+        # Read the array once: every z[key] access decompresses a new copy, and each
+        # slice would keep its own copy alive.
+        allpts = z[f"{v}_pts"]
+        pts = [allpts[off[i] : off[i + 1]] for i in range(len(off) - 1)]
         views.append(Contours(pts, z[f"{v}_centres"], z[f"{v}_ok"], z[f"{v}_npx"]))
     return StereoContours([str(i) for i in z["ids"]], tuple(views))  # type: ignore[arg-type]
 
