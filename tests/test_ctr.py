@@ -7,6 +7,7 @@ References and tolerances:
   stored tips in tests/data/ctr_reference.json (``python tests/ctr_reference.py`` regenerates
   them) plus one live re-solve; max tip error 0.05 mm in float32, 1e-3 mm in x64;
 * finite differences for d tip / d q (x64, relative 1e-5);
+* step allocation: every non-empty piece gets a step, no duplicated samples (reference q);
 * conservation: sum_i GJ_i u_iz = 0 along s.
 """
 
@@ -25,6 +26,7 @@ from ctr_reference import TEST_ROBOT, Tubes, random_q, solve_all
 from jaxcr.errors import InputError
 from jaxcr.kinematics.cosserat import perturb_centreline
 from jaxcr.kinematics.ctr import TEST_CTR, ConcentricTubeRobot, make_test_ctr
+from jaxcr.kinematics.ctr_mechanics import allocate_steps, make_grid
 
 HERE = os.path.dirname(__file__)
 with open(os.path.join(HERE, "data", "ctr_reference.json")) as fh:
@@ -176,6 +178,8 @@ def _tip_errors(fn, cases, dtype):
     for case in cases:
         res = fn(jnp.asarray(case["q"], dtype))
         assert bool(res.ok), case["q"]
+        # steps shared in proportion to piece lengths: no sample collapses onto the previous one
+        assert np.all(np.diff(np.asarray(res.centreline.s, float)) > 0), case["q"]
         errs.append(np.linalg.norm(np.asarray(res.centreline.p[-1], float) - case["tip"]))
         # the least-energy equilibrium, as in the reference
         assert float(res.energy) == pytest.approx(case["energy"], rel=1e-3, abs=1e-6)
@@ -194,12 +198,12 @@ def test_reference_tips_float32(transmission_torsion):
     assert err.max() < 0.05
 
 
-@pytest.mark.parametrize("transmission_torsion", [False, True])
-def test_reference_tips_x64(transmission_torsion):
-    """Discretisation error with N_FINE samples, warm-started from the float32 solution."""
-    model32 = MODEL_TT if transmission_torsion else MODEL
-    cases = [c for c in REFERENCE if c["transmission_torsion"] == transmission_torsion]
-    states = [np.asarray(FWD(model32, jnp.asarray(c["q"], jnp.float32)).state) for c in cases]
+def test_reference_tips_x64():
+    """Discretisation error with N_FINE samples, warm-started from the float32 solution (rigid
+    transmission only: one x64 compile; transmission torsion is checked in float32)."""
+    transmission_torsion = False
+    cases = [c for c in REFERENCE if not c["transmission_torsion"]]
+    states = [np.asarray(FWD(MODEL, jnp.asarray(c["q"], jnp.float32)).state) for c in cases]
     model = fine_x64(transmission_torsion)
     with jax.enable_x64(True):
         it = iter(states)
@@ -289,6 +293,35 @@ def _rz(a):
     return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
 
 
+def test_steps_shared_in_proportion_to_piece_lengths():
+    """No zero-length steps for typical q; every breakpoint is a sample; counts ~ lengths."""
+    rng = np.random.default_rng(5)
+    t = Tubes(TEST_ROBOT)
+    tubes = MODEL.mechanics()
+    grid_fn = jax.jit(lambda beta: make_grid(tubes, beta, MODEL.n_points))
+    clipped = 0
+    for _ in range(20):
+        q = random_q(rng, t)
+        beta = jnp.asarray(q[:3], jnp.float32)
+        s = np.asarray(grid_fn(beta).s, float)
+        assert s.shape == (MODEL.n_points,)
+        assert np.all(np.diff(s) > 0), q
+        ends = q[:3] + t.L
+        bps = np.clip(np.concatenate([ends - t.Lc, ends]), 0.0, ends.max())
+        clipped += int(np.any(bps == 0.0))
+        for b in bps:
+            assert np.min(np.abs(s - b)) < 1e-6
+    assert clipped > 0  # some q had a curved part starting behind s = 0 (an empty piece)
+    lengths = jnp.asarray([0.0, 0.1, 0.0, 0.3, 0.05, 0.0])
+    counts = np.asarray(allocate_steps(lengths, 12))
+    # one step each for the 3 non-empty pieces, the other 9 by rounded cumulative shares
+    # round(9 * [0, 2/9, 2/9, 8/9, 1, 1]) = [0, 2, 2, 8, 9, 9]
+    np.testing.assert_array_equal(counts, [0, 3, 0, 7, 2, 0])
+    assert np.asarray(allocate_steps(jnp.zeros(4), 7)).tolist() == [7, 0, 0, 0]
+    tiny = np.asarray(allocate_steps(jnp.asarray([1e-9, 1.0, 1e-9]), 5))
+    assert tiny.tolist() == [1, 3, 1]
+
+
 def test_joint_limit_violation_is_not_ok_but_finite():
     for q in (
         _q(-0.02, -0.05, -0.01, 0, 0, 0),  # beta_1 > beta_2
@@ -317,19 +350,21 @@ def test_jit_equals_eager():
 
 
 def test_vmap_equals_loop_and_no_retracing():
-    rng = np.random.default_rng(3)
-    t = Tubes(TEST_ROBOT)
-    qs = jnp.asarray(np.stack([random_q(rng, t) for _ in range(3)]), jnp.float32)
-    key = (3, MODEL.n_points, False, "float32")
-    loop = [FWD(MODEL, q) for q in qs]
-    assert TRACES[key] == 1  # one trace serves every q (after earlier tests too)
-    batch = eqx.filter_jit(lambda m, qs: jax.vmap(m.forward)(qs))(MODEL, qs)
+    # every earlier cold solve of MODEL (several q) used one trace
+    assert TRACES[(3, MODEL.n_points, False, "float32")] == 1
+    qs = jnp.stack(
+        [_q(-0.1, -0.05, 0.2, 1.9), _q(-0.2, -0.02, -0.4, 0.3), _q(-0.05, 0.0, 1.0, 3.0)]
+    )
+    guesses = qs[:, 3:] - qs[:, 2:3]
+    loop = [WARM(TWO_TUBES, q, g) for q, g in zip(qs, guesses, strict=True)]
+    batch = eqx.filter_jit(lambda m, qs, gs: jax.vmap(m.forward)(qs, gs))(TWO_TUBES, qs, guesses)
     for k, r in enumerate(loop):
+        assert bool(r.ok) and bool(batch.ok[k])
         np.testing.assert_allclose(
             np.asarray(batch.centreline.p[k]), np.asarray(r.centreline.p), atol=2e-6
         )
         assert float(batch.energy[k]) == pytest.approx(float(r.energy), rel=1e-4)
-    assert batch.centreline.p.shape == (3, MODEL.n_points, 3)
+    assert batch.centreline.p.shape == (3, TWO_TUBES.n_points, 3)
 
 
 def test_warm_start_needs_fewer_iterations():
@@ -339,10 +374,17 @@ def test_warm_start_needs_fewer_iterations():
     cold1 = FWD(MODEL, q1)
     assert bool(warm.ok)
     assert int(warm.num_steps) < int(cold1.num_steps)
-    assert int(warm.num_steps) <= 4
+    assert int(warm.num_steps) <= MODEL.warm_steps // 2
     np.testing.assert_allclose(
         np.asarray(warm.centreline.p), np.asarray(cold1.centreline.p), atol=2e-6
     )
+
+
+def _tip(model, qq, guess):
+    return model.forward(qq, guess).centreline.p[-1]
+
+
+TIP_JAC = eqx.filter_jit(jax.jacfwd(_tip, argnums=1))
 
 
 def test_gradient_matches_finite_differences_x64():
@@ -351,11 +393,7 @@ def test_gradient_matches_finite_differences_x64():
         model = fine_x64()
         q = jnp.asarray(np.asarray(Q0, float))
         guess = jnp.asarray(state, jnp.float64)
-
-        def tip(model, qq):
-            return model.forward(qq, guess).centreline.p[-1]
-
-        J = np.asarray(eqx.filter_jit(jax.jacfwd(tip, argnums=1))(model, q))
+        J = np.asarray(TIP_JAC(model, q, guess))
         h = 1e-6
         fd = np.stack(
             [
@@ -372,22 +410,20 @@ def test_gradient_matches_finite_differences_x64():
         assert np.abs(J).max() > 0.1
 
 
-GRAD = eqx.filter_jit(
-    jax.grad(lambda model, q, g: jnp.sum(model.forward(q, g).centreline.p ** 2), argnums=1)
-)
-
-
 def test_gradient_finite_at_straight_and_aligned():
-    # aligned tubes (no twist; tip angles = base angles) and tubes without precurvature
-    q_aligned = _q(-0.1, -0.05, -0.02, 0.5, 0.5, 0.5)
-    straight = ConcentricTubeRobot.from_dict(
-        {**TEST_CTR, "tubes": [{**t, "kappa": 0.0} for t in TEST_CTR["tubes"]]}
-    )
-    for model, q in ((MODEL, q_aligned), (straight, q_aligned), (straight, Q0)):
-        guess = q[4:] - q[3]
-        g = GRAD(model, q, guess)
-        assert np.all(np.isfinite(np.asarray(g))), (model.kappa, q)
-        assert bool(WARM(model, q, guess).ok)
+    # aligned tubes (no twist; tip angles = base angles) and tubes without precurvature; x64
+    # models of the same static fields as the FD test share its compiled Jacobian
+    q_aligned = np.array([-0.1, -0.05, -0.02, 0.5, 0.5, 0.5])
+    straight = {**TEST_CTR, "tubes": [{**t, "kappa": 0.0} for t in TEST_CTR["tubes"]]}
+    with jax.enable_x64(True):
+        curved = fine_x64()
+        straight = ConcentricTubeRobot.from_dict(straight, dtype=jnp.float64, n_points=N_FINE)
+        for model, q in ((curved, q_aligned), (straight, q_aligned), (straight, np.asarray(Q0))):
+            q = jnp.asarray(q, jnp.float64)
+            guess = q[4:] - q[3]
+            J = TIP_JAC(model, q, guess)
+            assert np.all(np.isfinite(np.asarray(J))), (model.kappa, q)
+            assert bool(WARM(model, q, guess).ok)
 
 
 # ------------------------------------------------------------------ robot description

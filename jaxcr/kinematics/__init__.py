@@ -8,11 +8,14 @@ from jaxcr.kinematics.cosserat import (
     integrate_steps,
     perturb_centreline,
 )
+from jaxcr.kinematics.ctr import TEST_CTR, ConcentricTubeRobot
 from jaxcr.kinematics.robots import load_robot, robot_from_dict, robot_to_dict
 from jaxcr.kinematics.single_segment import SingleSegment, angles_to_rotation, rotation_to_angles
 
 __all__ = [
+    "TEST_CTR",
     "Centreline",
+    "ConcentricTubeRobot",
     "ConstantCurvature",
     "FkResult",
     "RobotModel",

@@ -29,7 +29,8 @@ conditions ``u_iz(l_i) = 0``, equal to zero.
 
 The bending curvature jumps where a tube's curved part starts and where a tube ends, so the
 integration is piecewise on a grid whose breakpoints are exactly those points (clipped to
-``[0, max_i l_i]``): ``2 n`` pieces, each split into a static number of equal RK4 steps.
+``[0, max_i l_i]``): ``2 n`` pieces sharing a static total of ``N - 1`` RK4 steps in proportion
+to their lengths (:func:`allocate_steps`; empty pieces get none).
 """
 
 from __future__ import annotations
@@ -39,8 +40,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxcr._types import Array, Bool, Float
-from jaxcr.kinematics.base import piece_index, piecewise_arclength, steps_per_piece
+from jaxcr._types import Array, Bool, Float, Int
+from jaxcr.kinematics.base import steps_per_piece
 
 
 class TubeMechanics(NamedTuple):
@@ -70,23 +71,56 @@ class Grid(NamedTuple):
     rho: Float[Array, " N"]  # outer radius present (m); rho[0] repeats rho[1]
 
 
+def allocate_steps(lengths: Float[Array, " k"], n_steps: int) -> Int[Array, " k"]:
+    """Share ``n_steps`` (static) integration steps among pieces in proportion to ``lengths``.
+
+    Every piece of positive length gets at least one step, a zero-length piece none; the other
+    ``n_steps - (number of non-empty pieces)`` steps are shared by rounding the cumulative
+    proportions (``round(R C_k / C)`` differences, so the counts always sum to ``n_steps``).
+    If every piece is empty (joint limits violated) the first piece gets all steps. Requires
+    ``n_steps >= k``. The counts are integers, so no derivative flows through them: the
+    discretised model is piecewise smooth in ``beta``, with jumps of the order of the
+    discretisation error where a count changes.
+    """
+    lengths = jnp.maximum(lengths, 0.0)
+    nonempty = lengths > 0.0
+    m = jnp.sum(nonempty.astype(jnp.int32))
+    spare = (n_steps - m).astype(lengths.dtype)
+    total = jnp.sum(lengths)
+    cum = jnp.cumsum(lengths) / jnp.where(total > 0.0, total, 1.0)
+    marks = jnp.round(spare * cum).astype(jnp.int32)
+    marks = marks.at[-1].set(n_steps - m)  # exact total despite rounding of cum[-1]
+    extra = jnp.diff(jnp.concatenate([jnp.zeros(1, jnp.int32), marks]))
+    counts = nonempty.astype(jnp.int32) + extra
+    first_only = jnp.zeros_like(counts).at[0].set(n_steps)
+    return jnp.where(m > 0, counts, first_only)
+
+
 def make_grid(tubes: TubeMechanics, beta: Float[Array, " n"], n_points: int) -> Grid:
     """Grid whose breakpoints are every tube's curved-part start and end (clipped to s >= 0).
 
-    The number of steps per piece is static (:func:`jaxcr.kinematics.base.steps_per_piece`),
-    so N does not depend on ``beta``. Masks are evaluated at piece midpoints, which is exact
-    because nothing changes inside a piece.
+    The ``N - 1`` RK4 steps (N = ``n_points``, static) are shared among the ``2 n`` pieces at
+    run time in proportion to their lengths (:func:`allocate_steps`): a piece that is empty
+    (a curved part starting behind s = 0, coinciding breakpoints) gets no step, every other
+    piece at least one, and each breakpoint is a sample (``start_k + (j / c_k) L_k`` with
+    ``j = c_k`` at the piece end). N does not depend on ``beta``. Masks are evaluated at piece
+    midpoints, which is exact because nothing changes inside a piece.
     """
     n = beta.shape[0]
+    n_steps = n_points - 1
     ends = beta + tubes.length
     total = jnp.max(ends)
     starts_curved = ends - tubes.curved_length
-    pts = jnp.clip(jnp.concatenate([starts_curved, ends]), 0.0, total)
+    pts = jnp.clip(jnp.concatenate([starts_curved, ends]), 0.0, jnp.maximum(total, 0.0))
     bps = jnp.concatenate([jnp.zeros(1, beta.dtype), jnp.sort(pts)])  # 2n + 1 breakpoints
     lengths = jnp.diff(bps)
-    counts = steps_per_piece(2 * n, n_points)
-    idx = piece_index(counts)
-    s = piecewise_arclength(lengths, counts)
+    counts = allocate_steps(lengths, n_steps)
+    first = jnp.cumsum(counts) - counts  # index of each piece's first step
+    j = jnp.arange(n_steps)
+    idx = jnp.clip(jnp.searchsorted(jnp.cumsum(counts), j, side="right"), 0, 2 * n - 1)
+    c = jnp.maximum(counts[idx], 1)
+    frac = (j - first[idx] + 1).astype(beta.dtype) / c.astype(beta.dtype)
+    s = jnp.concatenate([jnp.zeros(1, beta.dtype), bps[idx] + frac * lengths[idx]])
     mid = 0.5 * (bps[:-1] + bps[1:])  # (2n,) piece midpoints
     present_piece = mid[:, None] < ends[None, :]
     curved_piece = present_piece & (mid[:, None] > starts_curved[None, :])
@@ -226,12 +260,14 @@ def telescoping_ok(
 
 
 def static_counts(n_tubes: int, n_points: int) -> tuple[int, ...]:
-    """Steps per piece for ``2 n`` pieces (static)."""
+    """Equal static split of the steps over ``2 n`` pieces (used only to validate ``n_points``;
+    the grid itself uses :func:`allocate_steps`)."""
     return steps_per_piece(2 * n_tubes, n_points)
 
 
 __all__ = [
     "Grid",
+    "allocate_steps",
     "TubeMechanics",
     "Trajectory",
     "bending_curvature",

@@ -1,5 +1,6 @@
-"""Small dense nonlinear solves inside kinematics: damped Newton (Levenberg-Marquardt) with a
-bounded iteration count, and an implicit-function step that makes the solution differentiable.
+"""Small dense nonlinear solves inside kinematics: fixed-iteration Newton for warm starts, and an
+implicit-function step that makes the solution differentiable (cold starts use Optimistix, see
+:mod:`jaxcr.kinematics.ctr`).
 
 Written for square systems of a handful of unknowns (e.g. CTR shooting): the Jacobian is formed
 with forward-mode AD (one pass per unknown) and solved densely. Inside ``jax.vmap`` the loop
@@ -36,72 +37,41 @@ def _residual_and_jacobian(fun, x):
     return r, jac, aux
 
 
-def damped_newton(
+def fixed_newton(
     fun: Callable[[Array], tuple[Array, Array]],
     x0: Float[Array, " n"],
     *,
-    max_steps: int,
+    steps: int,
     tol: float,
-    damping: float = 1e-6,
     max_step: float = jnp.inf,
 ) -> NewtonResult:
-    """Minimise ``||r(x)||^2``, ``(r, aux) = fun(x)``, from ``x0`` by Levenberg-Marquardt with Marquardt scaling.
+    """Newton's method on a square system ``(r, aux) = fun(x)`` for exactly ``steps`` passes.
 
-    Each iteration evaluates ``fun`` and its Jacobian once at a trial point; the trial is
-    accepted if it lowers the residual (then the damping shrinks by 3), otherwise the damping
-    grows by 8. With small ``damping`` and a good ``x0`` this is plain Newton (quadratic
-    convergence); with larger ``damping`` it is the safer cold-start variant. Stops when
-    ``||r|| <= tol`` or after ``max_steps`` iterations. Non-finite trials are rejected, and
-    steps are shortened to at most ``max_step`` in every component.
+    A ``fori_loop`` with a static trip count, so a vmapped batch costs ``steps`` residual +
+    Jacobian evaluations per member whatever the members do (no while loop waiting for the
+    slowest one). Once ``||r|| <= tol`` the iterate is frozen; ``num_steps`` counts the
+    iterations taken before that. Steps are shortened to at most ``max_step`` in every
+    component (a near-singular Jacobian must not throw x far away), non-finite steps are
+    dropped. Meant for warm starts; from a poor start use a globalised solver.
     """
     x0 = jax.lax.stop_gradient(x0)
     dtype = x0.dtype
-    n = x0.shape[0]
-    tol2 = jnp.asarray(tol, dtype) ** 2
 
-    def propose(x, r, J, mu):
-        A = J.T @ J
-        A = A + mu * (jnp.diag(jnp.diag(A)) + jnp.eye(n, dtype=dtype) * 1e-12)
-        dx = jnp.linalg.solve(A, J.T @ r)
-        dx = jnp.where(jnp.isfinite(dx), dx, 0.0)
-        # Trust region in the max norm: a near-singular Jacobian must not throw x far away.
+    def body(_, state):
+        x, k = state
+        r, J, _ = _residual_and_jacobian(fun, x)
+        done = jnp.sqrt(jnp.sum(r**2)) <= tol
+        dx = jnp.linalg.solve(J, r)
+        dx = jnp.where(jnp.all(jnp.isfinite(dx)), dx, 0.0)
         big = jnp.max(jnp.abs(dx), initial=0.0)
         scale = jnp.minimum(1.0, max_step / jnp.where(big > 0, big, 1.0))
-        return x - scale * dx
+        x = jnp.where(done, x, x - scale * dx)
+        return x, k + jnp.where(done, 0, 1).astype(jnp.int32)
 
-    def cond(state):
-        k, _, _, _, _, cost, _, _ = state
-        return (k <= max_steps) & (cost > tol2)
-
-    def body(state):
-        # Evaluate the trial point (x0 itself on the first pass), accept it if it lowers the
-        # residual, then propose the next trial. One residual + Jacobian evaluation per pass.
-        k, xt, x, r, J, cost, mu, aux = state
-        rt, Jt, auxt = _residual_and_jacobian(fun, xt)
-        ct = jnp.sum(rt**2)
-        accept = jnp.isfinite(ct) & jnp.all(jnp.isfinite(Jt)) & (ct < cost)
-        x = jnp.where(accept, xt, x)
-        r = jnp.where(accept, rt, r)
-        J = jnp.where(accept, Jt, J)
-        cost = jnp.where(accept, ct, cost)
-        aux = jnp.where(accept, auxt, aux)
-        mu = jnp.where(k == 0, mu, jnp.clip(jnp.where(accept, mu / 3.0, mu * 8.0), 1e-12, 1e12))
-        return k + 1, propose(x, r, J, mu), x, r, J, cost, mu, aux
-
-    init = (
-        jnp.zeros((), jnp.int32),
-        x0,
-        x0,
-        jnp.full((n,), jnp.inf, dtype),
-        jnp.zeros((n, n), dtype),
-        jnp.asarray(jnp.inf, dtype),
-        jnp.asarray(damping, dtype),
-        jnp.asarray(jnp.nan, dtype),
-    )
-    k, _, x, _, J, cost, _, aux = jax.lax.while_loop(cond, body, init)
-    # k counts evaluations; the first one is at x0, so k - 1 Newton iterations were taken.
+    x, k = jax.lax.fori_loop(0, steps, body, (x0, jnp.zeros((), jnp.int32)))
+    r, J, aux = _residual_and_jacobian(fun, x)
     return NewtonResult(
-        x=x, residual=jnp.sqrt(cost), jac=J, num_steps=jnp.maximum(k - 1, 0), aux=aux
+        x=x, residual=jnp.sqrt(jnp.sum(r**2)).astype(dtype), jac=J, num_steps=k, aux=aux
     )
 
 
@@ -111,7 +81,7 @@ def implicit_solution(
 ) -> Array:
     """``x_star``, a root of ``fun(params, x)``, with the implicit-function derivative.
 
-    The value is ``x_star`` (already solved, e.g. by :func:`damped_newton`); the tangent with
+    The value is ``x_star`` (already solved, e.g. by :func:`fixed_newton`); the tangent with
     respect to ``params`` is ``dx = -J^{-1} (d fun / d params) dparams`` with ``J = jac``, the
     Jacobian at the root, so no derivative flows through the solver iterations, and the residual
     is only differentiated when a derivative is asked for. ``x_star`` and ``jac`` get no tangent.
@@ -131,4 +101,4 @@ def _implicit_solution_jvp(fun, primals, tangents):
     return x_star, -jnp.linalg.solve(jac, dr)
 
 
-__all__ = ["NewtonResult", "damped_newton", "implicit_solution"]
+__all__ = ["NewtonResult", "fixed_newton", "implicit_solution"]
