@@ -70,7 +70,6 @@ def _hyper_circle(q: Float[Array, "n 2"], w: Float[Array, " n"]) -> Float[Array,
     Z = jnp.sqrt(w)[:, None] * jnp.stack([z, q[:, 0], q[:, 1], jnp.ones_like(z)], axis=1)
     _, S, vt = jnp.linalg.svd(Z, full_matrices=False)
     V = vt.T
-    exact = V[:, 3]
     Sg = jnp.maximum(S, 1e-12 * S[0])
     Y = V @ jnp.diag(Sg) @ V.T
     zm = jnp.sum(w * z) / jnp.sum(w)
@@ -83,13 +82,22 @@ def _hyper_circle(q: Float[Array, "n 2"], w: Float[Array, " n"]) -> Float[Array,
         ],
         q.dtype,
     )
-    w, U = jnp.linalg.eigh(Y @ Ninv @ Y)
-    # The smallest positive eigenvalue.
-    k = jnp.argmin(jnp.where(w > 0, w, jnp.inf))
-    a = V @ ((V.T @ U[:, k]) / Sg)
-    # (Nearly) exact circle: the null vector itself (the hyper step is then ill-posed).
-    tiny = 100.0 * jnp.finfo(q.dtype).eps * S[0]
-    return jnp.where(S[3] < tiny, exact, a)
+    _, U = jnp.linalg.eigh(Y @ Ninv @ Y)
+    # The hyper fit is the eigenvector of the smallest positive eigenvalue; for nearly
+    # straight or exact data that eigenvalue is ~0 and its sign is not reliable in float32
+    # (batched and unbatched solvers disagree). So every candidate (the four eigenvectors
+    # mapped back, and the null vector of Z) is scored by its first-order geometric
+    # residual and the best is kept.
+    cands = jnp.concatenate([(V @ ((V.T @ U) / Sg[:, None])).T, V[:, 3][None]], axis=0)
+
+    def geometric_cost(a):
+        g = a[0] * z + a[1] * q[:, 0] + a[2] * q[:, 1] + a[3]
+        gx = 2 * a[0] * q[:, 0] + a[1]
+        gy = 2 * a[0] * q[:, 1] + a[2]
+        return jnp.sum(w * g * g / (gx * gx + gy * gy + 1e-30))
+
+    costs = jax.vmap(geometric_cost)(cands)
+    return cands[jnp.argmin(jnp.where(jnp.isfinite(costs), costs, jnp.inf))]
 
 
 @jax.jit
