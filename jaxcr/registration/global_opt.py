@@ -70,8 +70,15 @@ class GlobalResult(NamedTuple):
     converged: bool
 
 
-def _sample(points: np.ndarray, mask: np.ndarray, k: int, rng) -> tuple[np.ndarray, np.ndarray]:
+def _sample(
+    points: np.ndarray, mask: np.ndarray, k: int, rng, fallback: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     idx = np.flatnonzero(mask)
+    if len(idx) < 20 and fallback is not None:
+        # Too little measured overlap: the mates are virtual anyway (pure functions of the
+        # pairwise transform), so take them from the whole cloud rather than dropping the
+        # constraint, which would turn the ring into a chain and let the loop error circulate.
+        idx = np.flatnonzero(fallback)
     out = np.zeros((k, 3), np.float32)
     w = np.zeros(k, np.float32)
     if len(idx):
@@ -127,15 +134,22 @@ def global_optimize(
                 overlap_radius,
             )
         )
-        samples.append((_sample(pts, o_prev, n_samples, rng), _sample(pts, o_next, n_samples, rng)))
+        samples.append(
+            (_sample(pts, o_prev, n_samples, rng, msk), _sample(pts, o_next, n_samples, rng, msk))
+        )
     poses = chain_poses(rel)
     initial = [P.copy() for P in poses]
-    queue = deque([m - 1])
-    queued = {m - 1}
+    # The paper starts by refining T_O,m; we keep O = C_m fixed instead (it removes the
+    # global-motion gauge, along which the Gauss-Seidel updates otherwise drift without
+    # converging) and start from its two neighbours.
+    queue = deque([0, m - 2])
+    queued = {0, m - 2}
     count = 0
     while queue and count < max_refinements:
         i = queue.popleft()
         queued.discard(i)
+        if i == m - 1:
+            continue
         prv, nxt = (i - 1) % m, (i + 1) % m
         (pp, wp), (pn, wn) = samples[i]
         new = np.asarray(

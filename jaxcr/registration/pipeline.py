@@ -20,6 +20,7 @@ from jaxcr.registration.clouds import Cloud, voxel_downsample
 from jaxcr.registration.clustering import ClusterMap
 from jaxcr.registration.global_opt import GlobalResult, global_optimize
 from jaxcr.registration.icp import DEFAULT_ICP, IcpConfig
+from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pairwise import (
     Frame,
     PairResult,
@@ -54,6 +55,7 @@ class RunLog:
     pairs: list[PairResult] = field(default_factory=list)
     obstacles: np.ndarray | None = None
     closed_loop: bool = False
+    ring_start: int = 0
 
 
 @dataclass
@@ -76,6 +78,8 @@ class PipelineConfig:
     min_fitness: float = 0.2
     loop_angle: float = np.deg2rad(300.0)
     max_steps: int = 40
+    closure_gate_deg: float = 2.0
+    closure_gate_m: float = 0.01
 
 
 def _winding(T: np.ndarray, centre: np.ndarray) -> float:
@@ -162,25 +166,38 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
         last_w = w
         # Loop closure: the last cloud overlaps the first one.
         if wound >= cfg.loop_angle and len(log.captures) >= 4:
-            first = log.captures[0]
-            try:
+            # Close on the earliest view that registers *consistently*: a closure whose
+            # transform disagrees with the (roughly known) kinematics by more than the gate
+            # is a false match, and Algorithm 2 would spread its error over the whole loop.
+            for k0 in range(min(6, len(log.captures) - 3)):
+                first = log.captures[k0]
                 prior = np.linalg.inv(first.T_nominal) @ T_nom
-                closure = register_pair(
-                    frame,
-                    first.frame,
-                    K,
-                    prior=prior,
-                    cfg=cfg.icp,
-                    asift=cfg.asift,
-                    min_fitness=cfg.min_fitness,
-                    seed=seed,
-                )
+                try:
+                    closure = register_pair(
+                        frame,
+                        first.frame,
+                        K,
+                        prior=prior,
+                        cfg=cfg.icp,
+                        asift=cfg.asift,
+                        min_fitness=cfg.min_fitness,
+                        seed=seed,
+                    )
+                except RegistrationFailed:
+                    continue
+                r_err, t_err = pose_error(closure.T, prior)
+                if r_err > cfg.closure_gate_deg or t_err > cfg.closure_gate_m:
+                    log.events.append(
+                        f"closure to view {k0} rejected ({r_err:.1f} deg, {1000 * t_err:.0f} mm from kinematics)"
+                    )
+                    continue
                 log.pairs.append(closure)
+                log.ring_start = k0
                 log.closed_loop = True
                 log.status = "loop closed"
                 break
-            except RegistrationFailed:
-                pass
+            if log.closed_loop:
+                break
         # Sense the space ahead: the camera turns to the arm's heading.
         sense_T, _ = tip_camera_pose(spec, kap, lens, 0.0, 0.0, model=model)
         clusters.add(sim.sense_obstacles(sense_T))
@@ -192,7 +209,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
     else:
         log.status = "step limit"
     log.planning_time = planner.state.planning_time
-    log.events = list(planner.state.events)
+    log.events = list(planner.state.events) + log.events
     log.arcs = list(planner.state.arcs)
     log.obstacles = clusters.points()
     return log
@@ -232,8 +249,9 @@ def build_model(
             return ModelResult(
                 runs, [(0, i) for i in range(len(log.captures))], log.pairs, None, 0.0, merge, notes
             )
-        ring = [(0, i) for i in range(len(log.captures))]
-        edges = list(log.pairs)  # forward pairs plus the closure C_m -> C_1
+        k0 = log.ring_start
+        ring = [(0, i) for i in range(k0, len(log.captures))]
+        edges = list(log.pairs[k0:])  # forward pairs from the closing view, plus the closure
     else:
         # Several routes: merge the partial models by ICP seeded with the change of the
         # robot's initial pose, then order all views by azimuth around the object and close
