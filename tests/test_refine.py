@@ -158,17 +158,36 @@ def test_recovers_known_delta_u(scene, per_frame):
         assert int(r.num_steps) == int(jnp.sum(r.steps_per_level)) > 0
 
 
-def test_batch_vmap_equals_per_frame(per_frame, batch):
-    *_, out = batch
-    # vmapped matmuls round differently from unbatched ones, and BFGS stopped at its step
-    # limit amplifies those last-bit differences along the weakly observed (out-of-plane)
-    # direction; the masks, energies and in-plane bend agree closely.
+@pytest.fixture(scope="module")
+def batch_map(scene):
+    """The default batch path (lax.map, what `jaxcr segment` runs) on the two good frames."""
+    base, cam, frames = scene
+    bases = jax.tree.map(lambda *x: jnp.stack(x), base, base)
+    imgs = jnp.stack([f["img"] for f in frames])
+    bgs = jnp.stack([f["bg"] for f in frames])
+    return refine_batch(bases, cam, imgs, bgs, CFG, mode="map")
+
+
+def test_batch_map_equals_per_frame(per_frame, batch_map):
     for k, r in enumerate(per_frame):
-        assert float(iou(out.masks[0][k], r.masks[0])) > 0.97
+        np.testing.assert_array_equal(np.asarray(batch_map.masks[0][k]), np.asarray(r.masks[0]))
+        np.testing.assert_allclose(np.asarray(batch_map.coeffs[k]), np.asarray(r.coeffs), atol=1e-6)
         np.testing.assert_allclose(
-            float(out.energy["total"][k]), float(r.energy["total"]), rtol=0.03, atol=0.01
+            float(batch_map.energy["total"][k]), float(r.energy["total"]), rtol=1e-6
         )
-        np.testing.assert_allclose(np.asarray(out.coeffs[k])[0], np.asarray(r.coeffs)[0], atol=0.06)
+        assert bool(batch_map.ok[k])
+
+
+def test_batch_vmap_matches_per_frame_quality(scene, per_frame, batch):
+    # Known difference (open in issue 2): in lock-step vmap mode BFGS does not follow the
+    # per-frame iterates exactly (on frame 1 it reaches a lower energy, 0.204 vs 0.241), so
+    # vmap is held to the per-frame result's quality rather than to equality.
+    _, _, frames = scene
+    *_, out = batch
+    for k, r in enumerate(per_frame):
+        truth = frames[k]["mask"]
+        assert float(iou(out.masks[0][k], truth)) > float(iou(r.masks[0], truth)) - 0.02
+        assert float(out.energy["total"][k]) <= 1.03 * float(r.energy["total"]) + 1e-3
         np.testing.assert_array_equal(
             np.asarray(out.nominal_masks[0][k]), np.asarray(r.nominal_masks[0])
         )
