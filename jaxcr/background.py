@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxcr._types import Array, Bool, Float
+from jaxcr.colour import rgb_to_lab  # noqa: F401  (re-exported: part of this module's API)
 
 
 class HSVRange(eqx.Module):
@@ -85,25 +86,6 @@ def colour_mask(
         robot = robot | (in_h & (s >= r.s_lo) & (s <= r.s_hi) & (v >= r.v_lo) & (v <= r.v_hi))
     bg = ~robot
     return bg, subtract(image, bg)
-
-
-def rgb_to_lab(image: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
-    """sRGB in [0, 1] to CIE L*a*b* (D65), as ``skimage.color.rgb2lab``."""
-    c = jnp.where(image > 0.04045, ((image + 0.055) / 1.055) ** 2.4, image / 12.92)
-    M = jnp.array(
-        [
-            [0.412453, 0.357580, 0.180423],
-            [0.212671, 0.715160, 0.072169],
-            [0.019334, 0.119193, 0.950227],
-        ],
-        image.dtype,
-    )
-    xyz = c @ M.T / jnp.array([0.95047, 1.0, 1.08883], image.dtype)
-    f = jnp.where(xyz > 0.008856, jnp.cbrt(xyz), 7.787 * xyz + 16.0 / 116.0)
-    L = jnp.where(xyz[..., 1] > 0.008856, 116.0 * f[..., 1] - 16.0, 903.3 * xyz[..., 1])
-    a = 500.0 * (f[..., 0] - f[..., 1])
-    b = 200.0 * (f[..., 1] - f[..., 2])
-    return jnp.stack([L, a, b], axis=-1)
 
 
 def lab_mask(

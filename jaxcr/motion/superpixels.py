@@ -22,30 +22,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from jaxcr.colour import rgb_to_lab  # noqa: F401  (re-exported for the motion pipeline)
+
+
 # sRGB (D65) -> XYZ, as in IEC 61966-2-1 and OpenCV/scikit-image.
-_RGB2XYZ = jnp.array(
-    [
-        [0.412453, 0.357580, 0.180423],
-        [0.212671, 0.715160, 0.072169],
-        [0.019334, 0.119193, 0.950227],
-    ]
-)
-_WHITE = jnp.array([0.950456, 1.0, 1.088754])
-
-
-def rgb_to_lab(rgb: Float[Array, "h w 3"]) -> Float[Array, "h w 3"]:
-    """CIE L*a*b* (L in [0, 100]) of sRGB values in [0, 1] (sRGB gamma removed first)."""
-    rgb = jnp.clip(rgb, 0.0, 1.0)
-    lin = jnp.where(rgb > 0.04045, ((rgb + 0.055) / 1.055) ** 2.4, rgb / 12.92)
-    xyz = (lin @ _RGB2XYZ.T) / _WHITE
-    eps = 0.008856
-    f = jnp.where(xyz > eps, jnp.cbrt(jnp.maximum(xyz, eps)), 7.787 * xyz + 16.0 / 116.0)
-    L = jnp.where(xyz[..., 1] > eps, 116.0 * f[..., 1] - 16.0, 903.3 * xyz[..., 1])
-    a = 500.0 * (f[..., 0] - f[..., 1])
-    b = 200.0 * (f[..., 1] - f[..., 2])
-    return jnp.stack([L, a, b], axis=-1)
-
-
 def grid_shape(height: int, width: int, step: int) -> tuple[int, int]:
     """(rows, cols) of the seed grid; the number of segments is rows * cols."""
     return -(-height // step), -(-width // step)
