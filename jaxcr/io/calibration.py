@@ -47,6 +47,7 @@ import numpy as np
 
 from jaxcr.camera import Camera, camera_from_arrays
 from jaxcr.errors import InputError
+from jaxcr.io.results import atomic_write_text
 
 _FS_EXT = (".yaml", ".yml", ".xml")
 _DIST_LENGTHS = (4, 5, 8, 12, 14)
@@ -323,13 +324,6 @@ def camera_to_dict(camera: Camera) -> dict[str, Any]:
     }
 
 
-def _write_atomic_text(path: str, text: str) -> None:
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
-
-
 def _write_fs(path: str, entries: dict[str, Any]) -> None:
     ext = os.path.splitext(path)[1]
     tmp = f"{path}.tmp{os.getpid()}{ext}"  # FileStorage picks the format from the extension
@@ -357,7 +351,7 @@ def save_camera(camera: Camera, path: str | os.PathLike) -> None:
         _write_fs(path, entries)
     elif path.lower().endswith(".json"):
         js = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in entries.items()}
-        _write_atomic_text(path, json.dumps(js, indent=2) + "\n")
+        atomic_write_text(path, json.dumps(js, indent=2) + "\n")
     else:
         raise InputError(
             "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path
@@ -396,7 +390,7 @@ def save_stereo(cam1: Camera, cam2: Camera, path: str | os.PathLike) -> None:
         _write_fs(path, entries)
     elif path.lower().endswith(".json"):
         js = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in entries.items()}
-        _write_atomic_text(path, json.dumps(js, indent=2) + "\n")
+        atomic_write_text(path, json.dumps(js, indent=2) + "\n")
     else:
         raise InputError(
             "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path

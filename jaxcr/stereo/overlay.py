@@ -9,21 +9,11 @@ import cv2
 import numpy as np
 
 from jaxcr.camera import Camera
+from jaxcr.stereo.pipeline import _project_np
 
 __all__ = ["draw_overlay", "SEGMENT_COLOURS"]
 
 SEGMENT_COLOURS = [(255, 80, 80), (80, 160, 255), (255, 220, 60), (220, 80, 255), (80, 255, 200)]
-
-
-def _project(cam: Camera, T: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    uv, _ = cv2.projectPoints(
-        np.ascontiguousarray(pts, np.float64).reshape(-1, 3),
-        cv2.Rodrigues(T[:3, :3])[0],
-        T[:3, 3],
-        np.asarray(cam.K, np.float64),
-        np.asarray(cam.dist, np.float64),
-    )
-    return uv.reshape(-1, 2)
 
 
 def draw_overlay(
@@ -47,18 +37,18 @@ def draw_overlay(
     rc = result["skeleton_rc"][view]
     for r, c in rc:
         cv2.circle(out, pt((c, r)), 1, (150, 150, 150), -1, cv2.LINE_AA, sh)
-    uv = _project(cam, T, result["p"])
+    uv = _project_np(cam, result["p"], T)
     s = result["s"]
     bounds = list(result["boundary_s"])
     seg = np.searchsorted(np.asarray(bounds), s)
     for k in range(len(uv) - 1):
         col = SEGMENT_COLOURS[int(seg[k]) % len(SEGMENT_COLOURS)]
         cv2.line(out, pt(uv[k]), pt(uv[k + 1]), col, 2, cv2.LINE_AA, sh)
-    for bp in _project(cam, T, result["boundary_p"]) if len(bounds) else []:
+    for bp in _project_np(cam, result["boundary_p"], T) if len(bounds) else []:
         cv2.circle(out, pt(bp), 5 * scale * (1 << sh) // 2, (255, 255, 255), 2, cv2.LINE_AA, sh)
     sr, sc = result["seed_rc"][view]
     cv2.drawMarker(out, (int(sc * scale), int(sr * scale)), (255, 255, 0), cv2.MARKER_CROSS, 14, 2)
-    axes = _project(cam, T, np.array([[0, 0, 0], [0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.02]]))
+    axes = _project_np(cam, np.array([[0, 0, 0], [0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.02]]), T)
     for k, col in enumerate([(255, 0, 0), (0, 255, 0), (0, 0, 255)]):
         cv2.line(out, pt(axes[0]), pt(axes[k + 1]), col, 2, cv2.LINE_AA, sh)
     return out

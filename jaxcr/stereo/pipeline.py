@@ -119,9 +119,10 @@ def _as_float(img: np.ndarray) -> np.ndarray:
     return img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else img.astype(np.float32)
 
 
-def _project_np(cam: Camera, pts: np.ndarray) -> np.ndarray:
-    """Pixels (n, 2) of base-frame points through ``cam`` (cv2.projectPoints, float64)."""
-    T = np.asarray(cam.T_cam_robot, np.float64)
+def _project_np(cam: Camera, pts: np.ndarray, T: np.ndarray | None = None) -> np.ndarray:
+    """Pixels (n, 2) of base-frame points through ``cam`` (cv2.projectPoints, float64), with
+    the extrinsic ``T`` (4x4, base -> camera; default ``cam.T_cam_robot``)."""
+    T = np.asarray(cam.T_cam_robot if T is None else T, np.float64)
     uv, _ = cv2.projectPoints(
         np.ascontiguousarray(pts, np.float64).reshape(-1, 3),
         cv2.Rodrigues(T[:3, :3])[0],

@@ -52,6 +52,7 @@ import numpy as np
 
 from jaxcr.camera import camera_from_arrays
 from jaxcr.io.calibration import save_stereo
+from jaxcr.io.results import atomic_write_text
 from jaxcr.stereo.aruco import MarkerLayout
 from jaxcr.stereo.chroma import KEY_COLOURS
 from jaxcr.synth.raycast import ray_capsule, ray_plane
@@ -497,12 +498,6 @@ def _segment_truth(bb: dict, robot: StereoRobot) -> dict:
     }
 
 
-def _atomic_json(obj, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1) + "\n")
-    os.replace(tmp, path)
-
-
 def _write_png(path: Path, img: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".tmp.png")
@@ -607,5 +602,5 @@ def generate_stereo_set(
             },
         },
     }
-    _atomic_json(meta, out / "stereo.json")
+    atomic_write_text(out / "stereo.json", json.dumps(meta, indent=1) + "\n")
     return out
