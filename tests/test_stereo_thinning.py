@@ -1,6 +1,7 @@
-"""Zhang-Suen thinning in JAX against a slow per-pixel loop of the paper's algorithm
-(exact) and against scikit-image's skeletonize (a different Zhang-Suen variant: close, not
-identical)."""
+"""Thinning in JAX: the bit-parallel Zhang-Suen and its table-lookup form against a slow
+per-pixel loop of the paper's algorithm (exact), every one of the 256 neighbourhoods against
+the tables, Guo-Hall against scikit-image's ``thin`` (exact), and Zhang-Suen against
+scikit-image's ``skeletonize`` (a different Zhang-Suen table: close, not identical)."""
 
 import cv2
 import equinox as eqx
@@ -9,9 +10,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
-from skimage.morphology import skeletonize
+from skimage.morphology import skeletonize, thin
 
-from jaxcr.stereo.thinning import zhang_suen_step, zhang_suen_thin
+from jaxcr.stereo import thinning as T
+from jaxcr.stereo.thinning import (
+    guo_hall_thin,
+    zhang_suen_step,
+    zhang_suen_thin,
+    zhang_suen_thin_lut,
+)
 
 SHAPE = (72, 96)
 
@@ -66,11 +73,47 @@ def masks():
     return [_random_tube_mask(s) for s in range(4)]
 
 
-def test_equals_slow_reference(masks):
-    for m in masks:
-        np.testing.assert_array_equal(
-            np.asarray(zhang_suen_thin(jnp.asarray(m))), _slow_zhang_suen(m)
-        )
+@pytest.fixture(scope="module")
+def noise():
+    # Random blobs with holes, touching the border; width not a multiple of 32.
+    rng = np.random.default_rng(7)
+    return [
+        ndi.binary_opening(rng.random((40, 70)) > 0.4) | (rng.random((40, 70)) > 0.9)
+        for _ in range(3)
+    ]
+
+
+def test_equals_slow_reference(masks, noise):
+    for m in masks + noise:
+        ref = _slow_zhang_suen(m)
+        np.testing.assert_array_equal(np.asarray(zhang_suen_thin(jnp.asarray(m))), ref)
+        np.testing.assert_array_equal(np.asarray(zhang_suen_thin_lut(jnp.asarray(m))), ref)
+
+
+def test_every_neighbourhood_against_tables():
+    """One sub-iteration of the bit-parallel rule on all 256 3x3 neighbourhoods (centre
+    set) deletes the centre exactly where the table built from the paper's rule says."""
+    codes = np.arange(256)
+    imgs = np.zeros((256, 3, 3), bool)
+    imgs[:, 1, 1] = True
+    for k, (dr, dc) in enumerate(T._OFFSETS):
+        imgs[:, 1 + dr, 1 + dc] = (codes >> k) & 1
+    tables = T.zhang_suen_tables()
+    for first in (True, False):
+        out = jax.vmap(
+            lambda m, f=first: T._unpack(
+                T._packed_sub_iteration(T._pack(jnp.pad(m, ((0, 0), (0, 29)))), f), 3
+            )
+        )(jnp.asarray(imgs))
+        np.testing.assert_array_equal(~np.asarray(out)[:, 1, 1], tables[0 if first else 1])
+    # the codes themselves
+    c = np.asarray(jax.vmap(T.neighbour_codes)(jnp.asarray(imgs, jnp.uint8)))[:, 1, 1]
+    np.testing.assert_array_equal(c, codes)
+
+
+def test_guo_hall_equals_skimage_thin(masks, noise):
+    for m in masks + noise:
+        np.testing.assert_array_equal(np.asarray(guo_hall_thin(jnp.asarray(m))), thin(m))
 
 
 def test_close_to_skimage(masks):
@@ -92,6 +135,8 @@ def test_subset_thin_and_idempotent(masks):
         sk = np.asarray(zhang_suen_thin(jnp.asarray(m)))
         assert not (sk & ~m).any()
         np.testing.assert_array_equal(np.asarray(zhang_suen_step(jnp.asarray(sk))), sk)
+        gh = np.asarray(guo_hall_thin(jnp.asarray(m)))
+        np.testing.assert_array_equal(np.asarray(zhang_suen_step(jnp.asarray(gh), "guo-hall")), gh)
         # One pixel wide: no 2x2 block fully set.
         blocks = sk[:-1, :-1] & sk[1:, :-1] & sk[:-1, 1:] & sk[1:, 1:]
         assert not blocks.any()
@@ -115,6 +160,9 @@ def test_jit_eager_vmap_and_no_retrace(masks):
     for _ in range(50):
         x = zhang_suen_step(x)
     np.testing.assert_array_equal(np.asarray(x), np.asarray(zhang_suen_thin(m[0])))
+    with jax.disable_jit():
+        eager = zhang_suen_thin(m[1])
+    np.testing.assert_array_equal(np.asarray(eager), np.asarray(zhang_suen_thin(m[1])))
 
     @eqx.debug.assert_max_traces(max_traces=1)
     def f(a):
