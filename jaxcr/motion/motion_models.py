@@ -8,6 +8,16 @@ Each segment's model is fitted to the flow vectors of the grid points lying in i
   robust by iteratively reweighted least squares with Cauchy weights on the transfer error.
   Segments with fewer than ``min_points`` valid points fall back to their translation.
 
+Camera motion: eqs. 4-9 compare the segments' image motion with the end-effector motion
+predicted by a *fixed* projection P (eq. 3), i.e. they assume a static camera. When the camera
+shakes (a small rotation R between two frames) every static point moves by the infinite
+homography K R K^-1 and no segment's flow matches the prediction any more.
+:func:`stabilise_flow` fits that global homography robustly to all the flow (the static
+background is the dominant motion) and maps each point's end position back through its
+inverse, so that the flow is expressed in the camera of the first frame of the pair, which is
+what the fixed P describes. With a static camera the fitted homography is the identity up to
+the flow noise and the flow is unchanged.
+
 The error (eqs. 5 and 9) is rho = |Q_j(x_i) - x_{i+1}|^2 in px^2, x_i the end-effector image
 position h(x) at frame i. All segments are handled at once with ``jax.ops.segment_sum`` over
 a static number of segments.
@@ -155,3 +165,49 @@ def homography_error(
     """rho_j = |pi(H_j x_i) - x_{i+1}|^2 (eq. 9), px^2."""
     pred = jax.vmap(apply_homography, in_axes=(0, None))(H, x_now)
     return jnp.sum((pred - x_next) ** 2, axis=-1)
+
+
+def background_homography(
+    pts: Float[Array, "n 2"],
+    flow: Float[Array, "n 2"],
+    valid: Bool[Array, " n"],
+    n_irls: int = 5,
+    scale: float = 1.0,
+) -> Float[Array, "3 3"]:
+    """The dominant (background) image motion between two frames as one homography,
+    ``pts + flow ~ H pts``: normalised DLT over all valid points, started with Cauchy weights
+    around the median flow (so that a moving arm or object covering less than half of the
+    points does not pull the start) and refined by ``n_irls`` Cauchy-reweighted DLTs on the
+    transfer error (``scale`` px). Camera rotation and zoom give exactly a homography
+    (H = K R K^-1); camera translation is approximated for a distant, near-planar scene."""
+    w0 = valid.astype(pts.dtype)
+    med = jnp.nanmedian(jnp.where(valid[:, None], flow, jnp.nan), axis=0)
+    med = jnp.where(jnp.isfinite(med), med, 0.0)
+    d2 = jnp.sum((flow - med) ** 2, axis=1)
+    seg = jnp.zeros(pts.shape[0], jnp.int32)
+    dst = pts + flow
+    H = weighted_homographies(pts, dst, seg, w0 / (1.0 + d2 / (2.0 * scale) ** 2), 1)[0]
+
+    def body(_, H):
+        pred = jax.vmap(apply_homography, in_axes=(None, 0))(H, pts)
+        e2 = jnp.sum((pred - dst) ** 2, axis=1)
+        return weighted_homographies(pts, dst, seg, w0 / (1.0 + e2 / scale**2), 1)[0]
+
+    H = jax.lax.fori_loop(0, n_irls, body, H)
+    ok = jnp.all(jnp.isfinite(H)) & (jnp.abs(H[2, 2]) > 1e-9) & (jnp.sum(w0) >= 8)
+    h22 = jnp.where(ok, H[2, 2], 1.0)
+    return jnp.where(ok, H / h22, jnp.eye(3, dtype=pts.dtype))
+
+
+def stabilise_flow(
+    pts: Float[Array, "n 2"],
+    flow: Float[Array, "n 2"],
+    valid: Bool[Array, " n"],
+    n_irls: int = 5,
+    scale: float = 1.0,
+) -> tuple[Float[Array, "n 2"], Float[Array, "3 3"]]:
+    """Flow relative to the background: f' = pi(H^-1 [p + f; 1]) - p with H
+    :func:`background_homography` (px). Invalid points keep flow 0. Returns (f', H)."""
+    H = background_homography(pts, flow, valid, n_irls, scale)
+    back = jax.vmap(apply_homography, in_axes=(None, 0))(jnp.linalg.inv(H), pts + flow)
+    return jnp.where(valid[:, None], back - pts, 0.0), H

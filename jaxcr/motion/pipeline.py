@@ -26,11 +26,17 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxcr.motion import flow as flowmod
-from jaxcr.motion.likelihood import gaussian_likelihood, remove_arm, running_average
+from jaxcr.motion.likelihood import (
+    gaussian_likelihood,
+    object_probability,
+    remove_arm,
+    window_update,
+)
 from jaxcr.motion.motion_models import (
     homography_error,
     segment_homography,
     segment_translation,
+    stabilise_flow,
     translation_error,
 )
 from jaxcr.motion.propagate import labels_at_points, splat_labels
@@ -56,10 +62,14 @@ class MotionConfig:
     homography_irls: int = 3
     perspective_penalty: float = 1.0
     select_sigma: float = 0.5
+    stabilise: bool = True  # flow relative to the background homography (camera shake)
+    integration: str = "product"  # likelihood.object_probability: "product" | "mixture"
+    prior_frames: float = 1.0  # Beta prior per window, pseudo-frames at 1/2
 
 
 @functools.partial(
-    jax.jit, static_argnames=("n_segments", "models", "n_irls", "penalty", "select_sigma")
+    jax.jit,
+    static_argnames=("n_segments", "models", "n_irls", "penalty", "select_sigma", "stabilise"),
 )
 def frame_probabilities(
     pts: Float[Array, "n 2"],
@@ -76,10 +86,15 @@ def frame_probabilities(
     n_irls: int = 3,
     penalty: float = 0.0,
     select_sigma: float = 0.0,
+    stabilise: bool = False,
 ) -> tuple[Float[Array, "m k"], Bool[Array, " k"]]:
     """Arm-removed membership probability of every segment for one frame pair, one row per
-    model in ``models`` (eqs. 4-13), and which segments had valid flow (``present``)."""
+    model in ``models`` (eqs. 4-13), and which segments had valid flow (``present``). With
+    ``stabilise`` the flow is first taken relative to the background
+    (:func:`~jaxcr.motion.motion_models.stabilise_flow`)."""
     seg = labels_at_points(labels, pts)
+    if stabilise:
+        flow, _ = stabilise_flow(pts, flow, valid)
     w = valid.astype(flow.dtype)
     b, count = segment_translation(flow, seg, w, n_segments)
     rows = []
@@ -104,7 +119,7 @@ def frame_probabilities(
     return jnp.stack(rows), count > 0
 
 
-_running_average = jax.jit(jax.vmap(running_average, in_axes=(0, 0, 0, None)))
+_window_update = jax.jit(jax.vmap(window_update, in_axes=(0, 0, 0, None, None)))
 
 
 @functools.partial(jax.jit, static_argnames=("n_segments", "step", "n_iter"))
@@ -158,8 +173,9 @@ class MotionTracker:
         self.first_segmentation_ms = 1e3 * (time.perf_counter() - t0)
         self.gray = flowmod.to_gray_u8(first_rgb)
         m = len(cfg.models)
-        self.mean = jnp.zeros((m, self.n_segments), jnp.float32)
-        self.count = jnp.zeros((m, self.n_segments), jnp.float32)
+        # per model, window (before touch, touching) and segment: eq. 16 running sums
+        self.sums = jnp.zeros((m, 2, self.n_segments), jnp.float32)
+        self.counts = jnp.zeros((m, 2, self.n_segments), jnp.float32)
         self.records: list[StepRecord] = []
 
     def in_view(self, uv) -> bool:
@@ -211,9 +227,12 @@ class MotionTracker:
                 cfg.homography_irls,
                 cfg.perspective_penalty,
                 cfg.select_sigma,
+                cfg.stabilise,
             )
-            self.mean, self.count = _running_average(self.mean, self.count, p, present)
-            self.mean.block_until_ready()
+            self.sums, self.counts = _window_update(
+                self.sums, self.counts, p, present, jnp.asarray(bool(touch))
+            )
+            self.sums.block_until_ready()
         t2 = time.perf_counter()
         self.labels = _track(
             self.labels,
@@ -246,8 +265,14 @@ class MotionTracker:
         return rec
 
     def segment_probability(self, model: str) -> np.ndarray:
-        """Integrated probability of every segment (eq. 16) for one model, (n_segments,)."""
-        return np.asarray(self.mean[self.cfg.models.index(model)])
+        """Integrated probability of every segment (eq. 16 per window, combined by
+        ``cfg.integration``) for one model, (n_segments,)."""
+        i = self.cfg.models.index(model)
+        return np.asarray(
+            object_probability(
+                self.sums[i], self.counts[i], self.cfg.integration, self.cfg.prior_frames
+            )
+        )
 
     def probability_map(self, model: str, labels=None) -> np.ndarray:
         """(H, W) float32 map of the integrated probability on ``labels`` (default: current)."""
