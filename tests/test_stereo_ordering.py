@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from jaxcr.stereo.base_locate import flood_component, locate_base
-from jaxcr.stereo.ordering import order_by_base_distance, order_skeleton, skeleton_bfs
+from jaxcr.stereo.ordering import (
+    order_by_base_distance,
+    order_skeleton,
+    skeleton_bfs,
+    skeleton_bfs_slow,
+)
 from jaxcr.stereo.thinning import zhang_suen_thin
 
 H, W = 120, 160
@@ -92,6 +97,27 @@ def test_bfs_distances_and_errors():
     assert d[0, 0] == -1
     with pytest.raises(ValueError):
         order_skeleton(np.zeros((5, 5), bool), (0.0, 0.0))
+
+
+def test_graph_bfs_equals_python_queue(curled):
+    """Geodesic distances from the vectorised graph equal a Python BFS; every parent is
+    one step closer and an 8-neighbour; the ordered path is a shortest path, as long as
+    the Python walk's path (ties may pick different pixels)."""
+    _, skel = curled
+    rr, cc = np.nonzero(skel)
+    w = skel.shape[1]
+    for start in [(int(rr[0]), int(cc[0])), (int(rr[len(rr) // 2]), int(cc[len(rr) // 2]))]:
+        d, par = skeleton_bfs(skel, start)
+        d_ref, _ = skeleton_bfs_slow(skel, start)
+        np.testing.assert_array_equal(d, d_ref)
+        on = (d > 0).ravel()
+        pr, pc = np.divmod(par[on], w)
+        kr, kc = np.divmod(np.nonzero(on)[0], w)
+        assert np.all(np.maximum(abs(pr - kr), abs(pc - kc)) == 1)
+        np.testing.assert_array_equal(d[pr, pc], d.ravel()[on] - 1)
+    rc = order_skeleton(skel, (110.0, 80.0))
+    d0, _ = skeleton_bfs_slow(skel, (int(rc[0][0]), int(rc[0][1])))
+    np.testing.assert_array_equal(d0[rc[:, 0], rc[:, 1]], np.arange(len(rc)))
 
 
 def test_locate_base_and_flood_fill():
