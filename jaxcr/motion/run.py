@@ -27,7 +27,10 @@ from jaxcr.motion.pipeline import MotionConfig, MotionTracker, StepRecord
 class MotionResult:
     """Outcome of M-L on one video. ``maps[model]``: (H, W) probability map on the
     evaluation frame's segments; ``final_maps[model]``: on the last frame's segments;
-    ``ee_uv`` (n, 2) h(x) per frame; ``records`` one per frame step."""
+    ``ee_uv`` (n, 2) h(x) per frame; ``records`` one per frame step; ``window_sums`` and
+    ``window_counts`` (models, 2, segments) the per-window running sums (before touch,
+    touching) from which any integration can be recomputed
+    (:func:`jaxcr.motion.likelihood.object_probability`)."""
 
     eval_frame: int
     maps: dict[str, np.ndarray]
@@ -38,6 +41,8 @@ class MotionResult:
     records: list[StepRecord]
     warnings: list[str] = field(default_factory=list)
     first_segmentation_ms: float = 0.0
+    window_sums: np.ndarray | None = None
+    window_counts: np.ndarray | None = None
 
 
 def first_touch(ds: MotionDataset) -> int | None:
@@ -137,6 +142,8 @@ def run_motion(
         tracker.records,
         warnings,
         tracker.first_segmentation_ms,
+        np.asarray(tracker.sums),
+        np.asarray(tracker.counts),
     )
 
 
