@@ -26,7 +26,9 @@ JAX results blocked) are returned in ``result["timings"]``.
 
 from __future__ import annotations
 
+import functools
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -41,8 +43,7 @@ from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_locate import flood_component, locate_base
 from jaxcr.stereo.chroma import (
     KEY_COLOURS,
-    chroma_alpha,
-    key_projection,
+    chroma_alpha_and_projection,
     plate_alpha,
     plate_alpha_shadow_invariant,
 )
@@ -150,19 +151,49 @@ def _marker_mask(cam: Camera, layout: MarkerLayout, shape, margin: float = 0.003
     return m.astype(bool)
 
 
-def _thin_cropped(mask: np.ndarray, block: int = 64) -> np.ndarray:
-    """Zhang-Suen thinning of ``mask`` on its bounding box only (plus a 2-pixel margin,
-    rounded up to multiples of ``block`` so that few shapes get compiled). Thinning is
-    local, so the result equals thinning the whole image."""
-    rr, cc = np.nonzero(mask)
-    h, w = mask.shape
-    r0, c0 = max(int(rr.min()) - 2, 0), max(int(cc.min()) - 2, 0)
-    bh = min(_bucket(int(rr.max()) + 3 - r0, block), h)
-    bw = min(_bucket(int(cc.max()) + 3 - c0, block), w)
-    r0, c0 = min(r0, h - bh), min(c0, w - bw)
-    crop = np.ascontiguousarray(mask[r0 : r0 + bh, c0 : c0 + bw])
-    out = np.zeros_like(mask, dtype=bool)
-    out[r0 : r0 + bh, c0 : c0 + bw] = np.asarray(zhang_suen_thin(jnp.asarray(crop)))
+_THIN_BLOCK = 64
+
+
+def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(r0, r1, c0, c1) of the mask's foreground (cv2.boundingRect, no full-image nonzero)."""
+    x, y, w, h = cv2.boundingRect(np.ascontiguousarray(mask, np.uint8))
+    return y, y + h, x, x + w
+
+
+def _crop_window(box, shape, bh: int, bw: int) -> tuple[int, int]:
+    """Top-left corner of a (bh, bw) window holding ``box`` plus a 2-pixel margin, inside
+    an image of ``shape``."""
+    h, w = shape
+    r0, c0 = max(box[0] - 2, 0), max(box[2] - 2, 0)
+    return min(r0, h - bh), min(c0, w - bw)
+
+
+_thin_batch = jax.jit(jax.vmap(zhang_suen_thin))
+
+
+def _thin_cropped_views(
+    masks: list[np.ndarray], block: int = _THIN_BLOCK
+) -> list[tuple[np.ndarray, tuple[int, int]]]:
+    """Zhang-Suen thinning of each view's robot mask on its bounding box only: the boxes
+    (plus a 2-pixel margin) are padded to one common shape, rounded up to multiples of
+    ``block`` (so that few shapes get compiled), and thinned in one vmapped call. Thinning is
+    local, so each result equals thinning the whole image. Returns per view the skeleton
+    crop and its top-left corner (row, col) in the image."""
+    shape = masks[0].shape
+    boxes = [_bbox(m) for m in masks]
+    bh = min(_bucket(max(b[1] - b[0] for b in boxes) + 4, block), shape[0])
+    bw = min(_bucket(max(b[3] - b[2] for b in boxes) + 4, block), shape[1])
+    corners = [_crop_window(b, shape, bh, bw) for b in boxes]
+    crops = np.stack([m[r : r + bh, c : c + bw] for m, (r, c) in zip(masks, corners, strict=True)])
+    skel = np.asarray(_thin_batch(jnp.asarray(crops)))
+    return [(skel[k], corners[k]) for k in range(len(masks))]
+
+
+def _thin_cropped(mask: np.ndarray, block: int = _THIN_BLOCK) -> np.ndarray:
+    """Full-image skeleton of one mask via :func:`_thin_cropped_views` (for tests/tools)."""
+    ((sk, (r, c)),) = _thin_cropped_views([mask], block)
+    out = np.zeros(mask.shape, bool)
+    out[r : r + sk.shape[0], c : c + sk.shape[1]] = sk
     return out
 
 
@@ -174,22 +205,105 @@ def _pad_rows(x: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([x, np.repeat(x[-1:], n - len(x), axis=0)]) if n > len(x) else x
 
 
-@jax.jit
-def _view_diameters(cam, alpha, kproj, p, tang):
-    """Per view: widths across the silhouette at the projections of the backbone points
-    ``p`` (n, 3) with tangents ``tang``, the cylinder-method diameters, the view weights
-    and the report's 3-D-interpolation diameters (see :mod:`jaxcr.stereo.diameter`)."""
+def _view_profile(cam, alpha, kproj, p, tang):
+    """Per view: projections ``uv0`` of the backbone points ``p`` (n, 3), image normals of
+    the backbone (tangents ``tang``), silhouette widths and centre offsets across the tube
+    (:func:`jaxcr.stereo.diameter.profile_widths`) and the squared view weights (0 where
+    unusable)."""
     uv0, ok0 = project_points(cam, p)
     uv1, _ = project_points(cam, p + 1e-4 * tang)
     du = uv1 - uv0
     nrm = jnp.stack([-du[:, 1], du[:, 0]], 1)
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     wdt, off = profile_widths(alpha, uv0, nrm, kproj)
-    d = cylinder_diameters(cam, p, tang, uv0, nrm, wdt, off)
     wv = view_weights(cam, p, tang) ** 2
+    return uv0, ok0, nrm, wdt, off, wv
+
+
+def _view_diameters(cam, alpha, kproj, p, tang):
+    """Per view: the cylinder-method diameters, the view weights and the report's
+    3-D-interpolation diameters (see :mod:`jaxcr.stereo.diameter`)."""
+    uv0, ok0, nrm, wdt, off, wv = _view_profile(cam, alpha, kproj, p, tang)
+    d = cylinder_diameters(cam, p, tang, uv0, nrm, wdt, off)
     wv = jnp.where(ok0 & (wdt > 0.5) & jnp.isfinite(d), wv, 0.0)
     rep = report_interpolation_diameters(cam, p, uv0, wdt)
-    return jnp.where(jnp.isfinite(d), d, 0.0), wv, rep, uv0, nrm, off
+    return jnp.where(jnp.isfinite(d), d, 0.0), wv, rep
+
+
+@jax.jit
+def _views_profiles(cam1, cam2, alphas, kprojs, near, p, tang):
+    """Both views' (weights, uv0, normals, offsets) for the sub-pixel refinement, stacked
+    (2, ...); ``alphas``/``kprojs`` (2, H, W), ``near`` (2, H, W) the dilated robot masks."""
+    out = []
+    for k, cam in enumerate((cam1, cam2)):
+        a = alphas[k] * near[k].astype(alphas.dtype)
+        uv0, ok0, nrm, wdt, off, wv = _view_profile(cam, a, kprojs[k], p, tang)
+        d = cylinder_diameters(cam, p, tang, uv0, nrm, wdt, off)
+        wv = jnp.where(ok0 & (wdt > 0.5) & jnp.isfinite(d), wv, 0.0)
+        out.append((wv, uv0, nrm, off))
+    return tuple(jnp.stack(x) for x in zip(*out, strict=True))
+
+
+@jax.jit
+def _views_diameters(cam1, cam2, alphas, kprojs, near, p, tang):
+    """Both views' (diameters, weights, report diameters), stacked (2, n)."""
+    out = [
+        _view_diameters(cam, alphas[k] * near[k].astype(alphas.dtype), kprojs[k], p, tang)
+        for k, cam in enumerate((cam1, cam2))
+    ]
+    return tuple(jnp.stack(x) for x in zip(*out, strict=True))
+
+
+def _padded_with_tangents(p: np.ndarray) -> tuple[jax.Array, jax.Array]:
+    """Backbone points and unit tangents (central differences), padded to a bucketed
+    length (repeating the last row), as float32 device arrays."""
+    tang = np.gradient(p, axis=0)
+    tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
+    nb = _bucket(len(p))
+    return (
+        jnp.asarray(_pad_rows(p, nb), jnp.float32),
+        jnp.asarray(_pad_rows(tang, nb), jnp.float32),
+    )
+
+
+_triangulate = jax.jit(triangulate_points)
+
+
+@functools.partial(jax.jit, static_argnames="mode")
+def _segment_views(images, plates, key, tol_lo, tol_hi, plate_lo, plate_hi, mode):
+    """Alpha (2, H, W), key projection (2, H, W) and mask ``alpha > 0.5`` (uint8) of both
+    views (uint8 or float RGB (2, H, W, 3)) in one call; ``mode`` as
+    ``StereoConfig.segmentation``."""
+
+    def one(im, pl):
+        a, kp = chroma_alpha_and_projection(im, key, tol_lo, tol_hi)
+        if mode == "plate_shadow":
+            a = plate_alpha_shadow_invariant(im, pl, plate_lo, plate_hi)
+        elif mode == "plate":
+            a = plate_alpha(im, pl, plate_lo, plate_hi)
+        elif mode == "both":
+            a = a * plate_alpha(im, pl, plate_lo, plate_hi)
+        return a, kp, (a > 0.5).astype(jnp.uint8)
+
+    return jax.vmap(one)(images, plates)
+
+
+def _image_stack(images) -> np.ndarray:
+    """Two RGB images as one (2, H, W, 3) array: uint8 kept (converted on the device),
+    anything else as float32 in [0, 1]."""
+    if all(np.asarray(im).dtype == np.uint8 for im in images):
+        return np.stack([np.asarray(im) for im in images])
+    return np.stack([_as_float(np.asarray(im)) for im in images])
+
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(2, thread_name_prefix="jaxcr-stereo")
+    return _POOL
 
 
 _FIT_PAD = 512
@@ -262,7 +376,7 @@ def reconstruct_pair(
         raise ValueError(f"unknown segmentation {cfg.segmentation!r}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    imgs = [_as_float(image1), _as_float(image2)]
+    imgs = [np.asarray(image1), np.asarray(image2)]
     cams = [cam1, cam2]
     for k, (im, cam) in enumerate(zip(imgs, cams, strict=True)):
         if im.ndim != 3 or (im.shape[1], im.shape[0]) != (cam.width, cam.height):
@@ -273,8 +387,8 @@ def reconstruct_pair(
             )
     if cfg.segmentation in ("plate", "plate_shadow", "both") and plates is None:
         raise StereoFailure("plate", "segmentation needs background plates, none given")
-    # 1. Base frame.
-    dets = [detect_markers(im, cfg.layout) for im in imgs]
+    # 1. Base frame (the two views' detections in two threads: OpenCV releases the GIL).
+    dets = list(_pool().map(lambda im: detect_markers(im, cfg.layout), imgs))
     t0 = _tick(timings, "markers_detect", t0)
     try:
         pose = stereo_base_pose(cam1, cam2, dets[0], dets[1], cfg.layout)
@@ -285,61 +399,49 @@ def reconstruct_pair(
     base = np.asarray(
         cfg.robot_base if cfg.robot_base is not None else cfg.layout.base_centre, float
     )
-    # 2-5. Per view: alpha, mask, base, flood fill, thinning, ordering.
+    # 2. Alpha, key projection and the thresholded mask of both views in one jitted call.
+    stack = _image_stack(imgs)
+    plate_stack = _image_stack(plates) if cfg.segmentation != "chroma" else stack
+    alpha_j, kproj_j, mask_j = _segment_views(
+        jnp.asarray(stack),
+        jnp.asarray(plate_stack),
+        jnp.asarray(cfg.key_rgb, jnp.float32),
+        cfg.tol_lo,
+        cfg.tol_hi,
+        cfg.plate_lo,
+        cfg.plate_hi,
+        mode=cfg.segmentation,
+    )
+    masks = np.asarray(mask_j)
+    t0 = _tick(timings, "segmentation", t0)
+    # 3. Per view: closing, marker squares, base (Hough), flood fill.
     views = []
-    for k, (im, cam) in enumerate(zip(imgs, cams, strict=True)):
-        key = jnp.asarray(cfg.key_rgb, jnp.float32)
-        if cfg.segmentation == "chroma":
-            alpha = chroma_alpha(jnp.asarray(im), key, cfg.tol_lo, cfg.tol_hi)
-        elif cfg.segmentation == "plate_shadow":
-            alpha = plate_alpha_shadow_invariant(
-                jnp.asarray(im), jnp.asarray(_as_float(plates[k])), cfg.plate_lo, cfg.plate_hi
-            )
-        elif cfg.segmentation == "plate":
-            alpha = plate_alpha(
-                jnp.asarray(im), jnp.asarray(_as_float(plates[k])), cfg.plate_lo, cfg.plate_hi
-            )
-        else:
-            alpha = chroma_alpha(jnp.asarray(im), key, cfg.tol_lo, cfg.tol_hi) * plate_alpha(
-                jnp.asarray(im), jnp.asarray(_as_float(plates[k])), cfg.plate_lo, cfg.plate_hi
-            )
-        kproj = key_projection(jnp.asarray(im), key)
-        alpha = np.asarray(alpha.block_until_ready())
-        t0 = _tick(timings, "segmentation", t0)
+    for k, cam in enumerate(cams):
         # Closing fills pinholes where the metal mirrors the cloth.
-        mask = (
-            cv2.morphologyEx(
-                (alpha > 0.5).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)
-            )
-            > 0
-        )
+        mask = cv2.morphologyEx(masks[k], cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
         mask &= ~_marker_mask(cam, cfg.layout, mask.shape)
         buv = _project_np(cam, base[None])[0]
         loc = locate_base(mask, (buv[0], buv[1]), cfg.roi_half_px)
         if not loc.found:
             raise StereoFailure("robot_not_found", f"no robot pixels near the base in view {k + 1}")
         robot = flood_component(mask, loc.seed)
-        if robot.sum() < cfg.min_robot_pixels:
+        if np.count_nonzero(robot) < cfg.min_robot_pixels:
             raise StereoFailure("robot_not_found", f"robot region too small in view {k + 1}")
-        t0 = _tick(timings, "base_floodfill", t0)
-        skel = _thin_cropped(robot)
-        t0 = _tick(timings, "thinning", t0)
+        views.append({"robot": robot, "loc": loc})
+    t0 = _tick(timings, "base_floodfill", t0)
+    # 4. Thinning: both views' bounding-box crops in one vmapped call.
+    thinned = _thin_cropped_views([v["robot"] for v in views])
+    t0 = _tick(timings, "thinning", t0)
+    # 5. Ordering from the base, on the crops.
+    for k, (v, (sk, (r0, c0))) in enumerate(zip(views, thinned, strict=True)):
+        seed = v["loc"].seed
         try:
-            rc = order_skeleton(skel, loc.seed)
+            rc = order_skeleton(sk, (seed[0] - r0, seed[1] - c0)) + np.array([r0, c0])
         except ValueError:
             raise StereoFailure("robot_not_found", f"empty skeleton in view {k + 1}") from None
-        t0 = _tick(timings, "ordering", t0)
-        uv = _smooth_path(rc)
-        views.append(
-            {
-                "alpha": alpha,
-                "kproj": kproj,
-                "robot": robot,
-                "skeleton_rc": rc,
-                "uv": uv,
-                "loc": loc,
-            }
-        )
+        v["skeleton_rc"] = rc
+        v["uv"] = _smooth_path(rc)
+    t0 = _tick(timings, "ordering", t0)
     # 6. Correspondence and triangulation (normalised coordinates).
     xn = [
         cv2.undistortPoints(
@@ -358,7 +460,7 @@ def reconstruct_pair(
     t0 = _tick(timings, "correspondence", t0)
     nb = _bucket(len(y1))
     P = np.asarray(
-        triangulate_points(
+        _triangulate(
             jnp.asarray(T1[:3], jnp.float32),
             jnp.asarray(T2[:3], jnp.float32),
             jnp.asarray(_pad_rows(y1, nb), jnp.float32),
@@ -380,23 +482,19 @@ def reconstruct_pair(
     t0 = _tick(timings, "triangulation", t0)
     # Sub-pixel refinement: move each backbone point's projections onto the centre of the
     # silhouette across the tube (from the width profiles) and re-triangulate. Views that
-    # see the tube nearly end-on (small weight) keep the projection.
-    alphas = [
-        v["alpha"] * cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))).astype(np.float32)
-        for v in views
-    ]
+    # see the tube nearly end-on (small weight) keep the projection. The alpha is limited
+    # to the (dilated) robot region of each view.
+    near = jnp.asarray(
+        np.stack([cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))) for v in views])
+    )
     for _ in range(cfg.refine_iterations):
-        tang = np.gradient(p, axis=0)
-        tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
-        nb = _bucket(len(p))
-        pj = jnp.asarray(_pad_rows(p, nb), jnp.float32)
-        tj = jnp.asarray(_pad_rows(tang, nb), jnp.float32)
+        pj, tj = _padded_with_tangents(p)
+        prof = _views_profiles(cams[0], cams[1], alpha_j, kproj_j, near, pj, tj)
+        wv, uv0, nrm, off = (np.asarray(x, np.float64) for x in prof)
         ys = []
-        for c, v, a in zip(cams, views, alphas, strict=True):
-            _, wv, _, uv0, nrm, off = _view_diameters(c, jnp.asarray(a), v["kproj"], pj, tj)
-            wv, off = np.asarray(wv, np.float64), np.asarray(off, np.float64)
-            shift = np.where(wv > 0.25**2, np.clip(off, -2.0, 2.0), 0.0)
-            uv = np.asarray(uv0, np.float64) + shift[:, None] * np.asarray(nrm, np.float64)
+        for k, c in enumerate(cams):
+            shift = np.where(wv[k] > 0.25**2, np.clip(off[k], -2.0, 2.0), 0.0)
+            uv = uv0[k] + shift[:, None] * nrm[k]
             ys.append(
                 cv2.undistortPoints(
                     np.ascontiguousarray(uv).reshape(-1, 1, 2),
@@ -405,7 +503,7 @@ def reconstruct_pair(
                 ).reshape(-1, 2)
             )
         Pr = np.asarray(
-            triangulate_points(
+            _triangulate(
                 jnp.asarray(T1[:3], jnp.float32),
                 jnp.asarray(T2[:3], jnp.float32),
                 jnp.asarray(ys[0], jnp.float32),
@@ -419,18 +517,14 @@ def reconstruct_pair(
         s = s + float(np.linalg.norm(p[0] - base))
     t0 = _tick(timings, "refinement", t0)
     # 7. Diameters.
+    pj, tj = _padded_with_tangents(p)
+    d_all, w_all, r_all = (
+        np.asarray(x, np.float64)[:, : len(p)]
+        for x in _views_diameters(cams[0], cams[1], alpha_j, kproj_j, near, pj, tj)
+    )
+    diam_views, wts, rep = list(d_all), list(w_all), list(r_all)
     tang = np.gradient(p, axis=0)
     tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
-    diam_views, wts, rep = [], [], []
-    nb = _bucket(len(p))
-    pj = jnp.asarray(_pad_rows(p, nb), jnp.float32)
-    tj = jnp.asarray(_pad_rows(tang, nb), jnp.float32)
-    for c, v in zip(cams, views, strict=True):
-        a = v["alpha"] * cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))).astype(np.float32)
-        d, wv, rp, _, _, _ = _view_diameters(c, jnp.asarray(a), v["kproj"], pj, tj)
-        diam_views.append(np.asarray(d, np.float64)[: len(p)])
-        wts.append(np.asarray(wv, np.float64)[: len(p)])
-        rep.append(np.asarray(rp, np.float64)[: len(p)])
     W = wts[0] + wts[1]
     diam = (wts[0] * diam_views[0] + wts[1] * diam_views[1]) / np.maximum(W, 1e-12)
     # Another part of the robot touching the silhouette (a curled tip crossing) can only
