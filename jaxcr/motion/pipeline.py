@@ -7,7 +7,8 @@ and the end-effector pixels of the two frames, and
 1. computes the LK grid flow (:mod:`~jaxcr.motion.flow`, OpenCV),
 2. evaluates the motion models, the likelihood and arm removal for all segments and
    updates the running averages (:func:`frame_probabilities`, one jitted JAX call),
-3. warps the labels with the flow and refines them with SLIC on the new frame (JAX).
+3. warps the labels with the flow and refines them with SLIC on the new frame (JAX), at the
+   superpixels' working resolution (:func:`~jaxcr.motion.superpixels.working_lab`).
 
 The per-frame times of the three parts are recorded separately. A frame pair is *used* only
 if the end-effector is in view in both frames and moved at least ``min_motion`` px; otherwise
@@ -39,8 +40,15 @@ from jaxcr.motion.motion_models import (
     stabilise_flow,
     translation_error,
 )
-from jaxcr.motion.propagate import labels_at_points, splat_labels
-from jaxcr.motion.superpixels import grid_labels, grid_shape, rgb_to_lab, slic
+from jaxcr.motion.propagate import labels_at_points
+from jaxcr.motion.superpixels import (
+    auto_scale,
+    grid_shape,
+    segment_first,
+    segment_track,
+    working_lab,
+    working_shape,
+)
 
 MODELS = ("translation", "homography")
 
@@ -65,6 +73,7 @@ class MotionConfig:
     stabilise: bool = True  # flow relative to the background homography (camera shake)
     integration: str = "product"  # likelihood.object_probability: "product" | "mixture"
     prior_frames: float = 1.0  # Beta prior per window, pseudo-frames at 1/2
+    superpixel_scale: int = 0  # superpixels on the frame shrunk by this factor (0: auto_scale)
 
 
 @functools.partial(
@@ -122,18 +131,6 @@ def frame_probabilities(
 _window_update = jax.jit(jax.vmap(window_update, in_axes=(0, 0, 0, None, None)))
 
 
-@functools.partial(jax.jit, static_argnames=("n_segments", "step", "n_iter"))
-def _track(labels, dense_flow, rgb_next, n_segments, step, compactness, n_iter):
-    warped = splat_labels(labels, dense_flow)
-    return slic(rgb_to_lab(rgb_next), warped, n_segments, step, compactness, n_iter)
-
-
-@functools.partial(jax.jit, static_argnames=("n_segments", "step", "n_iter"))
-def _first(rgb, n_segments, step, compactness, n_iter):
-    h, w = rgb.shape[:2]
-    return slic(rgb_to_lab(rgb), grid_labels(h, w, step), n_segments, step, compactness, n_iter)
-
-
 @dataclass
 class StepRecord:
     """What happened between frames ``index - 1`` and ``index``."""
@@ -160,16 +157,25 @@ class MotionTracker:
         self.cfg = cfg
         h, w = first_rgb.shape[:2]
         self.height, self.width = h, w
-        gh, gw = grid_shape(h, w, cfg.superpixel_step)
+        s = cfg.superpixel_scale or auto_scale(w, cfg.superpixel_step)
+        if cfg.flow.step % s:  # the dense flow must stay aligned with the working pixels
+            s = 1
+        self.scale = s
+        self.sp_step = max(1, round(cfg.superpixel_step / s))
+        gh, gw = grid_shape(*working_shape(h, w, s), self.sp_step)
         self.n_segments = gh * gw
         t0 = time.perf_counter()
-        self.labels = _first(
-            jnp.asarray(first_rgb),
+        self.work_labels, self.labels = segment_first(
+            jnp.asarray(working_lab(first_rgb, s)),
             self.n_segments,
-            cfg.superpixel_step,
+            self.sp_step,
             cfg.compactness,
             cfg.slic_iters_first,
-        ).block_until_ready()
+            s,
+            h,
+            w,
+        )
+        self.labels.block_until_ready()
         self.first_segmentation_ms = 1e3 * (time.perf_counter() - t0)
         self.gray = flowmod.to_gray_u8(first_rgb)
         m = len(cfg.models)
@@ -200,7 +206,9 @@ class MotionTracker:
         t0 = time.perf_counter()
         gray = flowmod.to_gray_u8(next_rgb)
         pts, fl, valid = flowmod.grid_flow(self.gray, gray, cfg.flow)
-        dense = flowmod.dense_from_grid(fl, valid, self.height, self.width, cfg.flow.step)
+        dense = flowmod.dense_from_grid(
+            fl, valid, self.height, self.width, cfg.flow.step, self.scale
+        )
         t1 = time.perf_counter()
         reason = ""
         x_now = np.asarray(x_now, np.float32)
@@ -234,15 +242,19 @@ class MotionTracker:
             )
             self.sums.block_until_ready()
         t2 = time.perf_counter()
-        self.labels = _track(
-            self.labels,
+        self.work_labels, self.labels = segment_track(
+            self.work_labels,
             jnp.asarray(dense),
-            jnp.asarray(next_rgb, jnp.float32),
+            jnp.asarray(working_lab(next_rgb, self.scale)),
             self.n_segments,
-            cfg.superpixel_step,
+            self.sp_step,
             cfg.compactness,
             cfg.slic_iters_track,
-        ).block_until_ready()
+            self.scale,
+            self.height,
+            self.width,
+        )
+        self.labels.block_until_ready()
         t3 = time.perf_counter()
         self.gray = gray
         rec = StepRecord(

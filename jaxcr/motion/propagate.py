@@ -25,16 +25,17 @@ def warp_labels(labels: Int[Array, "h w"], flow: Float[Array, "h w 2"]) -> Int[A
     yy, xx = jnp.meshgrid(jnp.arange(h), jnp.arange(w), indexing="ij")
     sx = jnp.clip(jnp.round(xx - flow[..., 0]).astype(jnp.int32), 0, w - 1)
     sy = jnp.clip(jnp.round(yy - flow[..., 1]).astype(jnp.int32), 0, h - 1)
-    return labels[sy, sx]
+    return jnp.take(labels.reshape(-1), sy * w + sx, mode="clip")  # flat 1-D gather (fast on CPU)
 
 
 def _fill_step(lbl: Int[Array, "h w"], d: int) -> Int[Array, "h w"]:
+    """Holes (-1) take the label found ``d`` px right, left, below or above (first found in
+    that order; edge clamped). Shifts are static slices of an edge-padded map."""
     h, w = lbl.shape
+    padded = jnp.pad(lbl, d, mode="edge")
     out = lbl
     for dy, dx in ((0, d), (0, -d), (d, 0), (-d, 0)):
-        ys = jnp.clip(jnp.arange(h) + dy, 0, h - 1)
-        xs = jnp.clip(jnp.arange(w) + dx, 0, w - 1)
-        nb = lbl[ys][:, xs]
+        nb = padded[d + dy : d + dy + h, d + dx : d + dx + w]
         out = jnp.where((out < 0) & (nb >= 0), nb, out)
     return out
 
@@ -48,9 +49,13 @@ def splat_labels(labels: Int[Array, "h w"], flow: Float[Array, "h w 2"]) -> Int[
     dy = jnp.round(yy + flow[..., 1]).astype(jnp.int32)
     inside = (dx >= 0) & (dx < w) & (dy >= 0) & (dy < h)
     # out-of-image targets go to a dummy row that is cut off afterwards
-    dyc = jnp.where(inside, dy, h)
-    dxc = jnp.where(inside, dx, 0)
-    out = jnp.full((h + 1, w), -1, jnp.int32).at[dyc, dxc].set(labels.astype(jnp.int32))[:h]
+    flat = jnp.where(inside, dy * w + dx, h * w)
+    out = (
+        jnp.full((h + 1) * w, -1, jnp.int32)
+        .at[flat.reshape(-1)]
+        .set(labels.astype(jnp.int32).reshape(-1), mode="promise_in_bounds")
+    )
+    out = out[: h * w].reshape(h, w)
     for d in (1, 2, 2, 3):
         out = _fill_step(out, d)
     return jnp.where(out >= 0, out, warp_labels(labels, flow))
@@ -61,4 +66,4 @@ def labels_at_points(labels: Int[Array, "h w"], pts: Float[Array, "n 2"]) -> Int
     h, w = labels.shape
     xi = jnp.clip(jnp.round(pts[:, 0]).astype(jnp.int32), 0, w - 1)
     yi = jnp.clip(jnp.round(pts[:, 1]).astype(jnp.int32), 0, h - 1)
-    return labels[yi, xi]
+    return jnp.take(labels.reshape(-1), yi * w + xi, mode="clip")

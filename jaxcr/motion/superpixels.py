@@ -3,29 +3,41 @@
 The low-level segmentation of M-L step 1 (the paper uses Paris 2008; "any other segmentation
 algorithm could be used"). One assignment step gives each pixel the nearest of nine candidate
 segments: the labels found at offsets {-S, 0, S}^2 around it in the current label map (S the
-grid step). On a fresh grid this is exactly SLIC's 2S x 2S search window; on a label map
-warped from the previous frame (:mod:`jaxcr.motion.propagate`) it refines the tracked
-segments' boundaries to the new image while keeping their ids, so segments are tracked
-through the video. Centres (mean Lab colour and mean position) come from
-``jax.ops.segment_sum`` with a static number of segments. Unlike the reference SLIC there is
-no connectivity post-pass (a label may be split into parts; those parts share one motion
-model, which only matters for segments cut by occlusion).
+grid step). On a fresh grid this is exactly SLIC's 2S x 2S search window (the centre of grid
+cell k can only be reached from the 3 x 3 cells around it, as in gSLICr), so no pixel is ever
+compared with all centres; on a label map warped from the previous frame
+(:mod:`jaxcr.motion.propagate`) it refines the tracked segments' boundaries to the new image
+while keeping their ids, so segments are tracked through the video. Centres (mean Lab colour
+and mean position) come from ``jax.ops.segment_sum`` with a static number of segments. Unlike
+the reference SLIC there is no connectivity post-pass (a label may be split into parts; those
+parts share one motion model, which only matters for segments cut by occlusion).
 
 Distance (SLIC eq. 3): D^2 = |lab - lab_c|^2 + (m / S)^2 |xy - xy_c|^2, m = compactness.
+
+Speed (measured in ``experiments/results/motion_bench.md``): the segmentation runs at a
+*working resolution*, the frame shrunk by an integer ``scale`` with area averaging
+(:func:`working_lab`), and the labels are repeated back to full size
+(:func:`upsample_labels`). Superpixels are about 20 px wide, so halving a 640 x 480 frame
+keeps them 10 px wide at a quarter of the pixels. Shifted label maps are static slices of an
+edge-padded map (no gathers), and each centre column is gathered on its own (1-D gathers).
 """
 
 from __future__ import annotations
 
 import functools
 
+import cv2
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxcr.colour import rgb_to_lab  # noqa: F401  (re-exported for the motion pipeline)
+from jaxcr.motion.propagate import splat_labels
+
+_FAR = 1e30  # distance added for candidates whose segment is empty (never chosen)
 
 
-# sRGB (D65) -> XYZ, as in IEC 61966-2-1 and OpenCV/scikit-image.
 def grid_shape(height: int, width: int, step: int) -> tuple[int, int]:
     """(rows, cols) of the seed grid; the number of segments is rows * cols."""
     return -(-height // step), -(-width // step)
@@ -34,8 +46,52 @@ def grid_shape(height: int, width: int, step: int) -> tuple[int, int]:
 def grid_labels(height: int, width: int, step: int) -> Int[Array, "h w"]:
     """Initial label map: the S x S grid cells, numbered row-major."""
     _, gw = grid_shape(height, width, step)
-    yy, xx = jnp.meshgrid(jnp.arange(height), jnp.arange(width), indexing="ij")
-    return ((yy // step) * gw + xx // step).astype(jnp.int32)
+    yy, xx = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
+    return jnp.asarray((yy // step) * gw + xx // step, jnp.int32)
+
+
+def working_shape(height: int, width: int, scale: int) -> tuple[int, int]:
+    """(rows, cols) of the working image: the frame shrunk by ``scale`` (rounded up)."""
+    if scale < 1:
+        raise ValueError(f"working scale must be a positive integer, got {scale}")
+    return -(-height // scale), -(-width // scale)
+
+
+def working_lab(rgb: np.ndarray, scale: int = 1) -> np.ndarray:
+    """CIE L*a*b* (D65, L* in [0, 100]) of a frame at the working resolution, float32 (h, w, 3).
+
+    ``rgb`` is float RGB in [0, 1] or uint8, (H, W, 3). The frame is shrunk by ``scale`` with
+    area averaging (``cv2.INTER_AREA``, in sRGB) and converted with OpenCV's float Lab, which
+    agrees with :func:`jaxcr.colour.rgb_to_lab` / scikit-image to 0.5 units (OpenCV's
+    float path interpolates its tables; checked in the tests). This is per-frame input conversion on the host, like the grey
+    image for LK; OpenCV does it in under a millisecond where XLA's CPU cube roots take ~8 ms
+    at 320 x 240.
+    """
+    a = np.asarray(rgb)
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) RGB frame, got shape {a.shape}")
+    a = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32, copy=False)
+    a = np.clip(a, 0.0, 1.0)
+    if scale != 1:
+        h, w = working_shape(a.shape[0], a.shape[1], scale)
+        a = cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(np.ascontiguousarray(a), cv2.COLOR_RGB2Lab)
+
+
+def upsample_labels(
+    labels: Int[Array, "h w"], height: int, width: int, scale: int
+) -> Int[Array, "H W"]:
+    """Full-size label map from a working-resolution one: each working pixel covers a
+    ``scale`` x ``scale`` block (nearest neighbour), cropped to (height, width)."""
+    if scale == 1:
+        return labels[:height, :width]
+    up = jnp.repeat(jnp.repeat(labels, scale, axis=0), scale, axis=1)
+    return up[:height, :width]
+
+
+def _coords(h: int, w: int, dtype) -> tuple[np.ndarray, np.ndarray]:
+    yy, xx = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    return yy.astype(dtype), xx.astype(dtype)
 
 
 def segment_centres(
@@ -43,22 +99,19 @@ def segment_centres(
 ) -> tuple[Float[Array, "k 5"], Float[Array, " k"]]:
     """Mean (L, a, b, y, x) of each segment and its pixel count (0 for absent segments)."""
     h, w = labels.shape
-    yy, xx = jnp.meshgrid(
-        jnp.arange(h, dtype=lab.dtype), jnp.arange(w, dtype=lab.dtype), indexing="ij"
-    )
-    feats = jnp.concatenate([lab, yy[..., None], xx[..., None]], axis=-1).reshape(-1, 5)
-    ids = labels.reshape(-1)
-    count = jax.ops.segment_sum(jnp.ones_like(ids, dtype=lab.dtype), ids, n_segments)
-    sums = jax.ops.segment_sum(feats, ids, n_segments)
-    return sums / jnp.maximum(count, 1.0)[:, None], count
+    yy, xx = _coords(h, w, np.dtype(lab.dtype))
+    feats = jnp.concatenate(
+        [lab, yy[..., None], xx[..., None], jnp.ones((h, w, 1), lab.dtype)], axis=-1
+    ).reshape(-1, 6)
+    sums = jax.ops.segment_sum(feats, labels.reshape(-1), n_segments)
+    count = sums[:, 5]
+    return sums[:, :5] / jnp.maximum(count, 1.0)[:, None], count
 
 
-def _shift(labels: Int[Array, "h w"], dy: int, dx: int) -> Int[Array, "h w"]:
-    """labels[y + dy, x + dx] with edge clamping."""
-    h, w = labels.shape
-    ys = jnp.clip(jnp.arange(h) + dy, 0, h - 1)
-    xs = jnp.clip(jnp.arange(w) + dx, 0, w - 1)
-    return labels[ys][:, xs]
+def shifted(labels: Int[Array, "h w"], pad: int, dy: int, dx: int) -> Int[Array, "h w"]:
+    """labels[y + dy, x + dx] with edge clamping, from a map edge-padded by ``pad`` >= |d|."""
+    h, w = labels.shape[0] - 2 * pad, labels.shape[1] - 2 * pad
+    return labels[pad + dy : pad + dy + h, pad + dx : pad + dx + w]
 
 
 def slic_step(
@@ -68,23 +121,29 @@ def slic_step(
     step: int,
     compactness: float,
 ) -> Int[Array, "h w"]:
-    """One SLIC assignment: each pixel takes the nearest of its nine candidate segments."""
+    """One SLIC assignment: each pixel takes the nearest of its nine candidate segments
+    (ties go to the first candidate in row-major offset order)."""
     h, w = labels.shape
     centres, count = segment_centres(lab, labels, n_segments)
-    yy, xx = jnp.meshgrid(
-        jnp.arange(h, dtype=lab.dtype), jnp.arange(w, dtype=lab.dtype), indexing="ij"
-    )
     spatial = (compactness / step) ** 2
+    # one gathered value per column and candidate: (L, a, b, y, x, empty penalty). Separate
+    # 1-D gathers with clip mode: XLA's CPU row gather from a (k, 6) table is ~80x slower.
+    cols = [centres[:, i] for i in range(5)] + [jnp.where(count > 0, 0.0, _FAR).astype(lab.dtype)]
+    yy, xx = _coords(h, w, np.dtype(lab.dtype))
+    padded = jnp.pad(labels, step, mode="edge")
     best_d = jnp.full((h, w), jnp.inf, lab.dtype)
     best = labels
     for dy in (-step, 0, step):
         for dx in (-step, 0, step):
-            cand = _shift(labels, dy, dx)
-            c = centres[cand]  # (h, w, 5)
-            d = jnp.sum((lab - c[..., :3]) ** 2, axis=-1) + spatial * (
-                (yy - c[..., 3]) ** 2 + (xx - c[..., 4]) ** 2
+            cand = shifted(padded, step, dy, dx)
+            c = [jnp.take(col, cand, mode="clip") for col in cols]
+            d = (
+                (lab[..., 0] - c[0]) ** 2
+                + (lab[..., 1] - c[1]) ** 2
+                + (lab[..., 2] - c[2]) ** 2
+                + spatial * ((yy - c[3]) ** 2 + (xx - c[4]) ** 2)
+                + c[5]
             )
-            d = jnp.where(count[cand] > 0, d, jnp.inf)
             better = d < best_d
             best = jnp.where(better, cand, best)
             best_d = jnp.where(better, d, best_d)
@@ -108,3 +167,52 @@ def slic(
         return slic_step(lab, lbl, n_segments, step, compactness)
 
     return jax.lax.fori_loop(0, n_iter, body, labels_init.astype(jnp.int32))
+
+
+def auto_scale(width: int, step: int) -> int:
+    """Default working-resolution factor: shrink while the working frame stays at least 320 px
+    wide and the superpixels at least 8 working px wide (1 for frames up to 639 px wide or
+    superpixel steps under 16 px)."""
+    return max(1, min(width // 320, step // 8))
+
+
+@functools.partial(
+    jax.jit, static_argnames=("n_segments", "step", "n_iter", "scale", "height", "width")
+)
+def segment_first(
+    lab: Float[Array, "h w 3"],
+    n_segments: int,
+    step: int,
+    compactness: float,
+    n_iter: int,
+    scale: int,
+    height: int,
+    width: int,
+) -> tuple[Int[Array, "h w"], Int[Array, "H W"]]:
+    """Fresh SLIC on the working-resolution Lab image (``step`` in working px) from the seed
+    grid. Returns the working label map and the full-size (height, width) one."""
+    h, w = lab.shape[:2]
+    lbl = slic(lab, grid_labels(h, w, step), n_segments, step, compactness, n_iter)
+    return lbl, upsample_labels(lbl, height, width, scale)
+
+
+@functools.partial(
+    jax.jit, static_argnames=("n_segments", "step", "n_iter", "scale", "height", "width")
+)
+def segment_track(
+    labels: Int[Array, "h w"],
+    flow: Float[Array, "h w 2"],
+    lab: Float[Array, "h w 3"],
+    n_segments: int,
+    step: int,
+    compactness: float,
+    n_iter: int,
+    scale: int,
+    height: int,
+    width: int,
+) -> tuple[Int[Array, "h w"], Int[Array, "H W"]]:
+    """Carry the working label map to the next frame: forward-splat with the dense flow (in
+    working px, :func:`jaxcr.motion.propagate.splat_labels`), then ``n_iter`` SLIC steps on
+    the new frame's Lab image (ids kept). Returns working and full-size label maps."""
+    lbl = slic(lab, splat_labels(labels, flow), n_segments, step, compactness, n_iter)
+    return lbl, upsample_labels(lbl, height, width, scale)

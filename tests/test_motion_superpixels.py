@@ -1,0 +1,282 @@
+"""Superpixels, label propagation and LK flow of M-L (the speed-critical low-level stages)
+against independent references: slow loops, numpy indexing, scikit-image and OpenCV called
+directly. Small shapes, one compile per shape."""
+
+from __future__ import annotations
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxcr.motion import flow as fm
+from jaxcr.motion import superpixels as sp
+from jaxcr.motion.propagate import labels_at_points, splat_labels, warp_labels
+
+
+def _slic_step_loop(lab, labels, k, step, m):
+    """SLIC assignment by plain loops (empty segments are skipped)."""
+    h, w = labels.shape
+    cen = np.zeros((k, 5))
+    cnt = np.zeros(k)
+    for y in range(h):
+        for x in range(w):
+            cen[labels[y, x]] += [*lab[y, x], y, x]
+            cnt[labels[y, x]] += 1
+    cen /= np.maximum(cnt, 1)[:, None]
+    out = labels.copy()
+    for y in range(h):
+        for x in range(w):
+            best, bd = labels[y, x], np.inf
+            for dy in (-step, 0, step):
+                for dx in (-step, 0, step):
+                    j = labels[min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)]
+                    if cnt[j] == 0:
+                        continue
+                    c = cen[j]
+                    d = np.sum((lab[y, x] - c[:3]) ** 2) + (m / step) ** 2 * (
+                        (y - c[3]) ** 2 + (x - c[4]) ** 2
+                    )
+                    if d < bd:
+                        best, bd = j, d
+            out[y, x] = best
+    return out
+
+
+@pytest.fixture(scope="module")
+def step_fn():
+    return jax.jit(sp.slic_step, static_argnums=(2, 3))
+
+
+def test_slic_step_vs_loop_with_tracked_labels(step_fn):
+    """A label map that is not a grid (ids shuffled, one segment empty), as after tracking."""
+    rng = np.random.default_rng(0)
+    h, w, step, k = 20, 28, 6, 20
+    lab = rng.normal(50, 12, (h, w, 3)).astype(np.float32)
+    base = np.asarray(sp.grid_labels(h, w, step))  # 4 x 5 cells
+    perm = rng.permutation(k)
+    labels = perm[base]
+    labels[labels == perm[7]] = perm[8]  # segment perm[7] is now empty
+    labels = labels.astype(np.int32)
+    ours = np.asarray(step_fn(jnp.asarray(lab), jnp.asarray(labels), k, step, 10.0))
+    ref = _slic_step_loop(lab.astype(np.float64), labels, k, step, 10.0)
+    assert np.mean(ours == ref) > 0.995  # float32 near-ties may flip a pixel
+    assert not np.any(ours == perm[7])
+    eager = np.asarray(sp.slic_step(jnp.asarray(lab), jnp.asarray(labels), k, step, 10.0))
+    np.testing.assert_array_equal(eager, ours)
+
+
+def test_segment_centres_vs_numpy():
+    rng = np.random.default_rng(1)
+    lab = rng.normal(0, 1, (9, 11, 3)).astype(np.float32)
+    labels = rng.integers(0, 6, (9, 11)).astype(np.int32)
+    labels[labels == 4] = 5
+    c, n = sp.segment_centres(jnp.asarray(lab), jnp.asarray(labels), 7)
+    yy, xx = np.mgrid[0:9, 0:11]
+    for j in range(7):
+        m = labels == j
+        assert float(n[j]) == m.sum()
+        if m.any():
+            ref = [*lab[m].mean(0), yy[m].mean(), xx[m].mean()]
+            np.testing.assert_allclose(np.asarray(c[j]), ref, atol=1e-5)
+        else:
+            np.testing.assert_array_equal(np.asarray(c[j]), 0.0)
+
+
+def test_shifted_is_clamped_indexing():
+    a = np.arange(5 * 7).reshape(5, 7)
+    p = jnp.pad(jnp.asarray(a), 3, mode="edge")
+    for dy, dx in ((-3, 2), (0, 0), (3, -1), (2, 3)):
+        ys = np.clip(np.arange(5) + dy, 0, 4)
+        xs = np.clip(np.arange(7) + dx, 0, 6)
+        np.testing.assert_array_equal(np.asarray(sp.shifted(p, 3, dy, dx)), a[ys][:, xs])
+
+
+def test_working_lab_vs_skimage_and_uint8():
+    from skimage.color import rgb2lab
+
+    rgb = np.random.default_rng(2).random((20, 30, 3)).astype(np.float32)
+    rgb[0, 0], rgb[0, 1] = 0.0, 1.0
+    np.testing.assert_allclose(sp.working_lab(rgb), rgb2lab(rgb), atol=0.5)
+    block = rgb.reshape(10, 2, 15, 2, 3).mean((1, 3))  # area average of 2 x 2 blocks
+    np.testing.assert_allclose(sp.working_lab(rgb, 2), rgb2lab(block), atol=0.5)
+    u8 = np.round(rgb * 255).astype(np.uint8)
+    np.testing.assert_allclose(sp.working_lab(u8), sp.working_lab(u8 / np.float32(255)), atol=1e-4)
+    assert sp.working_lab(rgb[:19, :29], 2).shape == (10, 15, 3)  # rounded up
+    with pytest.raises(ValueError):
+        sp.working_lab(rgb[..., 0])
+    with pytest.raises(ValueError):
+        sp.working_shape(10, 10, 0)
+
+
+def test_upsample_labels_vs_kron():
+    a = np.arange(12).reshape(3, 4).astype(np.int32)
+    up = np.kron(a, np.ones((2, 2), np.int32))
+    np.testing.assert_array_equal(np.asarray(sp.upsample_labels(jnp.asarray(a), 6, 8, 2)), up)
+    np.testing.assert_array_equal(
+        np.asarray(sp.upsample_labels(jnp.asarray(a), 5, 7, 2)), up[:5, :7]
+    )
+    np.testing.assert_array_equal(np.asarray(sp.upsample_labels(jnp.asarray(a), 3, 4, 1)), a)
+
+
+def _regions(h, w, scale):
+    """Piecewise-constant test image (three colour regions, boundaries on multiples of
+    ``scale``) and its region map."""
+    region = np.where(np.arange(h)[:, None] >= 30 * scale // 1, 2, 0) * np.ones((1, w), int)
+    region = np.where((region == 0) & (np.arange(w)[None, :] >= 28 * scale), 1, region).astype(int)
+    colours = np.array([[0.2, 0.6, 0.2], [0.9, 0.1, 0.1], [0.1, 0.2, 0.9]], np.float32)
+    return colours[region], region
+
+
+def test_segment_first_at_working_scale_respects_regions():
+    """SLIC on the half-size image, labels repeated to full size: every segment stays inside
+    one colour region, all ids in range, and the full map is the repeated working map."""
+    img, region = _regions(96, 128, 2)
+    lab = jnp.asarray(sp.working_lab(img, 2))
+    gh, gw = sp.grid_shape(48, 64, 8)
+    work, full = sp.segment_first(lab, gh * gw, 8, 10.0, 6, 2, 96, 128)
+    work, full = np.asarray(work), np.asarray(full)
+    assert work.shape == (48, 64) and full.shape == (96, 128)
+    np.testing.assert_array_equal(full, np.kron(work, np.ones((2, 2), np.int32)))
+    assert full.min() >= 0 and full.max() < gh * gw
+    for j in np.unique(full):
+        assert len(np.unique(region[full == j])) == 1
+    # compact: no segment grows beyond four seed cells
+    assert np.bincount(work.ravel(), minlength=gh * gw).max() <= 4 * 64
+
+
+def test_segment_track_follows_a_moving_block():
+    """A block moved by 4 working px: the tracked labels move with it (ids kept) and still
+    respect the new image's regions."""
+    h, w, step = 48, 64, 8
+    img = np.full((h, w, 3), 0.3, np.float32)
+    img[16:32, 16:32] = [0.9, 0.2, 0.1]
+    img2 = np.full((h, w, 3), 0.3, np.float32)
+    img2[16:32, 20:36] = [0.9, 0.2, 0.1]
+    k = 6 * 8
+    work, _ = sp.segment_first(jnp.asarray(sp.working_lab(img)), k, step, 10.0, 6, 1, h, w)
+    flow = np.zeros((h, w, 2), np.float32)
+    flow[16:32, 16:32, 0] = 4.0
+    w2, full2 = sp.segment_track(
+        work, jnp.asarray(flow), jnp.asarray(sp.working_lab(img2)), k, step, 10.0, 2, 1, h, w
+    )
+    w2 = np.asarray(w2)
+    np.testing.assert_array_equal(np.asarray(full2), w2)
+    inside = set(np.unique(np.asarray(work)[16:32, 16:32]))
+    assert set(np.unique(w2[16:32, 20:36])) == inside
+    assert not (set(np.unique(w2[:, :20])) & inside)  # the wake went to the background
+
+
+def _splat_reference(labels, flow):
+    """numpy version of the splat: scatter to the rounded target, holes filled by 1,2,2,3-px
+    neighbour passes (right, left, down, up), the rest by the backward lookup."""
+    h, w = labels.shape
+    out = -np.ones((h, w), np.int64)
+    for y in range(h):
+        for x in range(w):
+            tx, ty = int(np.round(x + flow[y, x, 0])), int(np.round(y + flow[y, x, 1]))
+            if 0 <= tx < w and 0 <= ty < h:
+                out[ty, tx] = labels[y, x]
+    for d in (1, 2, 2, 3):
+        src = out.copy()
+        for dy, dx in ((0, d), (0, -d), (d, 0), (-d, 0)):
+            nb = src[np.clip(np.arange(h) + dy, 0, h - 1)][:, np.clip(np.arange(w) + dx, 0, w - 1)]
+            out = np.where((out < 0) & (nb >= 0), nb, out)
+    yy, xx = np.mgrid[0:h, 0:w]
+    sx = np.clip(np.round(xx - flow[..., 0]).astype(int), 0, w - 1)
+    sy = np.clip(np.round(yy - flow[..., 1]).astype(int), 0, h - 1)
+    return np.where(out >= 0, out, labels[sy, sx])
+
+
+def test_splat_labels_vs_loop():
+    """An injective flow (a block moved right by 5 px over a still background; no two pixels
+    land on one target), so the reference is unambiguous; a 5-px wake exceeds the fill
+    passes' reach near its middle only with the backward lookup."""
+    h, w = 16, 24
+    labels = (np.arange(h)[:, None] // 4 * 6 + np.arange(w)[None, :] // 4).astype(np.int32)
+    flow = np.zeros((h, w, 2), np.float32)
+    flow[4:12, 14:19, 0] = 5.0  # moves onto background columns 19..23, which move away ...
+    flow[4:12, 19:24, 1] = 20.0  # ... out of the image (dropped)
+    ours = np.asarray(splat_labels(jnp.asarray(labels), jnp.asarray(flow)))
+    np.testing.assert_array_equal(ours, _splat_reference(labels, flow))
+
+
+def test_warp_and_points_vs_numpy_indexing():
+    rng = np.random.default_rng(3)
+    labels = rng.integers(0, 50, (10, 13)).astype(np.int32)
+    flow = rng.normal(0, 3, (10, 13, 2)).astype(np.float32)
+    yy, xx = np.mgrid[0:10, 0:13]
+    sx = np.clip(np.round(xx - flow[..., 0]).astype(int), 0, 12)
+    sy = np.clip(np.round(yy - flow[..., 1]).astype(int), 0, 9)
+    np.testing.assert_array_equal(
+        np.asarray(warp_labels(jnp.asarray(labels), jnp.asarray(flow))), labels[sy, sx]
+    )
+    pts = rng.uniform(-3, 16, (30, 2)).astype(np.float32)
+    ref = labels[
+        np.clip(np.round(pts[:, 1]).astype(int), 0, 9),
+        np.clip(np.round(pts[:, 0]).astype(int), 0, 12),
+    ]
+    np.testing.assert_array_equal(
+        np.asarray(labels_at_points(jnp.asarray(labels), jnp.asarray(pts))), ref
+    )
+
+
+@pytest.mark.parametrize("scale", [1, 2, 4])
+def test_dense_from_grid_is_exact_for_affine_flow(scale):
+    """Bilinear interpolation reproduces an affine field away from the border, at full
+    (scale 1) or working resolution (flow in working px at working pixel centres)."""
+    H, W, step = 64, 96, 8
+    pts = fm.grid_points(H, W, step)
+    A = np.array([[0.02, -0.01], [0.015, 0.03]], np.float32)
+    t = np.array([1.5, -2.0], np.float32)
+    flow = pts @ A.T + t
+    valid = np.ones(len(pts), bool)
+    valid[3 * 12 + 5] = False  # interior; filled by a symmetric average: exact for affine
+    dense = fm.dense_from_grid(np.where(valid[:, None], flow, 0), valid, H, W, step, scale)
+    h, w = -(-H // scale), -(-W // scale)
+    assert dense.shape == (h, w, 2) and dense.dtype == np.float32
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    full = np.stack([scale * xx + (scale - 1) / 2, scale * yy + (scale - 1) / 2], -1)
+    ref = (full @ A.T + t) / scale
+    m = step // scale  # one grid cell inside the border
+    np.testing.assert_allclose(dense[m:-m, m:-m], ref[m:-m, m:-m], atol=0.03 / scale)
+    with pytest.raises(ValueError):
+        fm.dense_from_grid(flow, valid, H, W, 6, 4)
+
+
+def test_to_gray_u8_matches_round_clip():
+    x = np.random.default_rng(4).uniform(-0.2, 1.2, (13, 17, 3)).astype(np.float32)
+    x[0, 0] = 0.5 / 255  # a rounding tie
+    ref = cv2.cvtColor(np.clip(np.round(x * 255), 0, 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    np.testing.assert_array_equal(fm.to_gray_u8(x), ref)
+    u8 = (x.clip(0, 1) * 255).astype(np.uint8)
+    np.testing.assert_array_equal(fm.to_gray_u8(u8), cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY))
+
+
+def _texture(h, w, seed):
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.integers(0, 256, (h, w)).astype(np.uint8), (5, 5), 1.2)
+
+
+def test_grid_flow_vs_opencv_and_known_shift():
+    g0 = _texture(72, 96, 5)
+    M = np.float32([[1, 0, 2.5], [0, 1, -1.5]])
+    g1 = cv2.warpAffine(g0, M, (96, 72), borderMode=cv2.BORDER_REFLECT)
+    for cfg in (fm.FlowConfig(step=8), fm.FlowConfig(step=8, window=9, levels=2)):
+        pts, flow, valid = fm.grid_flow(g0, g1, cfg)
+        nxt, st, _ = cv2.calcOpticalFlowPyrLK(
+            g0,
+            g1,
+            pts[:, None, :],
+            None,
+            winSize=(cfg.window, cfg.window),
+            maxLevel=cfg.levels,
+            criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03),
+            minEigThreshold=cfg.min_eig,
+        )
+        ok = st.ravel().astype(bool)
+        assert np.array_equal(valid, ok & np.all((nxt[:, 0] >= 0) & (nxt[:, 0] <= [95, 71]), 1))
+        np.testing.assert_allclose(flow[valid], (nxt[:, 0] - pts)[valid], atol=1e-6)
+        interior = valid & (pts[:, 0] > 12) & (pts[:, 0] < 84) & (pts[:, 1] > 12) & (pts[:, 1] < 60)
+        np.testing.assert_allclose(np.median(flow[interior], 0), [2.5, -1.5], atol=0.05)
