@@ -12,7 +12,7 @@ Camera motion: eqs. 4-9 compare the segments' image motion with the end-effector
 predicted by a *fixed* projection P (eq. 3), i.e. they assume a static camera. When the camera
 shakes (a small rotation R between two frames) every static point moves by the infinite
 homography K R K^-1 and no segment's flow matches the prediction any more.
-:func:`stabilise_flow` fits that global homography robustly to all the flow (the static
+:func:`stabilise_flow` fits that global homography robustly (RANSAC) to all the flow (the static
 background is the dominant motion) and maps each point's end position back through its
 inverse, so that the flow is expressed in the camera of the first frame of the pair, which is
 what the fixed P describes. With a static camera the fitted homography is the identity up to
@@ -171,30 +171,58 @@ def background_homography(
     pts: Float[Array, "n 2"],
     flow: Float[Array, "n 2"],
     valid: Bool[Array, " n"],
-    n_irls: int = 5,
-    scale: float = 1.0,
+    n_hypotheses: int = 64,
+    inlier_px: float = 1.0,
+    n_refine: int = 3,
+    seed: int = 0,
 ) -> Float[Array, "3 3"]:
     """The dominant (background) image motion between two frames as one homography,
-    ``pts + flow ~ H pts``: normalised DLT over all valid points, started with Cauchy weights
-    around the median flow (so that a moving arm or object covering less than half of the
-    points does not pull the start) and refined by ``n_irls`` Cauchy-reweighted DLTs on the
-    transfer error (``scale`` px). Camera rotation and zoom give exactly a homography
-    (H = K R K^-1); camera translation is approximated for a distant, near-planar scene."""
+    ``pts + flow ~ H pts``, by RANSAC in JAX: ``n_hypotheses`` normalised DLTs on random
+    4-point samples of the valid points (a fixed ``seed``: deterministic) plus the median
+    translation, scored by their number of inliers (transfer error < ``inlier_px``); the best
+    is refined ``n_refine`` times by the weighted DLT on its inliers (error < 2 x inlier_px).
+    Algebraic DLT is not robust: even a 10 % weight on a block of points moving 6 px
+    differently bends the fit by pixels, so the outliers (the arm, a pushed object) must get
+    zero weight, not a small one. Camera rotation and zoom give exactly a homography
+    (H = K R K^-1); camera translation is approximated for a distant, near-planar scene.
+    Fewer than 8 valid points, or no finite fit, give the identity."""
     w0 = valid.astype(pts.dtype)
+    n = pts.shape[0]
+    dst = pts + flow
+    nvalid = jnp.sum(w0)
+    prob = jnp.where(nvalid > 0, w0 / jnp.maximum(nvalid, 1.0), jnp.full(n, 1.0 / n, pts.dtype))
+    idx = jax.random.choice(jax.random.PRNGKey(seed), n, (n_hypotheses, 4), p=prob)
+    seg = jnp.repeat(jnp.arange(n_hypotheses), 4)
+    hyp = weighted_homographies(
+        pts[idx].reshape(-1, 2),
+        dst[idx].reshape(-1, 2),
+        seg,
+        jnp.ones(4 * n_hypotheses, pts.dtype),
+        n_hypotheses,
+    )
     med = jnp.nanmedian(jnp.where(valid[:, None], flow, jnp.nan), axis=0)
     med = jnp.where(jnp.isfinite(med), med, 0.0)
-    d2 = jnp.sum((flow - med) ** 2, axis=1)
-    seg = jnp.zeros(pts.shape[0], jnp.int32)
-    dst = pts + flow
-    H = weighted_homographies(pts, dst, seg, w0 / (1.0 + d2 / (2.0 * scale) ** 2), 1)[0]
+    Ht = jnp.eye(3, dtype=pts.dtype).at[:2, 2].set(med)
+    hyp = jnp.concatenate([Ht[None], hyp], axis=0)
+
+    def sq_err(H):
+        pred = jax.vmap(apply_homography, in_axes=(None, 0))(H, pts)
+        return jnp.sum((pred - dst) ** 2, axis=1)
+
+    e2 = jax.vmap(sq_err)(hyp)
+    score = jnp.sum(w0[None] * (e2 < inlier_px**2), axis=1)
+    score = jnp.where(jnp.all(jnp.isfinite(hyp), axis=(1, 2)), score, -1.0)
+    H = hyp[jnp.argmax(score)]
+    zero = jnp.zeros(n, jnp.int32)
 
     def body(_, H):
-        pred = jax.vmap(apply_homography, in_axes=(None, 0))(H, pts)
-        e2 = jnp.sum((pred - dst) ** 2, axis=1)
-        return weighted_homographies(pts, dst, seg, w0 / (1.0 + e2 / scale**2), 1)[0]
+        w = w0 * (sq_err(H) < (2.0 * inlier_px) ** 2)
+        Hn = weighted_homographies(pts, dst, zero, w, 1)[0]
+        keep = (jnp.sum(w) >= 8) & jnp.all(jnp.isfinite(Hn))
+        return jnp.where(keep, Hn, H)
 
-    H = jax.lax.fori_loop(0, n_irls, body, H)
-    ok = jnp.all(jnp.isfinite(H)) & (jnp.abs(H[2, 2]) > 1e-9) & (jnp.sum(w0) >= 8)
+    H = jax.lax.fori_loop(0, n_refine, body, H)
+    ok = jnp.all(jnp.isfinite(H)) & (jnp.abs(H[2, 2]) > 1e-9) & (nvalid >= 8)
     h22 = jnp.where(ok, H[2, 2], 1.0)
     return jnp.where(ok, H / h22, jnp.eye(3, dtype=pts.dtype))
 
@@ -203,11 +231,11 @@ def stabilise_flow(
     pts: Float[Array, "n 2"],
     flow: Float[Array, "n 2"],
     valid: Bool[Array, " n"],
-    n_irls: int = 5,
-    scale: float = 1.0,
+    n_hypotheses: int = 64,
+    inlier_px: float = 1.0,
 ) -> tuple[Float[Array, "n 2"], Float[Array, "3 3"]]:
     """Flow relative to the background: f' = pi(H^-1 [p + f; 1]) - p with H
     :func:`background_homography` (px). Invalid points keep flow 0. Returns (f', H)."""
-    H = background_homography(pts, flow, valid, n_irls, scale)
+    H = background_homography(pts, flow, valid, n_hypotheses, inlier_px)
     back = jax.vmap(apply_homography, in_axes=(None, 0))(jnp.linalg.inv(H), pts + flow)
     return jnp.where(valid[:, None], back - pts, 0.0), H
