@@ -58,7 +58,7 @@ from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
 from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.thinning import zhang_suen_thin
-from jaxcr.stereo.triangulation import essential_matrix, triangulate_points
+from jaxcr.stereo.triangulation import triangulate_points
 
 __all__ = ["StereoConfig", "StereoFailure", "reconstruct_pair"]
 
@@ -107,7 +107,23 @@ class StereoConfig:
 
 
 def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
-    return eqx.tree_at(lambda c: c.T_cam_robot, cam, jnp.asarray(T, cam.K.dtype))
+    return eqx.tree_at(
+        lambda c: c.T_cam_robot, cam, jnp.asarray(np.asarray(T, np.dtype(cam.K.dtype)))
+    )
+
+
+def _f32(x) -> jax.Array:
+    """numpy -> float32 device array (converted on the host: no eager JAX op)."""
+    return jnp.asarray(np.asarray(x, np.float32))
+
+
+def _essential_np(T1: np.ndarray, T2: np.ndarray) -> np.ndarray:
+    """:func:`jaxcr.stereo.triangulation.essential_matrix` in numpy float64 (per frame,
+    without eager JAX dispatches)."""
+    T21 = np.asarray(T2, np.float64) @ np.linalg.inv(np.asarray(T1, np.float64))
+    t = T21[:3, 3]
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return tx @ T21[:3, :3]
 
 
 def _tick(timings: dict, name: str, t0: float) -> float:
@@ -261,8 +277,8 @@ def _padded_with_tangents(p: np.ndarray) -> tuple[jax.Array, jax.Array]:
     tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
     nb = _bucket(len(p))
     return (
-        jnp.asarray(_pad_rows(p, nb), jnp.float32),
-        jnp.asarray(_pad_rows(tang, nb), jnp.float32),
+        _f32(_pad_rows(p, nb)),
+        _f32(_pad_rows(tang, nb)),
     )
 
 
@@ -405,7 +421,7 @@ def reconstruct_pair(
     alpha_j, kproj_j, mask_j = _segment_views(
         jnp.asarray(stack),
         jnp.asarray(plate_stack),
-        jnp.asarray(cfg.key_rgb, jnp.float32),
+        _f32(cfg.key_rgb),
         cfg.tol_lo,
         cfg.tol_hi,
         cfg.plate_lo,
@@ -452,8 +468,8 @@ def reconstruct_pair(
         for c, v in zip(cams, views, strict=True)
     ]
     T1, T2 = pose["T_cam1_base"], pose["T_cam2_base"]
-    E = np.asarray(essential_matrix(jnp.asarray(T1), jnp.asarray(T2)), np.float64)
-    f = float(cam1.K[0, 0])
+    E = _essential_np(T1, T2)
+    f = float(np.asarray(cam1.K)[0, 0])
     y1, y2, quality = match_backbones(
         E, xn[0], xn[1], cap=8.0 / f, n_real1=len(views[0]["uv"]), n_real2=len(views[1]["uv"])
     )
@@ -461,17 +477,17 @@ def reconstruct_pair(
     nb = _bucket(len(y1))
     P = np.asarray(
         _triangulate(
-            jnp.asarray(T1[:3], jnp.float32),
-            jnp.asarray(T2[:3], jnp.float32),
-            jnp.asarray(_pad_rows(y1, nb), jnp.float32),
-            jnp.asarray(_pad_rows(y2, nb), jnp.float32),
+            _f32(T1[:3]),
+            _f32(T2[:3]),
+            _f32(_pad_rows(y1, nb)),
+            _f32(_pad_rows(y2, nb)),
         ),
         np.float64,
     )[: len(y1)]
     # Reject points whose reprojection misses either view by > 2 px (bad matches).
     err = []
-    for c, y in zip(cams, (y1, y2), strict=True):
-        Pc = P @ np.asarray(c.R, np.float64).T + np.asarray(c.t, np.float64)
+    for T, y in zip((T1, T2), (y1, y2), strict=True):
+        Pc = P @ np.asarray(T[:3, :3], np.float64).T + np.asarray(T[:3, 3], np.float64)
         err.append(np.linalg.norm(Pc[:, :2] / Pc[:, 2:] - y, axis=1) * f)
     good = (err[0] < 2.0) & (err[1] < 2.0) & np.all(np.isfinite(P), axis=1)
     if good.sum() < 10:
@@ -504,10 +520,10 @@ def reconstruct_pair(
             )
         Pr = np.asarray(
             _triangulate(
-                jnp.asarray(T1[:3], jnp.float32),
-                jnp.asarray(T2[:3], jnp.float32),
-                jnp.asarray(ys[0], jnp.float32),
-                jnp.asarray(ys[1], jnp.float32),
+                _f32(T1[:3]),
+                _f32(T2[:3]),
+                _f32(ys[0]),
+                _f32(ys[1]),
             ),
             np.float64,
         )[: len(p)]

@@ -27,7 +27,7 @@ def piecewise_constant(values: np.ndarray, k: int, min_len: int = 3) -> tuple[np
     c1 = np.concatenate([[0.0], np.cumsum(y)])
     c2 = np.concatenate([[0.0], np.cumsum(y * y)])
 
-    def sse(i, j):  # [i, j) vectorised over i
+    def sse(i, j):  # [i, j), broadcast over i (column) and j (row)
         m = j - i
         s = c1[j] - c1[i]
         return c2[j] - c2[i] - s * s / np.maximum(m, 1)
@@ -35,13 +35,18 @@ def piecewise_constant(values: np.ndarray, k: int, min_len: int = 3) -> tuple[np
     cost = np.full((k + 1, n + 1), np.inf)
     arg = np.zeros((k + 1, n + 1), np.int64)
     cost[0, 0] = 0.0
+    ii = np.arange(n + 1)[:, None]
     for p in range(1, k + 1):
-        for j in range(p * min_len, n + 1):
-            i = np.arange((p - 1) * min_len, j - min_len + 1)
-            c = cost[p - 1, i] + sse(i, j)
-            b = int(np.argmin(c))
-            cost[p, j] = c[b]
-            arg[p, j] = i[b]
+        # All end points j of this row at once (in column chunks to bound memory): the
+        # candidate starts i are rows, invalid ones inf; argmin takes the first minimum
+        # in increasing i, as a loop over i would.
+        for j0 in range(p * min_len, n + 1, 512):
+            j = np.arange(j0, min(j0 + 512, n + 1))[None, :]
+            valid = (ii >= (p - 1) * min_len) & (ii <= j - min_len)
+            c = np.where(valid, cost[p - 1, :, None] + sse(ii, j), np.inf)
+            b = np.argmin(c, axis=0)
+            cost[p, j[0]] = c[b, np.arange(j.shape[1])]
+            arg[p, j[0]] = b
     starts = []
     j = n
     for p in range(k, 0, -1):
