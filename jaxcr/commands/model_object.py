@@ -158,40 +158,40 @@ def report_markdown(sim, ev: dict) -> str:
     for n in ev["notes"]:
         lines.append(f"- note: {n}")
     if "after" in ev:
-        lines += ["", "| | before Alg. 2 | after Alg. 2 |", "|---|---|---|"]
-        b, a = ev["before"], ev["after"]
-        rows = [
-            (
-                "max rotation error (deg)",
-                b["pose"]["max_rot_deg"],
-                a["pose"]["max_rot_deg"],
-                "{:.3f}",
-            ),
-            (
-                "max translation error (mm)",
-                1000 * b["pose"]["max_trans_m"],
-                1000 * a["pose"]["max_trans_m"],
-                "{:.2f}",
-            ),
-            (
-                "mean rotation error (deg)",
-                b["pose"]["mean_rot_deg"],
-                a["pose"]["mean_rot_deg"],
-                "{:.3f}",
-            ),
-            (
-                "mean translation error (mm)",
-                1000 * b["pose"]["mean_trans_m"],
-                1000 * a["pose"]["mean_trans_m"],
-                "{:.2f}",
-            ),
-            ("mean dist. to K=100 NN (mm)", b["knn_mean_mm"], a["knn_mean_mm"], "{:.3f}"),
-            ("mean #neighbours within 3 mm", b["neigh3mm_mean"], a["neigh3mm_mean"], "{:.2f}"),
-            ("model-to-truth mean (mm)", b["surface_mean_mm"], a["surface_mean_mm"], "{:.2f}"),
-            ("model-to-truth 95th pct (mm)", b["surface_p95_mm"], a["surface_p95_mm"], "{:.2f}"),
+        lines += [
+            "",
+            "| | before Alg. 2 | after Alg. 2 | true poses (reference) |",
+            "|---|---|---|---|",
         ]
-        for name, x, y, fmt in rows:
-            lines.append(f"| {name} | {fmt.format(x)} | {fmt.format(y)} |")
+        b, a = ev["before"], ev["after"]
+        t = ev.get("truth", {})
+
+        def pose_row(name, key, scale, fmt):
+            return (name, scale * b["pose"][key], scale * a["pose"][key], None, fmt)
+
+        rows = [
+            pose_row("max rotation error (deg)", "max_rot_deg", 1.0, "{:.3f}"),
+            pose_row("max translation error (mm)", "max_trans_m", 1000.0, "{:.2f}"),
+            pose_row("mean rotation error (deg)", "mean_rot_deg", 1.0, "{:.3f}"),
+            pose_row("mean translation error (mm)", "mean_trans_m", 1000.0, "{:.2f}"),
+        ]
+        for name, key, fmt in (
+            ("mean dist. to K=100 NN (mm), whole model", "knn_mean_mm", "{:.3f}"),
+            ("mean #neighbours within 3 mm, whole model", "neigh3mm_mean", "{:.2f}"),
+            ("mean dist. to K=100 NN (mm), loop seam overlap", "seam_knn_mean_mm", "{:.3f}"),
+            (
+                "mean #neighbours within 3 mm, loop seam overlap",
+                "seam_neigh3mm_mean",
+                "{:.2f}",
+            ),
+            ("model-to-truth mean (mm)", "surface_mean_mm", "{:.2f}"),
+            ("model-to-truth 95th pct (mm)", "surface_p95_mm", "{:.2f}"),
+        ):
+            if key in b:
+                rows.append((name, b[key], a[key], t.get(key), fmt))
+        for name, x, y, z, fmt in rows:
+            ref = "" if z is None else fmt.format(z)
+            lines.append(f"| {name} | {fmt.format(x)} | {fmt.format(y)} | {ref} |")
         gl = ev["global"]
         lines += [
             "",
@@ -252,10 +252,13 @@ def plot_fig13(path: Path, ev: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, axs = plt.subplots(1, 2, figsize=(9, 3.5))
-    for tag, c in (("before", "tab:orange"), ("after", "tab:blue")):
+    for tag, c in (("before", "tab:orange"), ("after", "tab:blue"), ("truth", "0.5")):
+        if tag not in ev:
+            continue
         knn = 1000 * ev[tag]["_knn"]
         cnt = ev[tag]["_cnt"]
-        axs[0].hist(knn, bins=60, histtype="step", color=c, label=f"{tag} global opt.")
+        label = "true poses" if tag == "truth" else f"{tag} global opt."
+        axs[0].hist(knn, bins=60, histtype="step", color=c, label=label)
         axs[1].hist(
             cnt, bins=np.arange(0, cnt.max() + 2) - 0.5, histtype="step", color=c, label=tag
         )

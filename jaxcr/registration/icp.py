@@ -52,11 +52,14 @@ class IcpResult(NamedTuple):
 
 
 class Keypoints(NamedTuple):
-    """Matched 3-D keypoints (k, 3) in the source / target frames and a mask (k,)."""
+    """Matched 3-D keypoints (k, 3) in the source / target frames and a mask (k,).
+    ``scale`` (m, scalar) is the robust scale of their residuals (the Gaussian width of the
+    keypoint weights); ``None`` uses ``IcpConfig.sigma_keypoint``."""
 
     src: Float[Array, "k 3"]
     tgt: Float[Array, "k 3"]
     mask: Bool[Array, " k"]
+    scale: Float[Array, ""] | None = None
 
 
 def no_keypoints(k: int = 1) -> Keypoints:
@@ -146,7 +149,8 @@ def icp_step(T, radius, src: CloudArrays, tgt: CloudArrays, cfg: IcpConfig, kp: 
     H, g = H + Hp, g + gp
     ks = kp.src @ T[:3, :3].T + T[:3, 3]
     rk2 = jnp.sum((ks - kp.tgt) ** 2, -1)
-    wk = jnp.where(kp.mask, jnp.exp(-rk2 / (2 * cfg.sigma_keypoint**2)), 0.0)
+    sk = cfg.sigma_keypoint if kp.scale is None else kp.scale
+    wk = jnp.where(kp.mask, jnp.exp(-rk2 / (2 * sk**2)), 0.0)
     wk = wk * cfg.keypoint_weight * jnp.sum(w) / jnp.maximum(jnp.sum(kp.mask), 1)
     # Keypoint depth is the noisy coordinate: keep only the residual across the target ray.
     ray = kp.tgt / jnp.maximum(jnp.linalg.norm(kp.tgt, axis=-1, keepdims=True), 1e-9)

@@ -49,16 +49,34 @@ def make_frame(
     return Frame(np.asarray(rgb), np.asarray(depth), full, arrays, label)
 
 
-def _keypoint_arrays(ka, kb, T_kp, size: int = 256) -> Keypoints:
-    """RANSAC inliers padded to ``size`` (no keypoints when RANSAC failed)."""
+def keypoint_scale(ka, kb, T, upper: float) -> float:
+    """Robust scale (m) of keypoint residuals across the target viewing rays, the residual
+    the ICP keypoint term uses: ``T ka - kb`` with its component along ``kb`` removed. The
+    2-D residuals of isotropic Gaussian noise sigma have a Rayleigh-distributed norm with
+    median 1.1774 sigma; the weight width is 3 sigma (inliers keep their weight, gross
+    matches within the RANSAC threshold are down-weighted), capped at ``upper``."""
+    if len(ka) == 0:
+        return float(upper)
+    r = ka @ T[:3, :3].T + T[:3, 3] - kb
+    ray = kb / np.maximum(np.linalg.norm(kb, axis=1, keepdims=True), 1e-12)
+    perp = r - np.sum(r * ray, 1, keepdims=True) * ray
+    sigma = float(np.median(np.linalg.norm(perp, axis=1))) / 1.1774
+    return float(np.clip(3.0 * sigma, 1e-4, upper))
+
+
+def _keypoint_arrays(ka, kb, T_kp, size: int = 256, upper: float = 0.005) -> Keypoints:
+    """RANSAC inliers padded to ``size`` (no keypoints when RANSAC failed) with their robust
+    residual scale (:func:`keypoint_scale`, at most ``upper``)."""
     s = np.zeros((size, 3), np.float32)
     t = np.zeros((size, 3), np.float32)
     m = np.zeros(size, bool)
+    scale = upper
     if T_kp is not None:
         idx = np.flatnonzero(inlier_set(ka, kb, T_kp))[:size]
         s[: len(idx)], t[: len(idx)] = ka[idx], kb[idx]
         m[: len(idx)] = True
-    return Keypoints(jnp.asarray(s), jnp.asarray(t), jnp.asarray(m))
+        scale = keypoint_scale(ka[idx], kb[idx], T_kp, upper)
+    return Keypoints(jnp.asarray(s), jnp.asarray(t), jnp.asarray(m), jnp.float32(scale))
 
 
 @dataclass
@@ -90,7 +108,7 @@ def register_pair(
     ka, kb = matched_points(src.rgb, src.depth, tgt.rgb, tgt.depth, K, asift=asift)
     T_kp, n_in = estimate_transform(ka, kb, seed=seed) if len(ka) else (None, 0)
     T0 = T_kp if T_kp is not None else (np.eye(4) if prior is None else prior)
-    kp = _keypoint_arrays(ka, kb, T_kp)
+    kp = _keypoint_arrays(ka, kb, T_kp, upper=cfg.sigma_keypoint)
     res = icp_jit(src.arrays, tgt.arrays, jnp.asarray(T0, jnp.float32), cfg, kp)
     T = np.asarray(res.T, np.float64)
     fitness = float(res.fitness)
