@@ -25,10 +25,15 @@ from jaxcr.eigen.contour import (
 )
 from jaxcr.eigen.descriptor import (
     MIN_MARKER_PIXELS,
+    Contours,
     angular_histogram,
+    contour_histograms,
+    mask_contours,
     mask_descriptors,
     stereo_descriptor,
 )
+from jaxcr.eigen.pipeline import StereoContours, stereo_histograms, view_centres
+from jaxcr.errors import InputError
 
 
 @settings(max_examples=30, deadline=None)
@@ -184,3 +189,88 @@ def test_descriptor_changes_with_shape(nb):
     b[5:55, 30:40] = True
     H, ok = mask_descriptors(np.stack([a, b]), nb)
     assert ok.all() and np.abs(H[0] - H[1]).sum() > 0.3
+
+
+def _np_hist(pts, centre, nb):
+    ang = np.mod(np.arctan2(pts[:, 1] - centre[1], pts[:, 0] - centre[0]), 2 * np.pi)
+    return np.histogram(ang, bins=nb, range=(0, 2 * np.pi))[0].astype(np.float64)
+
+
+def _two_contours():
+    m = np.zeros((2, 60, 80), bool)
+    m[0] = _banana()
+    m[1, 10:50, 30:42] = True
+    return mask_contours(m)
+
+
+def test_contour_histograms_fixed_and_region_centres_match_numpy():
+    """centre=None uses each frame's region centroid; a given point is used for every
+    frame. Reference: numpy histogram of the atan2 angles (exact counts)."""
+    c = _two_contours()
+    fixed = np.array([40.5, 31.0])
+    H_reg = contour_histograms(c, 72, normalise=False)
+    H_fix = contour_histograms(c, 72, normalise=False, centre=fixed)
+    for i in range(2):
+        np.testing.assert_array_equal(H_reg[i], _np_hist(c.points[i], c.centres[i], 72))
+        np.testing.assert_array_equal(H_fix[i], _np_hist(c.points[i], fixed, 72))
+    Hn = contour_histograms(c, 72, centre=fixed)
+    np.testing.assert_allclose(Hn, H_fix / H_fix.sum(1, keepdims=True), atol=1e-7)
+    with pytest.raises(InputError, match="centre"):
+        contour_histograms(c, 72, centre=np.array([1.0, np.nan]))
+
+
+def test_fixed_centre_confines_occlusion_to_its_bins():
+    """Why the fixed centre (descriptor module docstring): removing the contour points of
+    an occluded part changes, with a fixed centre, exactly the bins of the removed points
+    (raw counts); with the region centroid the centre moves and other bins change too."""
+    m = _banana()
+    occ = m.copy()
+    occ[:, 55:] = False  # an occluder hides the right end of the region
+    c_full, c_occ = mask_contours(m[None]), mask_contours(occ[None])
+    kept = {tuple(p) for p in c_occ.points[0]}
+    # Points of the full contour that survive unchanged; the occluded contour adds its
+    # new border along the cut, the full one loses the hidden part.
+    removed = np.array([p for p in c_full.points[0] if tuple(p) not in kept])
+    full_set = {tuple(p) for p in c_full.points[0]}
+    added = np.array([p for p in c_occ.points[0] if tuple(p) not in full_set])
+    fixed = c_full.centres[0]
+    d_fix = (
+        contour_histograms(c_full, 120, False, fixed)[0]
+        - contour_histograms(c_occ, 120, False, fixed)[0]
+    )
+    np.testing.assert_array_equal(
+        d_fix, _np_hist(removed, fixed, 120) - _np_hist(added, fixed, 120)
+    )
+    d_reg = contour_histograms(c_full, 120, False)[0] - contour_histograms(c_occ, 120, False)[0]
+    touched = (_np_hist(removed, fixed, 120) + _np_hist(added, fixed, 120)) > 0
+    assert np.abs(d_fix[~touched]).sum() == 0
+    assert np.abs(d_reg[~touched]).sum() > 10  # the moved centroid re-bins untouched points
+
+
+def test_view_centres_and_stereo_histograms():
+    c = _two_contours()
+    bad = Contours(
+        [c.points[0], np.zeros((0, 2), np.int64)],
+        c.centres,
+        np.array([True, False]),
+        c.marker_pixels,
+    )
+    sc = StereoContours(["a", "b"], (c, bad))
+    vc = view_centres(sc)  # only frame 0 has markers in both views
+    np.testing.assert_allclose(vc, np.stack([c.centres[0], c.centres[0]]))
+    sc2 = StereoContours(["a", "b"], (c, c))
+    np.testing.assert_allclose(view_centres(sc2), [c.centres.mean(0)] * 2)
+    H, ok = stereo_histograms(sc2, 36, True, vc)
+    np.testing.assert_allclose(H[:, :36], contour_histograms(c, 36, True, vc[0]), atol=0)
+    np.testing.assert_array_equal(ok, [True, True])
+    with pytest.raises(InputError, match="view centres"):
+        stereo_histograms(sc2, 36, True, np.zeros(2))
+    empty = StereoContours(
+        ["a"],
+        tuple(
+            Contours([np.zeros((0, 2), np.int64)], np.zeros((1, 2)), np.zeros(1, bool), np.zeros(1))
+            for _ in range(2)
+        ),
+    )
+    with pytest.raises(InputError, match="no frame"):
+        view_centres(empty)

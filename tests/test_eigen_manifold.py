@@ -112,7 +112,9 @@ def _toy_training(n=400, seed=0, nb=16):
 def test_train_estimate_recovers_psi_on_toy_manifold():
     psi, desc = _toy_training()
     colour = ColourModel(jnp.zeros((5, 2)), jnp.asarray(0, jnp.int32))
-    cfg = TrainConfig(n_bins=16, variance=0.999, smoothing=1e-6, step=np.deg2rad(0.5))
+    cfg = TrainConfig(
+        n_bins=16, variance=0.999, smoothing=1e-6, step=np.deg2rad(0.5), centre="region"
+    )
     model = train(desc(psi), psi, colour, cfg)
     rng = np.random.default_rng(9)
     test = np.stack([rng.uniform(0.15, 1.25, 100), rng.uniform(0.1, np.pi - 0.1, 100)], 1)
@@ -139,7 +141,8 @@ def small_model():
         jnp.asarray(np.arange(10, dtype=np.float32).reshape(5, 2)), jnp.asarray(2, jnp.int32)
     )
     cfg = TrainConfig(n_bins=16, variance=0.99, step=np.deg2rad(2.0))
-    return train(desc(psi), psi, colour, cfg), desc
+    centres = np.array([[100.5, 80.25], [90.0, 81.0]])
+    return train(desc(psi), psi, colour, cfg, view_centres=centres), desc
 
 
 def test_model_file_round_trip(tmp_path, small_model):
@@ -152,6 +155,7 @@ def test_model_file_round_trip(tmp_path, small_model):
     )
     np.testing.assert_array_equal(np.asarray(back.colour.centres), np.asarray(model.colour.centres))
     assert int(back.colour.marker) == 2
+    np.testing.assert_array_equal(back.view_centres, model.view_centres)
     psi = np.array([[0.5, 1.0], [1.0, 2.0]])
     np.testing.assert_allclose(estimate(back, desc(psi)), estimate(model, desc(psi)), atol=1e-7)
     with np.load(path) as z:
@@ -186,7 +190,7 @@ def test_model_file_errors(tmp_path, small_model):
     with pytest.raises(InputError):
         load_model(trunc)
     with pytest.raises(InputError, match="unsupported model format"):
-        load_model(_rewrite(good, tmp_path / "v2.npz", format=np.array("jaxcr.manifold/2")))
+        load_model(_rewrite(good, tmp_path / "v9.npz", format=np.array("jaxcr.manifold/9")))
     with pytest.raises(InputError, match="no 'format'"):
         load_model(_rewrite(good, tmp_path / "nofmt.npz", format=None))
     with pytest.raises(InputError, match="pca_mean"):
@@ -195,10 +199,35 @@ def test_model_file_errors(tmp_path, small_model):
         load_model(_rewrite(good, tmp_path / "nofeat.npz", manifold_features=None))
     with pytest.raises(InputError, match="config"):
         load_model(_rewrite(good, tmp_path / "cfg.npz", config=np.array("{not json")))
+    with pytest.raises(InputError, match="view_centres"):
+        load_model(_rewrite(good, tmp_path / "noc.npz", view_centres=None))
+    with pytest.raises(InputError, match="view_centres"):
+        load_model(_rewrite(good, tmp_path / "nanc.npz", view_centres=np.full((2, 2), np.nan)))
     with pytest.raises(InputError, match="finite"):
         f = np.asarray(model.manifold.features).copy()
         f[0, 0] = np.nan
         load_model(_rewrite(good, tmp_path / "nan.npz", manifold_features=f))
+
+
+def test_model_file_version1_reads_as_region_centre(tmp_path, small_model):
+    """A version-1 file (no view centres; per-frame centroids) still loads, as centre
+    'region', and estimates the same."""
+    model, desc = small_model
+    good = save_model(model, tmp_path / "good.npz")
+    with np.load(good) as z:
+        cfg = json.loads(str(z["config"]))
+    cfg.pop("centre")
+    v1 = _rewrite(
+        good,
+        tmp_path / "v1.npz",
+        format=np.array("jaxcr.manifold/1"),
+        config=np.array(json.dumps(cfg)),
+        view_centres=None,
+    )
+    back = load_model(v1)
+    assert back.config.centre == "region" and back.view_centres is None
+    psi = np.array([[0.5, 1.0]])
+    np.testing.assert_allclose(estimate(back, desc(psi)), estimate(model, desc(psi)), atol=1e-7)
 
 
 def test_train_bad_input():
@@ -211,3 +240,7 @@ def test_train_bad_input():
         train(np.zeros((10, 12)), np.zeros((10, 2)), colour, TrainConfig(n_bins=8))
     with pytest.raises(InputError, match="columns"):
         train(np.zeros((10, 16)), np.zeros((10, 3)), colour, TrainConfig(n_bins=8))
+    with pytest.raises(InputError, match="view centres"):
+        train(np.zeros((10, 16)), np.zeros((10, 2)), colour, TrainConfig(n_bins=8))
+    with pytest.raises(InputError, match="centre"):
+        TrainConfig(n_bins=8, centre="middle").check()

@@ -8,7 +8,7 @@ pairs (Reiter et al.).
 ``train`` clusters the first frame's colours (k-means in CIELAB a*b*), extracts the stereo
 angular-histogram descriptors of every frame, keeps the PCA components for the variance
 fraction, fits the thin-plate spline manifold and resamples it; the model file is
-versioned (``jaxcr.manifold/1``). ``query`` estimates psi = (theta_L, delta) (or the tip
+versioned (``jaxcr.manifold/2``). ``query`` estimates psi = (theta_L, delta) (or the tip
 position) of every frame and, where the dataset has the truth, the errors; frames without
 marker pixels in a view are reported as failed (exit code 1 if any failed).
 """
@@ -59,6 +59,14 @@ def add_parser(subparsers) -> None:
         type=int,
         default=3,
         help="b nearest manifold points in the query (default 3)",
+    )
+    t.add_argument(
+        "--centre",
+        choices=["fixed", "region"],
+        default="fixed",
+        help="histogram centre: 'fixed' = one point per view, the mean training region "
+        "centroid (robust to partial occlusion; default), 'region' = each frame's region "
+        "centroid (the paper)",
     )
     t.add_argument("--clusters", type=int, default=5, help="k-means colour clusters (default 5)")
     t.add_argument(
@@ -135,7 +143,12 @@ def run_train(args) -> int:
     from jaxcr.eigen.colour import fit_colour_model
     from jaxcr.eigen.model import TrainConfig, train
     from jaxcr.eigen.model_file import save_model
-    from jaxcr.eigen.pipeline import check_cameras, dataset_contours, stereo_histograms
+    from jaxcr.eigen.pipeline import (
+        check_cameras,
+        dataset_contours,
+        stereo_histograms,
+        view_centres,
+    )
 
     cams = _cameras(args.cameras)
     cfg = TrainConfig(
@@ -145,6 +158,7 @@ def run_train(args) -> int:
         step=args.step,
         b=args.neighbours,
         params=args.params,
+        centre=args.centre,
         cameras=cams,
     )
     cfg.check()
@@ -173,14 +187,16 @@ def run_train(args) -> int:
     )
     P = _params(ds, cfg.params, ds.frames)
     sc = dataset_contours(ds, colour, cams, cfg.spacing)
-    H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise)
-    t1 = time.perf_counter()
+    ok = sc.ok
     if ok.sum() < 10:
         raise InputError(
             f"only {int(ok.sum())} frames have marker pixels in both views; check the colour model",
             file=args.dataset,
         )
-    model = train(H[ok], P[ok], colour, cfg)
+    centres = view_centres(sc) if cfg.centre == "fixed" else None
+    H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise, centres)
+    t1 = time.perf_counter()
+    model = train(H[ok], P[ok], colour, cfg, view_centres=centres)
     t2 = time.perf_counter()
     meta = {
         "dataset": str(Path(args.dataset).resolve()),
@@ -215,7 +231,7 @@ def run_query(args) -> int:
     check_cameras(ds, cfg.cameras)
     t0 = time.perf_counter()
     sc = dataset_contours(ds, model.colour, cfg.cameras, cfg.spacing)
-    H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise)
+    H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise, model.view_centres)
     t1 = time.perf_counter()
     names = PARAM_KINDS[cfg.params]
     est = np.full((len(ok), len(names)), np.nan)

@@ -4,21 +4,25 @@ manifold and k-NN inverse-distance query."""
 
 from jaxcr.eigen.colour import ColourModel, fit_colour_model, label_batch, label_image, rgb_to_lab
 from jaxcr.eigen.descriptor import angular_histogram, mask_descriptors, stereo_descriptor
+from jaxcr.eigen.knn_index import KnnIndex, build_index, knn_batch, query_batch_indexed
 from jaxcr.eigen.manifold import Manifold, build_manifold, idw_weights, knn, query, query_batch
 from jaxcr.eigen.model import EigenModel, TrainConfig, estimate, train
 from jaxcr.eigen.model_file import FORMAT, load_model, save_model
 from jaxcr.eigen.pca import PCA, components_for_variance, fit_pca, project
+from jaxcr.eigen.pipeline import stereo_histograms, view_centres
 from jaxcr.eigen.tps import ThinPlateSpline, evaluate_tps, fit_tps
 
 __all__ = [
     "ColourModel",
     "EigenModel",
+    "KnnIndex",
     "FORMAT",
     "Manifold",
     "PCA",
     "ThinPlateSpline",
     "TrainConfig",
     "angular_histogram",
+    "build_index",
     "build_manifold",
     "components_for_variance",
     "estimate",
@@ -28,15 +32,19 @@ __all__ = [
     "fit_tps",
     "idw_weights",
     "knn",
+    "knn_batch",
     "label_batch",
     "label_image",
     "mask_descriptors",
     "project",
     "query",
     "query_batch",
+    "query_batch_indexed",
     "rgb_to_lab",
     "save_model",
     "load_model",
     "stereo_descriptor",
+    "stereo_histograms",
     "train",
+    "view_centres",
 ]

@@ -17,10 +17,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcr.eigen.colour import ColourModel
-from jaxcr.eigen.manifold import Manifold, build_manifold, query_batch
+from jaxcr.eigen.knn_index import KnnIndex, build_index, query_batch_indexed
+from jaxcr.eigen.manifold import Manifold, build_manifold
 from jaxcr.eigen.pca import PCA, components_for_variance, fit_pca
 from jaxcr.errors import InputError
 
+CENTRES = ("fixed", "region")
 PARAM_KINDS = {"angles": ("theta_L", "delta"), "position": ("x", "y", "z")}
 #: Default grid spacing of the resampled manifold per parameter kind (radians / metres).
 DEFAULT_STEP = {"angles": float(np.deg2rad(0.5)), "position": 0.5e-3}
@@ -45,6 +47,7 @@ class TrainConfig:
     params: str = "angles"
     spacing: float = 2.0
     normalise: bool = True
+    centre: str = "fixed"
     cameras: tuple[str, str] = ("left", "right")
     max_gap: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
@@ -60,6 +63,10 @@ class TrainConfig:
             raise InputError(f"b must be >= 1, got {self.b}", field="b")
         if self.smoothing < 0:
             raise InputError("smoothing must be >= 0", field="smoothing")
+        if self.centre not in CENTRES:
+            raise InputError(
+                f"centre must be one of {CENTRES}, got {self.centre!r}", field="centre"
+            )
 
 
 @dataclass
@@ -70,6 +77,17 @@ class EigenModel:
     manifold: Manifold
     n_train: int
     timings: dict[str, float] = field(default_factory=dict)
+    #: Fixed histogram reference points (2, 2) (x, y pixels per view) if config.centre is
+    #: "fixed", else None.
+    view_centres: np.ndarray | None = None
+    #: Leaf index of the manifold features for the exact pruned query (built on first use;
+    #: not stored in model files, it is a deterministic function of the manifold).
+    index: KnnIndex | None = None
+
+    def knn_index(self) -> KnnIndex:
+        if self.index is None:
+            self.index = build_index(np.asarray(self.manifold.features))
+        return self.index
 
     @property
     def n_components(self) -> int:
@@ -77,10 +95,18 @@ class EigenModel:
 
 
 def train(
-    descriptors: np.ndarray, params: np.ndarray, colour: ColourModel, config: TrainConfig
+    descriptors: np.ndarray,
+    params: np.ndarray,
+    colour: ColourModel,
+    config: TrainConfig,
+    view_centres: np.ndarray | None = None,
 ) -> EigenModel:
     """PCA of the stereo descriptors (n, 2 n_bins), keep ``config.variance``, fit the
-    spline ``params`` (n, d) -> eigen-features and resample it (Reiter et al. Sec. III-D)."""
+    spline ``params`` (n, d) -> eigen-features and resample it (Reiter et al. Sec. III-D).
+
+    ``view_centres`` (2, 2): the fixed histogram centres the descriptors were computed
+    with (:func:`jaxcr.eigen.pipeline.view_centres`); required iff config.centre is
+    "fixed", stored in the model so that queries use the same points."""
     config.check()
     H = np.asarray(descriptors, np.float32)
     P = np.asarray(params, np.float64)
@@ -95,6 +121,12 @@ def train(
         raise InputError(f"params {config.params!r} need {d} columns, got {P.shape[1]}")
     if len(H) < d + 3:
         raise InputError(f"need at least {d + 3} training frames, got {len(H)}")
+    if config.centre == "fixed":
+        if view_centres is None or np.shape(view_centres) != (2, 2):
+            raise InputError("centre 'fixed' needs the (2, 2) view centres", field="centre")
+        view_centres = np.asarray(view_centres, np.float64)
+    else:
+        view_centres = None
     t0 = time.perf_counter()
     full = fit_pca(jnp.asarray(H))
     k = components_for_variance(full, config.variance)
@@ -106,13 +138,22 @@ def train(
     manifold, _ = build_manifold(P, L, step, config.smoothing, config.max_gap)
     manifold.features.block_until_ready()
     t2 = time.perf_counter()
+    index = build_index(np.asarray(manifold.features))
+    t3 = time.perf_counter()
     return EigenModel(
         config,
         colour,
         pca,
         manifold,
         len(H),
-        {"pca_s": t1 - t0, "manifold_s": t2 - t1, "variance_total": float(full.variance.sum())},
+        {
+            "pca_s": t1 - t0,
+            "manifold_s": t2 - t1,
+            "index_s": t3 - t2,
+            "variance_total": float(full.variance.sum()),
+        },
+        view_centres,
+        index,
     )
 
 
@@ -126,6 +167,7 @@ def eigen_features(model: EigenModel, descriptors: np.ndarray) -> np.ndarray:
 
 
 def estimate(model: EigenModel, descriptors: np.ndarray) -> np.ndarray:
-    """Parameters (n, d) for stereo descriptors (n, m) (eqs. 5, 7, 8)."""
+    """Parameters (n, d) for stereo descriptors (n, m) (eqs. 5, 7, 8); the k-NN by the
+    exact pruned search of :mod:`jaxcr.eigen.knn_index`."""
     L = eigen_features(model, descriptors)
-    return np.asarray(query_batch(model.manifold, L, model.config.b))
+    return query_batch_indexed(model.manifold, model.knn_index(), np.asarray(L), model.config.b)

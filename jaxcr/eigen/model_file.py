@@ -1,6 +1,9 @@
 """Model files of the eigen-feature estimator: a ``.npz`` with a ``format`` field
-(``"jaxcr.manifold/1"``), the training configuration as JSON (``config``) and the arrays
-(colour centres and marker index, PCA mean/components/variance, resampled manifold).
+(``"jaxcr.manifold/2"``), the training configuration as JSON (``config``) and the arrays
+(colour centres and marker index, PCA mean/components/variance, resampled manifold, and
+``view_centres`` (2, 2), the fixed histogram reference points, NaN when the model uses
+per-frame region centroids). Version 1 files (no ``view_centres``; always per-frame
+centroids) are still read, as ``centre = "region"`` models.
 
 Self-describing: ``format``, ``config`` (JSON, includes the parameter names and units) and
 ``meta`` (JSON: jaxcr version, training set, timings) travel with the arrays. Loading checks
@@ -26,7 +29,9 @@ from jaxcr.eigen.model import PARAM_KINDS, EigenModel, TrainConfig
 from jaxcr.eigen.pca import PCA
 from jaxcr.errors import InputError
 
-FORMAT = "jaxcr.manifold/1"
+FORMAT = "jaxcr.manifold/2"
+#: Older formats this version reads.
+FORMAT_V1 = "jaxcr.manifold/1"
 _ARRAYS = (
     "colour_centres",
     "colour_marker",
@@ -62,6 +67,11 @@ def save_model(
         "pca_variance": np.asarray(model.pca.variance, np.float32),
         "manifold_psi": np.asarray(model.manifold.psi, np.float32),
         "manifold_features": np.asarray(model.manifold.features, np.float32),
+        "view_centres": (
+            np.full((2, 2), np.nan)
+            if model.view_centres is None
+            else np.asarray(model.view_centres, np.float64)
+        ),
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.npz")
@@ -83,7 +93,7 @@ def load_model(path: str | os.PathLike) -> EigenModel:
     if "format" not in data:
         raise InputError("not a jaxcr manifold model (no 'format' field)", file=f, field="format")
     fmt = str(data["format"])
-    if fmt != FORMAT:
+    if fmt not in (FORMAT, FORMAT_V1):
         raise InputError(
             f"unsupported model format {fmt!r} (this jaxcr reads {FORMAT!r})",
             file=f,
@@ -98,6 +108,8 @@ def load_model(path: str | os.PathLike) -> EigenModel:
     except json.JSONDecodeError:
         raise InputError("config is not valid JSON", file=f, field="config") from None
     known = set(TrainConfig.__dataclass_fields__)
+    if fmt == FORMAT_V1:
+        cfg["centre"] = "region"  # version 1 had only per-frame centroids
     try:
         config = TrainConfig(**{k: v for k, v in cfg.items() if k in known})
         config.cameras = tuple(config.cameras)  # type: ignore[assignment]
@@ -131,6 +143,17 @@ def load_model(path: str | os.PathLike) -> EigenModel:
                 file=f,
                 field=k,
             )
+    centres = None
+    if config.centre == "fixed":
+        if "view_centres" not in data:
+            raise InputError("missing field", file=f, field="view_centres")
+        centres = np.asarray(data["view_centres"], np.float64)
+        if centres.shape != (2, 2) or not np.all(np.isfinite(centres)):
+            raise InputError(
+                "view centres must be finite (2, 2) for centre 'fixed'",
+                file=f,
+                field="view_centres",
+            )
     if len(a["manifold_psi"]) < config.b:
         raise InputError(
             f"manifold has fewer points than b={config.b}", file=f, field="manifold_psi"
@@ -148,4 +171,5 @@ def load_model(path: str | os.PathLike) -> EigenModel:
         manifold=Manifold(jnp.asarray(a["manifold_psi"]), jnp.asarray(a["manifold_features"])),
         n_train=int(meta.get("n_train", 0)),
         timings=dict(meta.get("timings", {})),
+        view_centres=centres,
     )

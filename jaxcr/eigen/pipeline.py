@@ -72,10 +72,29 @@ def dataset_contours(
     return StereoContours([f.id for f in frames], views)  # type: ignore[arg-type]
 
 
+def view_centres(sc: StereoContours) -> np.ndarray:
+    """Fixed histogram reference points (2, 2): per view (left, right) the mean region
+    centroid (x, y pixels) over the frames with markers in both views. Computed on the
+    training set and stored in the model (see :mod:`jaxcr.eigen.descriptor`)."""
+    ok = sc.ok
+    if not ok.any():
+        raise InputError("no frame has marker pixels in both views: no histogram centre")
+    return np.stack([np.asarray(v.centres)[ok].mean(axis=0) for v in sc.views])
+
+
 def stereo_histograms(
-    sc: StereoContours, n_bins: int, normalise: bool = True
+    sc: StereoContours,
+    n_bins: int,
+    normalise: bool = True,
+    centres: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Stereo descriptors H~ = [H_L, H_R] (n, 2 n_bins) and ok (n,)."""
-    hl = contour_histograms(sc.views[0], n_bins, normalise)
-    hr = contour_histograms(sc.views[1], n_bins, normalise)
+    """Stereo descriptors H~ = [H_L, H_R] (n, 2 n_bins) and ok (n,).
+
+    ``centres``: None = per-frame region centroids (the paper); (2, 2) = a fixed reference
+    point per view (:func:`view_centres`)."""
+    if centres is not None and np.shape(centres) != (2, 2):
+        raise InputError(f"view centres must be (2, 2) (x, y per view), got {np.shape(centres)}")
+    cl, cr = (None, None) if centres is None else np.asarray(centres, np.float64)
+    hl = contour_histograms(sc.views[0], n_bins, normalise, cl)
+    hr = contour_histograms(sc.views[1], n_bins, normalise, cr)
     return np.concatenate([hl, hr], axis=1), sc.ok
