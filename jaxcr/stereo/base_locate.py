@@ -39,14 +39,21 @@ def flood_component(mask: np.ndarray, seed_rc: tuple[float, float]) -> np.ndarra
     """The 8-connected component of ``mask`` (H, W) bool containing the foreground pixel
     nearest ``seed_rc`` (``cv2.floodFill``). Empty if the mask is empty."""
     m = np.ascontiguousarray(mask.astype(np.uint8))
-    rr, cc = np.nonzero(m)
-    if len(rr) == 0:
-        return np.zeros_like(mask, bool)
-    k = int(np.argmin((rr - seed_rc[0]) ** 2 + (cc - seed_rc[1]) ** 2))
     h, w = m.shape
+    r, c = int(np.floor(seed_rc[0] + 0.5)), int(np.floor(seed_rc[1] + 0.5))
+    if 0 <= r < h and 0 <= c < w and m[r, c]:
+        # The pixel nearest the seed is foreground: no search over the image (a tie with
+        # another pixel at the same distance is an 8-neighbour: same component).
+        start = (c, r)
+    else:
+        rr, cc = np.nonzero(m)
+        if len(rr) == 0:
+            return np.zeros_like(mask, bool)
+        k = int(np.argmin((rr - seed_rc[0]) ** 2 + (cc - seed_rc[1]) ** 2))
+        start = (int(cc[k]), int(rr[k]))
     ff = np.zeros((h + 2, w + 2), np.uint8)
-    cv2.floodFill(m, ff, (int(cc[k]), int(rr[k])), 2, flags=8 | cv2.FLOODFILL_MASK_ONLY | (1 << 8))
-    return ff[1:-1, 1:-1].astype(bool)
+    cv2.floodFill(m, ff, start, 2, flags=8 | cv2.FLOODFILL_MASK_ONLY | (1 << 8))
+    return ff[1:-1, 1:-1].view(bool)
 
 
 def locate_base(mask: np.ndarray, base_uv: tuple[float, float], roi_half: int = 24) -> BaseLocation:
@@ -80,9 +87,9 @@ def locate_base(mask: np.ndarray, base_uv: tuple[float, float], roi_half: int = 
             yy, xx = np.mgrid[r0:r1, c0:c1]
             o = xx * nrm[0] + yy * nrm[1]
             band = band & (o >= lo) & (o <= hi)
+    if not band.any():
+        band = mask[r0:r1, c0:c1].astype(bool)
     base_mask[r0:r1, c0:c1] = band
-    if not base_mask.any():
-        base_mask[r0:r1, c0:c1] = mask[r0:r1, c0:c1]
-    rr, cc = np.nonzero(base_mask)
-    seed = (float(rr.mean()), float(cc.mean()))
+    rr, cc = np.nonzero(band)  # the ROI only
+    seed = (float(rr.mean() + r0), float(cc.mean() + c0))
     return BaseLocation(seed, (r0, r1, c0, c1), lines, base_mask, True)

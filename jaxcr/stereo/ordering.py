@@ -14,12 +14,13 @@ The geodesic path is independent of how the tube winds in the image, so curled-b
 order correctly.
 
 Implementation (numpy/scipy, no per-pixel Python loop): the skeleton's 8-neighbour graph is
-built with array indexing (a label image of pixel ids, four forward offsets), geodesic
-distances and BFS-tree predecessors come from ``scipy.sparse.csgraph`` (unweighted
-shortest paths = breadth-first search), and the path is read off the predecessor tree by
-pointer doubling (``log2(n)`` vectorised jumps). Among equally short paths the choice may
-differ from a Python BFS (``skeleton_bfs_slow``, kept as the test reference); distances
-are identical.
+built with array indexing (a label image of pixel ids, the 8 offsets) as a CSR matrix
+whose rows list each pixel's neighbours in raster order; ``scipy.sparse.csgraph`` gives
+the geodesic distances (unweighted shortest paths) and the breadth-first-search tree (in C,
+visiting neighbours in the same raster order as a Python queue over the 8 offsets would, so
+the BFS parents, and hence the choice among equally short paths, are exactly those of
+``skeleton_bfs_slow``, the test reference); the path is read off the tree by pointer
+doubling (``log2(n)`` vectorised jumps).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from collections import deque
 
 import numpy as np
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
+from scipy.sparse.csgraph import breadth_first_order, dijkstra
 
 __all__ = [
     "order_skeleton",
@@ -38,36 +39,34 @@ __all__ = [
     "order_by_base_distance",
 ]
 
+# The 8 offsets in raster order (the order in which BFS visits neighbours).
 _NB = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
-_FORWARD = [(0, 1), (1, -1), (1, 0), (1, 1)]  # each undirected 8-neighbour edge once
 
 
 def skeleton_graph(skel: np.ndarray) -> tuple[np.ndarray, np.ndarray, csr_matrix]:
     """The 8-connected graph of the skeleton pixels: ``(rr, cc, A)`` with the pixels' rows
     and columns (n,) in raster order (node ``k`` is pixel ``(rr[k], cc[k])``) and the
-    (n, n) adjacency (upper triangle, unit weights; use it undirected)."""
+    symmetric (n, n) CSR adjacency (unit weights); each row's neighbours are in raster
+    order (the order of ``_NB``)."""
     skel = np.asarray(skel, bool)
     rr, cc = np.nonzero(skel)
     n = len(rr)
     h, w = skel.shape
     ids = np.full((h + 2, w + 2), -1, np.int64)
     ids[rr + 1, cc + 1] = np.arange(n)
-    src, dst = [], []
-    for dr, dc in _FORWARD:
-        j = ids[rr + 1 + dr, cc + 1 + dc]
-        ok = j >= 0
-        src.append(np.nonzero(ok)[0])
-        dst.append(j[ok])
-    src, dst = np.concatenate(src), np.concatenate(dst)
-    A = csr_matrix((np.ones(len(src)), (src, dst)), shape=(n, n))
+    nb = np.stack([ids[rr + 1 + dr, cc + 1 + dc] for dr, dc in _NB], axis=1)  # (n, 8)
+    ok = nb >= 0
+    indptr = np.concatenate([[0], np.cumsum(ok.sum(axis=1))])
+    A = csr_matrix((np.ones(int(indptr[-1])), nb[ok], indptr), shape=(n, n))
     return rr, cc, A
 
 
 def _geodesic(A: csr_matrix, start: int) -> tuple[np.ndarray, np.ndarray]:
     """Step counts from node ``start`` (-1 unreached) and BFS-tree predecessors (-1 at the
     start and unreached nodes)."""
-    d, pred = dijkstra(A, directed=False, indices=start, unweighted=True, return_predecessors=True)
+    d = dijkstra(A, directed=True, indices=start, unweighted=True)
     d = np.where(np.isfinite(d), d, -1).astype(np.int64)
+    _, pred = breadth_first_order(A, start, directed=True, return_predecessors=True)
     return d, np.where(pred < 0, -1, pred).astype(np.int64)
 
 
