@@ -2,11 +2,15 @@
 pose accuracy (120 bins, 90 % variance; unoccluded and occluded), Fig. 7 (error vs fraction
 of training data, 3 random trials each) and the 3-DOF tip-position manifold.
 
-    taskset -c 1 python experiments/eigen_accuracy.py --data /tmp/irep
+    taskset -c 1 python experiments/eigen_accuracy.py --data /tmp/irep --validation /tmp/irep
 
-``--data`` holds ``train``, ``test``, ``test_occluded`` from experiments/eigen_generate.py.
-The thin-plate smoothing is chosen on a held-out 15 % of the *training* set (no test data
-is used for any choice). Writes experiments/results/eigen_accuracy.{md,json} and
+``--data`` holds ``train``, ``test``, ``test_occluded`` from experiments/eigen_generate.py;
+``--validation`` (optional) holds ``val`` and ``val_occluded`` (``eigen_generate.py --sets
+val,val_occluded``: 300 new configurations from the *training* random stream, without and
+with the instrument), on which the histogram centre (fixed per view vs the paper's
+per-frame region centroid) was chosen. The thin-plate smoothing is chosen on a held-out
+15 % of the training set (no test data is used for any choice). Main results use the fixed
+centre (jaxcr default); the paper's per-frame centroid is reported beside it. Writes experiments/results/eigen_accuracy.{md,json} and
 eigen_fig7.png.
 """
 
@@ -25,7 +29,7 @@ from eigen_common import RESULTS, angle_errors, colour_model, contours, metadata
 
 from jaxcr.eigen.model import TrainConfig, estimate, train  # noqa: E402
 from jaxcr.eigen.pca import components_for_variance, fit_pca  # noqa: E402
-from jaxcr.eigen.pipeline import stereo_histograms  # noqa: E402
+from jaxcr.eigen.pipeline import stereo_histograms, view_centres  # noqa: E402
 
 PAPER_TABLE1 = {
     72: {0.65: 2, 0.85: 5, 0.95: 19},
@@ -37,10 +41,10 @@ VARIANCES = (0.65, 0.85, 0.90, 0.95)
 BINS = (72, 120, 360)
 
 
-def fit_eval(Htr, Ptr, tests, colour, **cfg):
-    c = TrainConfig(**cfg)
+def fit_eval(Htr, Ptr, tests, colour, centres=None, **cfg):
+    c = TrainConfig(centre="fixed" if centres is not None else "region", **cfg)
     t0 = time.perf_counter()
-    model = train(Htr, Ptr, colour, c)
+    model = train(Htr, Ptr, colour, c, view_centres=centres)
     dt = time.perf_counter() - t0
     return model, {k: estimate(model, H) for k, H in tests.items()}, dt
 
@@ -50,6 +54,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--data", default="/tmp/irep")
+    ap.add_argument("--validation", default=None, help="folder with val, val_occluded")
     ap.add_argument("--cache", default=None, help="contour cache folder (default DATA/cache)")
     ap.add_argument("--fractions", default="0.15,0.25,0.35,0.5,0.65,0.8,1.0")
     ap.add_argument("--trials", type=int, default=3)
@@ -68,12 +73,17 @@ def main() -> None:
             f"{name}: {len(psi)} frames, {int((~sc.ok).sum())} without markers, contours {dt * 1e3:.1f} ms/frame"
         )
     rec["failed_frames"] = {k: int((~v[0].ok).sum()) for k, v in sets.items()}
+    rec["marker_pixels_left_median"] = {
+        k: float(np.median(v[0].views[0].marker_pixels)) for k, v in sets.items()
+    }
+    centres = view_centres(sets["train"][0])
+    rec["view_centres_px"] = centres.tolist()
 
     # Table I: components for each variance fraction.
     table1 = {}
     hist = {}
     for nb in BINS:
-        hist[nb] = {k: stereo_histograms(v[0], nb) for k, v in sets.items()}
+        hist[nb] = {k: stereo_histograms(v[0], nb, True, centres) for k, v in sets.items()}
         Htr, ok = hist[nb]["train"]
         pca = fit_pca(Htr[ok])
         table1[nb] = {v: components_for_variance(pca, v) for v in VARIANCES}
@@ -89,21 +99,81 @@ def main() -> None:
     nval = int(0.15 * len(perm))
     val, fit = perm[:nval], perm[nval:]
     H120 = hist[120]["train"][0]
-    sel = {}
-    for s in (0.0, 1e-5, 1e-4, 1e-3, 1e-2):
-        _, est, _ = fit_eval(
-            H120[fit],
-            psi_tr[fit],
-            {"val": H120[val]},
-            colour,
-            n_bins=120,
-            variance=0.9,
-            smoothing=s,
-        )
-        sel[s] = angle_errors(est["val"], psi_tr[val])["combined"]
-        print(f"smoothing {s:g}: held-out combined {sel[s]:.3f} deg")
+    region = {k: stereo_histograms(v[0], 120) for k, v in sets.items()}  # paper's centre
+    Hreg = region["train"][0]
+
+    def select(H, c):
+        sel = {}
+        for s in (0.0, 1e-5, 1e-4, 1e-3, 1e-2):
+            _, est, _ = fit_eval(
+                H[fit],
+                psi_tr[fit],
+                {"val": H[val]},
+                colour,
+                c,
+                n_bins=120,
+                variance=0.9,
+                smoothing=s,
+            )
+            sel[s] = angle_errors(est["val"], psi_tr[val])["combined"]
+            print(
+                f"smoothing {s:g} ({'fixed' if c is not None else 'region'}): held-out {sel[s]:.3f} deg"
+            )
+        return sel
+
+    sel = select(H120, centres)
     smoothing = min(sel, key=sel.get)
     rec["smoothing_selection"] = {"held_out_combined_deg": sel, "chosen": smoothing}
+    sel_r = select(Hreg, None)
+    smoothing_r = min(sel_r, key=sel_r.get)
+    rec["smoothing_selection_region"] = {"held_out_combined_deg": sel_r, "chosen": smoothing_r}
+
+    # The paper's per-frame region centroid, 120 bins, 90 %, on the test sets.
+    tests_r = {k: region[k][0][region[k][1]] for k in ("test", "test_occluded")}
+    model, est, _ = fit_eval(
+        Hreg[ok_tr],
+        psi_tr[ok_tr],
+        tests_r,
+        colour,
+        None,
+        n_bins=120,
+        variance=0.9,
+        smoothing=smoothing_r,
+    )
+    rec["region_centre"] = {"dims": model.n_components, "smoothing": smoothing_r}
+    for k in tests_r:
+        rec["region_centre"][k] = angle_errors(est[k], sets[k][1][sets[k][0].ok])
+    print("region centre", {k: rec["region_centre"][k]["combined"] for k in tests_r})
+
+    # Validation sets (training stream, new configurations): the data the centre was chosen on.
+    if a.validation:
+        vroot = Path(a.validation)
+        vres = {}
+        for name in ("val", "val_occluded"):
+            sc, psi_v, _, _ = contours(vroot / name, colour, cache)
+            vres[name] = {"frames": len(psi_v)}
+            for label, c, Htr_, sm in (
+                ("fixed", centres, H120, smoothing),
+                ("region", None, Hreg, smoothing_r),
+            ):
+                Hv, okv = stereo_histograms(sc, 120, True, c)
+                _, est, _ = fit_eval(
+                    Htr_[ok_tr],
+                    psi_tr[ok_tr],
+                    {"v": Hv[okv]},
+                    colour,
+                    c,
+                    n_bins=120,
+                    variance=0.9,
+                    smoothing=sm,
+                )
+                vres[name][label] = angle_errors(est["v"], psi_v[okv])
+            print(
+                "validation",
+                name,
+                {k: v["combined"] for k, v in vres[name].items() if k != "frames"},
+            )
+        rec["validation"] = vres
 
     # Accuracy for every bins x variance, unoccluded and occluded.
     acc = {}
@@ -112,7 +182,14 @@ def main() -> None:
             Htr = hist[nb]["train"][0]
             tests = {k: hist[nb][k][0][hist[nb][k][1]] for k in ("test", "test_occluded")}
             model, est, dt = fit_eval(
-                Htr[ok_tr], psi_tr[ok_tr], tests, colour, n_bins=nb, variance=v, smoothing=smoothing
+                Htr[ok_tr],
+                psi_tr[ok_tr],
+                tests,
+                colour,
+                centres,
+                n_bins=nb,
+                variance=v,
+                smoothing=smoothing,
             )
             r = {
                 "dims": model.n_components,
@@ -136,7 +213,14 @@ def main() -> None:
             r = np.random.default_rng(1000 * a.seed + 17 * t + int(f * 100))
             sub = r.choice(idx, int(round(f * len(idx))), replace=False) if f < 1.0 else idx
             _, est, _ = fit_eval(
-                H120[sub], psi_tr[sub], tests, colour, n_bins=120, variance=0.9, smoothing=smoothing
+                H120[sub],
+                psi_tr[sub],
+                tests,
+                colour,
+                centres,
+                n_bins=120,
+                variance=0.9,
+                smoothing=smoothing,
             )
             trials.append({k: angle_errors(est[k], sets[k][1][sets[k][0].ok]) for k in tests})
         fig7[f] = {
@@ -169,6 +253,7 @@ def main() -> None:
         tips_tr[ok_tr],
         tests,
         colour,
+        centres,
         n_bins=120,
         variance=0.9,
         smoothing=smoothing,
@@ -195,7 +280,14 @@ def write_markdown(rec, smoothing) -> None:
         "",
         f"Commit {m['commit']}, {m['date']}, jax {m['jax']}, {m['machine']}. Data: "
         "`experiments/eigen_generate.py` (train 2296, test 806, occluded test 806 frames, 512x384 stereo); "
-        "run: `taskset -c 1 python experiments/eigen_accuracy.py --data /tmp/irep`.",
+        "run: `taskset -c 1 python experiments/eigen_accuracy.py --data /tmp/irep --validation /tmp/irep` "
+        "(validation sets: `taskset -c 1 python experiments/eigen_generate.py --out /tmp/irep --size 512x384 --sets val,val_occluded --tag _val`).",
+        "",
+        "Histogram centre: **fixed per view** (the mean region centroid over the training frames, "
+        f"left/right = {', '.join(f'({c[0]:.1f}, {c[1]:.1f})' for c in rec['view_centres_px'])} px), "
+        "a deviation from the paper's per-frame region centroid, which a partial occlusion moves "
+        "and thereby re-bins every contour point (see jaxcr/eigen/descriptor.py). The paper's "
+        "centre is reported beside it.",
         f"Smoothing lambda = {smoothing:g}, chosen on 15 % of the training set held out "
         f"(held-out combined errors: {', '.join(f'{k:g}: {v:.3f} deg' for k, v in rec['smoothing_selection']['held_out_combined_deg'].items())}). "
         f"Frames without marker pixels (reported failed, not estimated): {rec['failed_frames']}.",
@@ -224,6 +316,12 @@ def write_markdown(rec, smoothing) -> None:
         e, p = a[k], PAPER_ACC[pk]
         L.append(
             f"| {pk} ({e['n']} frames) | {e['delta']:.2f} ({p[0]}) | {e['theta_L']:.2f} ({p[1]}) | {e['combined']:.2f} ({p[2]}) | {e['combined_mean']:.2f} | {e['combined_norm']:.2f} | {e['p90_combined']:.2f} |"
+        )
+    rc = rec["region_centre"]
+    for k, pk in (("test", "unoccluded"), ("test_occluded", "occluded")):
+        e, p = rc[k], PAPER_ACC[pk]
+        L.append(
+            f"| {pk}, paper's per-frame centroid ({rc['dims']} dims, lambda {rc['smoothing']:g}) | {e['delta']:.2f} ({p[0]}) | {e['theta_L']:.2f} ({p[1]}) | {e['combined']:.2f} ({p[2]}) | {e['combined_mean']:.2f} | {e['combined_norm']:.2f} | {e['p90_combined']:.2f} |"
         )
     L += [
         "",
@@ -265,6 +363,23 @@ def write_markdown(rec, smoothing) -> None:
         L.append(
             f"| {k} | {r['median_mm']:.2f} | {r['p90_mm']:.2f} | {'0.97' if k == 'test' else '-'} |"
         )
+    mp = rec["marker_pixels_left_median"]
+    L += [
+        "",
+        "## Notes",
+        "",
+        f"- Occlusion level: median labelled marker pixels (left view) {mp['test_occluded']:.0f} in the "
+        f"occluded test set vs {mp['test']:.0f} unoccluded (the instrument crosses 10-25 mm in front of "
+        "the segment at a random image angle). The paper does not quantify its occlusions.",
+        "- Why the fixed centre: with the per-frame region centroid, the centroid of the "
+        "occluded frames moves by 3.5 px (median; 90th pct. 10 px) from the same configuration "
+        "unoccluded, which rotates the angle of every contour point; with a fixed point only the "
+        "bins of the hidden and newly cut contour change (tests/test_eigen_contour.py "
+        "checks this exactly). It also removes centroid jitter from the descriptor, which is "
+        "why fewer PCA components hold the same variance (Table I).",
+        "- Generation time and descriptor extraction: see experiments/results/eigen_generate.json "
+        "(512x384: ~0.5 s/frame unoccluded, ~1 s/frame occluded on one shared core).",
+    ]
     (RESULTS / "eigen_accuracy.md").write_text("\n".join(L) + "\n")
 
 

@@ -4,7 +4,8 @@ train (2296 frames), test (806) and occluded test (806), and record the generati
     taskset -c 1 python experiments/eigen_generate.py --out /tmp/irep --size 512x384
 
 Writes ``<out>/{train,test,test_occluded}`` and ``experiments/results/eigen_generate.json``.
-Use ``--frames-train/--frames-test`` for smaller sets and ``--tag`` for other timing runs.
+Use ``--frames-train/--frames-test`` for smaller sets and ``--tag`` for other timing runs;
+``--sets val,val_occluded`` writes the validation sets of eigen_accuracy.py.
 """
 
 from __future__ import annotations
@@ -30,6 +31,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--frames-train", type=int, default=2296)
     ap.add_argument("--frames-test", type=int, default=806)
+    ap.add_argument(
+        "--frames-val", type=int, default=300, help="validation sets (training random stream)"
+    )
     ap.add_argument("--sets", default="train,test,test_occluded")
     ap.add_argument("--tag", default="")
     a = ap.parse_args()
@@ -39,6 +43,10 @@ def main() -> None:
         "train": ("train", a.frames_train, False),
         "test": ("test", a.frames_test, False),
         "test_occluded": ("test", a.frames_test, True),
+        # New configurations from the training stream (the stratified sampling depends on
+        # the frame count), for design choices that must not look at the test sets.
+        "val": ("train", a.frames_val, False),
+        "val_occluded": ("train", a.frames_val, True),
     }
     rec = {}
     for name in a.sets.split(","):

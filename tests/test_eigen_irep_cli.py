@@ -113,6 +113,25 @@ def test_cli_train_query_round_trip(data, tmp_path, capsys):
     assert "theta_L" not in rows["000002"]
     assert sum(r["ok"] for r in rows.values()) == 3
 
+    # The default model stores its fixed histogram centres: the mean region centroid of
+    # the training frames per view (reference: the centroids of the generator's marker
+    # masks are not the same pixels, so only the image box and stereo disparity are checked).
+    from jaxcr.eigen.model_file import load_model
+
+    m = load_model(model)
+    assert m.config.centre == "fixed" and m.view_centres.shape == (2, 2)
+    assert np.all((m.view_centres > 0) & (m.view_centres < [160, 120]))
+    assert m.view_centres[0, 0] > m.view_centres[1, 0]  # left camera sees it further right
+    # The paper's per-frame centroid as an option.
+    model_r = tmp_path / "mr.npz"
+    args = ["manifold", "train", str(data / "train"), "-o", str(model_r), "--bins", "24"]
+    assert main([*args, "--step", "0.05", "--variance", "0.95", "--centre", "region"]) == 0
+    assert load_model(model_r).config.centre == "region"
+    out3 = tmp_path / "q3"
+    assert main(["manifold", "query", str(model_r), str(data / "train"), "-o", str(out3)]) == 0
+    s3 = json.loads((out3 / "summary.json").read_text())
+    assert s3["median_error_deg"]["combined"] < 3.0
+
 
 def test_cli_bad_inputs(data, tmp_path, capsys):
     assert (

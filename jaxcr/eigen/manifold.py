@@ -10,7 +10,9 @@ extrapolates and its features are not supported by data.
 
 Query (:func:`query`, batched by :func:`query_batch`): the b nearest resampled points in
 eigen-feature space (Euclidean), weights w_l = (1/d_l) / sum_p (1/d_p) (eq. 7), estimate
-psi = sum_l w_l psi_l (eq. 8). An exact match (d_l = 0) gets all the weight.
+psi = sum_l w_l psi_l (eq. 8). An exact match (d_l = 0) gets all the weight. This is
+the brute-force reference; trained models query through the exact pruned search of
+:mod:`jaxcr.eigen.knn_index` (same neighbours, several times faster on CPU).
 """
 
 from __future__ import annotations
