@@ -74,8 +74,8 @@ from jaxcr.silhouette import (
     Band,
     TubeImage,
     band_margin,
+    level_tube,
     project_tube,
-    scale_tube,
     select_band,
 )
 
@@ -330,7 +330,7 @@ def refine_frame(
         J = reg_of(params)
         for tube, band, data in zip(tubes, bands, datas, strict=True):
             Jc, _ = chan_vese_energy(
-                scale_tube(tube, level), band, data, 0.0, weights, tau, area_ref, config.local
+                level_tube(tube, level), band, data, 0.0, weights, tau, area_ref, config.local
             )
             J = J + Jc
         return J
@@ -351,7 +351,7 @@ def refine_frame(
             params, nsteps, _ = carry
             _, tubes = tubes_of(params)
             bands = tuple(
-                select_band(scale_tube(t, level), d.grid, k_tiles, config.k_seg)
+                select_band(level_tube(t, level), d.grid, k_tiles, config.k_seg)
                 for t, d in zip(tubes, datas, strict=True)
             )
             sol = optx.minimise(
