@@ -35,6 +35,7 @@ __all__ = [
     "cylinder_diameters",
     "report_interpolation_diameters",
     "view_weights",
+    "edge_clearance",
 ]
 
 
@@ -173,3 +174,29 @@ def report_interpolation_diameters(
     scale = jnp.linalg.norm(dP_perp, axis=1) / jnp.maximum(p, 1e-9)
     scale = jnp.concatenate([scale, scale[-1:]])
     return scale * widths
+
+
+def edge_clearance(
+    alpha: Float[Array, "h w"],
+    centres_uv: Float[Array, "n 2"],
+    normals_uv: Float[Array, "n 2"],
+    widths: Float[Array, " n"],
+    offsets: Float[Array, " n"],
+    gap: tuple[float, float] = (2.0, 4.0),
+    cut: float = 0.5,
+) -> Float[Array, " n"]:
+    """True (as 1.0) where both silhouette edges measured by :func:`profile_widths` have
+    clean background beside them: ``alpha < cut`` at every sample ``gap`` pixels (default
+    2-4, the window :func:`profile_widths` takes the cloth level from) outside each edge.
+
+    Where another part of the robot lies beside the tube in the image (a curled tip next
+    to the shaft), the cloth level is taken from the wrong material and the edge, hence
+    the width and the centre, are wrong; callers drop that view's measurement there. Pass
+    ``alpha`` restricted to the robot (other foreground, e.g. markers, is then ignored)."""
+    g = jnp.linspace(gap[0], gap[1], 5)
+    lo = offsets - widths / 2
+    hi = offsets + widths / 2
+    offs = jnp.concatenate([lo[:, None] - g[None], hi[:, None] + g[None]], axis=1)
+    uv = centres_uv[:, None, :] + offs[..., None] * normals_uv[:, None, :]
+    a = _sample(alpha, uv)
+    return jnp.all(a < cut, axis=1).astype(alpha.dtype)

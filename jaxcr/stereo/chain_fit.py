@@ -1,0 +1,415 @@
+"""Joint fit of all segments of a concentric-tube backbone to both views' silhouettes.
+
+Model. A CTR's exposed backbone is a chain of constant-curvature, torsion-free arcs with a
+continuous tangent (each tube is precurved with constant curvature; where a tube ends the
+next one continues along the same tangent). With the rod frame ``R(s) = [d1 d2 t]`` and
+``dR/ds = R hat(u)``, segment ``i`` has a constant body curvature ``u_i = (ux, uy, 0)``
+(1/m) over ``[S_i, S_{i+1})``; from the base point ``b`` and frame ``R_0``::
+
+    R_{i+1} = R_i exp(L_i hat(u_i)),   p_{i+1} = p_i + R_i J_l(L_i u_i) (L_i e_z),
+    X(s) = p_i + R_i J_l((s - S_i) u_i) ((s - S_i) e_z)
+
+(``J_l`` = :func:`jaxcr.geometry.so3_left_jacobian`, exact for piecewise-constant
+curvature). Segment ``i``'s curvature is ``|u_i|`` and its bending plane's normal (world) is
+``R_i u_i / |u_i|``.
+
+Data. Fitting each segment's plane and arc separately to triangulated points is fragile
+where the stereo correspondence is ill-conditioned: where the backbone runs along the
+epipolar lines, or is foreshortened in one view, the triangulated points slide in a
+direction neither view measures, and a short or nearly straight segment's plane swings.
+Here no triangulated point enters the cost. Each observation ``j`` is a backbone sample at
+arclength ``s_j``; in view ``k`` its measurement is the centre ``c_jk`` of the tube's
+silhouette across the tube (pixels, from :func:`jaxcr.stereo.diameter.profile_widths`)
+and the unit image normal ``m_jk`` of the silhouette there. A cylinder's silhouette has
+its centreline on the projected axis, and sliding along the silhouette is not measured,
+so the residual is the *normal* distance (pixels)::
+
+    r_jk = sqrt(w_jk) * m_jk . (project_k(X(s_j)) - c_jk)
+
+which is the linearised reprojection error of the axis curve, each view weighted only in
+the direction it measures (the information a triangulated point actually carries: rank 2
+in general, rank 1 where the tangent lies in the epipolar plane). The model's shape
+(continuity, constant curvature) fills in what the views do not fix. The weight ``w_jk``
+is the sine of the angle between the tube axis and view ``k``'s ray (a tube foreshortened
+by ``sin`` in a view yields that fraction of independent samples per unit arclength) times
+a validity flag (silhouette width measured, clean cloth beside both edges). Outliers
+(skeleton artefacts at crossings, end caps) get Huber weights (1 px) by iterative
+reweighting. Solved by Levenberg-Marquardt (fixed iteration count, never raises) over
+``(b, two tilt angles of R_0, u_1..u_k)``; the roll of ``R_0`` about the tangent is a gauge
+freedom (it only relabels ``d1, d2``) and is not a parameter.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcr._types import Array, Float
+from jaxcr.camera import Camera, project_points
+from jaxcr.geometry import so3_exp, so3_left_jacobian
+from jaxcr.stereo.diameter import edge_clearance, profile_widths, view_weights
+from jaxcr.stereo.fits import plane_angles
+
+__all__ = [
+    "chain_frames",
+    "chain_points",
+    "chain_segment_parameters",
+    "init_chain",
+    "fit_chain",
+    "silhouette_observations",
+    "fit_segments_jointly",
+]
+
+# Parameter scaling (metres -> mm, 1/m -> 1/(100 m)): similar magnitudes for LM damping.
+_B_SCALE = 1e-3
+_U_SCALE = 100.0
+
+
+def chain_frames(
+    base: Float[Array, "3"],
+    R0: Float[Array, "3 3"],
+    curvatures: Float[Array, "k 2"],
+    seg_start: Float[Array, " k"],
+) -> tuple[Float[Array, "k 3 3"], Float[Array, "k 3"]]:
+    """Frames ``R_i`` (k, 3, 3) and points ``p_i`` (k, 3) at the start of each segment.
+
+    ``seg_start`` (k,) arclengths (m) where the segments start (``seg_start[0]`` is where
+    ``base``/``R0`` sit, normally 0); ``curvatures`` (k, 2) body curvatures ``(ux, uy)``
+    (1/m). Base frame in, base frame out (metres)."""
+    u3 = jnp.concatenate([curvatures, jnp.zeros_like(curvatures[:, :1])], axis=1)
+    lengths = jnp.diff(seg_start)
+    ez = jnp.array([0.0, 0.0, 1.0], base.dtype)
+
+    def step(carry, x):
+        R, p = carry
+        u, L = x
+        Rn = R @ so3_exp(L * u)
+        pn = p + R @ (so3_left_jacobian(L * u) @ (L * ez))
+        return (Rn, pn), (Rn, pn)
+
+    _, (Rs, ps) = jax.lax.scan(step, (R0, base), (u3[:-1], lengths))
+    return jnp.concatenate([R0[None], Rs]), jnp.concatenate([base[None], ps])
+
+
+def chain_points(
+    base: Float[Array, "3"],
+    R0: Float[Array, "3 3"],
+    curvatures: Float[Array, "k 2"],
+    seg_start: Float[Array, " k"],
+    s: Float[Array, " n"],
+) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"]]:
+    """Backbone points (n, 3) and unit tangents (n, 3) at arclengths ``s`` (n,) of the
+    piecewise-constant-curvature chain (module docstring). Arclengths before
+    ``seg_start[0]`` or past the last start extrapolate the first/last arc."""
+    Rs, ps = chain_frames(base, R0, curvatures, seg_start)
+    k = seg_start.shape[0]
+    idx = jnp.clip(jnp.searchsorted(seg_start, s, side="right") - 1, 0, k - 1)
+    h = s - seg_start[idx]
+    u3 = jnp.concatenate([curvatures, jnp.zeros_like(curvatures[:, :1])], axis=1)[idx]
+    ez = jnp.array([0.0, 0.0, 1.0], base.dtype)
+
+    def one(R, p, u, hh):
+        X = p + R @ (so3_left_jacobian(hh * u) @ (hh * ez))
+        t = R @ (so3_exp(hh * u) @ ez)
+        return X, t
+
+    return jax.vmap(one)(Rs[idx], ps[idx], u3, h)
+
+
+def chain_segment_parameters(
+    base: Float[Array, "3"],
+    R0: Float[Array, "3 3"],
+    curvatures: Float[Array, "k 2"],
+    seg_start: Float[Array, " k"],
+) -> tuple[Float[Array, " k"], Float[Array, "k 3"]]:
+    """Per segment: curvature ``|u_i|`` (1/m) and the unit normal of the bending plane in
+    the base frame, ``R_i u_i / |u_i|`` (sign made deterministic as in
+    :func:`jaxcr.stereo.fits.fit_plane`: largest-magnitude component non-negative). A
+    straight segment (``u_i = 0``) has no bending plane: its normal is returned as the
+    frame's ``d1`` (finite, gradient-safe)."""
+    Rs, _ = chain_frames(base, R0, curvatures, seg_start)
+    kappa2 = jnp.sum(curvatures**2, axis=1)
+    straight = kappa2 < 1e-20
+    kappa = jnp.sqrt(jnp.where(straight, 1.0, kappa2))
+    dirs = jnp.where(straight[:, None], jnp.array([1.0, 0.0]), curvatures / kappa[:, None])
+    d3 = jnp.concatenate([dirs, jnp.zeros_like(dirs[:, :1])], axis=1)
+    n = jnp.einsum("kij,kj->ki", Rs, d3)
+    big = jnp.argmax(jnp.abs(n), axis=1)
+    sign = jnp.sign(jnp.take_along_axis(n, big[:, None], axis=1))
+    return jnp.where(straight, 0.0, kappa), n * sign
+
+
+def _frame_from_tangent(t: np.ndarray) -> np.ndarray:
+    t = t / np.linalg.norm(t)
+    a = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(a, t)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(t, x), t], axis=1)
+
+
+def init_chain(
+    s: np.ndarray, p: np.ndarray, seg_start: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Starting values ``(base (3,), R0 (3, 3), curvatures (k, 2))`` from an ordered,
+    smoothed 3-D backbone ``p`` (n, 3) at arclengths ``s`` (n,) (m).
+
+    The base is ``p[0]`` moved back along the first tangent to ``seg_start[0]``; the frame
+    is transported along the points without twist (rotation-minimising frame); each
+    segment's body curvature is the median over its samples of ``R^T (t x dt/ds)``."""
+    s = np.asarray(s, np.float64)
+    p = np.asarray(p, np.float64)
+    t = np.gradient(p, s, axis=0)
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    n0 = min(len(s) - 1, max(2, int(np.searchsorted(s, s[0] + 2e-3))))
+    t0 = p[n0] - p[0]
+    t0 /= np.linalg.norm(t0)
+    R = _frame_from_tangent(t0)
+    frames = np.empty((len(s), 3, 3))
+    frames[0] = R
+    for i in range(1, len(s)):
+        # Minimal rotation taking the previous tangent to this one (no twist).
+        a, b = frames[i - 1][:, 2], t[i]
+        v, c = np.cross(a, b), float(np.clip(a @ b, -1.0, 1.0))
+        V = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+        Rm = np.eye(3) + V + V @ V / (1.0 + c) if c > -0.999 else np.eye(3)
+        frames[i] = Rm @ frames[i - 1]
+    dt = np.gradient(t, s, axis=0)
+    kw = np.cross(t, dt)  # curvature vector (world), |kw| = curvature
+    body = np.einsum("nji,nj->ni", frames, kw)[:, :2]
+    ends = list(seg_start[1:]) + [np.inf]
+    curv = np.zeros((len(seg_start), 2))
+    for i, (a, b) in enumerate(zip(seg_start, ends, strict=True)):
+        sel = (s >= a) & (s < b)
+        if sel.sum() >= 3:
+            curv[i] = np.median(body[sel], axis=0)
+    base = p[0] - (s[0] - seg_start[0]) * t0
+    return base, R, curv
+
+
+def _pack(base0, R_init, theta, k):
+    base = base0 + _B_SCALE * theta[:3]
+    R0 = R_init @ so3_exp(jnp.concatenate([theta[3:5], jnp.zeros(1, theta.dtype)]))
+    curv = _U_SCALE * theta[5:].reshape(k, 2)
+    return base, R0, curv
+
+
+def _residuals(theta, args):
+    base0, R_init, seg_start, s_obs, cam1, cam2, centres, normals, sqrt_w = args
+    k = seg_start.shape[0]
+    base, R0, curv = _pack(base0, R_init, theta, k)
+    X, _ = chain_points(base, R0, curv, seg_start, s_obs)
+    out = []
+    for v, cam in enumerate((cam1, cam2)):
+        uv, _ = project_points(cam, X)
+        out.append(sqrt_w[v] * jnp.sum(normals[v] * (uv - centres[v]), axis=1))
+    return jnp.concatenate(out)
+
+
+_residuals_jit = jax.jit(_residuals)
+
+
+@functools.partial(jax.jit, static_argnames=("iterations",))
+def _solve(theta0, args, iterations: int = 20):
+    """Levenberg-Marquardt with Marquardt's diagonal scaling and a fixed iteration count
+    (one compile per shape; the forward Jacobian is small: 2n residuals x (5 + 2k)).
+    Returns ``(theta, converged, iterations)``; converged when the last accepted step
+    changed the cost by less than 1e-5 relative (float32) or the cost vanished."""
+
+    def cost_of(th):
+        r = _residuals(th, args)
+        return jnp.sum(r * r)
+
+    def body(i, carry):
+        th, lam, c, c_mark = carry
+        r = _residuals(th, args)
+        J = jax.jacfwd(_residuals)(th, args)
+        A = J.T @ J
+        g = J.T @ r
+        D = jnp.diag(jnp.diag(A)) + 1e-12 * jnp.eye(A.shape[0], dtype=A.dtype)
+        step = -jnp.linalg.solve(A + lam * D, g)
+        th_new = th + step
+        c_new = cost_of(th_new)
+        better = c_new < c
+        return (
+            jnp.where(better, th_new, th),
+            jnp.where(better, lam * 0.3, lam * 10.0),
+            jnp.where(better, c_new, c),
+            jnp.where(i == iterations - 5, c, c_mark),
+        )
+
+    c0 = cost_of(theta0)
+    one = jnp.asarray(1.0, theta0.dtype)
+    th, _, c, c_mark = jax.lax.fori_loop(0, iterations, body, (theta0, 1e-3 * one, c0, c0))
+    # Converged: the last 5 iterations lowered the cost by < 1e-5 relative (float32) or
+    # by less than (1e-4 px)^2 per residual.
+    n_res = 2 * args[3].shape[0]
+    return th, (c_mark - c) <= 1e-5 * c_mark + 1e-8 * n_res, iterations
+
+
+@functools.partial(jax.jit, static_argnames=("k",))
+def _finish(theta, base0, R_init, seg_start, k):
+    base, R0, curv = _pack(base0, R_init, theta, k)
+    kappa, normal = chain_segment_parameters(base, R0, curv, seg_start)
+    return base, R0, curv, kappa, normal
+
+
+def fit_chain(
+    cam1: Camera,
+    cam2: Camera,
+    s_obs: Float[Array, " n"],
+    centres: Float[Array, "2 n 2"],
+    normals: Float[Array, "2 n 2"],
+    weights: Float[Array, "2 n"],
+    seg_start: Float[Array, " k"],
+    base0: Float[Array, "3"],
+    R0_init: Float[Array, "3 3"],
+    curvatures0: Float[Array, "k 2"],
+    huber_px: float = 1.0,
+    reweight: int = 3,
+) -> dict:
+    """Fit the chain (module docstring) to silhouette centres in two views.
+
+    ``cam1``/``cam2`` map base-frame points to pixels (distortion included).
+    Observations ``j``: arclength ``s_obs[j]`` (m), per view the silhouette centre
+    ``centres[v, j]`` (pixels), unit image normal ``normals[v, j]`` and weight
+    ``weights[v, j]`` (0 ignores it: padding, unusable views). ``seg_start`` (k,) segment
+    start arclengths (m, first = where ``base0`` sits). Starting values from
+    :func:`init_chain`. ``reweight``: Huber reweighting passes (scale ``huber_px``).
+
+    Returns (numpy) ``base`` (3,), ``R0`` (3, 3), ``curvatures`` (k, 2) body (1/m),
+    ``kappa`` (k,), ``normal`` (k, 3) bending-plane normals, ``rms_px`` (weighted RMS of the
+    normal residuals), ``ok`` (solver converged in every pass), ``num_steps``,
+    ``residuals_px`` (2, n) unweighted normal residuals and ``weights`` (2, n) final
+    weights (including the Huber factors)."""
+    k = int(np.shape(seg_start)[0])
+    dt = jnp.result_type(float)
+    w = jnp.asarray(weights, dt)
+    args0 = [
+        jnp.asarray(base0, dt),
+        jnp.asarray(R0_init, dt),
+        jnp.asarray(seg_start, dt),
+        jnp.asarray(s_obs, dt),
+        cam1,
+        cam2,
+        jnp.asarray(centres, dt),
+        jnp.asarray(normals, dt),
+    ]
+    theta = jnp.concatenate([jnp.zeros(5, dt), jnp.asarray(curvatures0, dt).ravel() / _U_SCALE])
+    robust = jnp.ones_like(w)
+    ok_all, steps = True, 0
+    for _ in range(max(reweight, 1)):
+        args = (*args0, jnp.sqrt(w * robust))
+        theta, ok, n = _solve(theta, args)
+        ok_all &= bool(ok)
+        steps += int(n)
+        r = np.asarray(_residuals_jit(theta, (*args0, jnp.ones_like(w)))).reshape(2, -1)
+        a = np.abs(r)
+        robust = jnp.asarray(np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-12)), dt)
+    base, R0, curv, kappa, normal = _finish(theta, args0[0], args0[1], args0[2], k)
+    wn = np.asarray(w * robust)
+    rms = float(np.sqrt(np.sum(wn * r**2) / max(np.sum(wn), 1e-12)))
+    return {
+        "base": np.asarray(base, np.float64),
+        "R0": np.asarray(R0, np.float64),
+        "curvatures": np.asarray(curv, np.float64),
+        "kappa": np.asarray(kappa, np.float64),
+        "normal": np.asarray(normal, np.float64),
+        "rms_px": rms,
+        "ok": ok_all,
+        "num_steps": steps,
+        "residuals_px": r,
+        "weights": wn,
+    }
+
+
+@jax.jit
+def silhouette_observations(
+    cam: Camera,
+    alpha: Float[Array, "h w"],
+    key_proj: Float[Array, "h w"],
+    points: Float[Array, "n 3"],
+    tangents: Float[Array, "n 3"],
+) -> tuple[Float[Array, "n 2"], Float[Array, "n 2"], Float[Array, " n"]]:
+    """One view's measurements for :func:`fit_chain` at backbone samples ``points`` (n, 3)
+    (base frame, m) with unit ``tangents``: silhouette centres across the tube (pixels),
+    the unit image normals along which they were measured, and the weights (sine of the
+    angle between the tube and the viewing ray; 0 where the projection is invalid, no
+    width was measured or another part of the robot lies beside an edge, see
+    :func:`jaxcr.stereo.diameter.edge_clearance`). ``alpha``: the robot's foreground alpha;
+    ``key_proj``: the key-colour projection (:func:`profile_widths`)."""
+    uv0, ok = project_points(cam, points)
+    uv1, _ = project_points(cam, points + 1e-4 * tangents)
+    du = uv1 - uv0
+    nrm = jnp.stack([-du[:, 1], du[:, 0]], axis=1)
+    nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    width, offset = profile_widths(alpha, uv0, nrm, key_proj)
+    clean = edge_clearance(alpha, uv0, nrm, width, offset)
+    sin_view = view_weights(cam, points, tangents)
+    w = jnp.where(ok & (width > 0.5) & (clean > 0), sin_view, 0.0)
+    return uv0 + offset[:, None] * nrm, nrm, w
+
+
+def _bucket(n: int, size: int = 256) -> int:
+    return max(size, -(-n // size) * size)
+
+
+def fit_segments_jointly(
+    cams: tuple[Camera, Camera],
+    alphas: tuple[np.ndarray, np.ndarray],
+    key_projs: tuple,
+    s: np.ndarray,
+    p: np.ndarray,
+    boundaries_s: np.ndarray,
+    huber_px: float = 1.0,
+) -> dict:
+    """Per-segment curvature, bending plane and arc length of a reconstructed backbone by
+    the joint chain fit (module docstring), for the stereo pipeline.
+
+    ``cams``: both views with the base pose; ``alphas``: each view's robot alpha (H, W);
+    ``key_projs``: key-colour projections; ``s`` (n,), ``p`` (n, 3): the triangulated,
+    resampled backbone (arclength from the base, m); ``boundaries_s`` (k-1,): segment
+    boundaries (m). Returns numpy arrays ``kappa`` (k,) 1/m, ``normal`` (k, 3),
+    ``angles_deg`` (k, 3) (X-Y, Z-X, Y-Z planes), ``arc_length`` (k,) m (the last segment
+    up to the last observed sample), ``rms_px``, ``ok``, ``weights`` (2, n) used."""
+    s = np.asarray(s, np.float64)
+    p = np.asarray(p, np.float64)
+    seg_start = np.concatenate([[0.0], np.asarray(boundaries_s, np.float64)])
+    base0, R_init, curv0 = init_chain(s, p, seg_start)
+    tang = np.gradient(p, s, axis=0)
+    tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
+    n = len(s)
+    m = _bucket(n)
+
+    def pad(x):
+        return np.concatenate([x, np.repeat(x[-1:], m - n, axis=0)]) if m > n else x
+
+    dt = jnp.result_type(float)
+    cs, ns, ws = [], [], []
+    for cam, a, kp in zip(cams, alphas, key_projs, strict=True):
+        c, nr, w = silhouette_observations(
+            cam, jnp.asarray(a, dt), jnp.asarray(kp, dt), jnp.asarray(pad(p), dt),
+            jnp.asarray(pad(tang), dt),
+        )  # fmt: skip
+        w = np.asarray(w, np.float64)
+        w[n:] = 0.0
+        cs.append(np.asarray(c))
+        ns.append(np.asarray(nr))
+        ws.append(w)
+    fit = fit_chain(
+        cams[0], cams[1], pad(s), np.stack(cs), np.stack(ns), np.stack(ws), seg_start,
+        base0, R_init, curv0, huber_px=huber_px,
+    )  # fmt: skip
+    ends = np.concatenate([seg_start[1:], [s[-1]]])
+    return {
+        "kappa": fit["kappa"],
+        "normal": fit["normal"],
+        "angles_deg": np.asarray(jax.vmap(plane_angles)(jnp.asarray(fit["normal"])), np.float64),
+        "arc_length": ends - seg_start,
+        "rms_px": fit["rms_px"],
+        "ok": fit["ok"],
+        "weights": np.stack(ws)[:, :n],
+        "fit": fit,
+    }

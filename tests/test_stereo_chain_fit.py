@@ -1,0 +1,221 @@
+"""Joint constant-curvature chain fit (jaxcr.stereo.chain_fit) and the edge-clearance flag
+of the silhouette widths (jaxcr.stereo.diameter.edge_clearance).
+
+References: the closed-form circular arc, scipy's solve_ivp integration of the rod ODE
+(dR/ds = R hat(u), dp/ds = R e3), numpy's SVD plane fit, cv2.projectPoints for the
+synthetic views, finite differences for gradients."""
+
+from __future__ import annotations
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from jaxcr.camera import Camera
+from jaxcr.stereo.chain_fit import (
+    chain_points,
+    chain_segment_parameters,
+    fit_chain,
+    init_chain,
+)
+from jaxcr.stereo.diameter import edge_clearance
+
+# One compile per shape, shared by the tests.
+_cp = jax.jit(chain_points)
+_csp = jax.jit(chain_segment_parameters)
+
+SEG = np.array([0.0, 0.04, 0.07])
+CURV = np.array([[0.0, 10.0], [20.0, 5.0], [-15.0, 35.0]])  # body (ux, uy), 1/m
+TILT = np.array([0.05, -0.08, 0.3])  # mounting rotation vector of R0
+
+
+def _R0():
+    return cv2.Rodrigues(TILT)[0]
+
+
+def _ode_reference(s_eval: np.ndarray) -> np.ndarray:
+    """Points of the chain by integrating the rod ODE with scipy (float64)."""
+
+    def rhs(s, y):
+        R = y[3:].reshape(3, 3)
+        i = min(np.searchsorted(SEG, s, side="right") - 1, len(SEG) - 1)
+        u = np.array([CURV[i, 0], CURV[i, 1], 0.0])
+        U = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
+        return np.concatenate([R[:, 2], (R @ U).ravel()])
+
+    y0 = np.concatenate([np.zeros(3), _R0().ravel()])
+    sol = solve_ivp(rhs, (0.0, s_eval[-1]), y0, t_eval=s_eval, rtol=1e-10, atol=1e-12,
+                    max_step=1e-3)  # fmt: skip
+    return sol.y[:3].T
+
+
+@pytest.fixture(scope="module")
+def cams():
+    c1 = Camera.look_at([0.25, 0.0, 0.12], [0.0, 0.0, 0.05], [0, 0, 1], 900.0, (640, 480))
+    c2 = Camera.look_at([0.0, 0.25, 0.12], [0.0, 0.0, 0.05], [0, 0, 1], 900.0, (640, 480))
+    return c1, c2
+
+
+def test_single_arc_closed_form():
+    k = 25.0
+    s = np.linspace(0.0, 0.1, 41)
+    X, t = _cp(jnp.zeros(3), jnp.eye(3), jnp.array([[0.0, k]]), jnp.zeros(1), jnp.asarray(s))
+    # Rotation about body y: p = ((1 - cos ks)/k, 0, sin(ks)/k), t = (sin ks, 0, cos ks).
+    ref = np.stack([(1 - np.cos(k * s)) / k, 0 * s, np.sin(k * s) / k], 1)
+    np.testing.assert_allclose(np.asarray(X), ref, atol=2e-6)
+    np.testing.assert_allclose(
+        np.asarray(t), np.stack([np.sin(k * s), 0 * s, np.cos(k * s)], 1), atol=2e-6
+    )
+
+
+def test_chain_matches_ode_and_tangent_is_derivative():
+    s = np.linspace(0.0, 0.09, 91)
+    X, t = _cp(
+        jnp.zeros(3), jnp.asarray(_R0()), jnp.asarray(CURV), jnp.asarray(SEG), jnp.asarray(s)
+    )
+    np.testing.assert_allclose(np.asarray(X), _ode_reference(s), atol=5e-6)  # 5 um of 90 mm
+    # Tangent = dX/ds (central differences in float64 of the ODE reference), continuous
+    # across the boundaries.
+    h = 1e-5
+    for sb in SEG[1:]:
+        Xa = _ode_reference(np.array([sb - h, sb + h]))
+        fd = (Xa[1] - Xa[0]) / (2 * h)
+        _, tb = _cp(jnp.zeros(3), jnp.asarray(_R0()), jnp.asarray(CURV), jnp.asarray(SEG),
+                             jnp.array([sb - 1e-7, sb + 1e-7]))  # fmt: skip
+        np.testing.assert_allclose(np.asarray(tb[0]), fd, atol=1e-4)
+        np.testing.assert_allclose(np.asarray(tb[1]), fd, atol=1e-4)
+
+
+def test_segment_parameters_against_svd_plane():
+    kappa, normal = _csp(jnp.zeros(3), jnp.asarray(_R0()), jnp.asarray(CURV), jnp.asarray(SEG))
+    np.testing.assert_allclose(np.asarray(kappa), np.linalg.norm(CURV, axis=1), rtol=1e-6)
+    ends = list(SEG[1:]) + [0.09]
+    for i, (a, b) in enumerate(zip(SEG, ends, strict=True)):
+        P = _ode_reference(np.linspace(a + 1e-6, b, 30))
+        _, _, vt = np.linalg.svd(P - P.mean(0))
+        assert abs(abs(vt[-1] @ np.asarray(normal[i])) - 1.0) < 1e-5
+
+
+def test_straight_segment_finite_gradient():
+    seg = jnp.array([0.0, 0.03])
+    s = jnp.linspace(0, 0.06, 7)
+
+    def f(c):
+        X, _ = chain_points(jnp.zeros(3), jnp.eye(3), c, seg, s)
+        k, n = chain_segment_parameters(jnp.zeros(3), jnp.eye(3), c, seg)
+        return jnp.sum(X**2) + jnp.sum(k) + jnp.sum(n)
+
+    g = jax.jit(jax.grad(f))(jnp.zeros((2, 2)))
+    assert np.all(np.isfinite(np.asarray(g)))
+
+    # Away from zero, the gradient of the positions vs central differences.
+    def fx(c):
+        return jnp.sum(chain_points(jnp.zeros(3), jnp.eye(3), c, seg, s)[0] ** 2)
+
+    c0 = np.array([[3.0, -2.0], [1.0, 4.0]], np.float32)
+    g = np.asarray(jax.jit(jax.grad(fx))(jnp.asarray(c0)))
+    fj = jax.jit(fx)
+    fd = np.zeros_like(c0)
+    for idx in np.ndindex(c0.shape):
+        e = np.zeros_like(c0)
+        e[idx] = 0.05
+        fd[idx] = (float(fj(jnp.asarray(c0 + e))) - float(fj(jnp.asarray(c0 - e)))) / 0.1
+    np.testing.assert_allclose(g, fd, rtol=2e-3, atol=1e-7)
+
+
+def test_jit_and_vmap():
+    s = jnp.linspace(0.0, 0.09, 20)
+    args = (
+        jnp.zeros(3),
+        jnp.asarray(_R0(), jnp.float32),
+        jnp.asarray(CURV, jnp.float32),
+        jnp.asarray(SEG, jnp.float32),
+    )
+    eager = chain_points(*args, s)[0]
+    np.testing.assert_allclose(
+        np.asarray(jax.jit(chain_points)(*args, s)[0]), np.asarray(eager), atol=1e-7
+    )
+    batch = jnp.stack([args[2], 0.5 * args[2], -args[2]])
+    vm = jax.vmap(lambda c: chain_points(args[0], args[1], c, args[3], s)[0])(batch)
+    for b in range(3):
+        np.testing.assert_allclose(
+            np.asarray(vm[b]),
+            np.asarray(_cp(args[0], args[1], batch[b], args[3], s)[0]),
+            atol=1e-7,
+        )
+
+
+def test_init_chain_on_exact_points():
+    s = np.linspace(0.002, 0.09, 177)
+    P = _ode_reference(s)
+    base, R, curv = init_chain(s, P, SEG)
+    np.testing.assert_allclose(base, 0.0, atol=1e-4)  # chord over the first 2 mm
+    k0, n0 = _csp(jnp.asarray(base), jnp.asarray(R), jnp.asarray(curv), jnp.asarray(SEG))
+    np.testing.assert_allclose(np.asarray(k0), np.linalg.norm(CURV, axis=1), rtol=0.03)
+
+
+def _smooth_error(s):
+    return 3e-4 * np.stack([np.sin(s / 0.013), np.cos(s / 0.021), np.sin(s / 0.017 + 1)], 1)
+
+
+def _views(cams, s, rng, noise_px):
+    """Silhouette-centre observations of the true chain: cv2.projectPoints of the ODE
+    points, image normals from the projected curve, Gaussian noise along the normals."""
+    P = _ode_reference(s)
+    cs, ns = [], []
+    for c in cams:
+        T = np.asarray(c.T_cam_robot, np.float64)
+        uv = cv2.projectPoints(P, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], np.asarray(c.K, np.float64), np.zeros(5))[0].reshape(-1, 2)  # fmt: skip
+        d = np.gradient(uv, axis=0)
+        n = np.stack([-d[:, 1], d[:, 0]], 1)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        cs.append(uv + rng.normal(0, noise_px, len(s))[:, None] * n)
+        ns.append(n)
+    return P, np.stack(cs), np.stack(ns)
+
+
+def test_fit_chain_recovers_parameters(cams):
+    rng = np.random.default_rng(0)
+    s = np.linspace(0.002, 0.09, 256)
+    P, cs, ns = _views(cams, s, rng, 0.2)
+    # Start from points off by up to 0.3 mm, smoothly (as the smoothed triangulation).
+    base0, R0, curv0 = init_chain(s, P + _smooth_error(s), SEG)
+    fit = fit_chain(cams[0], cams[1], s, cs, ns, np.ones((2, len(s))), SEG, base0, R0, curv0)
+    assert fit["ok"]
+    np.testing.assert_allclose(fit["kappa"], np.linalg.norm(CURV, axis=1), rtol=0.01)
+    _, n_true = _csp(jnp.zeros(3), jnp.asarray(_R0()), jnp.asarray(CURV), jnp.asarray(SEG))
+    ang = np.degrees(
+        np.arccos(np.clip(np.abs(np.sum(fit["normal"] * np.asarray(n_true), 1)), 0, 1))
+    )
+    assert ang.max() < 0.5, ang
+    assert 0.1 < fit["rms_px"] < 0.3  # the noise level
+
+
+def test_fit_chain_with_one_view_dropped_on_a_segment(cams):
+    """Where one view is unusable (weight 0) on the last segment, the other view plus the
+    tangent continuity still fix its curvature and plane."""
+    rng = np.random.default_rng(1)
+    s = np.linspace(0.002, 0.09, 256)
+    P, cs, ns = _views(cams, s, rng, 0.1)
+    w = np.ones((2, len(s)))
+    w[0, s > SEG[2]] = 0.0
+    base0, R0, curv0 = init_chain(s, P + _smooth_error(s), SEG)
+    fit = fit_chain(cams[0], cams[1], s, cs, ns, w, SEG, base0, R0, curv0)
+    # One view of a 20 mm arc: its out-of-image bending is only weakly observed (3.5 %).
+    np.testing.assert_allclose(fit["kappa"], np.linalg.norm(CURV, axis=1), rtol=0.05)
+
+
+def test_edge_clearance_two_bars():
+    """A vertical bar 6 px wide; a second bar 3 px beside it spoils the edge, 10 px does not."""
+    h, w = 40, 60
+    for gap, expect in [(3, 0.0), (10, 1.0)]:
+        a = np.zeros((h, w), np.float32)
+        a[:, 20:26] = 1.0
+        a[:, 26 + gap : 30 + gap] = 1.0
+        c = jnp.array([[22.5, 20.0]])
+        n = jnp.array([[1.0, 0.0]])
+        got = edge_clearance(jnp.asarray(a), c, n, jnp.array([6.0]), jnp.array([0.0]))
+        assert float(got[0]) == expect
