@@ -42,6 +42,7 @@ from scipy.ndimage import gaussian_filter1d
 from jaxcr.camera import Camera, project_points
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_locate import flood_component, locate_base
+from jaxcr.stereo.chain_fit import fit_segments_jointly
 from jaxcr.stereo.chroma import (
     KEY_COLOURS,
     chroma_alpha_and_projection,
@@ -51,6 +52,7 @@ from jaxcr.stereo.chroma import (
 from jaxcr.stereo.correspondence import match_backbones
 from jaxcr.stereo.diameter import (
     cylinder_diameters,
+    edge_clearance,
     profile_widths,
     report_interpolation_diameters,
     view_weights,
@@ -86,6 +88,8 @@ class StereoConfig:
     ``refine_iterations``: sub-pixel refinement passes (silhouette centres, re-triangulate).
     ``tip_extension_px``: image-space extrapolation of each view's tip for the matching
     (recovers tips foreshortened in one view; see :func:`match_backbones`).
+    ``joint_fit``: curvatures and bending planes from the joint chain fit to both views
+    (:mod:`jaxcr.stereo.chain_fit`) instead of separate per-segment fits to the points.
     """
 
     layout: MarkerLayout = field(default_factory=MarkerLayout)
@@ -105,6 +109,7 @@ class StereoConfig:
     min_robot_pixels: int = 40
     refine_iterations: int = 2
     tip_extension_px: int = 12
+    joint_fit: bool = True
 
 
 def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
@@ -243,6 +248,8 @@ def _view_profile(cam, alpha, kproj, p, tang):
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     wdt, off = profile_widths(alpha, uv0, nrm, kproj)
     wv = view_weights(cam, p, tang) ** 2
+    # No weight where another part of the robot lies beside an edge (wrong cloth level).
+    wv = wv * edge_clearance(alpha, uv0, nrm, wdt, off)
     return uv0, ok0, nrm, wdt, off, wv
 
 
@@ -629,7 +636,29 @@ def reconstruct_pair(
     boundary_p = np.array(
         [[np.interp(b, s, p[:, i]) for i in range(3)] for b in seg["boundaries_s"]]
     ).reshape(-1, 3)
-    _tick(timings, "segments_fits", t0)
+    t0 = _tick(timings, "segments_fits", t0)
+    if cfg.joint_fit and len(s) >= 10:
+        # Curvatures and bending planes of all segments from one fit of the tangent-
+        # continuous constant-curvature chain to both views' silhouettes
+        # (jaxcr.stereo.chain_fit); the separate per-segment fits stay as "*_independent".
+        joint = fit_segments_jointly(
+            cams,
+            [alpha_j[k] * near[k].astype(alpha_j.dtype) for k in range(2)],
+            [kproj_j[k] for k in range(2)],
+            s,
+            p,
+            seg["boundaries_s"],
+        )
+        for k, row in enumerate(table):
+            for key in ("phi_xy_deg", "phi_zx_deg", "phi_yz_deg", "curvature_1pm", "normal"):
+                row[key + "_independent"] = row[key]
+            row["phi_xy_deg"], row["phi_zx_deg"], row["phi_yz_deg"] = map(
+                float, joint["angles_deg"][k]
+            )
+            row["curvature_1pm"] = float(joint["kappa"][k])
+            row["normal"] = joint["normal"][k].tolist()
+            row["chain_rms_px"] = float(joint["rms_px"])
+        _tick(timings, "joint_fit", t0)
     return {
         "s": s,
         "p": p,
