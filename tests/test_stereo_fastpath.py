@@ -18,6 +18,7 @@ from jaxcr.stereo.chroma import (
     plate_alpha,
     plate_alpha_shadow_invariant,
 )
+from jaxcr.stereo.correspondence import dtw_path_costs_np
 from jaxcr.stereo.segments import piecewise_constant
 from jaxcr.stereo.thinning import zhang_suen_thin
 from jaxcr.stereo.triangulation import essential_matrix
@@ -172,3 +173,31 @@ def test_piecewise_constant_equals_loop():
         st_ref, e_ref = _piecewise_constant_loop(y, k)
         np.testing.assert_array_equal(st, st_ref)
         assert e == e_ref  # same float operations: bit-identical
+
+
+def _dtw_rows_reference(cost):
+    """The DTW recursion with per-row temporaries (the previous implementation)."""
+    n, m = cost.shape
+    D = np.empty((n, m))
+    K = np.zeros((n, m), np.int64)
+    D[0] = np.cumsum(cost[0])
+    idx = np.arange(m)
+    for i in range(1, n):
+        prev = D[i - 1]
+        M = np.minimum(prev, np.concatenate([[np.inf], prev[:-1]]))
+        S = np.cumsum(cost[i])
+        v = M - np.concatenate([[0.0], S[:-1]])
+        cm = np.minimum.accumulate(v)
+        K[i] = np.maximum.accumulate(np.where(v <= cm, idx, 0))
+        D[i] = S + cm
+    return D, K
+
+
+def test_dtw_buffers_equal_reference():
+    rng = np.random.default_rng(2)
+    for n, m in [(1, 5), (5, 1), (7, 9), (120, 90)]:
+        c = np.round(rng.random((n, m)), 1)  # ties
+        D, K = dtw_path_costs_np(c)
+        D_ref, K_ref = _dtw_rows_reference(c)
+        np.testing.assert_array_equal(D, D_ref)
+        np.testing.assert_array_equal(K, K_ref)

@@ -67,16 +67,24 @@ def dtw_path_costs_np(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n, m = cost.shape
     D = np.empty((n, m))
     K = np.zeros((n, m), np.int64)
-    D[0] = np.cumsum(cost[0])
+    S = np.cumsum(cost, axis=1)  # all rows' cumulative sums at once
+    Sm1 = np.zeros_like(S)
+    Sm1[:, 1:] = S[:, :-1]
+    D[0] = S[0]
     idx = np.arange(m)
+    # Row buffers reused with ``out=`` (the loop is over rows; each row is vectorised).
+    M, v, cm = np.empty(m), np.empty(m), np.empty(m)
+    le, kk = np.empty(m, bool), np.empty(m, np.int64)
     for i in range(1, n):
         prev = D[i - 1]
-        M = np.minimum(prev, np.concatenate([[np.inf], prev[:-1]]))
-        S = np.cumsum(cost[i])
-        v = M - np.concatenate([[0.0], S[:-1]])
-        cm = np.minimum.accumulate(v)
-        K[i] = np.maximum.accumulate(np.where(v <= cm, idx, 0))
-        D[i] = S + cm
+        M[0] = prev[0]
+        np.minimum(prev[1:], prev[:-1], out=M[1:])
+        np.subtract(M, Sm1[i], out=v)
+        np.minimum.accumulate(v, out=cm)
+        np.less_equal(v, cm, out=le)
+        np.multiply(idx, le, out=kk)
+        np.maximum.accumulate(kk, out=K[i])
+        np.add(S[i], cm, out=D[i])
     return D, K
 
 
