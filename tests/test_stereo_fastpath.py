@@ -201,3 +201,32 @@ def test_dtw_buffers_equal_reference():
         D_ref, K_ref = _dtw_rows_reference(c)
         np.testing.assert_array_equal(D, D_ref)
         np.testing.assert_array_equal(K, K_ref)
+
+
+def _resample_dense(p, step, sigma):
+    """Arclength Gaussian local-linear smoothing with the full kernel (previous version)."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    for _ in range(2):
+        grid = np.arange(0.0, s[-1] + 1e-12, step)
+        w = np.exp(-0.5 * ((grid[:, None] - s[None]) / sigma) ** 2)
+        ds = s[None] - grid[:, None]
+        sw, sx, sxx = w.sum(1), (w * ds).sum(1), (w * ds * ds).sum(1)
+        sy, sxy = w @ p, (w * ds) @ p
+        det = sw * sxx - sx * sx
+        p = (sxx[:, None] * sy - sx[:, None] * sxy) / np.maximum(det, 1e-300)[:, None]
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    return s, p
+
+
+def test_windowed_resample_equals_dense():
+    rng = np.random.default_rng(4)
+    for n in (12, 150, 500):  # samples ~0.3 mm apart, as skeleton pixels at the robot
+        r = rng.uniform(0.01, 0.1)
+        th = np.arange(n) * 3e-4 / r
+        p = np.stack([r * np.cos(th), r * np.sin(th), 0.2 * r * th], 1)
+        p += rng.normal(0, 5e-5, (n, 3))
+        s, q = pl._resample(p, 5e-4, 1e-3)
+        s_ref, q_ref = _resample_dense(p, 5e-4, 1e-3)
+        assert s.shape == s_ref.shape
+        np.testing.assert_allclose(q, q_ref, rtol=0, atol=1e-13)  # metres
+        np.testing.assert_allclose(s, s_ref, rtol=0, atol=1e-13)
