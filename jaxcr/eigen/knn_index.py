@@ -95,9 +95,11 @@ def _search_chunk(index: KnnIndex, X, b: int, n_leaves: int):
     x2 = jnp.sum(X * X, axis=1)
     c2 = jnp.sum(C * C, axis=1)
     dc2 = x2[:, None] - 2.0 * (X @ C.T) + c2[None, :]
-    # Lower bound on |x - c| despite cancellation in the expansion above.
-    slack = 8.0 * _EPS32 * (x2[:, None] + c2[None, :])
-    dc_lo = jnp.sqrt(jnp.maximum(dc2 - slack, 0.0))
+    # Lower bound on |x - c| despite rounding in the expansion above: the dot product of
+    # k terms errs by at most ~k eps |x||c| <= k eps (|x|^2 + |c|^2) / 2 (worst case).
+    k = X.shape[1]
+    slack = (k + 8) * _EPS32 * (x2[:, None] + c2[None, :])
+    dc_lo = jnp.sqrt(jnp.maximum(dc2 - slack, 0.0)) * (1.0 - 4 * _EPS32)
     lb = jnp.maximum(dc_lo - r[None, :], 0.0)
     L = C.shape[0]
     take = min(n_leaves + 1, L)
