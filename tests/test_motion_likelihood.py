@@ -205,3 +205,40 @@ def test_window_update_vmap_equals_loop():
 def test_object_probability_rejects_unknown_integration():
     with pytest.raises(ValueError, match="integration"):
         lk.object_probability(jnp.zeros((2, 3)), jnp.zeros((2, 3)), "average")
+
+
+def _loop_robust_mean(f, n_iter, scale):
+    b = f.mean(0)
+    for _ in range(n_iter):
+        w = 1.0 / (1.0 + np.sum((f - b) ** 2, 1) / scale**2)
+        b = (w[:, None] * f).sum(0) / w.sum()
+    return b
+
+
+def test_robust_translation_vs_loop_and_bimodal_segment():
+    from jaxcr.motion.motion_models import robust_translation, segment_translation
+
+    rng = np.random.default_rng(3)
+    k, n = 4, 60
+    seg = np.repeat(np.arange(k), n)
+    flow = rng.normal(0, 0.2, (k * n, 2))
+    # segment 1 is bimodal: 70 % static, 30 % moving 6 px (a leaked / straddled boundary)
+    flow[n : n + 18] += [6.0, 0.0]
+    # segment 2 moves rigidly by (3, -1)
+    flow[2 * n : 3 * n] += [3.0, -1.0]
+    weight = np.ones(k * n)
+    weight[3 * n :] = 0.0  # segment 3 has no valid point
+    args = (jnp.asarray(flow, jnp.float32), jnp.asarray(seg), jnp.asarray(weight, jnp.float32), k)
+    b, count = jax.jit(robust_translation, static_argnums=(3, 4))(*args, 5)
+    b = np.asarray(b)
+    for j in range(3):
+        ref = _loop_robust_mean(flow[seg == j], 5, 1.0)
+        np.testing.assert_allclose(b[j], ref, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(count), [n, n, n, 0])
+    assert np.linalg.norm(b[1]) < 0.3  # the dominant (static) motion, the mean is at 1.8 px
+    assert abs(flow[n : 2 * n].mean(0)[0] - 1.8) < 0.1
+    np.testing.assert_allclose(b[2], [3.0, -1.0], atol=0.1)
+    np.testing.assert_array_equal(b[3], [0.0, 0.0])
+    # n_iter = 0 is the plain mean (eq. 4)
+    b0, _ = robust_translation(*args, 0)
+    np.testing.assert_allclose(np.asarray(b0), np.asarray(segment_translation(*args)[0]), atol=1e-6)

@@ -50,6 +50,24 @@ def add_parser(subparsers) -> None:
     p.add_argument("--superpixel-step", type=int, default=20, help="SLIC grid step, px")
     p.add_argument("--flow-step", type=int, default=4, help="LK grid step, px")
     p.add_argument("--flow", choices=["lk", "dis"], default="lk", help="optical flow method")
+    p.add_argument(
+        "--integration",
+        choices=["product", "mixture"],
+        default="product",
+        help="combine the before-touch and touching windows as a product (default) or pool "
+        "all frames in one average (the paper's eq. 16 literally)",
+    )
+    p.add_argument(
+        "--prior-frames",
+        type=float,
+        default=1.0,
+        help="Beta prior of each window mean, in pseudo-frames at 1/2 (0: plain averages)",
+    )
+    p.add_argument(
+        "--no-stabilise",
+        action="store_true",
+        help="do not take the flow relative to the background homography (static camera)",
+    )
     p.add_argument("--no-baseline", action="store_true", help="skip the grabCut baseline")
     g = p.add_argument_group("synth (with DATASET = synth)")
     g.add_argument("--preset", default="pushed_static")
@@ -98,6 +116,8 @@ def run(args) -> int:
     from jaxcr.motion.pipeline import MODELS, MotionConfig
     from jaxcr.motion.run import first_touch, run_baseline, run_motion
 
+    if args.prior_frames < 0:
+        raise InputError("--prior-frames must be >= 0", field="--prior-frames")
     if args.lam <= 0 or not (0 < args.threshold <= 1):
         raise InputError("--lambda must be > 0 and --threshold in (0, 1]", field="--lambda")
     if args.superpixel_step < 4 or args.flow_step < 1:
@@ -112,6 +132,9 @@ def run(args) -> int:
         models=models,
         lam=args.lam,
         threshold=args.threshold,
+        stabilise=not args.no_stabilise,
+        integration=args.integration,
+        prior_frames=args.prior_frames,
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

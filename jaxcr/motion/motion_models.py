@@ -2,7 +2,8 @@
 
 Each segment's model is fitted to the flow vectors of the grid points lying in it:
 
-* translation (eq. 4): Q(a) = a + b_j, with b_j the mean flow of the segment;
+* translation (eq. 4): Q(a) = a + b_j, with b_j the mean flow of the segment, optionally as
+  a Cauchy M-estimate (:func:`robust_translation`);
 * homography (eqs. 7-8): Q(a) = pi(H_j [a; 1]), H_j fitted to the segment's point
   correspondences (p, p + f) by the normalised DLT (Hartley normalisation per segment), made
   robust by iteratively reweighted least squares with Cauchy weights on the transfer error.
@@ -37,6 +38,29 @@ def segment_translation(
     wsum = jax.ops.segment_sum(weight, seg, n_segments)
     fsum = jax.ops.segment_sum(flow * weight[:, None], seg, n_segments)
     return fsum / jnp.maximum(wsum, 1e-12)[:, None], wsum
+
+
+def robust_translation(
+    flow: Float[Array, "n 2"],
+    seg: Int[Array, " n"],
+    weight: Float[Array, " n"],
+    n_segments: int,
+    n_iter: int = 5,
+    scale: float = 1.0,
+) -> tuple[Float[Array, "k 2"], Float[Array, " k"]]:
+    """Robust b_j (eq. 4): the mean flow reweighted ``n_iter`` times with Cauchy weights
+    1 / (1 + (|f - b_j| / scale)^2), ``scale`` in px (an M-estimator of location started at
+    the mean). A segment's flow is bimodal where the LK window straddles its boundary with a
+    moving neighbour or where tracked labels leak onto it; the plain mean then lands between
+    the two motions, the M-estimate on the dominant one. Returns (b, number of valid points);
+    ``n_iter`` = 0 is :func:`segment_translation`."""
+    b, count = segment_translation(flow, seg, weight, n_segments)
+
+    def body(_, b):
+        e2 = jnp.sum((flow - b[seg]) ** 2, axis=1)
+        return segment_translation(flow, seg, weight / (1.0 + e2 / scale**2), n_segments)[0]
+
+    return jax.lax.fori_loop(0, n_iter, body, b), count
 
 
 def _similarity(c: Float[Array, "k 2"], s: Float[Array, " k"]) -> Float[Array, "k 3 3"]:

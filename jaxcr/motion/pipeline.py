@@ -35,8 +35,8 @@ from jaxcr.motion.likelihood import (
 )
 from jaxcr.motion.motion_models import (
     homography_error,
+    robust_translation,
     segment_homography,
-    segment_translation,
     stabilise_flow,
     translation_error,
 )
@@ -70,6 +70,7 @@ class MotionConfig:
     homography_irls: int = 3
     perspective_penalty: float = 1.0
     select_sigma: float = 0.5
+    translation_irls: int = 5  # Cauchy reweightings of the mean flow b_j (0: plain mean)
     stabilise: bool = True  # flow relative to the background homography (camera shake)
     integration: str = "product"  # likelihood.object_probability: "product" | "mixture"
     prior_frames: float = 1.0  # Beta prior per window, pseudo-frames at 1/2
@@ -78,7 +79,15 @@ class MotionConfig:
 
 @functools.partial(
     jax.jit,
-    static_argnames=("n_segments", "models", "n_irls", "penalty", "select_sigma", "stabilise"),
+    static_argnames=(
+        "n_segments",
+        "models",
+        "n_irls",
+        "penalty",
+        "select_sigma",
+        "stabilise",
+        "translation_irls",
+    ),
 )
 def frame_probabilities(
     pts: Float[Array, "n 2"],
@@ -96,6 +105,7 @@ def frame_probabilities(
     penalty: float = 0.0,
     select_sigma: float = 0.0,
     stabilise: bool = False,
+    translation_irls: int = 0,
 ) -> tuple[Float[Array, "m k"], Bool[Array, " k"]]:
     """Arm-removed membership probability of every segment for one frame pair, one row per
     model in ``models`` (eqs. 4-13), and which segments had valid flow (``present``). With
@@ -105,7 +115,7 @@ def frame_probabilities(
     if stabilise:
         flow, _ = stabilise_flow(pts, flow, valid)
     w = valid.astype(flow.dtype)
-    b, count = segment_translation(flow, seg, w, n_segments)
+    b, count = robust_translation(flow, seg, w, n_segments, translation_irls)
     rows = []
     for m in models:
         if m == "translation":
@@ -236,6 +246,7 @@ class MotionTracker:
                 cfg.perspective_penalty,
                 cfg.select_sigma,
                 cfg.stabilise,
+                cfg.translation_irls,
             )
             self.sums, self.counts = _window_update(
                 self.sums, self.counts, p, present, jnp.asarray(bool(touch))
