@@ -60,6 +60,7 @@ from jaxcr.stereo.diameter import (
 from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
 from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
+from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
 from jaxcr.stereo.triangulation import triangulate_points
 
@@ -90,6 +91,9 @@ class StereoConfig:
     (recovers tips foreshortened in one view; see :func:`match_backbones`).
     ``joint_fit``: curvatures and bending planes from the joint chain fit to both views
     (:mod:`jaxcr.stereo.chain_fit`) instead of separate per-segment fits to the points.
+    ``shadow_tolerance_deg``: tolerance of the slope-angle segmentation that cuts a shadow
+    branch off the start of each view's ordered skeleton (:func:`shadow_cut`; report
+    sec. 5.3, Fig. 18 uses 10-30 deg); ``None`` disables it.
     """
 
     layout: MarkerLayout = field(default_factory=MarkerLayout)
@@ -110,6 +114,7 @@ class StereoConfig:
     refine_iterations: int = 2
     tip_extension_px: int = 12
     joint_fit: bool = True
+    shadow_tolerance_deg: float | None = 20.0
 
 
 def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
@@ -487,6 +492,10 @@ def reconstruct_pair(
             rc = order_skeleton(sk, (seed[0] - r0, seed[1] - c0)) + np.array([r0, c0])
         except ValueError:
             raise StereoFailure("robot_not_found", f"empty skeleton in view {k + 1}") from None
+        if cfg.shadow_tolerance_deg is not None:
+            # Shadow removal (report sec. 5.3): drop a shadow branch before the base.
+            uv_seed = np.array([seed[1], seed[0]], float)
+            rc = rc[shadow_cut(_smooth_path(rc), uv_seed, cfg.shadow_tolerance_deg) :]
         v["skeleton_rc"] = rc
         v["uv"] = _smooth_path(rc)
     t0 = _tick(timings, "ordering", t0)
