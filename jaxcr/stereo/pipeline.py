@@ -492,13 +492,18 @@ def reconstruct_pair(
             rc = order_skeleton(sk, (seed[0] - r0, seed[1] - c0)) + np.array([r0, c0])
         except ValueError:
             raise StereoFailure("robot_not_found", f"empty skeleton in view {k + 1}") from None
+        v["skeleton_rc"] = rc
+    t0 = _tick(timings, "ordering", t0)
+    for v in views:
+        rc = v["skeleton_rc"]
         if cfg.shadow_tolerance_deg is not None:
             # Shadow removal (report sec. 5.3): drop a shadow branch before the base.
+            seed = v["loc"].seed
             uv_seed = np.array([seed[1], seed[0]], float)
             rc = rc[shadow_cut(_smooth_path(rc), uv_seed, cfg.shadow_tolerance_deg) :]
         v["skeleton_rc"] = rc
         v["uv"] = _smooth_path(rc)
-    t0 = _tick(timings, "ordering", t0)
+    t0 = _tick(timings, "shadow_removal", t0)
     # 6. Correspondence and triangulation (normalised coordinates).
     xn = [
         cv2.undistortPoints(
