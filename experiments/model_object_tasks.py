@@ -169,9 +169,9 @@ def bench_table(rows):
         + ") runs on the same padded clouds (points + our normals) over the same radii "
         "(20, 10, 4 mm; 10 iterations each), from our keypoint seed and from the nominal seed"
         if have
-        else "Open3D NOT run: `import open3d` failed ("
+        else "Open3D NOT run ("
         + (rows[0]["open3d_reason"] if rows else "?")
-        + "); install the [bench] extra (`pip install open3d`; on Debian it also needs "
+        + "); to run it install the [bench] extra (`pip install open3d`; on Debian it also needs "
         "`apt-get install libusb-1.0-0`). Its columns are empty"
     )
     out = [
