@@ -144,11 +144,20 @@ def segment_homography(
     min_points: int = 6,
     perspective_penalty: float = 0.0,
     select_sigma: float = 0.0,
+    translation_irls: int = 0,
 ) -> Float[Array, "k 3 3"]:
     """Robust homography per segment (eqs. 7-8): weighted normalised DLT, then ``n_irls``
     reweightings with Cauchy weights 1 / (1 + (e / scale)^2), e the transfer error in px.
     Segments with fewer than ``min_points`` valid points get their mean-flow translation;
     ``perspective_penalty`` see :func:`weighted_homographies`.
+
+    With ``translation_irls`` > 0 the fit is started from the segment's robust translation
+    (:func:`robust_translation`) instead of from all its points, and every refinement uses
+    hard inlier weights (transfer error < 2 ``scale``) instead of Cauchy weights: the
+    algebraic DLT is not robust, a bimodal segment (a moving boundary straddled by the LK
+    window, leaked labels) bends a fit that gives its minority even a few per cent of weight.
+    The inliers of the last refinement must then number ``min_points``; the fallback is the
+    robust translation.
 
     With ``select_sigma`` > 0 (the flow noise, px) each segment keeps the homography only if it
     explains its flow better than the translation by more than the AIC penalty for the six
@@ -156,22 +165,34 @@ def segment_homography(
     Torr 1998, which M-L cites); otherwise the segment's model is its translation."""
     w0 = valid.astype(pts.dtype)
     dst = pts + flow
-    H = weighted_homographies(pts, dst, seg, w0, n_segments, perspective_penalty)
+    b, count = robust_translation(flow, seg, w0, n_segments, translation_irls)
+    robust = translation_irls > 0
+    inlier2 = (2.0 * scale) ** 2
+    if robust:
+        w_start = w0 * (jnp.sum((flow - b[seg]) ** 2, axis=1) < (3.0 * scale) ** 2)
+    else:
+        w_start = w0
+    H = weighted_homographies(pts, dst, seg, w_start, n_segments, perspective_penalty)
 
-    def body(_, H):
+    def weights(H):
         pred = jax.vmap(apply_homography)(H[seg], pts)
         e2 = jnp.sum((pred - dst) ** 2, axis=1)
-        w = w0 / (1.0 + e2 / scale**2)
-        return weighted_homographies(pts, dst, seg, w, n_segments, perspective_penalty)
+        return w0 * (e2 < inlier2) if robust else w0 / (1.0 + e2 / scale**2)
+
+    def body(_, H):
+        return weighted_homographies(pts, dst, seg, weights(H), n_segments, perspective_penalty)
 
     H = jax.lax.fori_loop(0, n_irls, body, H)
-    b, count = segment_translation(flow, seg, w0, n_segments)
     Ht = jnp.tile(jnp.eye(3, dtype=pts.dtype), (n_segments, 1, 1)).at[:, :2, 2].set(b)
     good = (count >= min_points) & jnp.all(jnp.isfinite(H), axis=(1, 2))
+    w_sel = w0
+    if robust:
+        w_sel = weights(H)
+        good = good & (jax.ops.segment_sum(w_sel, seg, n_segments) >= min_points)
     if select_sigma > 0:
         pred = jax.vmap(apply_homography)(H[seg], pts)
-        rss_h = jax.ops.segment_sum(w0 * jnp.sum((pred - dst) ** 2, axis=1), seg, n_segments)
-        rss_t = jax.ops.segment_sum(w0 * jnp.sum((flow - b[seg]) ** 2, axis=1), seg, n_segments)
+        rss_h = jax.ops.segment_sum(w_sel * jnp.sum((pred - dst) ** 2, axis=1), seg, n_segments)
+        rss_t = jax.ops.segment_sum(w_sel * jnp.sum((flow - b[seg]) ** 2, axis=1), seg, n_segments)
         good = good & (rss_t - rss_h > 12.0 * select_sigma**2)
     return jnp.where(good[:, None, None], H, Ht)
 

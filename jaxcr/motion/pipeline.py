@@ -130,6 +130,7 @@ def frame_probabilities(
                 n_irls=n_irls,
                 perspective_penalty=penalty,
                 select_sigma=select_sigma,
+                translation_irls=translation_irls,
             )
             rho = homography_error(H, x_now, x_next)
         else:
