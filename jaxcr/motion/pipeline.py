@@ -8,7 +8,7 @@ and the end-effector pixels of the two frames, and
 2. evaluates the motion models, the likelihood and arm removal for all segments and
    updates the running averages (:func:`frame_probabilities`, one jitted JAX call),
 3. warps the labels with the flow and refines them with SLIC on the new frame (JAX), at the
-   superpixels' working resolution (:func:`~jaxcr.motion.superpixels.working_lab`).
+   superpixels' working resolution (:func:`~jaxcr.motion.superpixels.working_rgb`).
 
 The per-frame times of the three parts are recorded separately. A frame pair is *used* only
 if the end-effector is in view in both frames and moved at least ``min_motion`` px; otherwise
@@ -46,7 +46,7 @@ from jaxcr.motion.superpixels import (
     grid_shape,
     segment_first,
     segment_track,
-    working_lab,
+    working_rgb,
     working_shape,
 )
 
@@ -177,7 +177,7 @@ class MotionTracker:
         self.n_segments = gh * gw
         t0 = time.perf_counter()
         self.work_labels, self.labels = segment_first(
-            jnp.asarray(working_lab(first_rgb, s)),
+            jnp.asarray(working_rgb(first_rgb, s)),
             self.n_segments,
             self.sp_step,
             cfg.compactness,
@@ -257,7 +257,7 @@ class MotionTracker:
         self.work_labels, self.labels = segment_track(
             self.work_labels,
             jnp.asarray(dense),
-            jnp.asarray(working_lab(next_rgb, self.scale)),
+            jnp.asarray(working_rgb(next_rgb, self.scale)),
             self.n_segments,
             self.sp_step,
             cfg.compactness,

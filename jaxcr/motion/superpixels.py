@@ -16,7 +16,7 @@ Distance (SLIC eq. 3): D^2 = |lab - lab_c|^2 + (m / S)^2 |xy - xy_c|^2, m = comp
 
 Speed (measured in ``experiments/results/motion_bench.md``): the segmentation runs at a
 *working resolution*, the frame shrunk by an integer ``scale`` with area averaging
-(:func:`working_lab`), and the labels are repeated back to full size
+(:func:`working_rgb`), and the labels are repeated back to full size
 (:func:`upsample_labels`). Superpixels are about 20 px wide, so halving a 640 x 480 frame
 keeps them 10 px wide at a quarter of the pixels. Shifted label maps are static slices of an
 edge-padded map (no gathers), and each centre column is gathered on its own (1-D gathers).
@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxcr.colour import rgb_to_lab  # noqa: F401  (re-exported for the motion pipeline)
+from jaxcr.colour import rgb_to_lab
 from jaxcr.motion.propagate import splat_labels
 
 _FAR = 1e30  # distance added for candidates whose segment is empty (never chosen)
@@ -57,25 +57,22 @@ def working_shape(height: int, width: int, scale: int) -> tuple[int, int]:
     return -(-height // scale), -(-width // scale)
 
 
-def working_lab(rgb: np.ndarray, scale: int = 1) -> np.ndarray:
-    """CIE L*a*b* (D65, L* in [0, 100]) of a frame at the working resolution, float32 (h, w, 3).
+def working_rgb(rgb: np.ndarray, scale: int = 1) -> np.ndarray:
+    """A frame at the working resolution, float32 RGB in [0, 1], (ceil(H / s), ceil(W / s), 3).
 
     ``rgb`` is float RGB in [0, 1] or uint8, (H, W, 3). The frame is shrunk by ``scale`` with
-    area averaging (``cv2.INTER_AREA``, in sRGB) and converted with OpenCV's float Lab, which
-    agrees with :func:`jaxcr.colour.rgb_to_lab` / scikit-image to 0.5 units (OpenCV's
-    float path interpolates its tables; checked in the tests). This is per-frame input conversion on the host, like the grey
-    image for LK; OpenCV does it in under a millisecond where XLA's CPU cube roots take ~8 ms
-    at 320 x 240.
+    area averaging (``cv2.INTER_AREA``: the mean of each s x s block when s divides the size),
+    on the host before the transfer to JAX; the Lab conversion (:func:`jaxcr.colour.rgb_to_lab`)
+    then runs on the small image inside :func:`segment_first` / :func:`segment_track`.
     """
     a = np.asarray(rgb)
     if a.ndim != 3 or a.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) RGB frame, got shape {a.shape}")
     a = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32, copy=False)
-    a = np.clip(a, 0.0, 1.0)
     if scale != 1:
         h, w = working_shape(a.shape[0], a.shape[1], scale)
         a = cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA)
-    return cv2.cvtColor(np.ascontiguousarray(a), cv2.COLOR_RGB2Lab)
+    return np.ascontiguousarray(a)
 
 
 def upsample_labels(
@@ -180,7 +177,7 @@ def auto_scale(width: int, step: int) -> int:
     jax.jit, static_argnames=("n_segments", "step", "n_iter", "scale", "height", "width")
 )
 def segment_first(
-    lab: Float[Array, "h w 3"],
+    rgb: Float[Array, "h w 3"],
     n_segments: int,
     step: int,
     compactness: float,
@@ -189,10 +186,11 @@ def segment_first(
     height: int,
     width: int,
 ) -> tuple[Int[Array, "h w"], Int[Array, "H W"]]:
-    """Fresh SLIC on the working-resolution Lab image (``step`` in working px) from the seed
-    grid. Returns the working label map and the full-size (height, width) one."""
-    h, w = lab.shape[:2]
-    lbl = slic(lab, grid_labels(h, w, step), n_segments, step, compactness, n_iter)
+    """Fresh SLIC on the working-resolution frame (:func:`working_rgb`; ``step`` in working
+    px) from the seed grid. Returns the working label map and the full-size (height, width)
+    one."""
+    h, w = rgb.shape[:2]
+    lbl = slic(rgb_to_lab(rgb), grid_labels(h, w, step), n_segments, step, compactness, n_iter)
     return lbl, upsample_labels(lbl, height, width, scale)
 
 
@@ -202,7 +200,7 @@ def segment_first(
 def segment_track(
     labels: Int[Array, "h w"],
     flow: Float[Array, "h w 2"],
-    lab: Float[Array, "h w 3"],
+    rgb: Float[Array, "h w 3"],
     n_segments: int,
     step: int,
     compactness: float,
@@ -213,6 +211,7 @@ def segment_track(
 ) -> tuple[Int[Array, "h w"], Int[Array, "H W"]]:
     """Carry the working label map to the next frame: forward-splat with the dense flow (in
     working px, :func:`jaxcr.motion.propagate.splat_labels`), then ``n_iter`` SLIC steps on
-    the new frame's Lab image (ids kept). Returns working and full-size label maps."""
-    lbl = slic(lab, splat_labels(labels, flow), n_segments, step, compactness, n_iter)
+    the new working-resolution frame (:func:`working_rgb`; ids kept). Returns working and
+    full-size label maps."""
+    lbl = slic(rgb_to_lab(rgb), splat_labels(labels, flow), n_segments, step, compactness, n_iter)
     return lbl, upsample_labels(lbl, height, width, scale)
