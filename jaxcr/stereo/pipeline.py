@@ -18,6 +18,14 @@
    steps (:mod:`jaxcr.stereo.segments`), and per segment a plane fit (angles with the X-Y,
    Z-X, Y-Z planes) and a circular-arc fit (curvature, arc length) (:mod:`jaxcr.stereo.fits`).
 
+Speed (``experiments/stereo_bench.py``): both views go through each JAX stage in one jitted
+call (alpha/key projection/mask from the uint8 images; thinning of the robots' bounding-box
+crops, padded to a common 64-px bucket and vmapped; refinement profiles; diameters); arrays
+whose length varies per frame are padded to buckets (thinning crops 64 px, backbone points
+256), so a new frame of a seen size compiles nothing; the two marker detections run in two
+threads (OpenCV releases the GIL); ordering, DTW and the arclength smoothing are vectorised
+numpy/scipy without per-pixel Python loops.
+
 Per-frame problems raise :class:`StereoFailure` with a short ``reason`` code
 (``calibration_size``, ``markers``, ``robot_not_found``, ``correspondence``) for the batch
 driver to record; nothing else is expected to raise. Stage timings (seconds, wall clock,
