@@ -1,5 +1,6 @@
 """Variant of the accuracy experiment: the paper's raw point counts instead of normalised
-histograms (120 bins, 90 %, smoothing 1e-3), from the contour cache of eigen_accuracy.py.
+histograms (120 bins, 90 %, smoothing 1e-3, the paper's per-frame region centroid), from the
+contour cache of eigen_accuracy.py.
 
     taskset -c 1 python experiments/eigen_rawcounts.py /tmp/irep experiments/results/eigen_rawcounts.json
 """
@@ -34,7 +35,12 @@ print(
 )
 cm = ColourModel(jnp.zeros((5, 2)), jnp.asarray(0))
 H, ok = stereo_histograms(tr, 120, False)
-m = train(H, P["train"], cm, TrainConfig(n_bins=120, variance=0.9, smoothing=1e-3, normalise=False))
+m = train(
+    H,
+    P["train"],
+    cm,
+    TrainConfig(n_bins=120, variance=0.9, smoothing=1e-3, normalise=False, centre="region"),
+)
 out = {}
 for name, sc in (("test", te), ("test_occluded", to)):
     Ht, okt = stereo_histograms(sc, 120, False)
