@@ -400,9 +400,10 @@ def write_markdown(rec, smoothing) -> None:
         "the segment at a random image angle). The paper does not quantify its occlusions.",
         "- Why the fixed centre: with the per-frame region centroid, the centroid of the "
         "occluded frames moves by 3.5 px (median; 90th pct. 10 px) from the same configuration "
-        "unoccluded, which rotates the angle of every contour point; with a fixed point only the "
+        "unoccluded (measured on the paired test sets while diagnosing; the choice itself was "
+        "made on the validation sets), which rotates the angle of every contour point; with a fixed point only the "
         "bins of the hidden and newly cut contour change (tests/test_eigen_contour.py "
-        "checks this exactly). It also removes centroid jitter from the descriptor, which is "
+        "checks this exactly). It also removes centroid jitter from the descriptor, presumably "
         "why fewer PCA components hold the same variance (Table I).",
         "- Generation time and descriptor extraction: see experiments/results/eigen_generate.json "
         "(512x384: ~0.5 s/frame unoccluded, ~1 s/frame occluded on one shared core).",
