@@ -279,3 +279,30 @@ def test_grid_flow_vs_opencv_and_known_shift():
         np.testing.assert_allclose(flow[valid], (nxt[:, 0] - pts)[valid], atol=1e-6)
         interior = valid & (pts[:, 0] > 12) & (pts[:, 0] < 84) & (pts[:, 1] > 12) & (pts[:, 1] < 60)
         np.testing.assert_allclose(np.median(flow[interior], 0), [2.5, -1.5], atol=0.05)
+
+
+def test_tracker_at_working_scale_two(tmp_path):
+    """The whole M-L run with the superpixels on the half-size frame (forced scale 2 on a
+    tiny video): full-size label maps repeated from the working ones, the segment count of the
+    working grid, and the pushed object still the most probable region."""
+    from jaxcr.motion.dataset import load_motion_dataset
+    from jaxcr.motion.pipeline import MotionConfig, MotionTracker
+    from jaxcr.motion.run import run_motion
+    from jaxcr.synth.motion_scenes import generate_motion_video
+
+    d = tmp_path / "push"
+    generate_motion_video(d, "pushed_static", seed=0, size=(128, 96), n_frames=8, speed_px=10)
+    ds = load_motion_dataset(d)
+    cfg = MotionConfig(superpixel_step=8, superpixel_scale=2, models=("translation",))
+    res = run_motion(ds, cfg)
+    assert res.labels_eval.shape == (96, 128)
+    work = res.labels_eval[::2, ::2]
+    np.testing.assert_array_equal(res.labels_eval, np.kron(work, np.ones((2, 2), np.int32)))
+    assert res.labels_eval.max() < 12 * 16  # the 4-px working grid of a 64 x 48 frame
+    gt = ds.mask(res.eval_frame)
+    pm = res.maps["translation"]
+    assert pm[gt].mean() > pm[~gt].mean() + 0.1
+    tracker = MotionTracker(cfg, next(ds.frames())[1])
+    assert (tracker.scale, tracker.sp_step, tracker.n_segments) == (2, 4, 12 * 16)
+    # the auto default keeps a 128-px frame at full resolution
+    assert MotionTracker(MotionConfig(superpixel_step=8), next(ds.frames())[1]).scale == 1
