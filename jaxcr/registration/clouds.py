@@ -33,7 +33,7 @@ class Cloud:
         return Cloud(self.points[idx], self.colours[idx], self.normals[idx])
 
 
-def cloud_from_rgbd(
+def organised_cloud(
     rgb: np.ndarray,
     depth: np.ndarray,
     K: np.ndarray,
@@ -41,13 +41,17 @@ def cloud_from_rgbd(
     frame: int | str | None = None,
     normal_window: int = 7,
     normal_step: int = 2,
-) -> Cloud:
-    """Camera-frame cloud of the valid pixels of ``depth`` (H, W) in metres (0 or NaN =
-    invalid) with ``rgb`` (H, W, 3) in [0, 1] and intrinsics ``K`` (3, 3).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Organised camera-frame cloud of an RGB-D frame: points (H, W, 3), colours (H, W, 3),
+    unit normals (H, W, 3) facing the camera, and the mask (H, W) of pixels with a valid
+    depth and a valid normal. ``depth`` (H, W) in metres (0 or NaN = invalid), ``rgb`` in
+    [0, 1], intrinsics ``K`` (3, 3).
 
-    Normals: cross product of the central differences of the back-projected image along
-    u and v (needs both neighbours valid), oriented towards the camera. Raises
-    :class:`InputError` for mismatched shapes or a frame without a single valid depth.
+    Normals: cross product of the central differences (over +-``normal_step`` px) of the
+    box-smoothed back-projected image along u and v (needs both neighbours valid); windows
+    straddling a depth jump > 2 cm are invalid, so pixels at depth discontinuities carry no
+    normal. Raises :class:`InputError` for mismatched shapes or a frame without a single
+    valid depth / normal.
     """
     depth = np.asarray(depth, np.float64)
     rgb = np.asarray(rgb, np.float64)
@@ -82,10 +86,25 @@ def cloud_from_rgbd(
     n = np.where(ok[..., None], n / np.where(norm > 0, norm, 1.0), 0.0)
     flip = np.sum(n * P, axis=-1) > 0  # the normal must face the camera (P points away)
     n = np.where(flip[..., None], -n, n)
-    keep = ok
-    if not keep.any():
+    if not ok.any():
         raise InputError("depth image has no pixel with a valid normal", frame=frame, field="depth")
-    return Cloud(P[keep], rgb[keep], n[keep])
+    P = np.where(ok[..., None], P, 0.0)
+    return P, rgb, n, ok
+
+
+def cloud_from_rgbd(
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    K: np.ndarray,
+    max_depth: float = 3.0,
+    frame: int | str | None = None,
+    normal_window: int = 7,
+    normal_step: int = 2,
+) -> Cloud:
+    """Camera-frame cloud of the pixels of :func:`organised_cloud` with a valid depth and
+    normal (same arguments, same errors)."""
+    P, rgb, n, ok = organised_cloud(rgb, depth, K, max_depth, frame, normal_window, normal_step)
+    return Cloud(P[ok], rgb[ok], n[ok])
 
 
 def smooth_points(P: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:

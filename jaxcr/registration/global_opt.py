@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcr._types import Array, Bool, Float, Mat4
-from jaxcr.geometry import invert_transform, kabsch, transform_points
+from jaxcr.geometry import kabsch, transform_points
 
 
 def overlap_mask(
@@ -106,14 +106,17 @@ def global_optimize(
     tol: float = 1e-4,
     max_refinements: int = 5000,
     seed: int = 0,
+    engine: str = "jax",
 ) -> GlobalResult:
     """Algorithm 2 over the ring of ``clouds`` (padded points (n, 3), mask (n,)) with
-    pairwise transforms ``rel`` (see module docstring)."""
+    pairwise transforms ``rel`` (see module docstring). ``engine="jax"``: the whole
+    deque loop is one jitted ``lax.while_loop`` (:func:`algorithm2_loop`); ``"python"``:
+    the same loop in Python calling the jitted :func:`align` (the reference)."""
     m = len(clouds)
     if m < 3 or len(rel) != m:
         raise ValueError(f"a loop needs >= 3 clouds and one transform per edge, got {m}/{len(rel)}")
     rng = np.random.default_rng(seed)
-    inv = [np.asarray(invert_transform(jnp.asarray(T)), np.float64) for T in rel]
+    inv = [np.linalg.inv(np.asarray(T, np.float64)) for T in rel]
     # Samples of C_i overlapping C_{i+1} (mates via rel[i]) and C_{i-1} (via inv[i-1]).
     samples = []
     for i in range(m):
@@ -139,6 +142,38 @@ def global_optimize(
         )
     poses = chain_poses(rel)
     initial = [P.copy() for P in poses]
+    if engine == "jax":
+        pp = np.stack([smp[0][0] for smp in samples])
+        wp = np.stack([smp[0][1] for smp in samples])
+        pn = np.stack([smp[1][0] for smp in samples])
+        wn = np.stack([smp[1][1] for smp in samples])
+        out, count, left = algorithm2_loop(
+            jnp.asarray(np.stack(poses), jnp.float32),
+            jnp.asarray(np.stack(rel), jnp.float32),
+            jnp.asarray(np.stack(inv), jnp.float32),
+            jnp.asarray(pp),
+            jnp.asarray(wp),
+            jnp.asarray(pn),
+            jnp.asarray(wn),
+            float(tol),
+            int(max_refinements),
+        )
+        poses = list(np.asarray(out, np.float64))
+        count, converged = int(count), int(left) == 0
+    elif engine == "python":
+        poses, count, converged = _algorithm2_python(poses, rel, inv, samples, tol, max_refinements)
+    else:
+        raise ValueError(f"engine must be 'jax' or 'python', got {engine!r}")
+    # Re-anchor so that O is again the frame of the last cloud (eq. 1): Align also moves it.
+    anchor = np.linalg.inv(poses[m - 1])
+    poses = [anchor @ P for P in poses]
+    return GlobalResult(poses, initial, count, converged)
+
+
+def _algorithm2_python(poses, rel, inv, samples, tol, max_refinements):
+    """The deque loop of Algorithm 2 in Python (reference for :func:`algorithm2_loop`)."""
+    m = len(poses)
+    poses = [P.copy() for P in poses]
     # The paper starts by refining T_O,m; we keep O = C_m fixed instead (it removes the
     # global-motion gauge, along which the Gauss-Seidel updates otherwise drift without
     # converging) and start from its two neighbours.
@@ -173,7 +208,55 @@ def global_optimize(
                 if j not in queued:
                     queue.append(j)
                     queued.add(j)
-    # Re-anchor so that O is again the frame of the last cloud (eq. 1): Align also moves it.
-    anchor = np.linalg.inv(poses[m - 1])
-    poses = [anchor @ P for P in poses]
-    return GlobalResult(poses, initial, count, not queue)
+    return poses, count, not queue
+
+
+@jax.jit
+def algorithm2_loop(
+    poses: Float[Array, "m 4 4"],
+    rel: Float[Array, "m 4 4"],
+    inv: Float[Array, "m 4 4"],
+    p_prev: Float[Array, "m k 3"],
+    w_prev: Float[Array, "m k"],
+    p_next: Float[Array, "m k 3"],
+    w_next: Float[Array, "m k"],
+    tol: Float[Array, ""],
+    max_refinements: Array,
+):
+    """The deque loop of Algorithm 2 as one ``lax.while_loop`` (same order of refinements
+    as :func:`_algorithm2_python`). The deque is a ring buffer of size m: an index is
+    queued at most once (the ``queued`` flags), so it never holds more than m entries.
+    Returns (poses (m, 4, 4), number of Align calls, entries left in the queue)."""
+    m = poses.shape[0]
+    queue = jnp.zeros(m, jnp.int32).at[0].set(0).at[1].set(m - 2)
+    queued = jnp.zeros(m, bool).at[0].set(True).at[m - 2].set(True)
+    init = (poses, queue, jnp.int32(0), jnp.int32(2), queued, jnp.int32(0))
+
+    def cond(state):
+        _, _, _, size, _, count = state
+        return (size > 0) & (count < max_refinements)
+
+    def push(queue, head, size, queued, j, do):
+        do = do & ~queued[j]
+        queue = jnp.where(do, queue.at[(head + size) % m].set(j), queue)
+        return queue, size + do.astype(jnp.int32), queued.at[j].set(queued[j] | do)
+
+    def body(state):
+        poses, queue, head, size, queued, count = state
+        i = queue[head]
+        head, size = (head + 1) % m, size - 1
+        queued = queued.at[i].set(False)
+        prv, nxt = (i - 1) % m, (i + 1) % m
+        new = align(
+            p_prev[i], w_prev[i], p_next[i], w_next[i], poses[prv], inv[prv], poses[nxt], rel[i]
+        )
+        active = i != m - 1
+        change = jnp.sum(jnp.abs(new - poses[i]))
+        poses = jnp.where(active, poses.at[i].set(new), poses)
+        moved = active & (change > tol)
+        queue, size, queued = push(queue, head, size, queued, prv, moved)
+        queue, size, queued = push(queue, head, size, queued, nxt, moved)
+        return poses, queue, head, size, queued, count + active.astype(jnp.int32)
+
+    poses, _, _, size, _, count = jax.lax.while_loop(cond, body, init)
+    return poses, count, size

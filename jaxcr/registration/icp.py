@@ -140,13 +140,22 @@ def icp_step(T, radius, src: CloudArrays, tgt: CloudArrays, cfg: IcpConfig, kp: 
     j = correspondences(ps, src.colours, tgt, cfg.colour_scale)
     q, nq, cq = tgt.points[j], tgt.normals[j], tgt.colours[j]
     w, pl, _ = pair_weights(ps, ns, src.colours, q, nq, cq, src.mask, radius, cfg)
+    return gauss_newton_update(T, ps, q, nq, w, pl, cfg, kp)
+
+
+def gauss_newton_update(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints):
+    """The damped Gauss-Newton update of ``T`` from weighted matches (transformed source
+    points ``ps``, target points ``q`` with normals ``nq``, weights ``w``, point-to-plane
+    residuals ``pl``) plus the keypoint term (see :func:`icp_step`); shared by the
+    nearest-neighbour and the projective (:mod:`jaxcr.registration.projective`) ICP."""
     # point-to-plane: r = n.(p + w x p + v - q)  ->  J = [n, p x n]
     J_pl = jnp.concatenate([nq, jnp.cross(ps, nq)], axis=1)  # (n, 6)
     H = (J_pl * w[:, None]).T @ J_pl
     g = (J_pl * w[:, None]).T @ pl
     # point-to-point: r = p - q + v - hat(p) w  ->  J = [I, -hat(p)]
-    Hp, gp = _point_terms(ps, q, cfg.point_weight * w)
-    H, g = H + Hp, g + gp
+    if cfg.point_weight:
+        Hp, gp = _point_terms(ps, q, cfg.point_weight * w)
+        H, g = H + Hp, g + gp
     ks = kp.src @ T[:3, :3].T + T[:3, 3]
     rk2 = jnp.sum((ks - kp.tgt) ** 2, -1)
     sk = cfg.sigma_keypoint if kp.scale is None else kp.scale

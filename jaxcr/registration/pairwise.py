@@ -1,7 +1,10 @@
 """Forward pairwise registration C_i -> C_j (paper Sec. IV.A): keypoints matched between the
 colour images (SIFT, or ASIFT), RANSAC + Kabsch on their 3-D positions, then weighted ICP
 seeded with that estimate (or with the caller's prior, identity by default, when there are
-too few keypoint inliers).
+too few keypoint inliers). ICP associates by projection into the target depth image
+(``association="projective"``, default; :mod:`jaxcr.registration.projective`, a random
+sample of ``Frame.sample`` source pixels at full resolution) or by brute-force joint-space
+nearest neighbours on the voxel clouds (``"nearest"``; :mod:`jaxcr.registration.icp`).
 
 Degenerate inputs fail loudly: an empty cloud raises :class:`RegistrationFailed` before any
 pose is produced, and so does a final overlap (ICP fitness) below ``min_fitness``: a pose
@@ -16,9 +19,10 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcr.registration.clouds import Cloud, cloud_from_rgbd, pad_cloud, voxel_downsample
+from jaxcr.registration.clouds import Cloud, organised_cloud, pad_cloud, voxel_downsample
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, IcpConfig, Keypoints, icp_jit
 from jaxcr.registration.keypoints import matched_points
+from jaxcr.registration.projective import DepthImage, depth_image, projective_icp_jit
 from jaxcr.registration.ransac import estimate_transform, inlier_set
 
 
@@ -28,25 +32,44 @@ class RegistrationFailed(Exception):
 
 @dataclass
 class Frame:
-    """One RGB-D capture: images, the camera-frame cloud and its padded arrays."""
+    """One RGB-D capture: images, the camera-frame cloud, its padded voxel-downsampled
+    arrays (nearest-neighbour ICP, Algorithm 2), the organised view (projective target) and
+    a padded random sample of its full-resolution pixels (projective source)."""
 
     rgb: np.ndarray
     depth: np.ndarray
     cloud: Cloud
     arrays: CloudArrays
     label: str = ""
+    image: DepthImage | None = None
+    sample: CloudArrays | None = None
+
+
+def _arrays(p, c, n, m) -> CloudArrays:
+    return CloudArrays(jnp.asarray(p), jnp.asarray(c), jnp.asarray(n), jnp.asarray(m))
 
 
 def make_frame(
-    rgb, depth, K, voxel: float = 0.003, size: int = 1536, seed: int = 0, label: str = ""
+    rgb,
+    depth,
+    K,
+    voxel: float = 0.003,
+    size: int = 1536,
+    seed: int = 0,
+    label: str = "",
+    sample_size: int = 4096,
 ) -> Frame:
     """Build a :class:`Frame` (raises :class:`jaxcr.errors.InputError` for an all-invalid
-    depth image)."""
-    full = cloud_from_rgbd(rgb, depth, K, frame=label or None)
+    depth image). ``size``: padded voxel cloud; ``sample_size``: padded random sample of
+    the full-resolution pixels (the projective ICP source)."""
+    P, C, N, ok = organised_cloud(rgb, depth, K, frame=label or None)
+    full = Cloud(P[ok], C[ok], N[ok])
     down = voxel_downsample(full, voxel)
-    p, c, n, m = pad_cloud(down, size, np.random.default_rng(seed))
-    arrays = CloudArrays(jnp.asarray(p), jnp.asarray(c), jnp.asarray(n), jnp.asarray(m))
-    return Frame(np.asarray(rgb), np.asarray(depth), full, arrays, label)
+    rng = np.random.default_rng(seed)
+    arrays = _arrays(*pad_cloud(down, size, rng))
+    sample = _arrays(*pad_cloud(full, sample_size, rng))
+    image = depth_image(P, C, N, ok, K)
+    return Frame(np.asarray(rgb), np.asarray(depth), full, arrays, label, image, sample)
 
 
 def keypoint_scale(ka, kb, T, upper: float) -> float:
@@ -99,8 +122,11 @@ def register_pair(
     asift: bool = False,
     min_fitness: float = 0.2,
     seed: int = 0,
+    association: str = "projective",
 ) -> PairResult:
     """``T`` with ``tgt ~ T src`` (see module docstring)."""
+    if association not in ("projective", "nearest"):
+        raise ValueError(f"association must be 'projective' or 'nearest', got {association!r}")
     t0 = time.perf_counter()
     for f in (src, tgt):
         if not bool(np.asarray(f.arrays.mask).any()):
@@ -109,7 +135,11 @@ def register_pair(
     T_kp, n_in = estimate_transform(ka, kb, seed=seed) if len(ka) else (None, 0)
     T0 = T_kp if T_kp is not None else (np.eye(4) if prior is None else prior)
     kp = _keypoint_arrays(ka, kb, T_kp, upper=cfg.sigma_keypoint)
-    res = icp_jit(src.arrays, tgt.arrays, jnp.asarray(T0, jnp.float32), cfg, kp)
+    T0 = jnp.asarray(T0, jnp.float32)
+    if association == "projective":
+        res = projective_icp_jit(src.sample, tgt.image, T0, cfg, kp, window=0)
+    else:
+        res = icp_jit(src.arrays, tgt.arrays, T0, cfg, kp)
     T = np.asarray(res.T, np.float64)
     fitness = float(res.fitness)
     if not np.all(np.isfinite(T)) or fitness < min_fitness:

@@ -80,6 +80,8 @@ class PipelineConfig:
     max_steps: int = 40
     closure_gate_deg: float = 3.0
     closure_gate_m: float = 0.02
+    association: str = "projective"  # ICP data association: "projective" or "nearest"
+    sample_size: int = 4096  # full-resolution source pixels per frame (projective ICP)
 
 
 def _winding(T: np.ndarray, centre: np.ndarray) -> float:
@@ -133,7 +135,14 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
         T_true, _ = tip_camera_pose(spec, kap * kscale, lens, pan, tilt, mount=mount, model=model)
         rgb, depth = sim.capture(T_true)
         frame = make_frame(
-            rgb, depth, K, cfg.voxel, cfg.cloud_size, seed + step, label=f"{log.name}:{step}"
+            rgb,
+            depth,
+            K,
+            cfg.voxel,
+            cfg.cloud_size,
+            seed + step,
+            label=f"{log.name}:{step}",
+            sample_size=cfg.sample_size,
         )
         cap = Capture(log.name, step, frame, T_nom, T_true, line)
         if log.captures:
@@ -148,6 +157,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
                     cfg=cfg.icp,
                     asift=cfg.asift,
                     min_fitness=cfg.min_fitness,
+                    association=cfg.association,
                     seed=seed + step,
                 )
             )
@@ -181,6 +191,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
                         cfg=cfg.icp,
                         asift=cfg.asift,
                         min_fitness=cfg.min_fitness,
+                        association=cfg.association,
                         seed=seed,
                     )
                 except RegistrationFailed:
@@ -311,6 +322,7 @@ def build_model(
                         cfg=cfg.icp,
                         asift=cfg.asift,
                         min_fitness=cfg.min_fitness,
+                        association=cfg.association,
                         seed=seed + j,
                     )
                 )
