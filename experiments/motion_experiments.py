@@ -13,6 +13,9 @@ static pushed videos only, never on the changing test videos. Ablations from the
 extra runs: the paper's pooled average (eq. 16 over all frames) and M-L without the flow
 stabilisation.
 
+Runs are cached per video and configuration in --cache (not per code version: delete it
+after changing the code).
+
 Outputs: experiments/results/motion_report.md, motion_per_video.csv, motion_pr.png (Fig. 6),
 motion_distances.png (Fig. 7), motion_3d_pr.png (Fig. 10). Runs on one core.
 """
