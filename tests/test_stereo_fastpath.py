@@ -230,3 +230,25 @@ def test_windowed_resample_equals_dense():
         assert s.shape == s_ref.shape
         np.testing.assert_allclose(q, q_ref, rtol=0, atol=1e-13)  # metres
         np.testing.assert_allclose(s, s_ref, rtol=0, atol=1e-13)
+
+
+def test_views_of_different_sizes():
+    """Stacking pads the smaller view (bottom/right) and the cropped thinning of views of
+    different sizes still equals full-image thinning of each."""
+    a = np.zeros((120, 160), np.uint8)
+    b = np.zeros((100, 192), np.uint8)
+    cv2.polylines(a, [np.array([[20, 110], [30, 50], [150, 20]], np.int32)], False, 1, 6)
+    cv2.polylines(b, [np.array([[10, 90], [100, 40], [185, 60]], np.int32)], False, 1, 5)
+    st = pl._image_stack([a, b])
+    assert st.shape == (2, 120, 192) and st.dtype == np.uint8
+    np.testing.assert_array_equal(st[0, :, :160], a)
+    np.testing.assert_array_equal(st[1, :100], b)
+    assert not st[0, :, 160:].any() and not st[1, 100:].any()
+    rgb = pl._image_stack([np.zeros((4, 5, 3)), np.ones((6, 3, 3))])
+    assert rgb.shape == (2, 6, 5, 3) and rgb.dtype == np.float32
+    for m, (sk, (r, c)) in zip(
+        (a, b), pl._thin_cropped_views([a > 0, b > 0], block=32), strict=True
+    ):
+        placed = np.zeros(m.shape, bool)
+        placed[r : r + sk.shape[0], c : c + sk.shape[1]] = sk
+        np.testing.assert_array_equal(placed, np.asarray(zhang_suen_thin(jnp.asarray(m > 0))))

@@ -223,6 +223,8 @@ def _thin_cropped_views(
     ``block`` (so that few shapes get compiled), and thinned in one vmapped call. Thinning is
     local, so each result equals thinning the whole image. Returns per view the skeleton
     crop and its top-left corner (row, col) in the image."""
+    if len({m.shape for m in masks}) > 1:  # views of different sizes: one call each
+        return [_thin_cropped_views([m], block)[0] for m in masks]
     shape = masks[0].shape
     boxes = [_bbox(m) for m in masks]
     bh = min(_bucket(max(b[1] - b[0] for b in boxes) + 4, block), shape[0])
@@ -340,11 +342,19 @@ def _segment_views(images, plates, key, tol_lo, tol_hi, plate_lo, plate_hi, mode
 
 
 def _image_stack(images) -> np.ndarray:
-    """Two RGB images as one (2, H, W, 3) array: uint8 kept (converted on the device),
-    anything else as float32 in [0, 1]."""
-    if all(np.asarray(im).dtype == np.uint8 for im in images):
-        return np.stack([np.asarray(im) for im in images])
-    return np.stack([_as_float(np.asarray(im)) for im in images])
+    """Images (RGB (H, W, 3) or masks (H, W)) as one (2, H, W[, 3]) array: uint8 kept
+    (converted on the device), other RGB as float32 in [0, 1]. Views of different sizes
+    are zero-padded at the bottom/right to the larger size (cropped back by the caller;
+    profiles sampled right at the smaller view's border then see zeros beyond it)."""
+    ims = [np.asarray(im) for im in images]
+    if not all(im.dtype == np.uint8 for im in ims):
+        ims = [_as_float(im) if im.ndim == 3 else im.astype(np.float32) for im in ims]
+    h = max(im.shape[0] for im in ims)
+    w = max(im.shape[1] for im in ims)
+    pad = lambda im: np.pad(  # noqa: E731
+        im, [(0, h - im.shape[0]), (0, w - im.shape[1])] + [(0, 0)] * (im.ndim - 2)
+    )
+    return np.stack([pad(im) for im in ims])
 
 
 _POOL: ThreadPoolExecutor | None = None
@@ -479,7 +489,11 @@ def reconstruct_pair(
     views = []
     for k, cam in enumerate(cams):
         # Closing fills pinholes where the metal mirrors the cloth.
-        mask = cv2.morphologyEx(masks[k], cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
+        hk, wk = imgs[k].shape[:2]  # (views of different sizes were padded)
+        mask = cv2.morphologyEx(
+            np.ascontiguousarray(masks[k][:hk, :wk]), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)
+        )
+        mask = mask > 0
         mask &= ~_marker_mask(cam, cfg.layout, mask.shape)
         buv = _project_np(cam, base[None])[0]
         loc = locate_base(mask, (buv[0], buv[1]), cfg.roi_half_px)
@@ -555,7 +569,7 @@ def reconstruct_pair(
     # see the tube nearly end-on (small weight) keep the projection. The alpha is limited
     # to the (dilated) robot region of each view.
     near = jnp.asarray(
-        np.stack([cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))) for v in views])
+        _image_stack([cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))) for v in views])
     )
     alpha_near = _masked_alpha(alpha_j, near)  # once for refinement, diameters, joint fit
     for _ in range(cfg.refine_iterations):
