@@ -150,7 +150,9 @@ def main() -> None:
     )
     ap.add_argument("--superpixel-step", type=int, default=20)
     ap.add_argument("--no-ablation", action="store_true", help="skip the no-stabilisation runs")
+    ap.add_argument("--out", default=str(OUT), help="folder for the report, CSV and plots")
     a = ap.parse_args()
+    out_dir = Path(a.out)
     cache = Path(a.cache)
     cache.mkdir(parents=True, exist_ok=True)
     vids = sorted(p for p in Path(a.data).iterdir() if (p / "motion.json").exists())
@@ -207,7 +209,7 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    OUT.mkdir(exist_ok=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
     # ---- Fig. 6: P-R over the threshold (mean precision and recall over videos) --------------
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
     for ax, bg in zip(axes, ("static", "changing"), strict=True):
@@ -229,7 +231,7 @@ def main() -> None:
         ax.legend(fontsize=8)
     fig.suptitle("P-R over the threshold (cf. M-L Fig. 6)")
     fig.tight_layout()
-    fig.savefig(OUT / "motion_pr.png", dpi=110)
+    fig.savefig(out_dir / "motion_pr.png", dpi=110)
     plt.close(fig)
     # ---- per-video distances at the chosen thresholds (Fig. 7) ------------------------------
     rows = []
@@ -257,7 +259,7 @@ def main() -> None:
         rows.append(row)
     import csv
 
-    with open(OUT / "motion_per_video.csv", "w", newline="") as fh:
+    with open(out_dir / "motion_per_video.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
@@ -302,7 +304,7 @@ def main() -> None:
         )
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(OUT / "motion_distances.png", dpi=110)
+    fig.savefig(out_dir / "motion_distances.png", dpi=110)
     plt.close(fig)
     # ---- Fig. 10: translation vs homography on the held (3-D) set ---------------------------
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
@@ -319,7 +321,7 @@ def main() -> None:
         ax.legend()
     fig.suptitle("3-D motion set: translation vs homography (cf. M-L Fig. 10)")
     fig.tight_layout()
-    fig.savefig(OUT / "motion_3d_pr.png", dpi=110)
+    fig.savefig(out_dir / "motion_3d_pr.png", dpi=110)
     plt.close(fig)
     held_rows = []
     for k, v in held.items():
@@ -495,7 +497,7 @@ def main() -> None:
         f"- timing of the experiment runs (320x240, median per frame): flow {np.median(tim[:, 0]):.1f} ms, segmentation "
         f"{np.median(tim[:, 1]):.1f} ms, likelihood (both models) {np.median(tim[:, 2]):.1f} ms (shared machine, see motion_bench.md for 640x480)."
     )
-    (OUT / "motion_report.md").write_text("\n".join(L) + "\n")
+    (out_dir / "motion_report.md").write_text("\n".join(L) + "\n")
     print("\n".join(L))
 
 
