@@ -91,6 +91,61 @@ def load_average() -> str:
     return " ".join(f"{v:.1f}" for v in os.getloadavg())
 
 
+def segmentation_parts(frames: list[np.ndarray], cfg: MotionConfig) -> dict[str, float]:
+    """Median ms of the parts of one tracked segmentation step at the shapes of ``cfg`` (each
+    part jitted on its own, so they need not add up to the fused step)."""
+    import jax.numpy as jnp
+
+    from jaxcr.colour import rgb_to_lab
+    from jaxcr.motion.flow import dense_from_grid
+    from jaxcr.motion.propagate import splat_labels
+    from jaxcr.motion.superpixels import (
+        auto_scale,
+        grid_shape,
+        segment_first,
+        segment_track,
+        slic,
+        working_rgb,
+        working_shape,
+    )
+
+    h, w = frames[0].shape[:2]
+    s = auto_scale(w, cfg.superpixel_step)
+    step = cfg.superpixel_step // s
+    k = int(np.prod(grid_shape(*working_shape(h, w, s), step)))
+    g0, g1 = to_gray_u8(frames[0]), to_gray_u8(frames[1])
+    _, fl, valid = grid_flow(g0, g1, cfg.flow)
+    dense = jnp.asarray(dense_from_grid(fl, valid, h, w, cfg.flow.step, s))
+    small = working_rgb(frames[1], s)
+    x = jnp.asarray(small)
+    lbl, _ = segment_first(
+        jnp.asarray(working_rgb(frames[0], s)), k, step, cfg.compactness, 6, s, h, w
+    )
+    lab_fn = jax.jit(rgb_to_lab)
+    lab = lab_fn(x)
+
+    def rep(fn, n=15):
+        fn()  # compile
+        return med([timed(fn) for _ in range(n)])
+
+    return {
+        "host area-resize": rep(lambda: working_rgb(frames[1], s)),
+        "transfer": rep(lambda: jnp.asarray(small).block_until_ready()),
+        "Lab (jaxcr.colour.rgb_to_lab)": rep(lambda: lab_fn(x).block_until_ready()),
+        "splat": rep(lambda: splat_labels(lbl, dense).block_until_ready()),
+        f"SLIC x{cfg.slic_iters_track}": rep(
+            lambda: slic(
+                lab, lbl, k, step, cfg.compactness, cfg.slic_iters_track
+            ).block_until_ready()
+        ),
+        "whole step (fused)": rep(
+            lambda: segment_track(
+                lbl, dense, x, k, step, cfg.compactness, cfg.slic_iters_track, s, h, w
+            )[1].block_until_ready()
+        ),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=8)
@@ -133,6 +188,7 @@ def main() -> None:
     lk = [timed(grid_flow, g0, g1, ref_flow) for g0, g1 in zip(grays[:-1], grays[1:], strict=True)]
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
     dt = [timed(dis.calc, g0, g1, None) for g0, g1 in zip(grays[:-1], grays[1:], strict=True)]
+    parts = segmentation_parts(frames, CONFIGS[REF][1])
     load_after = load_average()
     ref_total = med(sk) + med(lk)
     commit = subprocess.run(
@@ -174,6 +230,9 @@ def main() -> None:
         f"per frame, {med(sk) / max(seg_ours, 1e-9):.0f}x our tracked segmentation "
         f"({seg_ours:.1f} ms, row {REF + 1}; ours tracks the previous frame's segments with 2 "
         "iterations, scikit-image starts from scratch).",
+        f"- Our segmentation step of row {REF + 1}, by part (ms, median of 15): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in parts.items())
+        + ".",
         f"- OpenCV `calcOpticalFlowPyrLK` on the 8-px grid (window 15, 3 levels) alone: "
         f"{med_iqr(lk)} ms; OpenCV DIS (fast preset, dense): {med_iqr(dt)} ms.",
         f"- A user's reference per frame (scikit-image SLIC + OpenCV LK on the 8-px grid, no "
