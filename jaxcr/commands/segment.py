@@ -76,6 +76,20 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "steps (default: core's)",
     )
     p.add_argument(
+        "--camera-correction",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="also estimate a small per-camera pose correction so calibration error is not "
+        "absorbed by the shape (default: core's, on)",
+    )
+    p.add_argument(
+        "--mu-out",
+        choices=["local", "global"],
+        default=None,
+        help="outside mean colour over the band around the robot (local) or the whole "
+        "image (global, the paper's eq. 6) (default: core's, local)",
+    )
+    p.add_argument(
         "--batch-size",
         type=int,
         default=4,
@@ -156,6 +170,10 @@ def refine_config(args):
         scale = args.max_steps / steps[-1]
         sched["steps"] = tuple(max(1, round(s * scale)) for s in steps)
     kw.update(sched)
+    if getattr(args, "camera_correction", None) is not None:
+        kw["camera_correction"] = bool(args.camera_correction)
+    if getattr(args, "mu_out", None) is not None:
+        kw["local"] = args.mu_out == "local"
     return RefineConfig(**kw)
 
 
