@@ -50,7 +50,12 @@ import numpy as np
 from jaxcr._types import Array, Float
 from jaxcr.camera import Camera, project_points
 from jaxcr.geometry import so3_exp, so3_left_jacobian
-from jaxcr.stereo.diameter import edge_clearance, profile_widths, view_weights
+from jaxcr.stereo.diameter import (
+    cylinder_diameters,
+    edge_clearance,
+    profile_widths,
+    view_weights,
+)
 from jaxcr.stereo.fits import plane_angles
 
 __all__ = [
@@ -339,7 +344,9 @@ def silhouette_observations(
     angle between the tube and the viewing ray; 0 where the projection is invalid, no
     width was measured or another part of the robot lies beside an edge, see
     :func:`jaxcr.stereo.diameter.edge_clearance`). ``alpha``: the robot's foreground alpha;
-    ``key_proj``: the key-colour projection (:func:`profile_widths`)."""
+    ``key_proj``: the key-colour projection (:func:`profile_widths`). Also returns the
+    diameters (m) those widths give (:func:`jaxcr.stereo.diameter.cylinder_diameters`),
+    for a consistency check by the caller."""
     uv0, ok = project_points(cam, points)
     uv1, _ = project_points(cam, points + 1e-4 * tangents)
     du = uv1 - uv0
@@ -349,7 +356,25 @@ def silhouette_observations(
     clean = edge_clearance(alpha, uv0, nrm, width, offset)
     sin_view = view_weights(cam, points, tangents)
     w = jnp.where(ok & (width > 0.5) & (clean > 0), sin_view, 0.0)
-    return uv0 + offset[:, None] * nrm, nrm, w
+    d = cylinder_diameters(cam, points, tangents, uv0, nrm, width, offset)
+    return uv0 + offset[:, None] * nrm, nrm, w, jnp.where(jnp.isfinite(d), d, 0.0)
+
+
+@functools.partial(jax.jit, static_argnames=("n_grid",))
+def _reparametrise(base, R0, curv, seg_start, s_obs, cam1, cam2, centres, weights,
+                   half_window, n_grid: int = 81):  # fmt: skip
+    """Arclength of each observation on the current chain: the ``s`` within
+    ``half_window`` of ``s_obs`` whose projections are nearest (weighted squared pixel
+    distance over both views) to the observation's silhouette centres."""
+    offs = jnp.linspace(-half_window, half_window, n_grid)
+    cand = jnp.maximum(s_obs[:, None] + offs[None], 0.0)
+    X, _ = chain_points(base, R0, curv, seg_start, cand.ravel())
+    cost = 0.0
+    for v, cam in enumerate((cam1, cam2)):
+        uv, _ = project_points(cam, X)
+        d2 = jnp.sum((uv.reshape(*cand.shape, 2) - centres[v][:, None]) ** 2, axis=-1)
+        cost = cost + weights[v][:, None] * d2
+    return jnp.take_along_axis(cand, jnp.argmin(cost, axis=1)[:, None], axis=1)[:, 0]
 
 
 def _bucket(n: int, size: int = 256) -> int:
@@ -364,6 +389,9 @@ def fit_segments_jointly(
     p: np.ndarray,
     boundaries_s: np.ndarray,
     huber_px: float = 1.0,
+    reparametrise: int = 1,
+    reparam_window: float = 5e-3,
+    max_width_dev: float = 0.15,
 ) -> dict:
     """Per-segment curvature, bending plane and arc length of a reconstructed backbone by
     the joint chain fit (module docstring), for the stereo pipeline.
@@ -371,7 +399,11 @@ def fit_segments_jointly(
     ``cams``: both views with the base pose; ``alphas``: each view's robot alpha (H, W);
     ``key_projs``: key-colour projections; ``s`` (n,), ``p`` (n, 3): the triangulated,
     resampled backbone (arclength from the base, m); ``boundaries_s`` (k-1,): segment
-    boundaries (m). Returns numpy arrays ``kappa`` (k,) 1/m, ``normal`` (k, 3),
+    boundaries (m). ``reparametrise``: passes of re-reading each observation's arclength
+    on the fitted chain (within ``reparam_window`` m) and refitting. ``max_width_dev``:
+    observations with sin >= 0.25 whose silhouette diameter deviates from their
+    segment's median by more than this fraction are dropped (the pipeline's diameter fusion uses the same 15 %
+    disagreement rule). Returns numpy arrays ``kappa`` (k,) 1/m, ``normal`` (k, 3),
     ``angles_deg`` (k, 3) (X-Y, Z-X, Y-Z planes), ``arc_length`` (k,) m (the last segment
     up to the last observed sample), ``rms_px``, ``ok``, ``weights`` (2, n) used."""
     s = np.asarray(s, np.float64)
@@ -387,9 +419,9 @@ def fit_segments_jointly(
         return np.concatenate([x, np.repeat(x[-1:], m - n, axis=0)]) if m > n else x
 
     dt = jnp.result_type(float)
-    cs, ns, ws = [], [], []
+    cs, ns, ws, ds = [], [], [], []
     for cam, a, kp in zip(cams, alphas, key_projs, strict=True):
-        c, nr, w = silhouette_observations(
+        c, nr, w, d = silhouette_observations(
             cam, jnp.asarray(a, dt), jnp.asarray(kp, dt), jnp.asarray(pad(p), dt),
             jnp.asarray(pad(tang), dt),
         )  # fmt: skip
@@ -398,11 +430,52 @@ def fit_segments_jointly(
         cs.append(np.asarray(c))
         ns.append(np.asarray(nr))
         ws.append(w)
+        ds.append(np.asarray(d, np.float64))
+    cs, ns, ws, ds = np.stack(cs), np.stack(ns), np.stack(ws), np.stack(ds)
+    # A silhouette wider or narrower than the segment's tube by more than max_width_dev
+    # (relative) is another part of the robot overlapping it in that view (a curled tip
+    # lying on the shaft) or a partial occlusion: its centre is biased, drop it. The
+    # width is only a diameter where the view is not nearly end-on (weight = sin >= 0.25,
+    # the pipeline's usable-view limit for the refinement); more foreshortened views have
+    # wider silhouettes without being contaminated, and keep their (useful) centres.
+    seg_of = np.clip(np.searchsorted(seg_start, s_pad := pad(s), side="right") - 1, 0, None)
+    side_on = ws >= 0.25
+    for i in range(len(seg_start)):
+        sel = (seg_of == i) & side_on
+        if sel.any():
+            d_ref = np.median(ds[sel])
+            dev = np.abs(ds / max(d_ref, 1e-12) - 1.0) > max_width_dev
+            ws = np.where((seg_of[None] == i) & side_on & dev, 0.0, ws)
+    del s_pad
+    s_obs = pad(s)
     fit = fit_chain(
-        cams[0], cams[1], pad(s), np.stack(cs), np.stack(ns), np.stack(ws), seg_start,
-        base0, R_init, curv0, huber_px=huber_px,
+        cams[0], cams[1], s_obs, cs, ns, ws, seg_start, base0, R_init, curv0,
+        huber_px=huber_px,
     )  # fmt: skip
-    ends = np.concatenate([seg_start[1:], [s[-1]]])
+    for _ in range(reparametrise):
+        # Where the correspondence was ill-conditioned the triangulated points, hence
+        # their arclengths, slid along the ambiguous direction; each observation's
+        # arclength is re-read on the fitted chain (nearest in both images), and the
+        # boundaries (found at observations) move with their observations.
+        s_new = np.asarray(
+            _reparametrise(
+                jnp.asarray(fit["base"], dt), jnp.asarray(fit["R0"], dt),
+                jnp.asarray(fit["curvatures"], dt), jnp.asarray(seg_start, dt),
+                jnp.asarray(s_obs, dt), cams[0], cams[1], jnp.asarray(cs, dt),
+                jnp.asarray(ws * fit["weights"] / np.maximum(ws, 1e-12), dt),
+                reparam_window,
+            ),
+            np.float64,
+        )  # fmt: skip
+        s_new[n:] = s_new[n - 1]
+        mono = np.maximum.accumulate(s_new[:n])
+        seg_start = np.concatenate([[0.0], np.interp(seg_start[1:], s[:n], mono)])
+        s_obs = s_new
+        fit = fit_chain(
+            cams[0], cams[1], s_obs, cs, ns, ws, seg_start, fit["base"], fit["R0"],
+            fit["curvatures"], huber_px=huber_px,
+        )  # fmt: skip
+    ends = np.concatenate([seg_start[1:], [max(s_obs[:n].max(), seg_start[-1])]])
     return {
         "kappa": fit["kappa"],
         "normal": fit["normal"],
@@ -410,6 +483,7 @@ def fit_segments_jointly(
         "arc_length": ends - seg_start,
         "rms_px": fit["rms_px"],
         "ok": fit["ok"],
-        "weights": np.stack(ws)[:, :n],
+        "weights": ws[:, :n],
+        "seg_start": seg_start,
         "fit": fit,
     }
