@@ -5,7 +5,8 @@
 pushed_static / pushed_changing: seeds 0..9 each (object = OBJECTS[seed % 5], so two videos
 per object and background type; changing backgrounds cycle distractor / shake / lighting /
 all three with seed % 4). held_static / held_changing: seeds 0..3 each (book and spirit
-level, the 3-D motion set).
+level, the 3-D motion set). ``--first-seed 10 --presets pushed_changing`` writes an unseen
+changing-background test set (seeds 10..19) with the same generator defaults.
 """
 
 from __future__ import annotations
@@ -29,10 +30,30 @@ def main() -> None:
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--pushed", type=int, default=10)
     ap.add_argument("--held", type=int, default=4)
+    ap.add_argument(
+        "--first-seed", type=int, default=0, help="seeds first..first+n-1 (a fresh test set)"
+    )
+    ap.add_argument(
+        "--presets",
+        default="pushed_static,pushed_changing,held_static,held_changing",
+        help="comma-separated subset of the presets",
+    )
     a = ap.parse_args()
+    presets = a.presets.split(",")
     w, h = (int(v) for v in a.size.split("x"))
-    jobs = [(p, s) for p in ("pushed_static", "pushed_changing") for s in range(a.pushed)]
-    jobs += [(p, s) for p in ("held_static", "held_changing") for s in range(a.held)]
+    s0 = a.first_seed
+    jobs = [
+        (p, s)
+        for p in ("pushed_static", "pushed_changing")
+        if p in presets
+        for s in range(s0, s0 + a.pushed)
+    ]
+    jobs += [
+        (p, s)
+        for p in ("held_static", "held_changing")
+        if p in presets
+        for s in range(s0, s0 + a.held)
+    ]
     for preset, seed in jobs:
         d = Path(a.out) / f"{preset}_{seed:02d}"
         if (d / "motion.json").exists():
