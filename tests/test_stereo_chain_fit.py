@@ -16,8 +16,10 @@ from scipy.integrate import solve_ivp
 
 from jaxcr.camera import Camera
 from jaxcr.stereo.chain_fit import (
+    _reparametrise,
     chain_points,
     chain_segment_parameters,
+    drop_inconsistent_widths,
     fit_chain,
     init_chain,
 )
@@ -219,3 +221,34 @@ def test_edge_clearance_two_bars():
         n = jnp.array([[1.0, 0.0]])
         got = edge_clearance(jnp.asarray(a), c, n, jnp.array([6.0]), jnp.array([0.0]))
         assert float(got[0]) == expect
+
+
+def test_drop_inconsistent_widths():
+    s = np.linspace(0.0, 0.09, 10)
+    seg = np.array([0.0, 0.05])
+    d = np.where(s < 0.05, 2.4e-3, 1.8e-3) * np.ones((2, 1))
+    w = np.full((2, 10), 0.9)
+    d[1, 3] = 2.9e-3  # another part lying on the shaft in view 2 (+21 %)
+    d[0, 8] = 1.6e-3  # partial occlusion in view 1 (-11 %: kept at 15 %)
+    d[0, 9] = 2.6e-3  # foreshortened (weight 0.1): width is no diameter there, kept
+    w[0, 9] = 0.1
+    out = drop_inconsistent_widths(w, d, s, seg)
+    expect = w.copy()
+    expect[1, 3] = 0.0
+    np.testing.assert_array_equal(out, expect)
+    assert drop_inconsistent_widths(w, d, s, seg, max_dev=0.1)[0, 8] == 0.0
+
+
+def test_reparametrise_recovers_arclength(cams):
+    """Observations labelled with wrong arclengths (+2 mm on a stretch, as where the
+    triangulation slid) get their arclength back from the chain (grid 0.125 mm)."""
+    rng = np.random.default_rng(2)
+    s = np.linspace(0.002, 0.09, 256)
+    _, cs, _ = _views(cams, s, rng, 0.0)
+    wrong = s + np.where((s > 0.03) & (s < 0.05), 2e-3, 0.0)
+    got = _reparametrise(
+        jnp.zeros(3), jnp.asarray(_R0(), jnp.float32), jnp.asarray(CURV, jnp.float32),
+        jnp.asarray(SEG, jnp.float32), jnp.asarray(wrong, jnp.float32), cams[0], cams[1],
+        jnp.asarray(cs, jnp.float32), jnp.ones((2, len(s)), jnp.float32), 5e-3,
+    )  # fmt: skip
+    np.testing.assert_allclose(np.asarray(got), s, atol=7e-5)

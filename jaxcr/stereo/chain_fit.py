@@ -66,6 +66,7 @@ __all__ = [
     "fit_chain",
     "silhouette_observations",
     "fit_segments_jointly",
+    "drop_inconsistent_widths",
 ]
 
 # Parameter scaling (metres -> mm, 1/m -> 1/(100 m)): similar magnitudes for LM damping.
@@ -377,6 +378,37 @@ def _reparametrise(base, R0, curv, seg_start, s_obs, cam1, cam2, centres, weight
     return jnp.take_along_axis(cand, jnp.argmin(cost, axis=1)[:, None], axis=1)[:, 0]
 
 
+def drop_inconsistent_widths(
+    weights: np.ndarray,
+    diameters: np.ndarray,
+    s: np.ndarray,
+    seg_start: np.ndarray,
+    max_dev: float = 0.15,
+    min_weight: float = 0.25,
+) -> np.ndarray:
+    """Weights (2, n) with observations zeroed whose silhouette diameter (2, n) deviates
+    from their segment's median by more than ``max_dev`` (relative).
+
+    A silhouette wider or narrower than the segment's tube is another part of the robot
+    overlapping it in that view (a curled tip lying on the shaft) or a partial occlusion:
+    its centre is biased. The width is only a diameter where the view is not nearly
+    end-on (weight = sin >= ``min_weight``, the pipeline's usable-view limit for the
+    refinement): more foreshortened views of a curved tube have wider silhouettes without
+    being contaminated, and keep their centres. The median is taken over those views'
+    observations of the segment (``s`` (n,) arclengths, ``seg_start`` (k,) starts)."""
+    ws = np.asarray(weights, np.float64).copy()
+    ds = np.asarray(diameters, np.float64)
+    seg_of = np.clip(np.searchsorted(seg_start, s, side="right") - 1, 0, None)
+    usable = ws >= min_weight
+    for i in range(len(seg_start)):
+        sel = (seg_of[None] == i) & usable
+        if sel.any():
+            d_ref = np.median(ds[sel])
+            dev = np.abs(ds / max(d_ref, 1e-12) - 1.0) > max_dev
+            ws[sel & dev] = 0.0
+    return ws
+
+
 def _bucket(n: int, size: int = 256) -> int:
     return max(size, -(-n // size) * size)
 
@@ -401,9 +433,8 @@ def fit_segments_jointly(
     resampled backbone (arclength from the base, m); ``boundaries_s`` (k-1,): segment
     boundaries (m). ``reparametrise``: passes of re-reading each observation's arclength
     on the fitted chain (within ``reparam_window`` m) and refitting. ``max_width_dev``:
-    observations with sin >= 0.25 whose silhouette diameter deviates from their
-    segment's median by more than this fraction are dropped (the pipeline's diameter fusion uses the same 15 %
-    disagreement rule). Returns numpy arrays ``kappa`` (k,) 1/m, ``normal`` (k, 3),
+    see :func:`drop_inconsistent_widths` (the pipeline's diameter fusion uses the same
+    15 % disagreement rule). Returns numpy arrays ``kappa`` (k,) 1/m, ``normal`` (k, 3),
     ``angles_deg`` (k, 3) (X-Y, Z-X, Y-Z planes), ``arc_length`` (k,) m (the last segment
     up to the last observed sample), ``rms_px``, ``ok``, ``weights`` (2, n) used."""
     s = np.asarray(s, np.float64)
@@ -432,21 +463,7 @@ def fit_segments_jointly(
         ws.append(w)
         ds.append(np.asarray(d, np.float64))
     cs, ns, ws, ds = np.stack(cs), np.stack(ns), np.stack(ws), np.stack(ds)
-    # A silhouette wider or narrower than the segment's tube by more than max_width_dev
-    # (relative) is another part of the robot overlapping it in that view (a curled tip
-    # lying on the shaft) or a partial occlusion: its centre is biased, drop it. The
-    # width is only a diameter where the view is not nearly end-on (weight = sin >= 0.25,
-    # the pipeline's usable-view limit for the refinement); more foreshortened views have
-    # wider silhouettes without being contaminated, and keep their (useful) centres.
-    seg_of = np.clip(np.searchsorted(seg_start, s_pad := pad(s), side="right") - 1, 0, None)
-    side_on = ws >= 0.25
-    for i in range(len(seg_start)):
-        sel = (seg_of == i) & side_on
-        if sel.any():
-            d_ref = np.median(ds[sel])
-            dev = np.abs(ds / max(d_ref, 1e-12) - 1.0) > max_width_dev
-            ws = np.where((seg_of[None] == i) & side_on & dev, 0.0, ws)
-    del s_pad
+    ws = drop_inconsistent_widths(ws, ds, pad(s), seg_start, max_width_dev)
     s_obs = pad(s)
     fit = fit_chain(
         cams[0], cams[1], s_obs, cs, ns, ws, seg_start, base0, R_init, curv0,
