@@ -143,11 +143,12 @@ def icp_step(T, radius, src: CloudArrays, tgt: CloudArrays, cfg: IcpConfig, kp: 
     return gauss_newton_update(T, ps, q, nq, w, pl, cfg, kp)
 
 
-def gauss_newton_update(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints):
+def gauss_newton_update(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints, extra=None):
     """The damped Gauss-Newton update of ``T`` from weighted matches (transformed source
     points ``ps``, target points ``q`` with normals ``nq``, weights ``w``, point-to-plane
     residuals ``pl``) plus the keypoint term (see :func:`icp_step`); shared by the
-    nearest-neighbour and the projective (:mod:`jaxcr.registration.projective`) ICP."""
+    nearest-neighbour and the projective (:mod:`jaxcr.registration.projective`) ICP.
+    ``extra``: optional (H (6, 6), g (6,)) normal-equation terms added before the solve."""
     # point-to-plane: r = n.(p + w x p + v - q)  ->  J = [n, p x n]
     J_pl = jnp.concatenate([nq, jnp.cross(ps, nq)], axis=1)  # (n, 6)
     H = (J_pl * w[:, None]).T @ J_pl
@@ -166,6 +167,8 @@ def gauss_newton_update(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints):
     P = jnp.eye(3) - ray[:, :, None] * ray[:, None, :]
     Hk, gk = _point_terms(ks, kp.tgt, wk, P)
     H, g = H + Hk, g + gk
+    if extra is not None:
+        H, g = H + extra[0], g + extra[1]
     scale = jnp.maximum(jnp.trace(H) / 6.0, 1e-12)
     delta = -jnp.linalg.solve(H + cfg.damping * scale * jnp.eye(6), g)
     delta = jnp.where(jnp.all(jnp.isfinite(delta)) & (jnp.sum(w) > 0), delta, 0.0)

@@ -123,6 +123,7 @@ def register_pair(
     min_fitness: float = 0.2,
     seed: int = 0,
     association: str = "projective",
+    photometric: bool = False,
 ) -> PairResult:
     """``T`` with ``tgt ~ T src`` (see module docstring)."""
     if association not in ("projective", "nearest"):
@@ -137,7 +138,15 @@ def register_pair(
     kp = _keypoint_arrays(ka, kb, T_kp, upper=cfg.sigma_keypoint)
     T0 = jnp.asarray(T0, jnp.float32)
     if association == "projective":
-        res = projective_icp_jit(src.sample, tgt.image, T0, cfg, kp, window=0)
+        res = projective_icp_jit(
+            src.sample,
+            tgt.image,
+            T0,
+            cfg,
+            kp,
+            window=0,
+            src_image=src.image if photometric else None,
+        )
     else:
         res = icp_jit(src.arrays, tgt.arrays, T0, cfg, kp)
     T = np.asarray(res.T, np.float64)
