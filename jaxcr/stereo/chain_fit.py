@@ -409,7 +409,7 @@ def drop_inconsistent_widths(
     return ws
 
 
-def _bucket(n: int, size: int = 256) -> int:
+def _bucket(n: int, size: int = 128) -> int:
     return max(size, -(-n // size) * size)
 
 
@@ -424,6 +424,8 @@ def fit_segments_jointly(
     reparametrise: int = 1,
     reparam_window: float = 5e-3,
     max_width_dev: float = 0.15,
+    reweight: int = 2,
+    obs_spacing: float = 5e-4,
 ) -> dict:
     """Per-segment curvature, bending plane and arc length of a reconstructed backbone by
     the joint chain fit (module docstring), for the stereo pipeline.
@@ -434,7 +436,9 @@ def fit_segments_jointly(
     boundaries (m). ``reparametrise``: passes of re-reading each observation's arclength
     on the fitted chain (within ``reparam_window`` m) and refitting. ``max_width_dev``:
     see :func:`drop_inconsistent_widths` (the pipeline's diameter fusion uses the same
-    15 % disagreement rule). Returns numpy arrays ``kappa`` (k,) 1/m, ``normal`` (k, 3),
+    15 % disagreement rule). ``reweight``: Huber passes per fit (:func:`fit_chain`).
+    ``obs_spacing``: arclength between observations (m; 1 mm is ~3.5 px at 0.29 mm/px).
+    Returns numpy arrays ``kappa`` (k,) 1/m, ``normal`` (k, 3),
     ``angles_deg`` (k, 3) (X-Y, Z-X, Y-Z planes), ``arc_length`` (k,) m (the last segment
     up to the last observed sample), ``rms_px``, ``ok``, ``weights`` (2, n) used."""
     s = np.asarray(s, np.float64)
@@ -443,6 +447,11 @@ def fit_segments_jointly(
     base0, R_init, curv0 = init_chain(s, p, seg_start)
     tang = np.gradient(p, s, axis=0)
     tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
+    # Observations every obs_spacing of arclength (silhouette centres closer than a few
+    # pixels are not independent measurements); the last sample is always kept.
+    stride = max(1, int(round(obs_spacing / max(np.median(np.diff(s)), 1e-12))))
+    keep = np.unique(np.r_[np.arange(0, len(s), stride), len(s) - 1])
+    s, p, tang = s[keep], p[keep], tang[keep]
     n = len(s)
     m = _bucket(n)
 
@@ -467,7 +476,7 @@ def fit_segments_jointly(
     s_obs = pad(s)
     fit = fit_chain(
         cams[0], cams[1], s_obs, cs, ns, ws, seg_start, base0, R_init, curv0,
-        huber_px=huber_px,
+        huber_px=huber_px, reweight=reweight,
     )  # fmt: skip
     for _ in range(reparametrise):
         # Where the correspondence was ill-conditioned the triangulated points, hence
@@ -490,7 +499,7 @@ def fit_segments_jointly(
         s_obs = s_new
         fit = fit_chain(
             cams[0], cams[1], s_obs, cs, ns, ws, seg_start, fit["base"], fit["R0"],
-            fit["curvatures"], huber_px=huber_px,
+            fit["curvatures"], huber_px=huber_px, reweight=reweight,
         )  # fmt: skip
     ends = np.concatenate([seg_start[1:], [max(s_obs[:n].max(), seg_start[-1])]])
     return {
