@@ -71,8 +71,11 @@ def test_degenerate_registration_fails_clearly(scene):
     b = make_frame(rgb2, depth2, K, size=256)
     far = np.eye(4)
     far[:3, 3] = (1.0, 0, 0)
-    with pytest.raises(RegistrationFailed, match="no overlap"):
-        register_pair(a, b, K, prior=far)
+    for assoc in ("projective", "nearest"):
+        with pytest.raises(RegistrationFailed, match="no overlap"):
+            register_pair(a, b, K, prior=far, association=assoc)
+    with pytest.raises(ValueError, match="association"):
+        register_pair(a, a, K, association="kdtree")
     # no keypoints (textureless grey image): falls back to the prior and still registers
     grey = np.full_like(rgb, 0.5)
     g = make_frame(grey, depth, K, size=256)

@@ -46,6 +46,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("scene", help="scene folder (jaxcr.rgbd_scene/1), or 'synth' to generate one")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--asift", action="store_true", help="affine-simulated SIFT keypoints")
+    p.add_argument(
+        "--association",
+        choices=["projective", "nearest"],
+        default="projective",
+        help="ICP data association: projection into the target depth image (default) or "
+        "brute-force nearest neighbours on the voxel clouds",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the sensor noise / sampling")
     g = p.add_argument_group("synth (with SCENE = synth)")
     g.add_argument("--task", choices=["1", "2"], default="1")
@@ -75,7 +82,7 @@ def run(args) -> int:
     sim = RgbdSimulator(args.scene, seed=args.seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = PipelineConfig(asift=args.asift)
+    cfg = PipelineConfig(asift=args.asift, association=args.association)
     from tqdm import tqdm
 
     bar = tqdm(desc="views", unit="view")
