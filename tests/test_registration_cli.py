@@ -90,3 +90,17 @@ def test_cli_synth_writes_scene(tmp_path):
         == 0
     )
     assert load_scene(tmp_path / "s")["task"] == "1"
+
+
+def test_prior_gate_drops_a_keypoint_estimate_far_from_the_prior(scene):
+    sim = RgbdSimulator(scene, seed=0)
+    rgb, depth = sim.capture(_pose(0.25, 0.0))
+    a = make_frame(rgb, depth, sim.K, size=256)
+    c, s = np.cos(np.deg2rad(30)), np.sin(np.deg2rad(30))
+    prior = np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    free = register_pair(a, a, sim.K, prior=prior, min_fitness=0.0)
+    gated = register_pair(a, a, sim.K, prior=prior, prior_gate=(10.0, 0.05), min_fitness=0.0)
+    # the self-match keypoint estimate (identity) is 30 deg from the prior
+    assert free.seeded_by_keypoints and free.n_inliers >= 3
+    assert not gated.seeded_by_keypoints
+    np.testing.assert_allclose(free.T, np.eye(4), atol=1e-3)

@@ -22,6 +22,7 @@ import numpy as np
 from jaxcr.registration.clouds import Cloud, organised_cloud, pad_cloud, voxel_downsample
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, IcpConfig, Keypoints, icp_jit
 from jaxcr.registration.keypoints import matched_points
+from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.projective import DepthImage, depth_image, projective_icp_jit
 from jaxcr.registration.ransac import estimate_transform, inlier_set
 
@@ -124,8 +125,11 @@ def register_pair(
     seed: int = 0,
     association: str = "projective",
     photometric: bool = False,
+    prior_gate: tuple[float, float] | None = None,
 ) -> PairResult:
-    """``T`` with ``tgt ~ T src`` (see module docstring)."""
+    """``T`` with ``tgt ~ T src`` (see module docstring). ``prior_gate`` (deg, m): a
+    keypoint estimate farther than this from ``prior`` is taken for a false RANSAC consensus
+    and dropped (ICP then starts from the prior without the keypoint term)."""
     if association not in ("projective", "nearest"):
         raise ValueError(f"association must be 'projective' or 'nearest', got {association!r}")
     t0 = time.perf_counter()
@@ -134,6 +138,10 @@ def register_pair(
             raise RegistrationFailed(f"frame {f.label or '?'} has an empty point cloud")
     ka, kb = matched_points(src.rgb, src.depth, tgt.rgb, tgt.depth, K, asift=asift)
     T_kp, n_in = estimate_transform(ka, kb, seed=seed) if len(ka) else (None, 0)
+    if T_kp is not None and prior is not None and prior_gate is not None:
+        r_err, t_err = pose_error(T_kp, prior)
+        if r_err > prior_gate[0] or t_err > prior_gate[1]:
+            T_kp = None
     T0 = T_kp if T_kp is not None else (np.eye(4) if prior is None else prior)
     kp = _keypoint_arrays(ka, kb, T_kp, upper=cfg.sigma_keypoint)
     T0 = jnp.asarray(T0, jnp.float32)

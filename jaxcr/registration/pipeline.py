@@ -80,6 +80,11 @@ class PipelineConfig:
     max_steps: int = 40
     closure_gate_deg: float = 3.0
     closure_gate_m: float = 0.02
+    # Gate of a registration against the nominal kinematics (cross-route ring edges, loop
+    # consistency): ~3x the nominal drift over a whole loop (3.5 deg / 25 mm on Task 1), so
+    # only gross failures (a cylinder registered half a face around) are caught.
+    nominal_gate_deg: float = 10.0
+    nominal_gate_m: float = 0.05
     association: str = "projective"  # ICP data association: "projective" or "nearest"
     sample_size: int = 4096  # full-resolution source pixels per frame (projective ICP)
 
@@ -311,24 +316,63 @@ def build_model(
                 )
                 continue
             fa, fb = _capture(runs, a).frame, _capture(runs, b).frame
-            prior = np.linalg.inv(est[b]) @ est[a]
-            try:
-                edges.append(
-                    register_pair(
+            nom = np.linalg.inv(nominal[b]) @ nominal[a]
+            # Seed with the merged-model estimate, then with the nominal kinematics (dropping
+            # keypoint estimates outside the gate: a false RANSAC consensus); keep a result
+            # only if it agrees with the kinematics within the gate (a merge of two partial
+            # models of a cylinder can slide around its axis, a repeated texture can match).
+            pair, why = None, ""
+            gate = (cfg.nominal_gate_deg, cfg.nominal_gate_m)
+            for prior, pg in ((np.linalg.inv(est[b]) @ est[a], None), (nom, gate)):
+                try:
+                    cand = register_pair(
                         fa,
                         fb,
                         K,
                         prior=prior,
+                        prior_gate=pg,
                         cfg=cfg.icp,
                         asift=cfg.asift,
                         min_fitness=cfg.min_fitness,
                         association=cfg.association,
                         seed=seed + j,
                     )
+                except RegistrationFailed as e:
+                    why = str(e)
+                    continue
+                r_err, t_err = pose_error(cand.T, nom)
+                if r_err <= cfg.nominal_gate_deg and t_err <= cfg.nominal_gate_m:
+                    pair = cand
+                    break
+                why = (
+                    f"{r_err:.1f} deg / {1000 * t_err:.0f} mm from the nominal kinematics "
+                    f"(gate {cfg.nominal_gate_deg:.0f} deg / {1000 * cfg.nominal_gate_m:.0f} mm)"
                 )
-            except RegistrationFailed as e:
-                notes.append(f"ring edge {a}->{b} failed ({e}); partial models only")
-                return ModelResult(runs, ring, edges, None, 0.0, merge, notes)
+                notes.append(f"ring edge {a}->{b}: registration rejected ({why})")
+            if pair is None:
+                # No registration agrees with the kinematics (e.g. a wide baseline with no
+                # keypoints: ICP on a cylinder slides to the largest overlap): the edge keeps
+                # the nominal relative pose, and Algorithm 2 treats it like any other.
+                notes.append(
+                    f"ring edge {a}->{b}: no consistent registration ({why}); "
+                    "the nominal kinematics are used for this edge"
+                )
+                pair = PairResult(nom, 0, 0, False, 0.0, float("nan"), 0.0)
+            edges.append(pair)
+    # Loop consistency: the product of the ring's registrations must be near the identity
+    # (its residual is the drift Algorithm 2 spreads); a gross residual means a wrong edge,
+    # and spreading it would turn every pose into garbage.
+    loop = np.eye(4)
+    for e in edges:
+        loop = e.T @ loop
+    r_err, t_err = pose_error(loop, np.eye(4))
+    if r_err > cfg.nominal_gate_deg or t_err > cfg.nominal_gate_m:
+        notes.append(
+            f"loop inconsistent: the ring's registrations compose to {r_err:.1f} deg / "
+            f"{1000 * t_err:.0f} mm (gate {cfg.nominal_gate_deg:.0f} deg / "
+            f"{1000 * cfg.nominal_gate_m:.0f} mm); Algorithm 2 not run, partial models only"
+        )
+        return ModelResult(runs, ring, edges, None, 0.0, merge, notes)
     clouds = [
         (
             np.asarray(_capture(runs, k).frame.arrays.points),
