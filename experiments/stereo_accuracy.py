@@ -278,12 +278,20 @@ def main() -> int:
     t0 = time.time()
     sets = [(Path(args.green), 1, 20, "green"), (Path(args.blue), 2, 8, "blue")]
     recs = []
+    set_meta = []
     for folder, seed, n, bg in sets:
         if str(folder) == "none":
             continue
         if not (folder / "stereo.json").exists():
             generate_stereo_set(folder, n_frames=n, seed=seed, background=bg)
         recs += run_set(folder)
+        js = json.loads((folder / "stereo.json").read_text())
+        set_meta.append(
+            (
+                folder,
+                {"n": len(js["frames"]), "seed": js["meta"]["seed"], "bg": js["background"]["key"]},
+            )
+        )
     commit = subprocess.run(
         ["git", "log", "-1", "--format=%h", "--", "jaxcr/stereo", "jaxcr/synth/stereo_ctr.py"],
         capture_output=True,
@@ -295,8 +303,14 @@ def main() -> int:
         f"Command: `python experiments/stereo_accuracy.py --green {args.green} --blue {args.blue}`  ",
         f"commit {commit}, Python {sys.version.split()[0]}, {platform.machine()}, {time.time() - t0:.0f} s wall.",
         "",
-        "Sets: `generate_stereo_set(green, n_frames=20, seed=1, background='green')` and"
-        " `(blue, n_frames=8, seed=2, background='blue')`, 640x480, two cameras about 90 deg"
+        "Sets: "
+        + " and ".join(
+            f"`generate_stereo_set({f.name}, n_frames={m['n']}, seed={m['seed']},"
+            f" background='{m['bg']}')`"
+            for f, m in set_meta
+        )
+        + " (default: green seed 1, 20 frames; blue seed 2, 8 frames), 640x480, two"
+        " cameras about 90 deg"
         " apart, 25 deg down, ~235 mm away (0.29 mm/px at the robot), 2- and 3-tube robots"
         " (OD 2.4/1.8/1.2 mm), frame kinds cycle general / curled / towards_cam1 /"
         " towards_cam2. Default pipeline settings (chroma key 0.5-0.8, segment count chosen"
