@@ -72,7 +72,9 @@ class RegionData(eqx.Module):
         stack = jnp.concatenate([self.w[..., None], self.b[..., None], self.img], axis=-1)
 
         def one(r, c):
-            return jax.lax.dynamic_slice(stack, (r, c, jnp.zeros_like(r)), (t, t, 5)).reshape(t * t, 5)
+            return jax.lax.dynamic_slice(stack, (r, c, jnp.zeros_like(r)), (t, t, 5)).reshape(
+                t * t, 5
+            )
 
         g = jax.vmap(one)(r0, c0)
         return g[..., 0], g[..., 1], g[..., 2:]
@@ -191,7 +193,11 @@ class RegionTerms(eqx.Module):
 
 
 def region_terms(
-    soft: Float[Array, "k p"], band: Band, data: RegionData, local: bool = False
+    soft: Float[Array, "k p"],
+    band: Band,
+    data: RegionData,
+    local: bool = False,
+    robust: float = 0.0,
 ) -> RegionTerms:
     """Chan-Vese region terms (eq. 6) for a soft silhouette on the band and hard tiles inside.
 
@@ -199,6 +205,14 @@ def region_terms(
     With ``local``, the outside region R^c is restricted to the band (the pixels near the
     silhouette), as in localised region-based active contours (Lankton & Tannenbaum 2008):
     mu_out is then the mean colour *around* the robot, not over the whole image.
+
+    With ``robust = k > 0`` the inside term is occlusion-robust: each band pixel contributes
+    ``c^2 (1 - exp(-|I - mu_in|^2 / c^2))`` (Welsch) instead of ``|I - mu_in|^2``, with
+    ``c^2 = k^2 * var`` and ``var`` the image's mean squared (centred) data colour, and
+    mu_in the matching reweighted mean (two reweightings from the plain mean; the gradient
+    flows through them, so it is exact for this definition). A pixel unlike the robot inside R (an occluder in front of it)
+    then costs at most ``c^2`` rather than pushing the silhouette off it. Whole tiles inside
+    R keep the quadratic term (they only occur for tubes several tiles wide).
     """
     ins = band.inside.astype(soft.dtype)
     bw, bb, img = data.gather(band.tiles)
@@ -209,6 +223,19 @@ def region_terms(
     pen = jnp.sum(bb * soft) + jnp.dot(ins, data.tile_b)
     eps = 1e-6
     e_in = s2 - jnp.sum(s1 * s1) / jnp.maximum(s0, eps)
+    if robust > 0.0:
+        c2 = robust**2 * data.total_s2 / jnp.maximum(data.total_w, eps)
+        c2 = jax.lax.stop_gradient(jnp.maximum(c2, 1e-8))
+        t_w, t_s1, t_s2 = jnp.dot(ins, data.tile_w), ins @ data.tile_s1, jnp.dot(ins, data.tile_s2)
+        mu = s1 / jnp.maximum(s0, eps)
+        for _ in range(2):
+            r2 = jnp.sum((img - mu) ** 2, axis=-1)
+            wr = w * jnp.exp(-r2 / c2)
+            mu = (jnp.einsum("kp,kpc->c", wr, img) + t_s1) / jnp.maximum(jnp.sum(wr) + t_w, eps)
+        r2 = jnp.sum((img - mu) ** 2, axis=-1)
+        e_band = jnp.sum(w * c2 * (1.0 - jnp.exp(-r2 / c2)))
+        e_tiles = t_s2 - 2.0 * jnp.dot(mu, t_s1) + jnp.sum(mu * mu) * t_w
+        e_in = e_band + e_tiles
     if local:
         wo = bw * (1.0 - soft)
         s0o = jnp.sum(wo)
@@ -254,6 +281,7 @@ def chan_vese_energy(
     tau: float,
     area_ref: Float[Array, ""],
     local: bool = False,
+    robust: float = 0.0,
 ) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
     """Watson et al. eq. 5 (with eq. 6) for one image at one pyramid level.
 
@@ -266,6 +294,7 @@ def chan_vese_energy(
         tau: soft-silhouette temperature in this level's pixels.
         area_ref: reference silhouette area (full-resolution pixels) normalising the terms.
         local: restrict R^c to the band (see :func:`region_terms`).
+        robust: occlusion-robust inside term (see :func:`region_terms`); 0 = eq. 6 as is.
 
     Returns:
         ``(J, terms)``: the normalised objective minimised by the solver, and a dict with the
@@ -273,7 +302,7 @@ def chan_vese_energy(
         ``area_in``.
     """
     soft = soft_band(tube, band, data.grid, tau)
-    t = region_terms(soft, band, data, local)
+    t = region_terms(soft, band, data, local, robust)
     var = data.pix_area * data.total_s2 / jnp.maximum(data.pix_area * data.total_w, 1e-6)
     scale = jnp.maximum(area_ref, 1.0)
     data_term = (weights.g_in * t.e_in + weights.g_out * (t.e_out - t.e_out_empty)) / (

@@ -144,3 +144,78 @@ def test_jit_equals_eager_and_vmap_equals_loop():
     cs = jnp.asarray(np.random.default_rng(7).normal(0, 0.05, (3, 2, 3)), jnp.float32)
     eager = np.array([float(J(c)) for c in cs])
     np.testing.assert_allclose(np.asarray(jax.jit(jax.vmap(J))(cs)), eager, rtol=1e-5)
+
+
+def _robust_dense(mask, img, bg, k):
+    """Slow reference of the robust inside term (region_terms docstring) on a hard mask."""
+    w = (~bg).astype(np.float64)
+    x = img.reshape(-1, 3).astype(np.float64)
+    ww = w.ravel()
+    centre = (ww[:, None] * x).sum(0) / ww.sum()
+    xc = x - centre
+    c2 = k * k * (ww * (xc * xc).sum(1)).sum() / ww.sum()
+    inside = mask.ravel() & (ww > 0)
+    pts = xc[inside]
+    mu = pts.mean(0)
+    for _ in range(2):
+        wr = np.exp(-((pts - mu) ** 2).sum(1) / c2)
+        mu = (wr[:, None] * pts).sum(0) / wr.sum()
+    r2 = ((pts - mu) ** 2).sum(1)
+    return float((c2 * (1 - np.exp(-r2 / c2))).sum())
+
+
+def test_robust_inside_term_matches_reference_and_limits():
+    """Robust (Welsch) inside term vs a slow numpy loop of its definition (every tile in the
+    band, so no whole-tile approximation; rtol 1e-3 in float32); with a huge scale it tends
+    to the quadratic eq. 6 term (rtol 1e-3); an occluder painted over part of R costs less
+    with the robust term than with the quadratic one (relative to the clean image)."""
+    cl, cam = _scene()
+    img, bg = _image()
+    img_p = img * ~bg[..., None]
+    tube = project_tube(cam, cl)
+    mask = np.asarray(rasterise_dense(tube, H, W))
+    d = prepare_region_data(jnp.asarray(img_p), jnp.asarray(bg), 0, 8)
+    band = select_band(tube, d.grid, d.grid.n_tiles, 32)
+    m = band_margin(tube, d.grid, band)
+    hard = (m > 0).astype(jnp.float32)
+    t = region_terms(hard, band, d, robust=1.0)
+    np.testing.assert_allclose(float(t.e_in), _robust_dense(mask, img_p, bg, 1.0), rtol=1e-3)
+    t_big = region_terms(hard, band, d, robust=1e3)
+    t_q = region_terms(hard, band, d)
+    np.testing.assert_allclose(float(t_big.e_in), float(t_q.e_in), rtol=1e-3)
+    # occluder: a quarter of the robot's pixels painted black
+    occ = img_p.copy()
+    ys, xs = np.nonzero(mask)
+    sel = slice(0, len(ys) // 4)
+    occ[ys[sel], xs[sel]] = 0.0
+    d2 = prepare_region_data(jnp.asarray(occ), jnp.asarray(bg), 0, 8)
+    dq = float(region_terms(hard, band, d2).e_in) - float(t_q.e_in)
+    dr = float(region_terms(hard, band, d2, robust=1.0).e_in) - float(t.e_in)
+    assert dr < 0.5 * dq, (dr, dq)
+
+
+def test_robust_energy_gradient_vs_finite_differences():
+    with jax.enable_x64(True):
+        cl, cam = _scene(jnp.float64)
+        cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64) if hasattr(x, "dtype") else x, cam)
+        rng = np.random.default_rng(4)
+        img = cv2.GaussianBlur(rng.random((H, W, 3)), (0, 0), 3).astype(np.float64)
+        img[..., 0] += np.linspace(0, 0.5, W)[None]
+        bg = np.zeros((H, W), bool)
+        d = prepare_region_data(jnp.asarray(img), jnp.asarray(bg), 1, 8)
+        band = select_band(scale_tube(project_tube(cam, cl), 1), d.grid, 30, 8)
+
+        def J(c):
+            t = scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
+            return chan_vese_energy(t, band, d, 0.0, Weights(), 1.5, 500.0, True, 1.0)[0]
+
+        c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
+        g = np.asarray(jax.grad(J)(c0))
+        eps = 1e-5
+        fd = np.zeros_like(g)
+        for i in range(2):
+            for j in range(3):
+                e = jnp.zeros((2, 3)).at[i, j].set(eps)
+                fd[i, j] = (J(c0 + e) - J(c0 - e)) / (2 * eps)
+        np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-7)
+        assert np.abs(g).max() > 1e-4
