@@ -252,3 +252,46 @@ def test_reparametrise_recovers_arclength(cams):
         jnp.asarray(cs, jnp.float32), jnp.ones((2, len(s)), jnp.float32), 5e-3,
     )  # fmt: skip
     np.testing.assert_allclose(np.asarray(got), s, atol=7e-5)
+
+
+def test_transport_frames_vectorised_equals_loop():
+    """The prefix-product frames equal the sequential rotation-minimising transport (a
+    slow loop), including the fallback for a reversal between neighbouring tangents."""
+    from jaxcr.stereo.chain_fit import _frame_from_tangent, _min_rotations, _transport_frames
+
+    rng = np.random.default_rng(3)
+    for reverse in (False, True):
+        t = np.cumsum(rng.normal(0, 0.2, (60, 3)), axis=0) + np.array([0.0, 0.0, 1.0])
+        t /= np.linalg.norm(t, axis=1, keepdims=True)
+        if reverse:
+            t[30:] = -t[30:]  # nearly opposite neighbours: the identity step
+        R = _frame_from_tangent(t[0] + 0.1)
+        ref = [R]
+        for i in range(1, len(t)):
+            ref.append(_min_rotations(ref[-1][None, :, 2], t[i : i + 1])[0] @ ref[-1])
+        np.testing.assert_allclose(_transport_frames(R, t), np.stack(ref), atol=1e-12)
+
+
+def test_early_stopped_fit_equals_fixed_iterations(cams):
+    """The early-stopped LM (default tolerances) gives the fixed-iteration fit (ftol = xtol
+    = 0: all 20 iterations of every pass) to within 1e-3 relative curvature and 0.02 deg
+    of bending plane (float32), in fewer iterations."""
+    rng = np.random.default_rng(2)
+    s = np.linspace(0.002, 0.09, 256)
+    P, cs, ns = _views(cams, s, rng, 0.3)
+    cs[0, 100] += 8.0 * ns[0, 100]  # an outlier, so the Huber passes matter
+    base0, R0, curv0 = init_chain(s, P + _smooth_error(s), SEG)
+    w = np.ones((2, len(s)))
+    args = (cams[0], cams[1], s, cs, ns, w, SEG, base0, R0, curv0)
+    fixed = fit_chain(*args, reweight=2, ftol=0.0, xtol=0.0)
+    early = fit_chain(*args, reweight=2)
+    assert fixed["num_steps"] == 40
+    assert early["num_steps"] < 30, early["num_steps"]
+    assert early["ok"]
+    np.testing.assert_allclose(early["kappa"], fixed["kappa"], rtol=1e-3)
+    # Angle between the normals by atan2(|a x b|, |a . b|) (arccos of a float32 dot
+    # product cannot resolve angles below ~0.03 deg).
+    a, b = early["normal"], fixed["normal"]
+    ang = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.abs(np.sum(a * b, 1)))
+    assert np.degrees(ang).max() < 0.02, np.degrees(ang)
+    np.testing.assert_allclose(early["rms_px"], fixed["rms_px"], rtol=1e-3)

@@ -34,7 +34,8 @@ is the sine of the angle between the tube axis and view ``k``'s ray (a tube fore
 by ``sin`` in a view yields that fraction of independent samples per unit arclength) times
 a validity flag (silhouette width measured, clean cloth beside both edges). Outliers
 (skeleton artefacts at crossings, end caps) get Huber weights (1 px) by iterative
-reweighting. Solved by Levenberg-Marquardt (fixed iteration count, never raises) over
+reweighting. Solved by Levenberg-Marquardt (early-stopped, at most 20 iterations per pass,
+never raises) over
 ``(b, two tilt angles of R_0, u_1..u_k)``; the roll of ``R_0`` about the tangent is a gauge
 freedom (it only relabels ``d1, d2``) and is not a parameter.
 """
@@ -156,6 +157,53 @@ def _frame_from_tangent(t: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(t, x), t], axis=1)
 
 
+def _min_rotations(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Minimal rotations (n, 3, 3) taking unit vectors ``a`` (n, 3) to ``b`` (n, 3)
+    (Rodrigues form ``I + V + V^2 / (1 + c)``, ``V = hat(a x b)``, ``c = a . b``); the
+    identity where ``c <= -0.999`` (nearly opposite: the axis is undefined)."""
+    v = np.cross(a, b)
+    c = np.clip(np.sum(a * b, axis=1), -1.0, 1.0)
+    z = np.zeros(len(v))
+    V = np.stack(
+        [
+            np.stack([z, -v[:, 2], v[:, 1]], 1),
+            np.stack([v[:, 2], z, -v[:, 0]], 1),
+            np.stack([-v[:, 1], v[:, 0], z], 1),
+        ],
+        1,
+    )
+    flip = c <= -0.999
+    Rm = np.eye(3) + V + (V @ V) / np.where(flip, 1.0, 1.0 + c)[:, None, None]
+    Rm[flip] = np.eye(3)
+    return Rm
+
+
+def _transport_frames(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Rotation-minimising frames (n, 3, 3) along unit tangents ``t`` (n, 3), starting from
+    ``R`` (3, 3) at sample 0: ``F_0 = R``, ``F_i = M_i F_{i-1}`` with ``M_i`` the minimal
+    rotation taking ``F_{i-1}``'s third column to ``t_i``. After a step ``F_i e_z = t_i``,
+    so every ``M_i`` (``i >= 2``) is known up front and the frames are prefix products,
+    computed in ``log2 n`` batched matrix products (Hillis-Steele scan). A step between
+    nearly opposite tangents (identity, see :func:`_min_rotations`) breaks that; then the
+    sequential loop runs instead (same result)."""
+    n = len(t)
+    a = np.concatenate([R[None, :, 2], t[1:-1]])[: max(n - 1, 0)]
+    Rm = _min_rotations(a, t[1:])
+    flipped = np.sum(a * t[1:], axis=1) <= -0.999
+    if flipped.any():
+        frames = np.empty((n, 3, 3))
+        frames[0] = R
+        for i in range(1, n):
+            frames[i] = _min_rotations(frames[i - 1][None, :, 2], t[i : i + 1])[0] @ frames[i - 1]
+        return frames
+    Q = np.concatenate([R[None], Rm])
+    d = 1
+    while d < n:
+        Q[d:] = Q[d:] @ Q[:-d]
+        d *= 2
+    return Q
+
+
 def init_chain(
     s: np.ndarray, p: np.ndarray, seg_start: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -173,15 +221,7 @@ def init_chain(
     t0 = p[n0] - p[0]
     t0 /= np.linalg.norm(t0)
     R = _frame_from_tangent(t0)
-    frames = np.empty((len(s), 3, 3))
-    frames[0] = R
-    for i in range(1, len(s)):
-        # Minimal rotation taking the previous tangent to this one (no twist).
-        a, b = frames[i - 1][:, 2], t[i]
-        v, c = np.cross(a, b), float(np.clip(a @ b, -1.0, 1.0))
-        V = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-        Rm = np.eye(3) + V + V @ V / (1.0 + c) if c > -0.999 else np.eye(3)
-        frames[i] = Rm @ frames[i - 1]
+    frames = _transport_frames(R, t)
     dt = np.gradient(t, s, axis=0)
     kw = np.cross(t, dt)  # curvature vector (world), |kw| = curvature
     body = np.einsum("nji,nj->ni", frames, kw)[:, :2]
@@ -214,45 +254,77 @@ def _residuals(theta, args):
     return jnp.concatenate(out)
 
 
-_residuals_jit = jax.jit(_residuals)
+def _lm(theta0, args, max_iterations: int, ftol: float, xtol: float):
+    """Levenberg-Marquardt with Marquardt's diagonal scaling (traceable, not jitted).
 
+    Iterates while not converged, at most ``max_iterations`` times (``lax.while_loop``:
+    one compile per shape, no Python loop). Converged when a trial step (accepted or not)
+    changed the cost by at most ``ftol`` relative (plus ``(1e-4 px)^2`` per residual, the
+    float32 floor: a rejected step that close means the minimum is reached at float32
+    precision), or changed no scaled parameter by more than ``xtol`` (see :func:`fit_chain`),
+    or the cost vanished. ``ftol = xtol = 0`` never stops
+    early (the fixed-iteration reference). Returns ``(theta, residuals at theta,
+    converged, iterations)``."""
+    n_res = 2 * args[3].shape[0]
+    atol = 1e-8 * n_res
 
-@functools.partial(jax.jit, static_argnames=("iterations",))
-def _solve(theta0, args, iterations: int = 20):
-    """Levenberg-Marquardt with Marquardt's diagonal scaling and a fixed iteration count
-    (one compile per shape; the forward Jacobian is small: 2n residuals x (5 + 2k)).
-    Returns ``(theta, converged, iterations)``; converged when the last accepted step
-    changed the cost by less than 1e-5 relative (float32) or the cost vanished."""
-
-    def cost_of(th):
+    def res_aux(th):
         r = _residuals(th, args)
-        return jnp.sum(r * r)
+        return r, r
 
-    def body(i, carry):
-        th, lam, c, c_mark = carry
-        r = _residuals(th, args)
-        J = jax.jacfwd(_residuals)(th, args)
+    def cond(carry):
+        i, _, _, _, _, done = carry
+        return (i < max_iterations) & ~done
+
+    def body(carry):
+        i, th, r, lam, c, _ = carry
+        J, r = jax.jacfwd(res_aux, has_aux=True)(th)
         A = J.T @ J
         g = J.T @ r
         D = jnp.diag(jnp.diag(A)) + 1e-12 * jnp.eye(A.shape[0], dtype=A.dtype)
         step = -jnp.linalg.solve(A + lam * D, g)
         th_new = th + step
-        c_new = cost_of(th_new)
+        r_new = _residuals(th_new, args)
+        c_new = jnp.sum(r_new * r_new)
         better = c_new < c
+        small = (jnp.abs(c - c_new) <= ftol * c + atol) | (jnp.max(jnp.abs(step)) <= xtol)
+        done = small | (jnp.minimum(c, c_new) <= atol)
+        if ftol == 0.0 and xtol == 0.0:  # the fixed-iteration reference
+            done = jnp.asarray(False)
         return (
+            i + 1,
             jnp.where(better, th_new, th),
+            jnp.where(better, r_new, r),
             jnp.where(better, lam * 0.3, lam * 10.0),
             jnp.where(better, c_new, c),
-            jnp.where(i == iterations - 5, c, c_mark),
+            done,
         )
 
-    c0 = cost_of(theta0)
+    r0 = _residuals(theta0, args)
     one = jnp.asarray(1.0, theta0.dtype)
-    th, _, c, c_mark = jax.lax.fori_loop(0, iterations, body, (theta0, 1e-3 * one, c0, c0))
-    # Converged: the last 5 iterations lowered the cost by < 1e-5 relative (float32) or
-    # by less than (1e-4 px)^2 per residual.
-    n_res = 2 * args[3].shape[0]
-    return th, (c_mark - c) <= 1e-5 * c_mark + 1e-8 * n_res, iterations
+    carry = (0, theta0, r0, 1e-3 * one, jnp.sum(r0 * r0), jnp.asarray(False))
+    i, th, r, _, _, done = jax.lax.while_loop(cond, body, carry)
+    return th, r, done, i
+
+
+@functools.partial(jax.jit, static_argnames=("passes", "max_iterations", "ftol", "xtol"))
+def _robust_solve(theta0, args0, w, huber_px, passes: int, max_iterations: int,
+                  ftol: float, xtol: float):  # fmt: skip
+    """All Huber reweighting passes of :func:`fit_chain` in one compiled call: each pass
+    solves with weights ``w * huber`` (:func:`_lm`) and recomputes the Huber factors
+    (scale ``huber_px``) from the unweighted normal residuals. Returns ``(theta,
+    unweighted residuals (2, n), Huber factors (2, n), converged in every pass, total
+    iterations)``."""
+    theta, robust = theta0, jnp.ones_like(w)
+    ok, steps = jnp.asarray(True), 0
+    for _ in range(passes):
+        args = (*args0, jnp.sqrt(w * robust))
+        theta, _, conv, n = _lm(theta, args, max_iterations, ftol, xtol)
+        ok, steps = ok & conv, steps + n
+        r = _residuals(theta, (*args0, jnp.ones_like(w))).reshape(2, -1)
+        a = jnp.abs(r)
+        robust = jnp.where(a <= huber_px, 1.0, huber_px / jnp.maximum(a, 1e-12))
+    return theta, r, robust, ok, steps
 
 
 @functools.partial(jax.jit, static_argnames=("k",))
@@ -275,6 +347,9 @@ def fit_chain(
     curvatures0: Float[Array, "k 2"],
     huber_px: float = 1.0,
     reweight: int = 3,
+    max_iterations: int = 20,
+    ftol: float = 1e-6,
+    xtol: float = 1e-4,
 ) -> dict:
     """Fit the chain (module docstring) to silhouette centres in two views.
 
@@ -283,7 +358,12 @@ def fit_chain(
     ``centres[v, j]`` (pixels), unit image normal ``normals[v, j]`` and weight
     ``weights[v, j]`` (0 ignores it: padding, unusable views). ``seg_start`` (k,) segment
     start arclengths (m, first = where ``base0`` sits). Starting values from
-    :func:`init_chain`. ``reweight``: Huber reweighting passes (scale ``huber_px``).
+    :func:`init_chain`. ``reweight``: Huber reweighting passes (scale ``huber_px``), all
+    in one compiled call. Each pass is Levenberg-Marquardt stopped early
+    (:func:`_lm`) when an accepted step lowers the cost by at most ``ftol`` relative or
+    moves no scaled parameter by more than ``xtol`` (scaled units: mm for the base,
+    rad for the tilts, 100/m for curvatures: ``xtol = 1e-4`` is 0.1 um, 1e-4 rad, 0.01 /m), at
+    most ``max_iterations`` iterations; ``ftol = xtol = 0`` runs all of them.
 
     Returns (numpy) ``base`` (3,), ``R0`` (3, 3), ``curvatures`` (k, 2) body (1/m),
     ``kappa`` (k,), ``normal`` (k, 3) bending-plane normals, ``rms_px`` (weighted RMS of the
@@ -304,16 +384,11 @@ def fit_chain(
         jnp.asarray(normals, dt),
     ]
     theta = jnp.concatenate([jnp.zeros(5, dt), jnp.asarray(curvatures0, dt).ravel() / _U_SCALE])
-    robust = jnp.ones_like(w)
-    ok_all, steps = True, 0
-    for _ in range(max(reweight, 1)):
-        args = (*args0, jnp.sqrt(w * robust))
-        theta, ok, n = _solve(theta, args)
-        ok_all &= bool(ok)
-        steps += int(n)
-        r = np.asarray(_residuals_jit(theta, (*args0, jnp.ones_like(w)))).reshape(2, -1)
-        a = np.abs(r)
-        robust = jnp.asarray(np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-12)), dt)
+    theta, r, robust, ok, steps = _robust_solve(
+        theta, tuple(args0), w, jnp.asarray(huber_px, dt), passes=max(reweight, 1),
+        max_iterations=int(max_iterations), ftol=float(ftol), xtol=float(xtol),
+    )  # fmt: skip
+    r = np.asarray(r)
     base, R0, curv, kappa, normal = _finish(theta, args0[0], args0[1], args0[2], k)
     wn = np.asarray(w * robust)
     rms = float(np.sqrt(np.sum(wn * r**2) / max(np.sum(wn), 1e-12)))
@@ -324,8 +399,8 @@ def fit_chain(
         "kappa": np.asarray(kappa, np.float64),
         "normal": np.asarray(normal, np.float64),
         "rms_px": rms,
-        "ok": ok_all,
-        "num_steps": steps,
+        "ok": bool(ok),
+        "num_steps": int(steps),
         "residuals_px": r,
         "weights": wn,
     }
