@@ -66,6 +66,7 @@ __all__ = [
     "init_chain",
     "fit_chain",
     "silhouette_observations",
+    "observations_from_profiles",
     "fit_segments_jointly",
     "drop_inconsistent_widths",
 ]
@@ -430,6 +431,26 @@ def silhouette_observations(
     nrm = nrm / jnp.maximum(jnp.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     width, offset = profile_widths(alpha, uv0, nrm, key_proj)
     clean = edge_clearance(alpha, uv0, nrm, width, offset)
+    return observations_from_profiles(cam, points, tangents, uv0, ok, nrm, width, offset, clean)
+
+
+def observations_from_profiles(
+    cam: Camera,
+    points: Float[Array, "n 3"],
+    tangents: Float[Array, "n 3"],
+    uv0: Float[Array, "n 2"],
+    ok: Float[Array, " n"],
+    nrm: Float[Array, "n 2"],
+    width: Float[Array, " n"],
+    offset: Float[Array, " n"],
+    clean: Float[Array, " n"],
+) -> tuple[Float[Array, "n 2"], Float[Array, "n 2"], Float[Array, " n"], Float[Array, " n"]]:
+    """:func:`silhouette_observations` from width profiles already measured (traceable):
+    projections ``uv0`` (pixels) of ``points`` and their validity ``ok``, unit image
+    normals ``nrm``, silhouette ``width``/centre ``offset`` along them (pixels,
+    :func:`jaxcr.stereo.diameter.profile_widths`) and the edge-clearance flag ``clean``
+    (:func:`jaxcr.stereo.diameter.edge_clearance`). Lets the pipeline reuse its diameter
+    stage's profiles instead of measuring them again."""
     sin_view = view_weights(cam, points, tangents)
     w = jnp.where(ok & (width > 0.5) & (clean > 0), sin_view, 0.0)
     d = cylinder_diameters(cam, points, tangents, uv0, nrm, width, offset)
@@ -484,6 +505,9 @@ def drop_inconsistent_widths(
     return ws
 
 
+_plane_angles_jit = jax.jit(jax.vmap(plane_angles))
+
+
 def _bucket(n: int, size: int = 128) -> int:
     return max(size, -(-n // size) * size)
 
@@ -501,6 +525,7 @@ def fit_segments_jointly(
     max_width_dev: float = 0.15,
     reweight: int = 2,
     obs_spacing: float = 5e-4,
+    observations: tuple | None = None,
 ) -> dict:
     """Per-segment curvature, bending plane and arc length of a reconstructed backbone by
     the joint chain fit (module docstring), for the stereo pipeline.
@@ -515,7 +540,12 @@ def fit_segments_jointly(
     ``obs_spacing``: arclength between observations (m; 1 mm is ~3.5 px at 0.29 mm/px).
     Returns numpy arrays ``kappa`` (k,) 1/m, ``normal`` (k, 3),
     ``angles_deg`` (k, 3) (X-Y, Z-X, Y-Z planes), ``arc_length`` (k,) m (the last segment
-    up to the last observed sample), ``rms_px``, ``ok``, ``weights`` (2, n) used."""
+    up to the last observed sample), ``rms_px``, ``ok``, ``weights`` (2, n) used.
+    ``observations``: optionally, both views' :func:`silhouette_observations` outputs
+    ``(centres (2, n, 2), normals (2, n, 2), weights (2, n), diameters (2, n))`` already
+    measured at every sample of ``p`` with unit tangents ``np.gradient(p, axis=0)``
+    (e.g. from :func:`observations_from_profiles` in the pipeline's diameter stage; the
+    same as measured here when ``s`` is uniformly spaced); else they are measured."""
     s = np.asarray(s, np.float64)
     p = np.asarray(p, np.float64)
     seg_start = np.concatenate([[0.0], np.asarray(boundaries_s, np.float64)])
@@ -534,19 +564,25 @@ def fit_segments_jointly(
         return np.concatenate([x, np.repeat(x[-1:], m - n, axis=0)]) if m > n else x
 
     dt = jnp.result_type(float)
-    cs, ns, ws, ds = [], [], [], []
-    for cam, a, kp in zip(cams, alphas, key_projs, strict=True):
-        c, nr, w, d = silhouette_observations(
-            cam, jnp.asarray(a, dt), jnp.asarray(kp, dt), jnp.asarray(pad(p), dt),
-            jnp.asarray(pad(tang), dt),
-        )  # fmt: skip
-        w = np.asarray(w, np.float64)
-        w[n:] = 0.0
-        cs.append(np.asarray(c))
-        ns.append(np.asarray(nr))
-        ws.append(w)
-        ds.append(np.asarray(d, np.float64))
-    cs, ns, ws, ds = np.stack(cs), np.stack(ns), np.stack(ws), np.stack(ds)
+    if observations is not None:
+        obs = [np.asarray(x)[:, keep] for x in observations]
+        cs, ns = (np.stack([pad(x[v]) for v in range(2)]) for x in obs[:2])
+        ws, ds = (np.stack([pad(np.asarray(x[v], np.float64)) for v in range(2)]) for x in obs[2:])
+        ws[:, n:] = 0.0
+    else:
+        cs, ns, ws, ds = [], [], [], []
+        for cam, a, kp in zip(cams, alphas, key_projs, strict=True):
+            c, nr, w, d = silhouette_observations(
+                cam, jnp.asarray(a, dt), jnp.asarray(kp, dt), jnp.asarray(pad(p), dt),
+                jnp.asarray(pad(tang), dt),
+            )  # fmt: skip
+            w = np.asarray(w, np.float64)
+            w[n:] = 0.0
+            cs.append(np.asarray(c))
+            ns.append(np.asarray(nr))
+            ws.append(w)
+            ds.append(np.asarray(d, np.float64))
+    cs, ns, ws, ds = (np.stack(x) for x in (cs, ns, ws, ds))
     ws = drop_inconsistent_widths(ws, ds, pad(s), seg_start, max_width_dev)
     s_obs = pad(s)
     fit = fit_chain(
@@ -580,7 +616,7 @@ def fit_segments_jointly(
     return {
         "kappa": fit["kappa"],
         "normal": fit["normal"],
-        "angles_deg": np.asarray(jax.vmap(plane_angles)(jnp.asarray(fit["normal"])), np.float64),
+        "angles_deg": np.asarray(_plane_angles_jit(jnp.asarray(fit["normal"])), np.float64),
         "arc_length": ends - seg_start,
         "rms_px": fit["rms_px"],
         "ok": fit["ok"],

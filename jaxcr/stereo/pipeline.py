@@ -50,7 +50,7 @@ from scipy.ndimage import gaussian_filter1d
 from jaxcr.camera import Camera, project_points
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_locate import flood_component, locate_base
-from jaxcr.stereo.chain_fit import fit_segments_jointly
+from jaxcr.stereo.chain_fit import fit_segments_jointly, observations_from_profiles
 from jaxcr.stereo.chroma import (
     KEY_COLOURS,
     chroma_alpha_and_projection,
@@ -269,13 +269,17 @@ def _view_profile(cam, alpha, kproj, p, tang):
 
 
 def _view_diameters(cam, alpha, kproj, p, tang):
-    """Per view: the cylinder-method diameters, the view weights and the report's
-    3-D-interpolation diameters (see :mod:`jaxcr.stereo.diameter`)."""
+    """Per view: the cylinder-method diameters, the view weights, the report's
+    3-D-interpolation diameters (see :mod:`jaxcr.stereo.diameter`) and, from the same
+    profiles, the joint chain fit's silhouette observations (centres, normals, weights,
+    diameters; :func:`jaxcr.stereo.chain_fit.observations_from_profiles`)."""
     uv0, ok0, nrm, wdt, off, wv = _view_profile(cam, alpha, kproj, p, tang)
     d = cylinder_diameters(cam, p, tang, uv0, nrm, wdt, off)
     wv = jnp.where(ok0 & (wdt > 0.5) & jnp.isfinite(d), wv, 0.0)
     rep = report_interpolation_diameters(cam, p, uv0, wdt)
-    return jnp.where(jnp.isfinite(d), d, 0.0), wv, rep
+    clean = edge_clearance(alpha, uv0, nrm, wdt, off)
+    obs = observations_from_profiles(cam, p, tang, uv0, ok0, nrm, wdt, off, clean)
+    return (jnp.where(jnp.isfinite(d), d, 0.0), wv, rep, *obs)
 
 
 @jax.jit
@@ -300,7 +304,8 @@ def _views_profiles(cam1, cam2, alphas, kprojs, p, tang):
 
 @jax.jit
 def _views_diameters(cam1, cam2, alphas, kprojs, p, tang):
-    """Both views' (diameters, weights, report diameters), stacked (2, n)."""
+    """Both views' (diameters, weights, report diameters, chain-fit centres, normals,
+    weights, diameters), stacked (2, ...)."""
     out = [
         _view_diameters(cam, alphas[k], kprojs[k], p, tang) for k, cam in enumerate((cam1, cam2))
     ]
@@ -603,10 +608,11 @@ def reconstruct_pair(
     t0 = _tick(timings, "refinement", t0)
     # 7. Diameters.
     pj, tj = _padded_with_tangents(p)
-    d_all, w_all, r_all = (
-        np.asarray(x, np.float64)[:, : len(p)]
+    d_all, w_all, r_all, *chain_obs = (
+        np.asarray(x)[:, : len(p)]
         for x in _views_diameters(cams[0], cams[1], alpha_near, kproj_j, pj, tj)
     )
+    d_all, w_all, r_all = (np.asarray(x, np.float64) for x in (d_all, w_all, r_all))
     diam_views, wts, rep = list(d_all), list(w_all), list(r_all)
     tang = np.gradient(p, axis=0)
     tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
@@ -700,6 +706,7 @@ def reconstruct_pair(
             s,
             p,
             seg["boundaries_s"],
+            observations=chain_obs,  # the diameter stage's profiles, not measured again
         )
         for k, row in enumerate(table):
             for key in ("phi_xy_deg", "phi_zx_deg", "phi_yz_deg", "curvature_1pm", "normal"):
