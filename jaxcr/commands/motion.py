@@ -45,8 +45,19 @@ def add_parser(subparsers) -> None:
     p.add_argument("dataset", help="dataset folder (jaxcr.motion/1), or 'synth' to generate one")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--model", choices=["translation", "homography", "both"], default="both")
-    p.add_argument("--lambda", dest="lam", type=float, default=15.0, help="Sigma = lambda I, px^2")
-    p.add_argument("--threshold", type=float, default=0.75, help="fraction of the map maximum")
+    p.add_argument(
+        "--lambda",
+        dest="lam",
+        type=float,
+        default=5.0,
+        help="Sigma = lambda I, px^2 (default 5, chosen on the static synthetic videos)",
+    )
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=0.85,
+        help="fraction of the map maximum (default 0.85, chosen with lambda; paper 0.75)",
+    )
     p.add_argument("--superpixel-step", type=int, default=20, help="SLIC grid step, px")
     p.add_argument("--flow-step", type=int, default=4, help="LK grid step, px")
     p.add_argument("--flow", choices=["lk", "dis"], default="lk", help="optical flow method")

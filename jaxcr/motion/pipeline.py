@@ -63,10 +63,12 @@ class MotionConfig:
     slic_iters_track: int = 2
     flow: flowmod.FlowConfig = field(default_factory=flowmod.FlowConfig)
     models: tuple[str, ...] = MODELS
-    lam: float = 15.0
+    # lambda and threshold chosen on the static synthetic videos (P-R point closest to (1, 1),
+    # experiments/results/motion_report.md); the paper found 0.75 for the threshold
+    lam: float = 5.0
     kappa: float = 1.0
     min_motion: float = 0.5
-    threshold: float = 0.75
+    threshold: float = 0.85
     homography_irls: int = 3
     perspective_penalty: float = 1.0
     select_sigma: float = 0.5
