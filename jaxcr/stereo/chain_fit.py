@@ -69,6 +69,7 @@ __all__ = [
     "observations_from_profiles",
     "fit_segments_jointly",
     "drop_inconsistent_widths",
+    "tail_observations",
 ]
 
 # Parameter scaling (metres -> mm, 1/m -> 1/(100 m)): similar magnitudes for LM damping.
@@ -505,6 +506,66 @@ def drop_inconsistent_widths(
     return ws
 
 
+@functools.partial(jax.jit, static_argnames=("n_grid",))
+def _nearest_on_extension(base, R0, curv, seg_start, cam, uv, s_lo, s_hi, n_grid: int = 257):
+    """For each pixel ``uv`` (t, 2): the arclength in ``[s_lo, s_hi]`` whose projection in
+    ``cam`` is nearest, and the chain's tangent there."""
+    cand = jnp.linspace(s_lo, s_hi, n_grid)
+    X, _ = chain_points(base, R0, curv, seg_start, cand)
+    proj, _ = project_points(cam, X)
+    d2 = jnp.sum((proj[None] - uv[:, None]) ** 2, axis=-1)
+    return cand[jnp.argmin(d2, axis=1)]
+
+
+def tail_observations(
+    cam: Camera,
+    tail_uv: np.ndarray,
+    fit: dict,
+    seg_start: np.ndarray,
+    s_end: float,
+    max_extension: float,
+    spacing_px: float = 2.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Single-view observations of the backbone beyond the last stereo-matched sample.
+
+    Where a tip is foreshortened or folded in one view the stereo matching stops early,
+    but the other view still sees the tube: its ordered skeleton continues beyond the
+    projection of the last reconstructed point. Each skeleton pixel there is a centre of
+    the tube's silhouette (a thinned cylinder's silhouette lies on its projected axis), and
+    only the direction across the skeleton is measured, exactly the residual of
+    :func:`fit_chain` with the other view's weight 0. ``tail_uv`` (t, 2): those ordered
+    pixels (u, v; distorted image), taken every ``spacing_px`` of image arclength. Each
+    gets the arclength in ``[s_end, s_end + max_extension]`` (m) of the current chain
+    ``fit`` (extrapolated along its last arc) whose projection is nearest, made
+    non-decreasing along the tail; the refit and the arclength re-reading
+    (:func:`_reparametrise`) then move both. Returns ``(s (t,), centres (t, 2), unit image
+    normals (t, 2), weights (t,))``; the weight is the sine of the angle between the
+    chain's tangent and the viewing ray (as for the stereo observations)."""
+    uv = np.asarray(tail_uv, np.float64)
+    if len(uv) < 3:
+        z = np.zeros((0, 2))
+        return np.zeros(0), z, z, np.zeros(0)
+    seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    idx = np.unique(np.searchsorted(arc, np.arange(0.0, arc[-1] + 1e-9, spacing_px)))
+    idx = idx[idx < len(uv)]
+    tang = np.gradient(uv, axis=0)
+    tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
+    nrm = np.stack([-tang[:, 1], tang[:, 0]], axis=1)[idx]
+    uv = uv[idx]
+    dt = jnp.result_type(float)
+    args = [jnp.asarray(fit[k], dt) for k in ("base", "R0", "curvatures")]
+    s_t = np.asarray(
+        _nearest_on_extension(*args, jnp.asarray(seg_start, dt), cam, jnp.asarray(uv, dt),
+                              float(s_end), float(s_end + max_extension)),
+        np.float64,
+    )  # fmt: skip
+    s_t = np.maximum.accumulate(s_t)
+    X, t3 = chain_points(*args, jnp.asarray(seg_start, dt), jnp.asarray(s_t, dt))
+    w = np.asarray(view_weights(cam, X, t3), np.float64)
+    return s_t, uv, nrm, w
+
+
 _plane_angles_jit = jax.jit(jax.vmap(plane_angles))
 
 
@@ -526,6 +587,8 @@ def fit_segments_jointly(
     reweight: int = 2,
     obs_spacing: float = 5e-4,
     observations: tuple | None = None,
+    tails: tuple | None = None,
+    max_extension: float = 0.05,
 ) -> dict:
     """Per-segment curvature, bending plane and arc length of a reconstructed backbone by
     the joint chain fit (module docstring), for the stereo pipeline.
@@ -545,7 +608,14 @@ def fit_segments_jointly(
     ``(centres (2, n, 2), normals (2, n, 2), weights (2, n), diameters (2, n))`` already
     measured at every sample of ``p`` with unit tangents ``np.gradient(p, axis=0)``
     (e.g. from :func:`observations_from_profiles` in the pipeline's diameter stage; the
-    same as measured here when ``s`` is uniformly spaced); else they are measured."""
+    same as measured here when ``s`` is uniformly spaced); else they are measured.
+    ``tails``: optionally, per view ``None`` or the ordered skeleton pixels (t, 2) (u, v)
+    continuing beyond the projection of the last sample of ``p`` (the part of the tube
+    the stereo matching lost, e.g. a tip foreshortened in the other view). After the
+    first fit they enter as single-view observations (:func:`tail_observations`, at most
+    ``max_extension`` m past the last sample), the chain's last arc extends over them and
+    the last segment's ``arc_length`` reaches their last arclength; ``n_tail`` (2,) says
+    how many each view contributed."""
     s = np.asarray(s, np.float64)
     p = np.asarray(p, np.float64)
     seg_start = np.concatenate([[0.0], np.asarray(boundaries_s, np.float64)])
@@ -589,6 +659,42 @@ def fit_segments_jointly(
         cams[0], cams[1], s_obs, cs, ns, ws, seg_start, base0, R_init, curv0,
         huber_px=huber_px, reweight=reweight,
     )  # fmt: skip
+    n_real, n_tail = n, np.zeros(2, int)
+    if tails is not None and any(x is not None and len(x) >= 3 for x in tails):
+        # The tube beyond the last stereo match, seen by one view only (tail_observations).
+        s_end = float(s[-1])
+        s_all, c_all, n_all, w_all = [s], [cs[:, :n]], [ns[:, :n]], [ws[:, :n]]
+        for v in range(2):
+            if tails[v] is None:
+                continue
+            st, c, nr, w = tail_observations(cams[v], tails[v], fit, seg_start, s_end,
+                                             max_extension)  # fmt: skip
+            n_tail[v] = len(st)
+            if len(st) == 0:
+                continue
+            c2, n2, w2 = (
+                np.zeros((2, len(st), 2)),
+                np.zeros((2, len(st), 2)),
+                np.zeros((2, len(st))),
+            )
+            c2[v], n2[v], w2[v] = c, nr, w
+            n2[1 - v, :, 0] = 1.0
+            s_all.append(st), c_all.append(c2), n_all.append(n2), w_all.append(w2)
+        n_real = n + int(n_tail.sum())
+        m = _bucket(n_real)
+
+        def padv(x):  # (2, n_real, ...) -> (2, m, ...), zero weight on padding
+            x = np.concatenate(x, axis=1)
+            return np.concatenate([x, np.repeat(x[:, -1:], m - n_real, axis=1)], axis=1)
+
+        cs, ns, ws = padv(c_all), padv(n_all), padv(w_all)
+        ws[:, n_real:] = 0.0
+        s_cat = np.concatenate(s_all)
+        s_obs = np.concatenate([s_cat, np.repeat(s_cat[-1:], m - n_real)])
+        fit = fit_chain(
+            cams[0], cams[1], s_obs, cs, ns, ws, seg_start, fit["base"], fit["R0"],
+            fit["curvatures"], huber_px=huber_px, reweight=reweight,
+        )  # fmt: skip
     for _ in range(reparametrise):
         # Where the correspondence was ill-conditioned the triangulated points, hence
         # their arclengths, slid along the ambiguous direction; each observation's
@@ -604,7 +710,12 @@ def fit_segments_jointly(
             ),
             np.float64,
         )  # fmt: skip
-        s_new[n:] = s_new[n - 1]
+        s_new[n_real:] = s_new[n_real - 1]
+        lo = n
+        for v in range(2):  # each view's tail stays ordered and beyond the stereo part
+            hi = lo + n_tail[v]
+            s_new[lo:hi] = np.maximum.accumulate(np.maximum(s_new[lo:hi], s[n - 1]))
+            lo = hi
         mono = np.maximum.accumulate(s_new[:n])
         seg_start = np.concatenate([[0.0], np.interp(seg_start[1:], s[:n], mono)])
         s_obs = s_new
@@ -612,7 +723,7 @@ def fit_segments_jointly(
             cams[0], cams[1], s_obs, cs, ns, ws, seg_start, fit["base"], fit["R0"],
             fit["curvatures"], huber_px=huber_px, reweight=reweight,
         )  # fmt: skip
-    ends = np.concatenate([seg_start[1:], [max(s_obs[:n].max(), seg_start[-1])]])
+    ends = np.concatenate([seg_start[1:], [max(s_obs[:n_real].max(), seg_start[-1])]])
     return {
         "kappa": fit["kappa"],
         "normal": fit["normal"],
@@ -622,5 +733,6 @@ def fit_segments_jointly(
         "ok": fit["ok"],
         "weights": ws[:, :n],
         "seg_start": seg_start,
+        "n_tail": n_tail,
         "fit": fit,
     }

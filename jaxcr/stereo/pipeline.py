@@ -401,6 +401,16 @@ def _extend_tip(uv: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([uv, uv[-1] + np.arange(1, n + 1)[:, None] * d[None]])
 
 
+def _skeleton_tail(uv: np.ndarray, uv_end: np.ndarray, tol_px: float = 3.0) -> np.ndarray | None:
+    """The ordered skeleton pixels (u, v) of one view beyond ``uv_end``, the projection of
+    the last reconstructed backbone point (the tube the stereo matching lost there, for
+    :func:`jaxcr.stereo.chain_fit.tail_observations`): everything after the last skeleton
+    sample within ``tol_px`` of it (the last, so that a tip crossing the shaft in this view
+    is not mistaken for the shaft). ``None`` if no sample is that close."""
+    near = np.flatnonzero(np.linalg.norm(uv - uv_end[None], axis=1) <= tol_px)
+    return uv[near[-1] + 1 :] if len(near) else None
+
+
 def _resample(p: np.ndarray, step: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Smooth ordered 3-D points along their arclength (Gaussian kernel, local linear) and
     resample at ``step``. Returns ``(s (k,), p (k, 3))``, s from the first point.
@@ -707,6 +717,10 @@ def reconstruct_pair(
             p,
             seg["boundaries_s"],
             observations=chain_obs,  # the diameter stage's profiles, not measured again
+            tails=[
+                _skeleton_tail(v["uv"], _project_np(c, p[-1:])[0])
+                for c, v in zip(cams, views, strict=True)
+            ],
         )
         for k, row in enumerate(table):
             for key in ("phi_xy_deg", "phi_zx_deg", "phi_yz_deg", "curvature_1pm", "normal"):
