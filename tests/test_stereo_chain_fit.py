@@ -407,7 +407,7 @@ def test_tail_observations_on_the_true_chain(cams):
     s_all = np.arange(0.08, 0.1 + 1e-9, 1e-4)
     P, cs, ns = _views(cams, s_all, np.random.default_rng(0), 0.0)
     fit = {"base": np.zeros(3), "R0": _R0(), "curvatures": CURV}
-    st, c, nr, w = tail_observations(cams[1], cs[1], fit, SEG, 0.08, 0.05, spacing_px=2.0)
+    st, c, nr, w, _ = tail_observations(cams[1], cs[1], fit, SEG, 0.08, 0.05, spacing_px=2.0)
     assert 15 <= len(st) < len(s_all)
     idx = [int(np.argmin(np.linalg.norm(cs[1] - x, axis=1))) for x in c]
     np.testing.assert_allclose(st, s_all[idx], atol=1e-4)

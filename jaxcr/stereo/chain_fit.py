@@ -500,7 +500,7 @@ def drop_inconsistent_widths(
     for i in range(len(seg_start)):
         sel = (seg_of[None] == i) & usable
         if sel.any():
-            d_ref = np.median(ds[sel])
+            d_ref = np.nanmedian(ds[sel])
             dev = np.abs(ds / max(d_ref, 1e-12) - 1.0) > max_dev
             ws[sel & dev] = 0.0
     return ws
@@ -517,6 +517,14 @@ def _nearest_on_extension(base, R0, curv, seg_start, cam, uv, s_lo, s_hi, n_grid
     return cand[jnp.argmin(d2, axis=1)]
 
 
+@jax.jit
+def _tail_profiles(cam, alpha, key_proj, points, tangents, uv, nrm):
+    width, offset = profile_widths(alpha, uv, nrm, key_proj)
+    clean = edge_clearance(alpha, uv, nrm, width, offset)
+    ok = jnp.ones(uv.shape[0], bool)
+    return observations_from_profiles(cam, points, tangents, uv, ok, nrm, width, offset, clean)
+
+
 def tail_observations(
     cam: Camera,
     tail_uv: np.ndarray,
@@ -525,7 +533,9 @@ def tail_observations(
     s_end: float,
     max_extension: float,
     spacing_px: float = 2.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    alpha: np.ndarray | None = None,
+    key_proj: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Single-view observations of the backbone beyond the last stereo-matched sample.
 
     Where a tip is foreshortened or folded in one view the stereo matching stops early,
@@ -538,13 +548,18 @@ def tail_observations(
     gets the arclength in ``[s_end, s_end + max_extension]`` (m) of the current chain
     ``fit`` (extrapolated along its last arc) whose projection is nearest, made
     non-decreasing along the tail; the refit and the arclength re-reading
-    (:func:`_reparametrise`) then move both. Returns ``(s (t,), centres (t, 2), unit image
-    normals (t, 2), weights (t,))``; the weight is the sine of the angle between the
-    chain's tangent and the viewing ray (as for the stereo observations)."""
+    (:func:`_reparametrise`) then move both. With the view's robot ``alpha`` and
+    ``key_proj`` the centres are measured across the skeleton like the stereo
+    observations' (:func:`observations_from_profiles`: sub-pixel silhouette centre, weight
+    0 where no width was measured or another part of the robot lies beside an edge, and the
+    diameter for :func:`drop_inconsistent_widths`); without, the skeleton pixels are the
+    centres and the diameters NaN. Returns ``(s (t,), centres (t, 2), unit image normals
+    (t, 2), weights (t,), diameters (t,) m)``; the weight is the sine of the angle between
+    the chain's tangent and the viewing ray (as for the stereo observations)."""
     uv = np.asarray(tail_uv, np.float64)
     if len(uv) < 3:
         z = np.zeros((0, 2))
-        return np.zeros(0), z, z, np.zeros(0)
+        return np.zeros(0), z, z, np.zeros(0), np.zeros(0)
     seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(seg)])
     idx = np.unique(np.searchsorted(arc, np.arange(0.0, arc[-1] + 1e-9, spacing_px)))
@@ -562,8 +577,14 @@ def tail_observations(
     )  # fmt: skip
     s_t = np.maximum.accumulate(s_t)
     X, t3 = chain_points(*args, jnp.asarray(seg_start, dt), jnp.asarray(s_t, dt))
-    w = np.asarray(view_weights(cam, X, t3), np.float64)
-    return s_t, uv, nrm, w
+    if alpha is None:
+        w = np.asarray(view_weights(cam, X, t3), np.float64)
+        return s_t, uv, nrm, w, np.full(len(s_t), np.nan)
+    c, nr, w, d = _tail_profiles(
+        cam, jnp.asarray(alpha, dt), jnp.asarray(key_proj, dt), X, t3, jnp.asarray(uv, dt),
+        jnp.asarray(nrm, dt),
+    )  # fmt: skip
+    return s_t, *(np.asarray(x, np.float64) for x in (c, nr, w, d))
 
 
 _plane_angles_jit = jax.jit(jax.vmap(plane_angles))
@@ -664,11 +685,14 @@ def fit_segments_jointly(
         # The tube beyond the last stereo match, seen by one view only (tail_observations).
         s_end = float(s[-1])
         s_all, c_all, n_all, w_all = [s], [cs[:, :n]], [ns[:, :n]], [ws[:, :n]]
+        d_all = [ds[:, :n]]
         for v in range(2):
             if tails[v] is None:
                 continue
-            st, c, nr, w = tail_observations(cams[v], tails[v], fit, seg_start, s_end,
-                                             max_extension)  # fmt: skip
+            st, c, nr, w, d = tail_observations(
+                cams[v], tails[v], fit, seg_start, s_end, max_extension,
+                alpha=alphas[v], key_proj=key_projs[v],
+            )  # fmt: skip
             n_tail[v] = len(st)
             if len(st) == 0:
                 continue
@@ -679,7 +703,10 @@ def fit_segments_jointly(
             )
             c2[v], n2[v], w2[v] = c, nr, w
             n2[1 - v, :, 0] = 1.0
+            d2 = np.full((2, len(st)), np.nan)
+            d2[v] = d
             s_all.append(st), c_all.append(c2), n_all.append(n2), w_all.append(w2)
+            d_all.append(d2)
         n_real = n + int(n_tail.sum())
         m = _bucket(n_real)
 
@@ -691,6 +718,10 @@ def fit_segments_jointly(
         ws[:, n_real:] = 0.0
         s_cat = np.concatenate(s_all)
         s_obs = np.concatenate([s_cat, np.repeat(s_cat[-1:], m - n_real)])
+        # The same width-consistency rule for the tail (a tip lying on the shaft in this
+        # view); the stereo observations' weights stay as they were.
+        w_rule = drop_inconsistent_widths(ws, padv(d_all), s_obs, seg_start, max_width_dev)
+        ws[:, n:n_real] = w_rule[:, n:n_real]
         fit = fit_chain(
             cams[0], cams[1], s_obs, cs, ns, ws, seg_start, fit["base"], fit["R0"],
             fit["curvatures"], huber_px=huber_px, reweight=reweight,
