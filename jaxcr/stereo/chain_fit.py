@@ -507,22 +507,25 @@ def drop_inconsistent_widths(
 
 
 @functools.partial(jax.jit, static_argnames=("n_grid",))
-def _nearest_on_extension(base, R0, curv, seg_start, cam, uv, s_lo, s_hi, n_grid: int = 257):
-    """For each pixel ``uv`` (t, 2): the arclength in ``[s_lo, s_hi]`` whose projection in
-    ``cam`` is nearest, and the chain's tangent there."""
+def _tail_measure(base, R0, curv, seg_start, cam, uv, nrm, s_lo, s_hi, alpha, key_proj,
+                  n_grid: int = 257):  # fmt: skip
+    """:func:`tail_observations` after the pixel sampling, in one compiled call (``uv``,
+    ``nrm`` padded to a bucket by repeating the last row): per pixel the arclength in
+    ``[s_lo, s_hi]`` whose projection in ``cam`` is nearest, made non-decreasing; the
+    chain's points and tangents there; the measured observations (or, with ``alpha``
+    None, the pixels themselves, the sine weights and NaN diameters)."""
     cand = jnp.linspace(s_lo, s_hi, n_grid)
-    X, _ = chain_points(base, R0, curv, seg_start, cand)
-    proj, _ = project_points(cam, X)
+    Xc, _ = chain_points(base, R0, curv, seg_start, cand)
+    proj, _ = project_points(cam, Xc)
     d2 = jnp.sum((proj[None] - uv[:, None]) ** 2, axis=-1)
-    return cand[jnp.argmin(d2, axis=1)]
-
-
-@jax.jit
-def _tail_profiles(cam, alpha, key_proj, points, tangents, uv, nrm):
+    s_t = jax.lax.cummax(cand[jnp.argmin(d2, axis=1)])
+    X, t3 = chain_points(base, R0, curv, seg_start, s_t)
+    if alpha is None:
+        return s_t, uv, nrm, view_weights(cam, X, t3), jnp.full(s_t.shape, jnp.nan)
     width, offset = profile_widths(alpha, uv, nrm, key_proj)
     clean = edge_clearance(alpha, uv, nrm, width, offset)
     ok = jnp.ones(uv.shape[0], bool)
-    return observations_from_profiles(cam, points, tangents, uv, ok, nrm, width, offset, clean)
+    return s_t, *observations_from_profiles(cam, X, t3, uv, ok, nrm, width, offset, clean)
 
 
 def tail_observations(
@@ -569,22 +572,20 @@ def tail_observations(
     nrm = np.stack([-tang[:, 1], tang[:, 0]], axis=1)[idx]
     uv = uv[idx]
     dt = jnp.result_type(float)
-    args = [jnp.asarray(fit[k], dt) for k in ("base", "R0", "curvatures")]
-    s_t = np.asarray(
-        _nearest_on_extension(*args, jnp.asarray(seg_start, dt), cam, jnp.asarray(uv, dt),
-                              float(s_end), float(s_end + max_extension)),
-        np.float64,
+    n_t = len(uv)
+    m = max(32, -(-n_t // 32) * 32)  # shape bucket: one compile per 32 samples
+
+    def pad(x):
+        return jnp.asarray(np.concatenate([x, np.repeat(x[-1:], m - n_t, axis=0)]), dt)
+
+    out = _tail_measure(
+        *(jnp.asarray(fit[k], dt) for k in ("base", "R0", "curvatures")),
+        jnp.asarray(seg_start, dt), cam, pad(uv), pad(nrm), jnp.asarray(s_end, dt),
+        jnp.asarray(s_end + max_extension, dt),
+        None if alpha is None else jnp.asarray(alpha, dt),
+        None if key_proj is None else jnp.asarray(key_proj, dt),
     )  # fmt: skip
-    s_t = np.maximum.accumulate(s_t)
-    X, t3 = chain_points(*args, jnp.asarray(seg_start, dt), jnp.asarray(s_t, dt))
-    if alpha is None:
-        w = np.asarray(view_weights(cam, X, t3), np.float64)
-        return s_t, uv, nrm, w, np.full(len(s_t), np.nan)
-    c, nr, w, d = _tail_profiles(
-        cam, jnp.asarray(alpha, dt), jnp.asarray(key_proj, dt), X, t3, jnp.asarray(uv, dt),
-        jnp.asarray(nrm, dt),
-    )  # fmt: skip
-    return s_t, *(np.asarray(x, np.float64) for x in (c, nr, w, d))
+    return tuple(np.asarray(x, np.float64)[:n_t] for x in out)
 
 
 _plane_angles_jit = jax.jit(jax.vmap(plane_angles))
