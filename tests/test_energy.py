@@ -100,6 +100,20 @@ def test_pixel_units_consistent_across_levels():
     np.testing.assert_allclose(np.asarray(d1.centre), np.asarray(d0.centre), atol=1e-5)
 
 
+def _assert_grad_matches_fd(J, eps=1e-5):
+    """jax.grad of J at a random (2, 3) point vs central differences (rtol 1e-4, x64), and
+    not trivially flat."""
+    c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
+    g = np.asarray(jax.grad(J)(c0))
+    fd = np.zeros_like(g)
+    for i in range(2):
+        for j in range(3):
+            e = jnp.zeros((2, 3)).at[i, j].set(eps)
+            fd[i, j] = (J(c0 + e) - J(c0 - e)) / (2 * eps)
+    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-7)
+    assert np.abs(g).max() > 1e-4
+
+
 def test_energy_gradient_vs_finite_differences():
     with jax.enable_x64(True):
         cl, cam = _scene(jnp.float64)
@@ -118,16 +132,7 @@ def test_energy_gradient_vs_finite_differences():
             t = scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
             return chan_vese_energy(t, band, d, jnp.sum(c**2), Weights(), 1.5, 500.0)[0]
 
-        c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
-        g = np.asarray(jax.grad(J)(c0))
-        eps = 1e-5
-        fd = np.zeros_like(g)
-        for i in range(2):
-            for j in range(3):
-                e = jnp.zeros((2, 3)).at[i, j].set(eps)
-                fd[i, j] = (J(c0 + e) - J(c0 - e)) / (2 * eps)
-        np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-7)
-        assert np.abs(g).max() > 1e-4  # not trivially flat
+        _assert_grad_matches_fd(J)
 
 
 def test_jit_equals_eager_and_vmap_equals_loop():
@@ -209,13 +214,4 @@ def test_robust_energy_gradient_vs_finite_differences():
             t = scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
             return chan_vese_energy(t, band, d, 0.0, Weights(), 1.5, 500.0, True, 1.0)[0]
 
-        c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
-        g = np.asarray(jax.grad(J)(c0))
-        eps = 1e-5
-        fd = np.zeros_like(g)
-        for i in range(2):
-            for j in range(3):
-                e = jnp.zeros((2, 3)).at[i, j].set(eps)
-                fd[i, j] = (J(c0 + e) - J(c0 - e)) / (2 * eps)
-        np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-7)
-        assert np.abs(g).max() > 1e-4
+        _assert_grad_matches_fd(J)
