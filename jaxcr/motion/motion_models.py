@@ -31,12 +31,59 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 
+def _take(col: Float[Array, " k"], idx: Int[Array, " n"]) -> Float[Array, " n"]:
+    """col[idx] as a flat 1-D gather (XLA's CPU gather of rows of a (k, d) table, b[seg] or
+    H[seg], is several times slower than d separate 1-D gathers)."""
+    return jnp.take(col, idx, mode="clip")
+
+
+def _segsum(
+    x: Float[Array, "n ..."], seg: Int[Array, " n"], n_segments: int
+) -> Float[Array, "k ..."]:
+    """Per-segment sums; a plain reduction when there is one segment (a scatter-add into a
+    single row is a serial loop on CPU)."""
+    if n_segments == 1:
+        return jnp.sum(x, axis=0, keepdims=True)
+    return jax.ops.segment_sum(x, seg, n_segments)
+
+
+def _transfer(
+    h: tuple[Float[Array, "..."], ...], x: Float[Array, "..."], y: Float[Array, "..."]
+) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
+    """pi(H [x; y; 1]) on separate x and y arrays, H given by its nine entries (row-major,
+    each broadcastable against x); as :func:`apply_homography`, w ~ 0 gives the far point
+    (1e6, 1e6)."""
+    qx = h[0] * x + h[1] * y + h[2]
+    qy = h[3] * x + h[4] * y + h[5]
+    qw = h[6] * x + h[7] * y + h[8]
+    ok = jnp.abs(qw) > 1e-9
+    w = jnp.where(ok, qw, 1.0)
+    return jnp.where(ok, qx / w, 1e6), jnp.where(ok, qy / w, 1e6)
+
+
+def _entries(H: Float[Array, "k 3 3"]) -> tuple[Float[Array, " k"], ...]:
+    return tuple(H[:, i, j] for i in range(3) for j in range(3))
+
+
+def _transfer_error2(
+    H: Float[Array, "k 3 3"],
+    seg: Int[Array, " n"],
+    x: Float[Array, " n"],
+    y: Float[Array, " n"],
+    u: Float[Array, " n"],
+    v: Float[Array, " n"],
+) -> Float[Array, " n"]:
+    """|pi(H_seg(i) [x_i; y_i; 1]) - (u_i, v_i)|^2 for every point, px^2."""
+    px, py = _transfer(tuple(_take(e, seg) for e in _entries(H)), x, y)
+    return (px - u) ** 2 + (py - v) ** 2
+
+
 def segment_translation(
     flow: Float[Array, "n 2"], seg: Int[Array, " n"], weight: Float[Array, " n"], n_segments: int
 ) -> tuple[Float[Array, "k 2"], Float[Array, " k"]]:
     """Mean flow b_j of every segment (eq. 4) and its total weight (number of valid points)."""
-    wsum = jax.ops.segment_sum(weight, seg, n_segments)
-    fsum = jax.ops.segment_sum(flow * weight[:, None], seg, n_segments)
+    wsum = _segsum(weight, seg, n_segments)
+    fsum = _segsum(flow * weight[:, None], seg, n_segments)
     return fsum / jnp.maximum(wsum, 1e-12)[:, None], wsum
 
 
@@ -55,34 +102,13 @@ def robust_translation(
     the two motions, the M-estimate on the dominant one. Returns (b, number of valid points);
     ``n_iter`` = 0 is :func:`segment_translation`."""
     b, count = segment_translation(flow, seg, weight, n_segments)
+    fx, fy = flow[:, 0], flow[:, 1]
 
     def body(_, b):
-        e2 = jnp.sum((flow - b[seg]) ** 2, axis=1)
+        e2 = (fx - _take(b[:, 0], seg)) ** 2 + (fy - _take(b[:, 1], seg)) ** 2
         return segment_translation(flow, seg, weight / (1.0 + e2 / scale**2), n_segments)[0]
 
     return jax.lax.fori_loop(0, n_iter, body, b), count
-
-
-def _similarity(c: Float[Array, "k 2"], s: Float[Array, " k"]) -> Float[Array, "k 3 3"]:
-    z, o = jnp.zeros_like(s), jnp.ones_like(s)
-    return jnp.stack(
-        [
-            jnp.stack([s, z, -s * c[:, 0]], -1),
-            jnp.stack([z, s, -s * c[:, 1]], -1),
-            jnp.stack([z, z, o], -1),
-        ],
-        axis=1,
-    )
-
-
-def _dlt_rows(src: Float[Array, "n 2"], dst: Float[Array, "n 2"]) -> Float[Array, "n 9 9"]:
-    """Sum of the outer products of the two DLT rows of each correspondence."""
-    x, y = src[:, 0], src[:, 1]
-    u, v = dst[:, 0], dst[:, 1]
-    z, o = jnp.zeros_like(x), jnp.ones_like(x)
-    r1 = jnp.stack([z, z, z, -x, -y, -o, v * x, v * y, v], -1)
-    r2 = jnp.stack([x, y, o, z, z, z, -u * x, -u * y, -u], -1)
-    return r1[:, :, None] * r1[:, None, :] + r2[:, :, None] * r2[:, None, :]
 
 
 def apply_homography(H: Float[Array, "3 3"], a: Float[Array, "2"]) -> Float[Array, "2"]:
@@ -91,6 +117,27 @@ def apply_homography(H: Float[Array, "3 3"], a: Float[Array, "2"]) -> Float[Arra
     ok = jnp.abs(q[2]) > 1e-9
     w = jnp.where(ok, q[2], 1.0)
     return jnp.where(ok, q[:2] / w, jnp.full(2, 1e6, H.dtype))
+
+
+def _normalise(
+    x: Float[Array, " n"], y: Float[Array, " n"], seg, weight, wsum, n_segments: int
+) -> tuple[
+    Float[Array, " k"],
+    Float[Array, " k"],
+    Float[Array, " k"],
+    Float[Array, " n"],
+    Float[Array, " n"],
+]:
+    """Hartley normalisation per segment: weighted centroid c and scale s = sqrt(2) / (mean
+    distance to c). Returns (cx, cy, s) per segment and the normalised point coordinates
+    s (p - c)."""
+    cx = _segsum(x * weight, seg, n_segments) / wsum
+    cy = _segsum(y * weight, seg, n_segments) / wsum
+    dx, dy = x - _take(cx, seg), y - _take(cy, seg)
+    d = _segsum(jnp.sqrt(dx**2 + dy**2) * weight, seg, n_segments) / wsum
+    s = jnp.sqrt(2.0) / jnp.maximum(d, 1e-6)
+    sp = _take(s, seg)
+    return cx, cy, s, sp * dx, sp * dy
 
 
 def weighted_homographies(
@@ -103,32 +150,71 @@ def weighted_homographies(
 ) -> Float[Array, "k 3 3"]:
     """Weighted normalised DLT homography of every segment (dst ~ H src), ||H||_F = 1.
 
+    The algebraic error sum_i w_i (|r1_i . h|^2 + |r2_i . h|^2), with the two DLT rows
+    r1 = (0, -a, v a), r2 = (a, 0, -u a) of a correspondence a = (x, y, 1) -> (u, v) in
+    normalised coordinates, is h^T M h with the 9 x 9 block matrix
+    M = [[A, 0, -A_u], [0, A, -A_v], [-A_u, -A_v, A_uv]], where A = sum w a a^T,
+    A_u = sum w u a a^T, A_v = sum w v a a^T and A_uv = sum w (u^2 + v^2) a a^T: each segment's
+    M is assembled from 24 weighted moments per point instead of summing 81-entry outer
+    products. h is M's eigenvector of the smallest eigenvalue.
+
     ``perspective_penalty`` (>= 0) adds penalty x (sum of weights) x (h31^2 + h32^2) in the
     normalised coordinates to the algebraic error: a ridge prior towards an affine map that
     keeps the homographies of small segments (a few px across, whose perspective terms the
     flow barely constrains) from extrapolating wildly to a distant end-effector. 0 gives the
     plain DLT."""
-    wsum = jnp.maximum(jax.ops.segment_sum(weight, seg, n_segments), 1e-12)
+    wsum = jnp.maximum(_segsum(weight, seg, n_segments), 1e-12)
+    csx, csy, ss, x, y = _normalise(src[:, 0], src[:, 1], seg, weight, wsum, n_segments)
+    cdx, cdy, sd, u, v = _normalise(dst[:, 0], dst[:, 1], seg, weight, wsum, n_segments)
+    mono = jnp.stack([x * x, x * y, x, y * y, y, jnp.ones_like(x)], axis=1) * weight[:, None]
+    mom = _segsum(
+        jnp.concatenate(
+            [mono, mono * u[:, None], mono * v[:, None], mono * (u * u + v * v)[:, None]], axis=1
+        ),
+        seg,
+        n_segments,
+    )
 
-    def norm(p):
-        c = jax.ops.segment_sum(p * weight[:, None], seg, n_segments) / wsum[:, None]
-        d = (
-            jax.ops.segment_sum(jnp.linalg.norm(p - c[seg], axis=1) * weight, seg, n_segments)
-            / wsum
-        )
-        return _similarity(c, jnp.sqrt(2.0) / jnp.maximum(d, 1e-6))
+    def sym(m):  # (k, 6) moments (xx, xy, x, yy, y, 1) -> (k, 3, 3)
+        r0 = jnp.stack([m[:, 0], m[:, 1], m[:, 2]], -1)
+        r1 = jnp.stack([m[:, 1], m[:, 3], m[:, 4]], -1)
+        r2 = jnp.stack([m[:, 2], m[:, 4], m[:, 5]], -1)
+        return jnp.stack([r0, r1, r2], axis=1)
 
-    Ts, Td = norm(src), norm(dst)
-    sn = jnp.einsum("nij,nj->ni", Ts[seg], jnp.concatenate([src, jnp.ones_like(src[:, :1])], 1))
-    dn = jnp.einsum("nij,nj->ni", Td[seg], jnp.concatenate([dst, jnp.ones_like(dst[:, :1])], 1))
-    M = jax.ops.segment_sum(
-        _dlt_rows(sn[:, :2], dn[:, :2]) * weight[:, None, None], seg, n_segments
+    A, Au, Av, Auv = (sym(mom[:, 6 * i : 6 * i + 6]) for i in range(4))
+    Z = jnp.zeros_like(A)
+    M = jnp.concatenate(
+        [
+            jnp.concatenate([A, Z, -Au], axis=2),
+            jnp.concatenate([Z, A, -Av], axis=2),
+            jnp.concatenate([-Au, -Av, Auv], axis=2),
+        ],
+        axis=1,
     )
     ridge = jnp.zeros(9, src.dtype).at[6].set(1.0).at[7].set(1.0)
     M = M + perspective_penalty * wsum[:, None, None] * jnp.diag(ridge)[None]
     _, vecs = jnp.linalg.eigh(M)
     Hn = vecs[:, :, 0].reshape(-1, 3, 3)
-    H = jnp.linalg.inv(Td) @ Hn @ Ts
+    # denormalise: H = Td^-1 Hn Ts with the similarities T = [[s, 0, -s cx], [0, s, -s cy],
+    # [0, 0, 1]], Td^-1 = [[1/s, 0, cx], [0, 1/s, cy], [0, 0, 1]] in closed form
+    z, o = jnp.zeros_like(ss), jnp.ones_like(ss)
+    Ts = jnp.stack(
+        [
+            jnp.stack([ss, z, -ss * csx], -1),
+            jnp.stack([z, ss, -ss * csy], -1),
+            jnp.stack([z, z, o], -1),
+        ],
+        axis=1,
+    )
+    Tdi = jnp.stack(
+        [
+            jnp.stack([1.0 / sd, z, cdx], -1),
+            jnp.stack([z, 1.0 / sd, cdy], -1),
+            jnp.stack([z, z, o], -1),
+        ],
+        axis=1,
+    )
+    H = Tdi @ Hn @ Ts
     H = H / jnp.linalg.norm(H, axis=(1, 2), keepdims=True)
     return H * jnp.sign(H[:, 2, 2])[:, None, None]
 
@@ -145,6 +231,7 @@ def segment_homography(
     perspective_penalty: float = 0.0,
     select_sigma: float = 0.0,
     translation_irls: int = 0,
+    translation: tuple[Float[Array, "k 2"], Float[Array, " k"]] | None = None,
 ) -> Float[Array, "k 3 3"]:
     """Robust homography per segment (eqs. 7-8): weighted normalised DLT, then ``n_irls``
     reweightings with Cauchy weights 1 / (1 + (e / scale)^2), e the transfer error in px.
@@ -162,37 +249,42 @@ def segment_homography(
     With ``select_sigma`` > 0 (the flow noise, px) each segment keeps the homography only if it
     explains its flow better than the translation by more than the AIC penalty for the six
     extra parameters, sum w (e_t^2 - e_h^2) > 2 * 6 * sigma^2 (model selection in the spirit of
-    Torr 1998, which M-L cites); otherwise the segment's model is its translation."""
+    Torr 1998, which M-L cites); otherwise the segment's model is its translation.
+
+    ``translation`` is ``robust_translation(flow, seg, valid, n_segments, translation_irls)``
+    when the caller has it already (the pipeline's translation model): it is then not computed
+    again."""
     w0 = valid.astype(pts.dtype)
     dst = pts + flow
-    b, count = robust_translation(flow, seg, w0, n_segments, translation_irls)
+    x, y, u, v = pts[:, 0], pts[:, 1], dst[:, 0], dst[:, 1]
+    if translation is None:
+        translation = robust_translation(flow, seg, w0, n_segments, translation_irls)
+    b, count = translation
     robust = translation_irls > 0
     inlier2 = (2.0 * scale) ** 2
-    if robust:
-        w_start = w0 * (jnp.sum((flow - b[seg]) ** 2, axis=1) < (3.0 * scale) ** 2)
-    else:
-        w_start = w0
+    et2 = (flow[:, 0] - _take(b[:, 0], seg)) ** 2 + (flow[:, 1] - _take(b[:, 1], seg)) ** 2
+    w_start = w0 * (et2 < (3.0 * scale) ** 2) if robust else w0
     H = weighted_homographies(pts, dst, seg, w_start, n_segments, perspective_penalty)
 
-    def weights(H):
-        pred = jax.vmap(apply_homography)(H[seg], pts)
-        e2 = jnp.sum((pred - dst) ** 2, axis=1)
+    def weights(e2):
         return w0 * (e2 < inlier2) if robust else w0 / (1.0 + e2 / scale**2)
 
     def body(_, H):
-        return weighted_homographies(pts, dst, seg, weights(H), n_segments, perspective_penalty)
+        w = weights(_transfer_error2(H, seg, x, y, u, v))
+        return weighted_homographies(pts, dst, seg, w, n_segments, perspective_penalty)
 
     H = jax.lax.fori_loop(0, n_irls, body, H)
     Ht = jnp.tile(jnp.eye(3, dtype=pts.dtype), (n_segments, 1, 1)).at[:, :2, 2].set(b)
     good = (count >= min_points) & jnp.all(jnp.isfinite(H), axis=(1, 2))
+    if robust or select_sigma > 0:
+        eh2 = _transfer_error2(H, seg, x, y, u, v)
     w_sel = w0
     if robust:
-        w_sel = weights(H)
-        good = good & (jax.ops.segment_sum(w_sel, seg, n_segments) >= min_points)
+        w_sel = weights(eh2)
+        good = good & (_segsum(w_sel, seg, n_segments) >= min_points)
     if select_sigma > 0:
-        pred = jax.vmap(apply_homography)(H[seg], pts)
-        rss_h = jax.ops.segment_sum(w_sel * jnp.sum((pred - dst) ** 2, axis=1), seg, n_segments)
-        rss_t = jax.ops.segment_sum(w_sel * jnp.sum((flow - b[seg]) ** 2, axis=1), seg, n_segments)
+        rss_h = _segsum(w_sel * eh2, seg, n_segments)
+        rss_t = _segsum(w_sel * et2, seg, n_segments)
         good = good & (rss_t - rss_h > 12.0 * select_sigma**2)
     return jnp.where(good[:, None, None], H, Ht)
 
@@ -250,11 +342,14 @@ def background_homography(
     Ht = jnp.eye(3, dtype=pts.dtype).at[:2, 2].set(med)
     hyp = jnp.concatenate([Ht[None], hyp], axis=0)
 
-    def sq_err(H):
-        pred = jax.vmap(apply_homography, in_axes=(None, 0))(H, pts)
-        return jnp.sum((pred - dst) ** 2, axis=1)
+    x, y, u, v = pts[:, 0], pts[:, 1], dst[:, 0], dst[:, 1]
 
-    e2 = jax.vmap(sq_err)(hyp)
+    def sq_err(H):  # (..., 3, 3) -> (..., n) squared transfer errors, px^2
+        h = tuple(H[..., i, j, None] for i in range(3) for j in range(3))
+        px, py = _transfer(h, x, y)
+        return (px - u) ** 2 + (py - v) ** 2
+
+    e2 = sq_err(hyp)
     score = jnp.sum(w0[None] * (e2 < inlier_px**2), axis=1)
     score = jnp.where(jnp.all(jnp.isfinite(hyp), axis=(1, 2)), score, -1.0)
     H = hyp[jnp.argmax(score)]
@@ -282,5 +377,8 @@ def stabilise_flow(
     """Flow relative to the background: f' = pi(H^-1 [p + f; 1]) - p with H
     :func:`background_homography` (px). Invalid points keep flow 0. Returns (f', H)."""
     H = background_homography(pts, flow, valid, n_hypotheses, inlier_px)
-    back = jax.vmap(apply_homography, in_axes=(None, 0))(jnp.linalg.inv(H), pts + flow)
-    return jnp.where(valid[:, None], back - pts, 0.0), H
+    Hi = jnp.linalg.inv(H)
+    dst = pts + flow
+    bx, by = _transfer(tuple(Hi[i, j] for i in range(3) for j in range(3)), dst[:, 0], dst[:, 1])
+    back = jnp.stack([bx - pts[:, 0], by - pts[:, 1]], axis=1)
+    return jnp.where(valid[:, None], back, 0.0), H

@@ -133,6 +133,7 @@ def frame_probabilities(
                 perspective_penalty=penalty,
                 select_sigma=select_sigma,
                 translation_irls=translation_irls,
+                translation=(b, count),
             )
             rho = homography_error(H, x_now, x_next)
         else:
@@ -141,7 +142,63 @@ def frame_probabilities(
     return jnp.stack(rows), count > 0
 
 
-_window_update = jax.jit(jax.vmap(window_update, in_axes=(0, 0, 0, None, None)))
+_window_update = jax.vmap(window_update, in_axes=(0, 0, 0, None, None))
+
+
+@functools.partial(
+    jax.jit,
+    static_argnames=(
+        "n_segments",
+        "models",
+        "n_irls",
+        "penalty",
+        "select_sigma",
+        "stabilise",
+        "translation_irls",
+    ),
+)
+def frame_update(
+    sums: Float[Array, "m 2 k"],
+    counts: Float[Array, "m 2 k"],
+    pts: Float[Array, "n 2"],
+    flow: Float[Array, "n 2"],
+    valid: Bool[Array, " n"],
+    labels: Int[Array, "h w"],
+    x_now: Float[Array, "2"],
+    x_next: Float[Array, "2"],
+    touch: Bool[Array, ""],
+    lam: float,
+    kappa: float,
+    n_segments: int,
+    models: tuple[str, ...] = MODELS,
+    n_irls: int = 3,
+    penalty: float = 0.0,
+    select_sigma: float = 0.0,
+    stabilise: bool = False,
+    translation_irls: int = 0,
+) -> tuple[Float[Array, "m 2 k"], Float[Array, "m 2 k"]]:
+    """One frame pair of M-L in one jitted call: :func:`frame_probabilities` and the
+    per-window running sums of every model (:func:`~jaxcr.motion.likelihood.window_update`).
+    Returns the new (sums, counts)."""
+    p, present = frame_probabilities(
+        pts,
+        flow,
+        valid,
+        labels,
+        x_now,
+        x_next,
+        touch,
+        lam,
+        kappa,
+        n_segments,
+        models,
+        n_irls,
+        penalty,
+        select_sigma,
+        stabilise,
+        translation_irls,
+    )
+    return _window_update(sums, counts, p, present, touch)
 
 
 @dataclass
@@ -196,6 +253,7 @@ class MotionTracker:
         self.sums = jnp.zeros((m, 2, self.n_segments), jnp.float32)
         self.counts = jnp.zeros((m, 2, self.n_segments), jnp.float32)
         self.records: list[StepRecord] = []
+        self._pts = None
 
     def in_view(self, uv) -> bool:
         return bool(
@@ -233,8 +291,12 @@ class MotionTracker:
         elif not valid.any():
             reason = "no valid flow"
         if not reason:
-            p, present = frame_probabilities(
-                jnp.asarray(pts),
+            if self._pts is None or self._pts.shape != pts.shape:
+                self._pts = jnp.asarray(pts)  # the grid is fixed: transferred once
+            self.sums, self.counts = frame_update(
+                self.sums,
+                self.counts,
+                self._pts,
                 jnp.asarray(fl),
                 jnp.asarray(valid),
                 self.labels,
@@ -250,9 +312,6 @@ class MotionTracker:
                 cfg.select_sigma,
                 cfg.stabilise,
                 cfg.translation_irls,
-            )
-            self.sums, self.counts = _window_update(
-                self.sums, self.counts, p, present, jnp.asarray(bool(touch))
             )
             self.sums.block_until_ready()
         t2 = time.perf_counter()
