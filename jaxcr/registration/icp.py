@@ -153,7 +153,13 @@ def gauss_newton_update(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints, extr
     points ``ps``, target points ``q`` with normals ``nq``, weights ``w``, point-to-plane
     residuals ``pl``) plus the keypoint term (see :func:`icp_step`); shared by the
     nearest-neighbour and the projective (:mod:`jaxcr.registration.projective`) ICP.
-    ``extra``: optional (H (6, 6), g (6,)) normal-equation terms added before the solve."""
+    ``extra``: optional (H (6, 6), g (6,)) normal-equation terms added before the solve
+    (the photometric term). With ``cfg.degeneracy_ratio > 0`` the geometric terms are
+    removed from the directions they cannot observe (:func:`degeneracy_filter`) and
+    ``extra`` is restricted to exactly those directions: geometry where it is informative,
+    colour where it is not (there a colour term's own systematic errors, e.g. texture
+    blurred differently under different foreshortening, would otherwise compete with
+    the geometry)."""
     # point-to-plane: r = n.(p + w x p + v - q)  ->  J = [n, p x n]
     J_pl = jnp.concatenate([nq, jnp.cross(ps, nq)], axis=1)  # (n, 6)
     H = (J_pl * w[:, None]).T @ J_pl
@@ -162,8 +168,10 @@ def gauss_newton_update(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints, extr
     if cfg.point_weight:
         Hp, gp = _point_terms(ps, q, cfg.point_weight * w)
         H, g = H + Hp, g + gp
+    split = None
     if cfg.degeneracy_ratio > 0:
-        H, g, _ = degeneracy_filter(H, g, ps, w, cfg.degeneracy_ratio)
+        split = degenerate_split(H, ps, w, cfg.degeneracy_ratio)
+        H, g = project_normal_equations(H, g, split[0], split[1])
     ks = kp.src @ T[:3, :3].T + T[:3, 3]
     rk2 = jnp.sum((ks - kp.tgt) ** 2, -1)
     sk = cfg.sigma_keypoint if kp.scale is None else kp.scale
@@ -175,7 +183,10 @@ def gauss_newton_update(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints, extr
     Hk, gk = _point_terms(ks, kp.tgt, wk, P)
     H, g = H + Hk, g + gk
     if extra is not None:
-        H, g = H + extra[0], g + extra[1]
+        He, ge = extra
+        if split is not None:  # the colour term only where the geometry is blind
+            He, ge = project_normal_equations(He, ge, split[0], jnp.eye(6) - split[1])
+        H, g = H + He, g + ge
     scale = jnp.maximum(jnp.trace(H) / 6.0, 1e-12)
     delta = -jnp.linalg.solve(H + cfg.damping * scale * jnp.eye(6), g)
     delta = jnp.where(jnp.all(jnp.isfinite(delta)) & (jnp.sum(w) > 0), delta, 0.0)
@@ -195,6 +206,29 @@ def scaled_coordinates(ps: Float[Array, "n 3"], w: Float[Array, " n"]) -> Float[
     top = jnp.concatenate([jnp.eye(3, dtype=ps.dtype), -hat(c)], axis=1)
     bottom = jnp.concatenate([jnp.zeros((3, 3), ps.dtype), L * jnp.eye(3, dtype=ps.dtype)], 1)
     return jnp.concatenate([top, bottom], axis=0)
+
+
+def degenerate_split(
+    H: Float[Array, "6 6"], ps: Float[Array, "n 3"], w: Float[Array, " n"], ratio: float
+):
+    """Eigen-decomposition of the geometric normal-equation matrix ``H`` in the
+    unit-consistent coordinates of :func:`scaled_coordinates` (``A``). Returns ``A``, the
+    projector ``P`` (6, 6, scaled coordinates) on the well-observed eigen-directions
+    (eigenvalue >= ``ratio`` x the largest) and their number."""
+    A = scaled_coordinates(ps, w)
+    Ai = jnp.linalg.inv(A)
+    Hs = Ai.T @ H @ Ai
+    lam, V = jnp.linalg.eigh(0.5 * (Hs + Hs.T))
+    good = lam >= ratio * jnp.maximum(lam[-1], 1e-30)
+    return A, (V * good[None, :]) @ V.T, jnp.sum(good)
+
+
+def project_normal_equations(H, g, A, P):
+    """Restrict normal equations (H, g) (coordinates ``delta``) to the subspace of the
+    projector ``P`` (scaled coordinates ``A delta``): ``A^T P A^-T H A^-1 P A`` and
+    ``A^T P A^-T g``."""
+    Ai = jnp.linalg.inv(A)
+    return A.T @ P @ (Ai.T @ H @ Ai) @ P @ A, A.T @ P @ (Ai.T @ g)
 
 
 def degeneracy_filter(
@@ -217,16 +251,9 @@ def degeneracy_filter(
     or, without them, stays at the seed (the damping), as in Zhang et al.'s solution
     remapping. Returns the filtered (H, g) in the original coordinates and the number of
     degenerate directions."""
-    A = scaled_coordinates(ps, w)
-    Ai = jnp.linalg.inv(A)
-    Hs = Ai.T @ H @ Ai
-    Hs = 0.5 * (Hs + Hs.T)
-    gs = Ai.T @ g
-    lam, V = jnp.linalg.eigh(Hs)
-    good = lam > ratio * jnp.maximum(lam[-1], 1e-30)
-    Vg = V * good[None, :]
-    P = Vg @ V.T
-    return A.T @ (P @ Hs @ P) @ A, A.T @ (P @ gs), jnp.sum(~good)
+    A, P, n_good = degenerate_split(H, ps, w, ratio)
+    Hf, gf = project_normal_equations(H, g, A, P)
+    return Hf, gf, 6 - n_good
 
 
 def icp(

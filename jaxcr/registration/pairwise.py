@@ -124,14 +124,24 @@ def register_pair(
     min_fitness: float = 0.2,
     seed: int = 0,
     association: str = "projective",
-    photometric: bool = False,
+    photometric: bool | str = False,
     prior_gate: tuple[float, float] | None = None,
 ) -> PairResult:
     """``T`` with ``tgt ~ T src`` (see module docstring). ``prior_gate`` (deg, m): a
     keypoint estimate farther than this from ``prior`` is taken for a false RANSAC consensus
-    and dropped (ICP then starts from the prior without the keypoint term)."""
+    and dropped (ICP then starts from the prior without the keypoint term).
+    ``photometric`` (projective association only): False (none), ``"chromaticity"`` or
+    ``"intensity"`` (True) dense colour term
+    (:func:`jaxcr.registration.projective.photometric_terms`); with the degeneracy-aware
+    ``cfg`` (DEFAULT_ICP) it acts only in the directions the geometry cannot observe."""
     if association not in ("projective", "nearest"):
         raise ValueError(f"association must be 'projective' or 'nearest', got {association!r}")
+    if photometric is True:
+        photometric = "intensity"
+    if photometric not in (False, None, "intensity", "chromaticity"):
+        raise ValueError(
+            f"photometric must be False, 'intensity' or 'chromaticity', got {photometric!r}"
+        )
     t0 = time.perf_counter()
     for f in (src, tgt):
         if not bool(np.asarray(f.arrays.mask).any()):
@@ -154,6 +164,7 @@ def register_pair(
             kp,
             window=0,
             src_image=src.image if photometric else None,
+            photometric=photometric or "intensity",
         )
     else:
         res = icp_jit(src.arrays, tgt.arrays, T0, cfg, kp)

@@ -87,6 +87,9 @@ class PipelineConfig:
     nominal_gate_m: float = 0.05
     association: str = "projective"  # ICP data association: "projective" or "nearest"
     sample_size: int = 4096  # full-resolution source pixels per frame (projective ICP)
+    # Dense colour term of the projective ICP, in the directions the geometry cannot observe
+    # (a can's axis rotation): chromaticity, invariant to shading (None: keypoints only).
+    photometric: str | None = "chromaticity"
 
 
 def _winding(T: np.ndarray, centre: np.ndarray) -> float:
@@ -163,6 +166,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
                     asift=cfg.asift,
                     min_fitness=cfg.min_fitness,
                     association=cfg.association,
+                    photometric=cfg.photometric or False,
                     seed=seed + step,
                 )
             )
@@ -197,6 +201,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
                         asift=cfg.asift,
                         min_fitness=cfg.min_fitness,
                         association=cfg.association,
+                        photometric=cfg.photometric or False,
                         seed=seed,
                     )
                 except RegistrationFailed:
@@ -335,6 +340,7 @@ def build_model(
                         asift=cfg.asift,
                         min_fitness=cfg.min_fitness,
                         association=cfg.association,
+                        photometric=cfg.photometric or False,
                         seed=seed + j,
                     )
                 except RegistrationFailed as e:

@@ -50,20 +50,41 @@ class DepthImage(NamedTuple):
     K: Float[Array, "3 3"]
     intensity: Float[Array, "h w"]  # grey level (mean of RGB), Gaussian-smoothed (1 px)
     gradient: Float[Array, "h w 2"]  # its d/du, d/dv (central differences, per pixel)
+    chroma: Float[Array, "h w 2"]  # chromaticity r, g = (R, G) / (R + G + B), smoothed (1 px)
+    chroma_gradient: Float[Array, "h w 2 2"]  # d/du, d/dv of each chromaticity channel
+
+
+def _smooth_and_gradient(img: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian smoothing (std ``blur`` px; none if 0) of a (h, w) image and its central
+    differences d/du, d/dv (h, w, 2) (zero on the border columns / rows)."""
+    import cv2
+
+    img = np.ascontiguousarray(img, np.float32)
+    ism = cv2.GaussianBlur(img, (0, 0), blur) if blur > 0 else img
+    grad = np.zeros(ism.shape + (2,), np.float32)
+    grad[:, 1:-1, 0] = 0.5 * (ism[:, 2:] - ism[:, :-2])
+    grad[1:-1, :, 1] = 0.5 * (ism[2:, :] - ism[:-2, :])
+    return ism, grad
+
+
+def chromaticity(rgb: np.ndarray, min_sum: float = 0.05) -> np.ndarray:
+    """Normalised chromaticity (r, g) = (R, G) / (R + G + B) (h, w, 2) of an RGB image;
+    0 where R + G + B < ``min_sum`` (black: no hue). Invariant to a per-pixel scaling of
+    the RGB values, i.e. to the shading of a surface under white light, which changes with
+    the surface normal and, for a light that moves with the camera, with the viewpoint."""
+    C = np.asarray(rgb, np.float64)
+    s = C.sum(-1, keepdims=True)
+    return np.where(s > min_sum, C[..., :2] / np.maximum(s, 1e-12), 0.0).astype(np.float32)
 
 
 def depth_image(P, C, N, ok, K, blur: float = 1.0) -> DepthImage:
     """:class:`DepthImage` from the numpy output of
     :func:`jaxcr.registration.clouds.organised_cloud` and ``K``; ``blur``: standard
-    deviation (px) of the Gaussian smoothing of the intensity image."""
-    import cv2
-
+    deviation (px) of the Gaussian smoothing of the intensity and chromaticity images."""
     f = np.float32
-    grey = np.asarray(C, f).mean(-1)
-    ism = cv2.GaussianBlur(grey, (0, 0), blur) if blur > 0 else grey
-    grad = np.zeros(ism.shape + (2,), f)
-    grad[:, 1:-1, 0] = 0.5 * (ism[:, 2:] - ism[:, :-2])
-    grad[1:-1, :, 1] = 0.5 * (ism[2:, :] - ism[:-2, :])
+    ism, grad = _smooth_and_gradient(np.asarray(C, f).mean(-1), blur)
+    ch = chromaticity(C)
+    cs, cg = zip(*(_smooth_and_gradient(ch[..., k], blur) for k in range(2)), strict=True)
     return DepthImage(
         jnp.asarray(np.where(ok[..., None], P, 0.0), f),
         jnp.asarray(C, f),
@@ -72,6 +93,8 @@ def depth_image(P, C, N, ok, K, blur: float = 1.0) -> DepthImage:
         jnp.asarray(K, f),
         jnp.asarray(ism, f),
         jnp.asarray(grad, f),
+        jnp.asarray(np.stack(cs, -1), f),
+        jnp.asarray(np.stack(cg, -2), f),
     )
 
 
@@ -95,41 +118,57 @@ def bilinear(img: Float[Array, "h w ..."], u, v):
     return val, inside
 
 
-def photometric_terms(ps, i_src, tgt: DepthImage, w, pl, keep):
+def photometric_channels(img: DepthImage, channels: str):
+    """The (h, w, c) image and (h, w, c, 2) gradient used by the photometric term:
+    ``"intensity"`` (grey level, c = 1) or ``"chromaticity"`` (r, g; c = 2)."""
+    if channels == "intensity":
+        return img.intensity[..., None], img.gradient[..., None, :]
+    if channels == "chromaticity":
+        return img.chroma, img.chroma_gradient
+    raise ValueError(
+        f"photometric channels must be 'intensity' or 'chromaticity', got {channels!r}"
+    )
+
+
+def photometric_terms(ps, i_src, tgt: DepthImage, w, pl, keep, channels: str = "intensity"):
     """Normal equations (H (6, 6), g (6,)) of the dense photometric residuals
-    ``r = I_t(pi(p)) - I_s`` of the transformed source points ``ps`` (Jacobian
+    ``r = I_t(pi(p)) - I_s`` (one per channel of :func:`photometric_channels`; ``i_src``
+    (n, c)) of the transformed source points ``ps`` (Jacobian
     ``grad I_t . d pi / dp . [I, -hat(p)]``), each weighted by its pair weight ``w`` times
     ``(s_g / s_I)^2`` where s_g, s_I are robust scales (1.4826 x median absolute residual
-    over the accepted pairs) of the point-to-plane and the photometric residuals: the two
-    terms count in units of their own noise, no hand-set balance. Residuals beyond 3 s_I get
-    a Gaussian down-weight (occlusions, specularities). Pairs need all four target pixels
-    around pi(p) valid."""
+    over the accepted pairs, all channels) of the point-to-plane and the photometric
+    residuals: the two terms count in units of their own noise, no hand-set balance.
+    Residuals beyond 3 s_I get a Gaussian down-weight (occlusions, specularities). Pairs
+    need all four target pixels around pi(p) valid."""
+    img, grad = photometric_channels(tgt, channels)
     u, v, front = project(ps, tgt.K)
-    it, inside = bilinear(tgt.intensity, u, v)
-    gr, _ = bilinear(tgt.gradient, u, v)
+    it, inside = bilinear(img, u, v)  # (n, c)
+    gr, _ = bilinear(grad, u, v)  # (n, c, 2)
     mk, _ = bilinear(tgt.mask.astype(ps.dtype), u, v)
     ok = keep & front & inside & (mk > 0.999)
     r = it - i_src
     nan = jnp.nan
-    s_i = 1.4826 * jnp.nanmedian(jnp.where(ok, jnp.abs(r), nan)) + 1e-4
+    s_i = 1.4826 * jnp.nanmedian(jnp.where(ok[:, None], jnp.abs(r), nan)) + 1e-4
     s_g = 1.4826 * jnp.nanmedian(jnp.where(ok, jnp.abs(pl), nan)) + 1e-6
     s_i = jnp.where(jnp.isfinite(s_i), s_i, 1.0)
     s_g = jnp.where(jnp.isfinite(s_g), s_g, 1e-3)
-    z = jnp.where(front, ps[:, 2], 1.0)
+    z = jnp.where(front, ps[:, 2], 1.0)[:, None]
+    x, y = ps[:, 0:1], ps[:, 1:2]
     fx, fy = tgt.K[0, 0], tgt.K[1, 1]
     # d pi / dp: [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]
     gp = jnp.stack(
         [
-            gr[:, 0] * fx / z,
-            gr[:, 1] * fy / z,
-            -(gr[:, 0] * fx * ps[:, 0] + gr[:, 1] * fy * ps[:, 1]) / z**2,
+            gr[..., 0] * fx / z,
+            gr[..., 1] * fy / z,
+            -(gr[..., 0] * fx * x + gr[..., 1] * fy * y) / z**2,
         ],
         -1,
-    )  # (n, 3) = grad I . d pi / dp
-    J = jnp.concatenate([gp, jnp.cross(ps, gp)], axis=1)  # gp . [I, -hat(p)]
-    wc = jnp.where(ok, w * jnp.exp(-(r**2) / (2 * (3 * s_i) ** 2)), 0.0) * (s_g / s_i) ** 2
-    r = jnp.where(ok, r, 0.0)
-    return (J * wc[:, None]).T @ J, (J * wc[:, None]).T @ r
+    )  # (n, c, 3) = grad I . d pi / dp
+    J = jnp.concatenate([gp, jnp.cross(ps[:, None, :], gp)], axis=-1)  # gp . [I, -hat(p)]
+    wc = w[:, None] * jnp.exp(-(r**2) / (2 * (3 * s_i) ** 2)) * (s_g / s_i) ** 2
+    wc = jnp.where(ok[:, None], wc, 0.0)
+    r = jnp.where(ok[:, None], r, 0.0)
+    return jnp.einsum("nc,nca,ncb->ab", wc, J, J), jnp.einsum("nc,nca,nc->a", wc, J, r)
 
 
 def project(ps: Float[Array, "n 3"], K: Float[Array, "3 3"]):
@@ -199,11 +238,13 @@ def projective_icp_step(
     kp: Keypoints,
     window: int,
     i_src=None,
+    channels: str = "intensity",
 ) -> Mat4:
     """One weighted Gauss-Newton step with projective association (plus the photometric
-    term when the source intensities ``i_src`` (n,) are given); returns the new ``T``."""
+    term when the source values ``i_src`` (n, c) of the photometric ``channels`` are
+    given); returns the new ``T``."""
     ps, q, nq, w, pl, keep = _matches(T, src, tgt, radius, cfg, window)
-    extra = None if i_src is None else photometric_terms(ps, i_src, tgt, w, pl, keep)
+    extra = None if i_src is None else photometric_terms(ps, i_src, tgt, w, pl, keep, channels)
     return gauss_newton_update(T, ps, q, nq, w, pl, cfg, kp, extra)
 
 
@@ -226,29 +267,33 @@ def projective_icp(
     kp: Keypoints | None = None,
     window: int = 1,
     src_image: DepthImage | None = None,
+    photometric: str = "intensity",
 ) -> IcpResult:
     """Register the source cloud ``src`` (any padded sample of a view, camera frame) to the
     organised target view ``tgt`` from ``T0`` (target <- source), optionally with matched
     keypoints: ``cfg.iterations`` steps with the correspondence radius shrinking
     geometrically from ``cfg.max_dist`` to ``cfg.min_dist``, as :func:`icp`. Pure,
     jit-able (``window`` static). With ``src_image`` (the organised source view the
-    points were sampled from) a dense photometric term (:func:`photometric_terms`) joins
-    the point-to-plane and keypoint terms: it constrains the directions along which the
-    geometry slides (planes, cylinders) with every textured pixel."""
+    points were sampled from) a dense photometric term (:func:`photometric_terms` on the
+    ``photometric`` channels, "intensity" or "chromaticity") joins the point-to-plane and
+    keypoint terms: it constrains the directions along which the geometry slides (planes,
+    cylinders) with every textured pixel. With ``cfg.degeneracy_ratio > 0`` it acts in the
+    geometry's degenerate directions only (:func:`jaxcr.registration.icp.gauss_newton_update`).
+    """
     kp = no_keypoints() if kp is None else kp
     i_src = None
     if src_image is not None:
         u, v, _ = project(src.points, src_image.K)
-        i_src, _ = bilinear(src_image.intensity, u, v)
+        i_src, _ = bilinear(photometric_channels(src_image, photometric)[0], u, v)
     n = cfg.iterations
     ratio = (cfg.min_dist / cfg.max_dist) ** (1.0 / max(n - 1, 1))
 
     def body(k, T):
         radius = cfg.max_dist * ratio ** jnp.minimum(k, n - 1)
-        return projective_icp_step(T, radius, src, tgt, cfg, kp, window, i_src)
+        return projective_icp_step(T, radius, src, tgt, cfg, kp, window, i_src, photometric)
 
     T = jax.lax.fori_loop(0, n, body, T0.astype(src.points.dtype))
     return projective_evaluate(T, src, tgt, cfg, window)
 
 
-projective_icp_jit = jax.jit(projective_icp, static_argnames=("window",))
+projective_icp_jit = jax.jit(projective_icp, static_argnames=("window", "photometric"))
