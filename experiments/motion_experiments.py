@@ -43,7 +43,7 @@ from jaxcr.motion import metrics as mt  # noqa: E402
 from jaxcr.motion.baseline import ml_graphcut  # noqa: E402
 from jaxcr.motion.dataset import load_motion_dataset  # noqa: E402
 from jaxcr.motion.likelihood import object_probability  # noqa: E402
-from jaxcr.motion.pipeline import MotionConfig  # noqa: E402
+from jaxcr.motion.pipeline import MotionConfig, resolve_steps  # noqa: E402
 from jaxcr.motion.run import run_baseline, run_motion  # noqa: E402
 
 ML_THS = np.round(np.linspace(0.05, 1.0, 20), 3)
@@ -343,6 +343,7 @@ def main() -> None:
         cwd=Path(__file__).parent,
     ).stdout.strip()
     cfg = cfg_of(lam)
+    _, _, flow_step = resolve_steps(cfg, load_motion_dataset(vids[0]).width)
     tim = np.concatenate([v["timing"] for v in runs.values() if len(v["timing"])])
     n_st = sum("static" in k for k in pushed)
     n_ch = sum("changing" in k for k in pushed)
@@ -350,7 +351,7 @@ def main() -> None:
         "# Motion-Likelihood experiments (synthetic videos)",
         "",
         f"commit {commit}, jax {jax.__version__}, {platform.processor() or platform.machine()}, one core; "
-        f"superpixel step {a.superpixel_step} px, LK grid step {cfg.flow.step} px, {len(pushed)} pushed videos "
+        f"superpixel step {a.superpixel_step} px, LK grid step {flow_step} px, {len(pushed)} pushed videos "
         f"({n_st} static, {n_ch} changing), {len(held)} held (3-D) videos, 320x240, 24 frames each. "
         f"Flow stabilised by the background homography: {cfg.stabilise}; integration: {cfg.integration} "
         f"of the per-window means (prior {cfg.prior_frames:g} pseudo-frame).",

@@ -14,11 +14,12 @@ from jaxcr.cli import main as cli
 from jaxcr.errors import InputError
 from jaxcr.motion.baseline import fitzpatrick_segment
 from jaxcr.motion.dataset import load_motion_dataset
-from jaxcr.motion.pipeline import MotionConfig
+from jaxcr.motion.flow import FlowConfig
+from jaxcr.motion.pipeline import MotionConfig, MotionTracker, frame_update, resolve_steps
 from jaxcr.motion.run import end_effector_pixels, run_baseline, run_motion
 from jaxcr.synth.motion_scenes import generate_motion_video
 
-CFG = MotionConfig(superpixel_step=8, slic_iters_first=4)
+CFG = MotionConfig(superpixel_step=8, slic_iters_first=4, flow=FlowConfig(step=4))
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +88,8 @@ def test_corrupt_frame_no_touch_and_out_of_view_are_reported(video, tmp_path):
     meta["frames"][8]["x"][1] += 1.5  # shoulder up 1.5 rad: the tip leaves the view (v < 0)
     (d / "motion.json").write_text(json.dumps(meta))
     res = run_motion(
-        load_motion_dataset(d), MotionConfig(superpixel_step=8, models=("translation",))
+        load_motion_dataset(d),
+        MotionConfig(superpixel_step=8, models=("translation",), flow=FlowConfig(step=4)),
     )
     reasons = {r.index: r.reason for r in res.records}
     assert "unreadable" in reasons[5]
@@ -134,7 +136,7 @@ def test_bad_metadata_is_one_line_input_error(video, tmp_path, edit, field):
 
 def test_cli_outputs_and_exit_codes(video, tmp_path, capsys):
     out = tmp_path / "out"
-    code = cli(["motion", str(video), "-o", str(out), "--superpixel-step", "8"])
+    code = cli(["motion", str(video), "-o", str(out), "--superpixel-step", "8", "--flow-step", "4"])
     assert code == 0
     for name in (
         "frames.jsonl",
@@ -152,5 +154,36 @@ def test_cli_outputs_and_exit_codes(video, tmp_path, capsys):
     s = json.loads((out / "summary.json").read_text())
     assert 0 <= s["models"]["translation"]["tanimoto"] <= 1
     assert cli(["motion", str(tmp_path / "nope"), "-o", str(out)]) == 2
+    assert s["settings"]["superpixel_step_px"] == 8 and s["settings"]["flow_step_px"] == 4
     assert cli(["motion", str(video), "-o", str(out), "--lambda", "-1"]) == 2
+    assert cli(["motion", str(video), "-o", str(out), "--flow-step", "-1"]) == 2
+    assert cli(["motion", str(video), "-o", str(out), "--superpixel-step", "3"]) == 2
     assert cli(["motion", "synth", "-o", str(tmp_path / "s"), "--preset", "nope"]) == 2
+
+
+def test_defaults_are_the_validated_setting_at_any_width():
+    """Superpixel step W / 16 and LK grid W / 80 (window 15, 3 levels): 20 / 4 px on the
+    320x240 experiment videos, 40 / 8 px at 640x480 (SLIC on the half-size frame), the flow
+    step a multiple of the working scale; explicit values are kept."""
+    cfg = MotionConfig()
+    assert (cfg.superpixel_step, cfg.flow.step, cfg.flow.window, cfg.flow.levels) == (0, 0, 15, 3)
+    assert resolve_steps(cfg, 320) == (20, 1, 4)
+    assert resolve_steps(cfg, 640) == (40, 2, 8)
+    sp, scale, step = resolve_steps(cfg, 1024)
+    assert (sp, scale) == (64, 3) and step % scale == 0 and abs(step - 1024 / 80) <= scale / 2
+    assert resolve_steps(MotionConfig(superpixel_step=8, flow=FlowConfig(step=4)), 128) == (8, 1, 4)
+    # an explicit flow step that is not a multiple of the working scale: SLIC at full size
+    assert resolve_steps(MotionConfig(flow=FlowConfig(step=5)), 640) == (40, 1, 5)
+    frame = np.zeros((120, 160, 3), np.float32)
+    tr = MotionTracker(MotionConfig(slic_iters_first=1), frame)
+    assert (tr.sp_step, tr.scale, tr.flow_cfg.step, tr.n_segments) == (10, 1, 2, 16 * 12)
+
+
+def test_frame_update_compiles_once_per_shape(video, result):
+    """The per-frame jitted call does not retrace from frame to frame: a second run of the
+    same configuration adds no compiled entry, and gives the same maps."""
+    before = frame_update._cache_size()
+    again = run_motion(load_motion_dataset(video), CFG)
+    assert frame_update._cache_size() == before
+    for m in CFG.models:
+        np.testing.assert_array_equal(again.maps[m], result.maps[m])

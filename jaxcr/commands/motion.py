@@ -58,8 +58,20 @@ def add_parser(subparsers) -> None:
         default=0.85,
         help="fraction of the map maximum (default 0.85, chosen with lambda; paper 0.75)",
     )
-    p.add_argument("--superpixel-step", type=int, default=20, help="SLIC grid step, px")
-    p.add_argument("--flow-step", type=int, default=4, help="LK grid step, px")
+    p.add_argument(
+        "--superpixel-step",
+        type=int,
+        default=0,
+        help="SLIC grid step, px (default 0: frame width / 16, the validated setting: 20 px at "
+        "320x240, 40 px at 640x480)",
+    )
+    p.add_argument(
+        "--flow-step",
+        type=int,
+        default=0,
+        help="LK grid step, px (default 0: frame width / 80, the validated setting: 4 px at "
+        "320x240, 8 px at 640x480)",
+    )
     p.add_argument("--flow", choices=["lk", "dis"], default="lk", help="optical flow method")
     p.add_argument(
         "--integration",
@@ -124,16 +136,17 @@ def run(args) -> int:
     from jaxcr.motion import metrics as mt
     from jaxcr.motion.dataset import load_motion_dataset
     from jaxcr.motion.flow import FlowConfig
-    from jaxcr.motion.pipeline import MODELS, MotionConfig
+    from jaxcr.motion.pipeline import MODELS, MotionConfig, resolve_steps
     from jaxcr.motion.run import first_touch, run_baseline, run_motion
 
     if args.prior_frames < 0:
         raise InputError("--prior-frames must be >= 0", field="--prior-frames")
     if args.lam <= 0 or not (0 < args.threshold <= 1):
         raise InputError("--lambda must be > 0 and --threshold in (0, 1]", field="--lambda")
-    if args.superpixel_step < 4 or args.flow_step < 1:
+    if not (args.superpixel_step == 0 or args.superpixel_step >= 4) or args.flow_step < 0:
         raise InputError(
-            "--superpixel-step >= 4 and --flow-step >= 1 required", field="--superpixel-step"
+            "--superpixel-step must be 0 (auto) or >= 4 and --flow-step >= 0 (0: auto)",
+            field="--superpixel-step",
         )
     ds = load_motion_dataset(args.dataset)
     models = MODELS if args.model == "both" else (args.model,)
@@ -249,7 +262,19 @@ def run(args) -> int:
         k: float(np.median([getattr(r, k) for r in used])) if used else None
         for k in ("flow_ms", "segmentation_ms", "likelihood_ms")
     }
+    sp, scale, flow_step = resolve_steps(cfg, ds.width)
+    settings = {
+        "superpixel_step_px": sp,
+        "superpixel_working_scale": scale,
+        "flow": cfg.flow.method,
+        "flow_step_px": flow_step,
+        "lk_window_px": cfg.flow.window,
+        "lk_levels": cfg.flow.levels,
+        "lambda_px2": cfg.lam,
+        "threshold": args.threshold,
+    }
     summary.update(
+        settings=settings,
         frames=len(ds),
         used=len(used),
         skipped=len(skipped),
@@ -264,6 +289,13 @@ def run(args) -> int:
         f"(first touch {first_touch(ds)}).",
         "",
     ]
+    lines.append(
+        f"Settings: superpixel step {sp} px (SLIC on the frame shrunk {scale}x), "
+        f"{cfg.flow.method.upper()} flow on a {flow_step}-px grid (window {cfg.flow.window} px, "
+        f"{cfg.flow.levels} levels), lambda {cfg.lam:g} px^2, threshold {args.threshold:g} x the map "
+        "maximum."
+    )
+    lines.append("")
     for w in res.warnings:
         lines.append(f"**warning:** {w}")
     if skipped:

@@ -17,12 +17,17 @@ import numpy as np
 
 @dataclass(frozen=True)
 class FlowConfig:
-    """Flow settings: grid step (px), LK window (px), pyramid levels, forward-backward check
-    threshold (px; 0 disables it), method "lk" or "dis", and LK's minimum eigenvalue of the
-    gradient matrix (OpenCV's minEigThreshold; points in textureless areas, whose flow the
-    aperture problem leaves undetermined, are marked invalid)."""
+    """Flow settings: grid step (px; 0: :func:`auto_step` of the frame width), LK window (px),
+    pyramid levels, forward-backward check threshold (px; 0 disables it), method "lk" or
+    "dis", and LK's minimum eigenvalue of the gradient matrix (OpenCV's minEigThreshold; points
+    in textureless areas, whose flow the aperture problem leaves undetermined, are marked
+    invalid).
 
-    step: int = 4
+    The default (grid step W / 80, window 15 px, 3 levels) is the setting the accuracy
+    experiments validate: 4 px on their 320x240 videos (experiments/results/motion_report.md),
+    8 px at 640x480 (experiments/results/motion_bench.md), i.e. 80 x 60 points per frame."""
+
+    step: int = 0
     window: int = 15
     levels: int = 3
     fb_threshold: float = 0.0
@@ -37,6 +42,12 @@ def grid_points(height: int, width: int, step: int) -> np.ndarray:
     xs = np.arange(gw, dtype=np.float32) * step + (step - 1) / 2
     yy, xx = np.meshgrid(ys, xs, indexing="ij")
     return np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float32)
+
+
+def auto_step(width: int) -> int:
+    """Default grid step for a frame ``width`` px wide: W / 80 rounded, at least 1 px (80
+    points across the frame, as in the validated setting: 4 px at 320 px, 8 px at 640 px)."""
+    return max(1, round(width / 80))
 
 
 def grid_dims(height: int, width: int, step: int) -> tuple[int, int]:
@@ -63,7 +74,7 @@ def grid_flow(
     """
     cfg = cfg or FlowConfig()
     h, w = prev_gray.shape
-    pts = grid_points(h, w, cfg.step)
+    pts = grid_points(h, w, cfg.step or auto_step(w))
     if cfg.method == "dis":
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
         dense = dis.calc(prev_gray, next_gray, None)

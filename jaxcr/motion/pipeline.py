@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import jax
 import jax.numpy as jnp
@@ -55,9 +55,17 @@ MODELS = ("translation", "homography")
 
 @dataclass(frozen=True)
 class MotionConfig:
-    """Settings of M-L. Lengths in pixels, lambda in px^2 (Sigma = lambda I, eq. 10)."""
+    """Settings of M-L. Lengths in pixels, lambda in px^2 (Sigma = lambda I, eq. 10).
 
-    superpixel_step: int = 20
+    Defaults are the validated setting and scale with the frame: superpixel step W / 16
+    (``superpixel_step`` = 0, :func:`auto_superpixel_step`) and LK grid step W / 80
+    (``flow.step`` = 0), LK window 15 px and 3 pyramid levels: 20 px and 4 px on the 320x240
+    videos of the accuracy experiments (experiments/results/motion_report.md), 40 px and 8 px
+    at 640x480 (experiments/results/motion_bench.md), i.e. 16 x 12 superpixels with 25 flow
+    points each. The resolved values are :attr:`MotionTracker.sp_step` (working px),
+    :attr:`MotionTracker.scale` and :attr:`MotionTracker.flow_cfg`."""
+
+    superpixel_step: int = 0  # 0: auto_superpixel_step(frame width)
     compactness: float = 10.0
     slic_iters_first: int = 6
     slic_iters_track: int = 2
@@ -77,6 +85,29 @@ class MotionConfig:
     integration: str = "product"  # likelihood.object_probability: "product" | "mixture"
     prior_frames: float = 1.0  # Beta prior per window, pseudo-frames at 1/2
     superpixel_scale: int = 0  # superpixels on the frame shrunk by this factor (0: auto_scale)
+
+
+def auto_superpixel_step(width: int) -> int:
+    """Default superpixel step for a frame ``width`` px wide: W / 16 rounded, at least 4 px
+    (16 superpixels across the frame: 20 px at 320 px, 40 px at 640 px)."""
+    return max(4, round(width / 16))
+
+
+def resolve_steps(cfg: MotionConfig, width: int) -> tuple[int, int, int]:
+    """(superpixel step in full-size px, working scale, flow grid step in px) for a frame
+    ``width`` px wide: the config's values, or the defaults (:func:`auto_superpixel_step`,
+    :func:`~jaxcr.motion.superpixels.auto_scale`, :func:`~jaxcr.motion.flow.auto_step`) where
+    they are 0. An automatic flow step is rounded to a multiple of the working scale; an
+    explicit one that is not a multiple makes the superpixels run at full size (scale 1),
+    since the dense flow must stay aligned with the working pixels."""
+    sp = cfg.superpixel_step or auto_superpixel_step(width)
+    scale = cfg.superpixel_scale or auto_scale(width, sp)
+    step = cfg.flow.step
+    if not step:
+        step = scale * max(1, round(flowmod.auto_step(width) / scale))
+    if step % scale:
+        scale = 1
+    return sp, scale, step
 
 
 @functools.partial(
@@ -227,11 +258,10 @@ class MotionTracker:
         self.cfg = cfg
         h, w = first_rgb.shape[:2]
         self.height, self.width = h, w
-        s = cfg.superpixel_scale or auto_scale(w, cfg.superpixel_step)
-        if cfg.flow.step % s:  # the dense flow must stay aligned with the working pixels
-            s = 1
+        sp, s, flow_step = resolve_steps(cfg, w)
         self.scale = s
-        self.sp_step = max(1, round(cfg.superpixel_step / s))
+        self.sp_step = max(1, round(sp / s))
+        self.flow_cfg = replace(cfg.flow, step=flow_step)
         gh, gw = grid_shape(*working_shape(h, w, s), self.sp_step)
         self.n_segments = gh * gw
         t0 = time.perf_counter()
@@ -276,9 +306,9 @@ class MotionTracker:
         cfg = self.cfg
         t0 = time.perf_counter()
         gray = flowmod.to_gray_u8(next_rgb)
-        pts, fl, valid = flowmod.grid_flow(self.gray, gray, cfg.flow)
+        pts, fl, valid = flowmod.grid_flow(self.gray, gray, self.flow_cfg)
         dense = flowmod.dense_from_grid(
-            fl, valid, self.height, self.width, cfg.flow.step, self.scale
+            fl, valid, self.height, self.width, self.flow_cfg.step, self.scale
         )
         t1 = time.perf_counter()
         reason = ""
