@@ -50,12 +50,16 @@ def first_touch(ds: MotionDataset) -> int | None:
     return int(idx[0]) if len(idx) else None
 
 
+# one compiled function per number of frames (the arm model is a pytree argument, not a
+# closure constant: a new lambda per call recompiled for every video)
+_end_effector_images = jax.jit(jax.vmap(end_effector_image, in_axes=(None, None, 0)))
+
+
 def end_effector_pixels(ds: MotionDataset) -> tuple[np.ndarray, np.ndarray]:
     """h(x_i) for all frames (n, 2) and whether the tip is in front of the camera and inside
     the image."""
-    P = jnp.asarray(ds.P, jnp.float32)
-    uv, front = jax.jit(jax.vmap(lambda x: end_effector_image(P, ds.arm, x)))(
-        jnp.asarray(ds.x, jnp.float32)
+    uv, front = _end_effector_images(
+        jnp.asarray(ds.P, jnp.float32), ds.arm, jnp.asarray(ds.x, jnp.float32)
     )
     uv, front = np.asarray(uv), np.asarray(front)
     inside = (
