@@ -1,6 +1,7 @@
 """Issue 6 experiments: the paper's Table I, Fig. 13 before/after global optimisation, pose
 and surface errors, and registration / global-optimisation timings, on the synthetic Task 1
-and Task 2 scenes. Writes experiments/results/model_object_tasks.md (+ .json, PNGs).
+and Task 2 scenes. Writes experiments/results/model_object_tasks.md (+ .json, PNGs; with
+``--seed N`` other than 0 the names end in ``_seedN``).
 
     taskset -c 1 python experiments/model_object_tasks.py [--tasks 1 2] [--seed 0]
 
@@ -23,22 +24,23 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
 from jaxcr.commands.model_object import plot_fig13, plot_plan, report_markdown
 from jaxcr.registration.evaluation import evaluate_result, pose_errors
 from jaxcr.registration.global_opt import global_optimize
+from jaxcr.registration.icp import IcpConfig
 from jaxcr.registration.keypoints import matched_points
 from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pairwise import register_pair
-from jaxcr.registration.pipeline import _capture, build_model
+from jaxcr.registration.pipeline import PipelineConfig, _capture, build_model
 from jaxcr.registration.ransac import estimate_transform
 from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task
 
 PAPER = {"1": (11, 3, 20), "2-1": (5, 6, 23), "2-2": (7, 6, 31)}
 OUT = Path(__file__).parent / "results"
+PHOTO = PipelineConfig().photometric or False  # the pipeline's colour term (chromaticity)
 
 
 def scipy_point_to_plane(src, tgt, T, iterations=30, max_dist=0.02):
@@ -108,11 +110,11 @@ def bench_pairs(sim, result, reps=3):
         a, b = _capture(result.runs, ring[j]), _capture(result.runs, ring[(j + 1) % len(ring)])
         truth = np.linalg.inv(b.T_true) @ a.T_true
         prior = np.linalg.inv(b.T_nominal) @ a.T_nominal
-        register_pair(a.frame, b.frame, K, prior=prior)  # warm
+        register_pair(a.frame, b.frame, K, prior=prior, photometric=PHOTO)  # warm
         ts = []
         for _ in range(reps):
             t0 = time.perf_counter()
-            res = register_pair(a.frame, b.frame, K, prior=prior)
+            res = register_pair(a.frame, b.frame, K, prior=prior, photometric=PHOTO)
             ts.append(time.perf_counter() - t0)
         # The previous round's association (brute-force joint-space nearest neighbours on
         # the voxel clouds), same keypoints and seed, for comparison.
@@ -187,9 +189,11 @@ def bench_table(rows):
     out = [
         "Pairwise registration, warm (compile excluded), first ring edges. Ours: keypoints + "
         "RANSAC + weighted ICP with projective data association (4096 full-resolution source "
-        "pixels projected into the target depth image; the seconds include SIFT, matching and "
-        "RANSAC). NN: the same with brute-force joint-space nearest-neighbour association on "
-        "the 1024-point voxel clouds (the previous round's default). Reference: "
+        "pixels projected into the target depth image), degeneracy-aware (the geometric term "
+        "removed from directions it cannot observe, which the keypoint and chromaticity terms "
+        "fix); the seconds include SIFT, matching and RANSAC. NN: brute-force joint-space "
+        "nearest-neighbour association on the 1024-point voxel clouds, degeneracy-aware, "
+        "keypoints only (no colour term). Reference: "
         "scipy/numpy point-to-plane ICP from the nominal seed, 30 iterations at 20 mm. "
         + note
         + ". Errors against the true relative pose (deg / mm).",
@@ -257,35 +261,6 @@ def bench_global(result, reps=3):
     }
 
 
-def _pulls(T, src, tgt, kp, cfg):
-    """One Gauss-Newton step of the full ICP objective at ``T`` (the true pose), split into
-    the part due to the dense terms and the part due to the keypoint term (rotation deg,
-    translation mm of each). At an unbiased minimum both are ~0."""
-    from jaxcr.registration.icp import _apply, _point_terms, correspondences, pair_weights
-
-    T = jnp.asarray(T, jnp.float32)
-    ps, ns = _apply(T, src)
-    j = correspondences(ps, src.colours, tgt, cfg.colour_scale)
-    q, nq, cq = tgt.points[j], tgt.normals[j], tgt.colours[j]
-    w, pl, _ = pair_weights(ps, ns, src.colours, q, nq, cq, src.mask, cfg.min_dist, cfg)
-    J = jnp.concatenate([nq, jnp.cross(ps, nq)], axis=1)
-    Hd, gd = (J * w[:, None]).T @ J, (J * w[:, None]).T @ pl
-    ks = kp.src @ T[:3, :3].T + T[:3, 3]
-    rk2 = jnp.sum((ks - kp.tgt) ** 2, -1)
-    sk = cfg.sigma_keypoint if kp.scale is None else kp.scale
-    wk = jnp.where(kp.mask, jnp.exp(-rk2 / (2 * sk**2)), 0.0)
-    wk = wk * cfg.keypoint_weight * jnp.sum(w) / jnp.maximum(jnp.sum(kp.mask), 1)
-    ray = kp.tgt / jnp.maximum(jnp.linalg.norm(kp.tgt, axis=-1, keepdims=True), 1e-9)
-    P = jnp.eye(3) - ray[:, :, None] * ray[:, None, :]
-    Hk, gk = _point_terms(ks, kp.tgt, wk, P)
-    H = np.asarray(Hd + Hk, np.float64)
-    out = []
-    for g in (gd, gk):
-        d = -np.linalg.solve(H, np.asarray(g, np.float64))
-        out.append((float(np.degrees(np.linalg.norm(d[3:]))), 1000 * float(np.linalg.norm(d[:3]))))
-    return out
-
-
 def signed_bias(sim, result):
     """Signed error of every ring edge's registration, ``log(T_est T_true^-1)`` in the
     target camera frame (rotation vector in deg, translation in mm; x right, y down, z
@@ -298,9 +273,20 @@ def signed_bias(sim, result):
     K = sim.K
     ring = result.ring
     variants = {
-        "ours, projective": dict(association="projective"),
-        "ours, projective + photometric": dict(association="projective", photometric=True),
-        "ours, nearest": dict(association="nearest"),
+        "ours (degeneracy-aware, chromaticity in degenerate directions)": dict(
+            association="projective", photometric=PHOTO
+        ),
+        "degeneracy-aware, keypoints only": dict(association="projective"),
+        "degeneracy-aware, grey level in degenerate directions": dict(
+            association="projective", photometric="intensity"
+        ),
+        "plain weighted ICP (previous default: no degeneracy filter, no colour term)": dict(
+            association="projective", cfg=IcpConfig()
+        ),
+        "plain + grey level in all directions (previous photometric option)": dict(
+            association="projective", cfg=IcpConfig(), photometric="intensity"
+        ),
+        "ours, nearest association (degeneracy-aware, keypoints only)": dict(association="nearest"),
     }
     rows = {"keypoints (RANSAC + Kabsch)": [], **{k: [] for k in variants}}
     rel = {k: [] for k in variants}
@@ -363,125 +349,6 @@ def signed_bias(sim, result):
     return out + alg2 + [""]
 
 
-def diagnose(sim, result, seed=0):
-    """Where the pose error comes from (Markdown lines): (1) does Algorithm 2 reach the
-    minimum of the summed pair residuals (vs a joint scipy least-squares solve of the same
-    residuals, float64)? (2) per ring edge: our error, the dense-only ICP started at the
-    true pose (keypoints off: how far the geometry lets it slide), and the pull of the dense
-    and keypoint terms at the true pose."""
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    from jaxcr.registration.evaluation import pose_errors
-    from jaxcr.registration.icp import DEFAULT_ICP, icp_jit, no_keypoints
-    from jaxcr.registration.pairwise import _keypoint_arrays
-
-    ring = result.ring
-    m = len(ring)
-    caps = [_capture(result.runs, k) for k in ring]
-    clouds = [(np.asarray(c.frame.arrays.points), np.asarray(c.frame.arrays.mask)) for c in caps]
-    rel = [e.T for e in result.edges]
-    rng = np.random.default_rng(seed)
-    S = [
-        c[0][rng.choice(np.flatnonzero(c[1]), min(128, int(c[1].sum())), replace=False)].astype(
-            np.float64
-        )
-        for c in clouds
-    ]
-
-    def residuals(P):
-        out = []
-        for i in range(m):
-            A, B = P[i], P[(i + 1) % m] @ rel[i]
-            out.append((S[i] @ A[:3, :3].T + A[:3, 3] - S[i] @ B[:3, :3].T - B[:3, 3]).ravel())
-        return np.concatenate(out)
-
-    def poses_of(x):
-        P = []
-        for i in range(m - 1):
-            T = np.eye(4)
-            T[:3, :3] = Rotation.from_rotvec(x[6 * i : 6 * i + 3]).as_matrix()
-            T[:3, 3] = x[6 * i + 3 : 6 * i + 6]
-            P.append(T)
-        return [*P, np.eye(4)]
-
-    g = global_optimize(clouds, rel, seed=seed)
-    g6 = global_optimize(clouds, rel, tol=1e-6, max_refinements=20000, seed=seed)
-    x0 = np.concatenate(
-        [np.r_[Rotation.from_matrix(P[:3, :3]).as_rotvec(), P[:3, 3]] for P in g.initial[:-1]]
-    )
-    sol = least_squares(lambda x: residuals(poses_of(x)), x0, xtol=1e-14, ftol=1e-14)
-    md = [
-        "### Algorithm 2 vs the joint minimum of the summed pair residuals",
-        "",
-        "Residual: for every ring edge i -> i+1, 128 points p of view i, "
-        "`T_O,i p - T_O,i+1 T_{i+1<-i} p` (RMS in mm over all edges); the joint minimum is "
-        "scipy least_squares over all poses at once (float64, O = last view fixed).",
-        "",
-        "| poses | RMS residual (mm) | max rot err (deg) | max trans err (mm) | Align calls |",
-        "|---|---|---|---|---|",
-    ]
-    for name, P, n in (
-        ("chained (before Alg. 2)", g.initial, 0),
-        ("Alg. 2, tol 1e-4 (default)", g.poses, g.n_refinements),
-        (f"Alg. 2, tol 1e-6 (converged {g6.converged})", g6.poses, g6.n_refinements),
-        ("joint least squares", poses_of(sol.x), 0),
-    ):
-        e = pose_errors(result, P)
-        r = residuals(P)
-        md.append(
-            f"| {name} | {1000 * np.sqrt(np.mean(r**2)):.3f} | {e['max_rot_deg']:.3f} | "
-            f"{1000 * e['max_trans_m']:.2f} | {n or ''} |"
-        )
-    md += [
-        "",
-        "### Pairwise registration per ring edge",
-        "",
-        "Errors against the true relative pose (deg / mm). *Dense only from truth*: our ICP "
-        "with the keypoint term off, started at the true pose (where the geometry + colour "
-        "terms alone lead). *Pull at truth*: one Gauss-Newton step of the full objective at "
-        "the true pose, split into the dense and the keypoint parts (0 for an unbiased "
-        "objective).",
-        "",
-        "| edge | kp inliers | ours | dense only from truth | dense pull at truth | "
-        "keypoint pull at truth |",
-        "|---|---|---|---|---|---|",
-    ]
-    cfg = DEFAULT_ICP
-    cols = {"ours": [], "dense": [], "pd": [], "pk": []}
-    for i in range(m):
-        a, b = caps[i], caps[(i + 1) % m]
-        truth = np.linalg.inv(b.T_true) @ a.T_true
-        ka, kb = matched_points(a.frame.rgb, a.frame.depth, b.frame.rgb, b.frame.depth, sim.K)
-        T_kp, n_in = estimate_transform(ka, kb, seed=0) if len(ka) else (None, 0)
-        kp = _keypoint_arrays(ka, kb, T_kp, upper=cfg.sigma_keypoint)
-        ours = pose_error(rel[i], truth)
-        dense = icp_jit(
-            a.frame.arrays,
-            b.frame.arrays,
-            jnp.asarray(truth, jnp.float32),
-            cfg,
-            no_keypoints(256)._replace(scale=jnp.float32(cfg.sigma_keypoint)),
-        )
-        dense = pose_error(np.asarray(dense.T, np.float64), truth)
-        pd, pk = _pulls(truth, a.frame.arrays, b.frame.arrays, kp, cfg)
-        for key, v in (("ours", ours), ("dense", dense)):
-            cols[key].append((v[0], 1000 * v[1]))
-        cols["pd"].append(pd)
-        cols["pk"].append(pk)
-        md.append(
-            f"| {i} | {n_in} | {_err(ours)} | {_err(dense)} | {pd[0]:.3f} / {pd[1]:.2f} | "
-            f"{pk[0]:.3f} / {pk[1]:.2f} |"
-        )
-    mean = {k: np.mean(np.asarray(v), axis=0) for k, v in cols.items()}
-    md.append(
-        "| mean | | "
-        + " | ".join(f"{mean[k][0]:.3f} / {mean[k][1]:.2f}" for k in ("ours", "dense", "pd", "pk"))
-        + " |"
-    )
-    return md + [""]
-
-
 def status_lines(task, ev):
     """The done-when checks of issue 6 for one task, computed from the run (Markdown)."""
     if "after" not in ev:
@@ -530,11 +397,6 @@ def main():
         "--without-open3d", action="store_true", help="run the benchmark as if Open3D were absent"
     )
     ap.add_argument(
-        "--diagnose",
-        action="store_true",
-        help="also write results/model_object_diagnosis.md (where the pose error comes from)",
-    )
-    ap.add_argument(
         "--bias",
         action="store_true",
         help="also write results/model_object_bias.md (signed per-edge registration bias)",
@@ -548,18 +410,12 @@ def main():
     ).stdout.strip()
     load0 = os.getloadavg()
     cmd = "python experiments/model_object_tasks.py " + " ".join(sys.argv[1:])
+    sfx = "" if args.seed == 0 else f"_seed{args.seed}"  # a held-out scene keeps seed 0's files
     md = [
         "# Progressive object modelling (issue 6): synthetic Task 1 / Task 2",
         "",
         f"commit {commit}, jax {jax.__version__}, {platform.processor() or platform.machine()}, "
         f"python {platform.python_version()}, seed {args.seed}; command: `{cmd}`",
-        "",
-    ]
-    diag_md = [
-        "# Issue 6: where the camera pose error comes from",
-        "",
-        f"commit {commit}; command: `{cmd}`; written by `diagnose()` in "
-        "experiments/model_object_tasks.py.",
         "",
     ]
     bias_md = [
@@ -586,13 +442,11 @@ def main():
         wall = time.perf_counter() - t0
         ev = evaluate_result(sim, result, seed=args.seed)
         ev["wall_seconds"] = wall
-        plot_plan(OUT / f"model_object_task{task}_plan.png", sim, result)
+        plot_plan(OUT / f"model_object_task{task}{sfx}_plan.png", sim, result)
         if "after" in ev:
-            plot_fig13(OUT / f"model_object_task{task}_fig13.png", ev)
+            plot_fig13(OUT / f"model_object_task{task}{sfx}_fig13.png", ev)
             ev["bench_pairs"] = bench_pairs(sim, result)
             ev["bench_global"] = bench_global(result)
-            if args.diagnose:
-                diag_md += [f"## Task {task}", "", *diagnose(sim, result, args.seed)]
             if args.bias:
                 bias_md += [f"## Task {task}", "", *signed_bias(sim, result)]
         for r in ev["runs"]:
@@ -605,12 +459,12 @@ def main():
             f"## Task {task}",
             "",
             report_markdown(sim, ev),
-            f"![plan](model_object_task{task}_plan.png)",
+            f"![plan](model_object_task{task}{sfx}_plan.png)",
             "",
         ]
         if "after" in ev:
             details += [
-                f"![fig13](model_object_task{task}_fig13.png)",
+                f"![fig13](model_object_task{task}{sfx}_fig13.png)",
                 "",
                 *bench_table(ev["bench_pairs"]),
             ]
@@ -652,12 +506,10 @@ def main():
         f"at end {load1[0]:.1f}/{load1[1]:.1f}/{load1[2]:.1f} on {os.cpu_count()} cores "
         "(timings are inflated by other processes on a loaded machine).\n",
     )
-    (OUT / "model_object_tasks.md").write_text("\n".join(md) + "\n")
-    if args.diagnose:
-        (OUT / "model_object_diagnosis.md").write_text("\n".join(diag_md) + "\n")
+    (OUT / f"model_object_tasks{sfx}.md").write_text("\n".join(md) + "\n")
     if args.bias:
-        (OUT / "model_object_bias.md").write_text("\n".join(bias_md) + "\n")
-    (OUT / "model_object_tasks.json").write_text(json.dumps(summary, indent=1))
+        (OUT / f"model_object_bias{sfx}.md").write_text("\n".join(bias_md) + "\n")
+    (OUT / f"model_object_tasks{sfx}.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(md))
 
 
