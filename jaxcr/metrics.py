@@ -46,6 +46,20 @@ def tip_error(p_est: Float[Array, "n 3"], p_true: Float[Array, "m 3"]) -> Float[
     return jnp.linalg.norm(p_est[-1] - p_true[-1])
 
 
+def tip_error_components(
+    p_est: Float[Array, "n 3"], p_true: Float[Array, "m 3"], R_cam: Float[Array, "3 3"]
+) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """Tip error split in a camera's frame (metres): ``(lateral, depth)``.
+
+    ``R_cam`` rotates robot-frame vectors into the camera frame (x right, y down, z along the
+    optical axis). ``lateral`` is the error's length in the image plane (x, y), what one view
+    observes; ``depth`` is the absolute component along the optical axis, which a single view
+    sees only through perspective scale. ``lateral**2 + depth**2 == tip_error**2``.
+    """
+    d = R_cam @ (p_est[-1] - p_true[-1])
+    return jnp.sqrt(d[0] * d[0] + d[1] * d[1]), jnp.abs(d[2])
+
+
 def mean_centreline_error(
     p_est: Float[Array, "n 3"], p_true: Float[Array, "m 3"], n_samples: int = 100
 ) -> Float[Array, ""]:

@@ -4,7 +4,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcr.metrics import adjusted_iou, iou, mean_centreline_error, resample_by_arclength, tip_error
+from jaxcr.metrics import (
+    adjusted_iou,
+    iou,
+    mean_centreline_error,
+    resample_by_arclength,
+    tip_error,
+    tip_error_components,
+)
 
 
 def test_iou_against_numpy():
@@ -55,3 +62,27 @@ def test_vmap_equals_loop():
     b = jnp.asarray(rng.random((4, 10, 12)) < 0.5)
     v = jax.jit(jax.vmap(iou))(a, b)
     np.testing.assert_allclose(v, [float(iou(x, y)) for x, y in zip(a, b, strict=True)])
+
+
+def test_tip_error_components_against_projection():
+    """Lateral/depth split of the tip error: against scipy's rotation of the error vector into
+    the camera frame (tolerance 1e-6 m, float32), and lateral^2 + depth^2 == tip^2."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        R = Rotation.random(random_state=rng).as_matrix()
+        a = rng.normal(size=(7, 3)) * 0.05
+        b = a + rng.normal(size=(7, 3)) * 0.004
+        d = R @ (a[-1] - b[-1])
+        lat, dep = tip_error_components(jnp.asarray(a), jnp.asarray(b), jnp.asarray(R))
+        np.testing.assert_allclose(float(lat), np.hypot(d[0], d[1]), atol=1e-6)
+        np.testing.assert_allclose(float(dep), abs(d[2]), atol=1e-6)
+        tip = float(tip_error(jnp.asarray(a), jnp.asarray(b)))
+        np.testing.assert_allclose(float(lat) ** 2 + float(dep) ** 2, tip**2, rtol=1e-4)
+    # an error purely along the optical axis is all depth
+    a = np.zeros((3, 3))
+    b = a.copy()
+    b[-1] = [0.0, 0.0, 0.003]
+    lat, dep = tip_error_components(jnp.asarray(a), jnp.asarray(b), jnp.eye(3))
+    assert float(lat) == 0.0 and abs(float(dep) - 0.003) < 1e-9

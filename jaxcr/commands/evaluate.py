@@ -33,8 +33,11 @@ PER_FRAME_FIELDS = [
     "dataset", "group", "frame", "camera", "ok", "reason",
     "iou_background", "iou_nominal", "iou_refined", "adj_iou_nominal", "adj_iou_refined",
     "tip_nominal_mm", "tip_refined_mm", "cl_nominal_mm", "cl_refined_mm",
+    "tip_lateral_nominal_mm", "tip_lateral_refined_mm", "tip_depth_nominal_mm",
+    "tip_depth_refined_mm",
     "num_steps", "time_s",
 ]  # fmt: skip
+_METRIC_FIELDS = PER_FRAME_FIELDS[6:19]
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -120,8 +123,7 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
         group = name if group_by == "dataset" or not tags else " ".join(tags)
         files = rec.get("files") or {}
         truth_cl = frame.load_truth("centreline") if frame is not None else None
-        e3 = {k: math.nan for k in ("tip_nominal_mm", "tip_refined_mm", "cl_nominal_mm",
-                                     "cl_refined_mm")}  # fmt: skip
+        e3 = {k: math.nan for k in _METRIC_FIELDS[5:]}
         if rec.get("ok") and truth_cl is not None and "centreline" in files:
             t = jnp.asarray(np.asarray(truth_cl, np.float64), jnp.float32)
             for tag, key in (("refined", "centreline"), ("nominal", "centreline_nominal")):
@@ -129,6 +131,10 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
                     p = jnp.asarray(np.load(out / files[key]), jnp.float32)
                     e3[f"tip_{tag}_mm"] = 1e3 * float(metrics.tip_error(p, t))
                     e3[f"cl_{tag}_mm"] = 1e3 * float(metrics.mean_centreline_error(p, t))
+                    if cams and cams[0] in ds.cameras:
+                        lat, dep = metrics.tip_error_components(p, t, ds.cameras[cams[0]].R)
+                        e3[f"tip_lateral_{tag}_mm"] = 1e3 * float(lat)
+                        e3[f"tip_depth_{tag}_mm"] = 1e3 * float(dep)
         for cam in cams:
             row = {
                 "dataset": name,
@@ -139,7 +145,7 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
                 "reason": rec.get("reason"),
                 "num_steps": rec.get("num_steps"),
                 "time_s": rec.get("time_s"),
-                **{k: math.nan for k in PER_FRAME_FIELDS[6:15]},
+                **{k: math.nan for k in _METRIC_FIELDS},
             }
             row.update(e3)
             visible = frame.load_mask(cam) if frame is not None and cam in frame.masks else None

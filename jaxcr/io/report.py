@@ -7,6 +7,8 @@ A per-frame *row* is a plain dict (one per frame and camera) with keys
     iou_background, iou_nominal, iou_refined,            (Watson eq. 8, NaN if undefined)
     adj_iou_nominal, adj_iou_refined,                     (NaN when no occlusion info)
     tip_nominal_mm, tip_refined_mm, cl_nominal_mm, cl_refined_mm,   (NaN without truth)
+    tip_lateral_nominal_mm, tip_lateral_refined_mm,       (tip error in the first camera's
+    tip_depth_nominal_mm, tip_depth_refined_mm,           image plane / along its axis)
     num_steps, time_s
 
 Failed frames (``ok`` False) carry NaN metrics and are counted separately; means and standard
@@ -56,6 +58,10 @@ ERROR_ROWS = [
     ("Tip error, refined (mm)", "tip_refined_mm"),
     ("Centreline error, nominal (mm)", "cl_nominal_mm"),
     ("Centreline error, refined (mm)", "cl_refined_mm"),
+    ("Tip error in the image plane, nominal (mm)", "tip_lateral_nominal_mm"),
+    ("Tip error in the image plane, refined (mm)", "tip_lateral_refined_mm"),
+    ("Tip error along the optical axis, nominal (mm)", "tip_depth_nominal_mm"),
+    ("Tip error along the optical axis, refined (mm)", "tip_depth_refined_mm"),
 ]
 
 
