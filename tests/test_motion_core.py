@@ -227,6 +227,7 @@ def test_weighted_homographies_vs_slow_dlt(penalty):
     (float64 to 1e-9; float32 transfers to 1e-3 px on the segment)."""
     from jaxcr.motion.motion_models import weighted_homographies
 
+    wh = jax.jit(weighted_homographies, static_argnums=4)  # one compile per dtype, not per op
     rng = np.random.default_rng(12)
     pts, flow, seg = _two_segment_points(rng, H1, H2, n=15, noise=0.4)
     w = rng.uniform(0.2, 1.0, len(pts)) * (rng.random(len(pts)) > 0.2)
@@ -234,13 +235,11 @@ def test_weighted_homographies_vs_slow_dlt(penalty):
     ref = [_slow_weighted_dlt(pts[seg == k], dst[seg == k], w[seg == k], penalty) for k in (0, 1)]
     with jax.enable_x64(True):
         H = np.asarray(
-            weighted_homographies(
-                jnp.asarray(pts), jnp.asarray(dst), jnp.asarray(seg), jnp.asarray(w), 2, penalty
-            )
+            wh(jnp.asarray(pts), jnp.asarray(dst), jnp.asarray(seg), jnp.asarray(w), 2, penalty)
         )
     np.testing.assert_allclose(H, np.stack(ref), atol=1e-9)
     H32 = np.asarray(
-        weighted_homographies(
+        wh(
             jnp.asarray(pts, jnp.float32),
             jnp.asarray(dst, jnp.float32),
             jnp.asarray(seg),
