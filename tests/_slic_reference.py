@@ -4,9 +4,11 @@ motion superpixel tests."""
 import numpy as np
 
 
-def slic_step_loop(lab, labels, k, step, m):
+def slic_step_loop(lab, labels, k, step, m, reach=None):
     """One SLIC step by loops: centres from ``labels``, then each pixel takes the nearest of
-    the centres of the labels at its 3x3 grid-step neighbours (colour + (m/step)^2 space)."""
+    the centres of the labels at its 3x3 neighbours ``reach`` px apart (default: the grid
+    step) (colour + (m/step)^2 space)."""
+    r = reach or step
     h, w = labels.shape
     cen = np.zeros((k, 5))
     cnt = np.zeros(k)
@@ -20,8 +22,8 @@ def slic_step_loop(lab, labels, k, step, m):
     for y in range(h):
         for x in range(w):
             best, bd = labels[y, x], np.inf
-            for dy in (-step, 0, step):
-                for dx in (-step, 0, step):
+            for dy in (-r, 0, r):
+                for dx in (-r, 0, r):
                     j = labels[min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)]
                     if cnt[j] == 0:
                         continue

@@ -13,12 +13,22 @@ from _slic_reference import slic_step_loop
 
 from jaxcr.motion import flow as fm
 from jaxcr.motion import superpixels as sp
-from jaxcr.motion.propagate import labels_at_points, splat_labels, warp_labels
+from jaxcr.motion.propagate import (
+    labels_at_points,
+    motion_priority,
+    splat_labels,
+    warp_labels,
+)
 
 
 @pytest.fixture(scope="module")
 def step_fn():
     return jax.jit(sp.slic_step, static_argnums=(2, 3))
+
+
+@pytest.fixture(scope="module")
+def step_fn_reach():
+    return jax.jit(sp.slic_step, static_argnums=(2, 3, 5))
 
 
 def test_slic_step_vs_loop_with_tracked_labels(step_fn):
@@ -37,6 +47,35 @@ def test_slic_step_vs_loop_with_tracked_labels(step_fn):
     assert not np.any(ours == perm[7])
     eager = np.asarray(sp.slic_step(jnp.asarray(lab), jnp.asarray(labels), k, step, 10.0))
     np.testing.assert_array_equal(eager, ours)
+
+
+@pytest.mark.parametrize("reach", [1, 3])
+def test_slic_step_with_reach_vs_loop(step_fn_reach, reach):
+    """The tracking refinement: candidates ``reach`` px apart instead of the grid step, on a
+    tracked (shuffled, not grid) label map; and no pixel takes a label that was not among the
+    nine labels ``reach`` px around it."""
+    rng = np.random.default_rng(10 + reach)
+    h, w, step, k = 20, 28, 6, 20
+    lab = rng.normal(50, 12, (h, w, 3)).astype(np.float32)
+    labels = rng.permutation(k)[np.asarray(sp.grid_labels(h, w, step))].astype(np.int32)
+    ours = np.asarray(step_fn_reach(jnp.asarray(lab), jnp.asarray(labels), k, step, 10.0, reach))
+    ref = slic_step_loop(lab.astype(np.float64), labels, k, step, 10.0, reach=reach)
+    assert np.mean(ours == ref) > 0.995  # float32 near-ties may flip a pixel
+    pad = np.pad(labels, reach, mode="edge")
+    allowed = np.stack(
+        [
+            pad[reach + dy : reach + dy + h, reach + dx : reach + dx + w]
+            for dy in (-reach, 0, reach)
+            for dx in (-reach, 0, reach)
+        ]
+    )
+    assert np.all((allowed == ours[None]).any(0))
+    eager = np.asarray(sp.slic_step(jnp.asarray(lab), jnp.asarray(labels), k, step, 10.0, reach))
+    np.testing.assert_array_equal(eager, ours)
+
+
+def test_track_reach_closed_form():
+    assert [sp.track_reach(s) for s in (1, 2, 4, 6, 7, 8, 20, 40)] == [1, 1, 2, 3, 3, 3, 3, 3]
 
 
 def test_segment_centres_vs_numpy():
@@ -139,31 +178,69 @@ def test_segment_track_follows_a_moving_block():
     assert not (set(np.unique(w2[:, :20])) & inside)  # the wake went to the background
 
 
+def _priority_reference(flow):
+    """|f - median f| (median per component over every 4th row and column) in quarter px,
+    clipped at 64 px: the occlusion priority, by numpy."""
+    med = np.median(flow[::4, ::4].reshape(-1, 2), axis=0)
+    rel = np.sqrt(((flow.astype(np.float64) - med) ** 2).sum(-1))
+    return np.round(np.clip(rel, 0, 64) * 4).astype(np.int64)
+
+
 def _splat_reference(labels, flow):
-    """numpy version of the splat: scatter to the rounded target, holes filled by 1,2,2,3-px
-    neighbour passes (right, left, down, up), the rest by the backward lookup."""
+    """Loop version of the splat: every target keeps the source of highest priority (ties:
+    the later source in row-major order); a hole takes, among the splatted pixels 1..8 px
+    right/left/down/up, the nearest of those within 1 px (4 levels) of the lowest priority;
+    the rest the backward lookup."""
     h, w = labels.shape
-    out = -np.ones((h, w), np.int64)
+    prio = _priority_reference(flow)
+    best = {}
     for y in range(h):
         for x in range(w):
             tx, ty = int(np.round(x + flow[y, x, 0])), int(np.round(y + flow[y, x, 1]))
             if 0 <= tx < w and 0 <= ty < h:
-                out[ty, tx] = labels[y, x]
-    for d in (1, 2, 2, 3):
-        src = out.copy()
-        for dy, dx in ((0, d), (0, -d), (d, 0), (-d, 0)):
-            nb = src[np.clip(np.arange(h) + dy, 0, h - 1)][:, np.clip(np.arange(w) + dx, 0, w - 1)]
-            out = np.where((out < 0) & (nb >= 0), nb, out)
-    yy, xx = np.mgrid[0:h, 0:w]
-    sx = np.clip(np.round(xx - flow[..., 0]).astype(int), 0, w - 1)
-    sy = np.clip(np.round(yy - flow[..., 1]).astype(int), 0, h - 1)
-    return np.where(out >= 0, out, labels[sy, sx])
+                key = (prio[y, x], y * w + x)
+                best[ty, tx] = max(best.get((ty, tx), key), key)
+    filled = dict(best)
+    for y in range(h):
+        for x in range(w):
+            if (y, x) in best:
+                continue
+            cands = []  # in order of distance, then right, left, down, up
+            for d in range(1, 9):
+                for dy, dx in ((0, d), (0, -d), (d, 0), (-d, 0)):
+                    k = best.get((min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)))
+                    if k is not None:
+                        cands.append(k)
+            if cands:
+                pmin = min(k[0] for k in cands)
+                filled[y, x] = next(k for k in cands if k[0] <= pmin + 4)
+    best = filled
+    out = np.empty((h, w), np.int64)
+    for y in range(h):
+        for x in range(w):
+            if (y, x) in best:
+                src = best[y, x][1]
+                out[y, x] = labels[src // w, src % w]
+            else:
+                sx = min(max(int(np.round(x - flow[y, x, 0])), 0), w - 1)
+                sy = min(max(int(np.round(y - flow[y, x, 1])), 0), h - 1)
+                out[y, x] = labels[sy, sx]
+    return out
+
+
+def test_motion_priority_vs_numpy():
+    rng = np.random.default_rng(7)
+    flow = rng.normal(0.5, 4.0, (20, 28, 2)).astype(np.float32)
+    flow[0, 0] = [500.0, 0.0]  # clipped at 64 px
+    np.testing.assert_array_equal(
+        np.asarray(motion_priority(jnp.asarray(flow))), _priority_reference(flow)
+    )
 
 
 def test_splat_labels_vs_loop():
-    """An injective flow (a block moved right by 5 px over a still background; no two pixels
-    land on one target), so the reference is unambiguous; a 5-px wake exceeds the fill
-    passes' reach near its middle only with the backward lookup."""
+    """A block moved right by 5 px over a still background whose columns in front of it
+    move out of the image (an unambiguous wake wider than the fill reach), and a random flow
+    with many collisions and holes: the jitted splat equals the loop."""
     h, w = 16, 24
     labels = (np.arange(h)[:, None] // 4 * 6 + np.arange(w)[None, :] // 4).astype(np.int32)
     flow = np.zeros((h, w, 2), np.float32)
@@ -171,6 +248,32 @@ def test_splat_labels_vs_loop():
     flow[4:12, 19:24, 1] = 20.0  # ... out of the image (dropped)
     ours = np.asarray(splat_labels(jnp.asarray(labels), jnp.asarray(flow)))
     np.testing.assert_array_equal(ours, _splat_reference(labels, flow))
+    rng = np.random.default_rng(8)
+    flow = np.round(rng.normal(0, 2.5, (h, w, 2))).astype(np.float32)  # no rounding ties
+    ours = np.asarray(splat_labels(jnp.asarray(labels), jnp.asarray(flow)))
+    np.testing.assert_array_equal(ours, _splat_reference(labels, flow))
+
+
+@pytest.mark.parametrize("vel", [(3, 0), (-3, 0), (0, 3), (0, -3), (2, -2)])
+def test_splat_moving_block_occludes_and_leaves_background_wake(vel):
+    """A labelled block moving 3 px over a still labelled background, in every direction:
+    the block's labels cover its whole new footprint (it occludes the background) and its
+    wake gets background labels (disocclusion reveals what is behind). The plain scatter let
+    the background win whenever the block moved right or down, and the fixed right-first
+    fill put the block's own labels into the wake of a block moving right."""
+    h, w = 40, 48
+    labels = (np.arange(h)[:, None] // 8 * 6 + np.arange(w)[None, :] // 8).astype(np.int32)
+    block = np.zeros((h, w), bool)
+    block[12:28, 16:32] = True
+    labels[block] += 100  # block ids are 100 + ...
+    flow = np.zeros((h, w, 2), np.float32)
+    flow[block] = vel
+    moved = np.roll(block, (vel[1], vel[0]), axis=(0, 1))
+    ours = np.asarray(splat_labels(jnp.asarray(labels), jnp.asarray(flow)))
+    np.testing.assert_array_equal(ours[moved], np.roll(labels, (vel[1], vel[0]), (0, 1))[moved])
+    wake = block & ~moved
+    assert np.all(ours[wake] < 100)
+    np.testing.assert_array_equal(ours[~block & ~moved], labels[~block & ~moved])
 
 
 def test_warp_and_points_vs_numpy_indexing():

@@ -12,6 +12,20 @@ and mean position) come from ``jax.ops.segment_sum`` with a static number of seg
 the reference SLIC there is no connectivity post-pass (a label may be split into parts; those
 parts share one motion model, which only matters for segments cut by occlusion).
 
+Tracking uses a *local* refinement (:data:`TRACK_REACH`): after the flow has carried the
+labels, the candidates are the labels at offsets {-r, 0, r}^2 with r = 3 working px instead
+of the grid step. With the grid-step candidates a pixel could take a label found S px away
+whenever that segment's mean colour was nearer, which on textured surfaces scatters stray
+pixels of a segment far from its body; strays that land on the arm or the pushed object then
+ride along with it, so background ids were carried by the moving object and the object's ids
+left behind (experiments/motion_label_leakage.py on the synthetic videos, this change
+alone: mean over the touching frames of the object ids' area on the background 0.16 / 0.25
+-> 0.10 / 0.10 on the static / changing pushed videos, of the object's area under background
+ids 0.30 / 0.38 -> 0.17 / 0.16; with the layered splat of :mod:`~jaxcr.motion.propagate`
+see experiments/results/motion_label_leakage.md). With r px per step a label moves at most r px per iteration beyond where the
+flow put it, enough to snap the splatted boundaries to the new image (the flow is smooth
+across boundaries over a few px) without jumping across a gap.
+
 Distance (SLIC eq. 3): D^2 = |lab - lab_c|^2 + (m / S)^2 |xy - xy_c|^2, m = compactness.
 
 Speed (measured in ``experiments/results/motion_bench.md``): the segmentation runs at a
@@ -117,22 +131,26 @@ def slic_step(
     n_segments: int,
     step: int,
     compactness: float,
+    reach: int = 0,
 ) -> Int[Array, "h w"]:
-    """One SLIC assignment: each pixel takes the nearest of its nine candidate segments
-    (ties go to the first candidate in row-major offset order)."""
+    """One SLIC assignment: each pixel takes the nearest of its nine candidate segments, the
+    labels at offsets {-r, 0, r}^2 with r = ``reach`` px (0: the grid ``step``, SLIC's
+    search window on a fresh grid; small values refine tracked boundaries locally, see the
+    module docstring). Ties go to the first candidate in row-major offset order."""
     h, w = labels.shape
     centres, count = segment_centres(lab, labels, n_segments)
     spatial = (compactness / step) ** 2
     # one gathered value per column and candidate: (L, a, b, y, x, empty penalty). Separate
     # 1-D gathers with clip mode: XLA's CPU row gather from a (k, 6) table is ~80x slower.
     cols = [centres[:, i] for i in range(5)] + [jnp.where(count > 0, 0.0, _FAR).astype(lab.dtype)]
+    r = reach or step
     yy, xx = _coords(h, w, np.dtype(lab.dtype))
-    padded = jnp.pad(labels, step, mode="edge")
+    padded = jnp.pad(labels, r, mode="edge")
     best_d = jnp.full((h, w), jnp.inf, lab.dtype)
     best = labels
-    for dy in (-step, 0, step):
-        for dx in (-step, 0, step):
-            cand = shifted(padded, step, dy, dx)
+    for dy in (-r, 0, r):
+        for dx in (-r, 0, r):
+            cand = shifted(padded, r, dy, dx)
             c = [jnp.take(col, cand, mode="clip") for col in cols]
             d = (
                 (lab[..., 0] - c[0]) ** 2
@@ -147,7 +165,7 @@ def slic_step(
     return best
 
 
-@functools.partial(jax.jit, static_argnames=("n_segments", "step", "n_iter"))
+@functools.partial(jax.jit, static_argnames=("n_segments", "step", "n_iter", "reach"))
 def slic(
     lab: Float[Array, "h w 3"],
     labels_init: Int[Array, "h w"],
@@ -155,15 +173,27 @@ def slic(
     step: int,
     compactness: float = 10.0,
     n_iter: int = 5,
+    reach: int = 0,
 ) -> Int[Array, "h w"]:
     """``n_iter`` SLIC iterations from ``labels_init`` (a :func:`grid_labels` map for a fresh
-    segmentation, or a warped previous label map for tracking). Returns int32 labels in
-    [0, n_segments)."""
+    segmentation, or a warped previous label map for tracking, then with a small ``reach``:
+    :func:`slic_step`). Returns int32 labels in [0, n_segments)."""
 
     def body(_, lbl):
-        return slic_step(lab, lbl, n_segments, step, compactness)
+        return slic_step(lab, lbl, n_segments, step, compactness, reach)
 
     return jax.lax.fori_loop(0, n_iter, body, labels_init.astype(jnp.int32))
+
+
+# candidate offset (working px) of the tracking refinement; at most step // 2 so that the
+# candidates stay inside the segment scale on tiny grids
+TRACK_REACH = 3
+
+
+def track_reach(step: int) -> int:
+    """Candidate offset of :func:`segment_track`'s refinement for a grid ``step``: 3 working
+    px, at most ``step // 2`` (at least 1)."""
+    return max(1, min(TRACK_REACH, step // 2))
 
 
 def auto_scale(width: int, step: int) -> int:
@@ -210,8 +240,17 @@ def segment_track(
     width: int,
 ) -> tuple[Int[Array, "h w"], Int[Array, "H W"]]:
     """Carry the working label map to the next frame: forward-splat with the dense flow (in
-    working px, :func:`jaxcr.motion.propagate.splat_labels`), then ``n_iter`` SLIC steps on
-    the new working-resolution frame (:func:`working_rgb`; ids kept). Returns working and
-    full-size label maps."""
-    lbl = slic(rgb_to_lab(rgb), splat_labels(labels, flow), n_segments, step, compactness, n_iter)
+    working px, :func:`jaxcr.motion.propagate.splat_labels`), then ``n_iter`` local SLIC
+    steps (candidate offset :func:`track_reach`, see the module docstring) on the new
+    working-resolution frame (:func:`working_rgb`; ids kept). Returns working and full-size
+    label maps."""
+    lbl = slic(
+        rgb_to_lab(rgb),
+        splat_labels(labels, flow),
+        n_segments,
+        step,
+        compactness,
+        n_iter,
+        track_reach(step),
+    )
     return lbl, upsample_labels(lbl, height, width, scale)
