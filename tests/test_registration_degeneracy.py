@@ -268,3 +268,20 @@ def test_icp_without_other_terms_keeps_the_seed_along_the_degenerate_direction(b
     r, t = pose_error(T, T_exp)
     assert r < 0.25 and t < 1e-3, (r, t)
     assert float(res.fitness) > 0.7 and float(res.rmse) < 2e-3
+
+
+def test_filter_vmap_equals_loop():
+    rng = np.random.default_rng(7)
+    batch = []
+    for k in range(3):
+        p, n, _, _ = _cylinder(rng, n=300, axis_rot=(0.2 * k, 0.1, -0.1 * k))
+        w = rng.uniform(0.5, 1.0, len(p))
+        H, g = _normal_equations(p, n, rng.normal(0, 1e-3, len(p)), w)
+        batch.append([jnp.asarray(a, jnp.float32) for a in (H, g, p, w)])
+    stacked = [jnp.stack(x) for x in zip(*batch, strict=True)]
+    Hv, gv, kv = jax.vmap(lambda H, g, p, w: degeneracy_filter(H, g, p, w, RATIO))(*stacked)
+    for i, args in enumerate(batch):
+        Hl, gl, kl = degeneracy_filter(*args, RATIO)
+        np.testing.assert_allclose(np.asarray(Hv[i]), np.asarray(Hl), rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(gv[i]), np.asarray(gl), rtol=1e-4, atol=1e-8)
+        assert int(kv[i]) == int(kl) == 1
