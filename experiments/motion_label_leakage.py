@@ -36,10 +36,13 @@ os.environ.setdefault(
 )
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxcr.motion.dataset import load_motion_dataset  # noqa: E402
 from jaxcr.motion.pipeline import MotionConfig, MotionTracker  # noqa: E402
+from jaxcr.motion.propagate import warp_labels  # noqa: E402
 from jaxcr.motion.run import end_effector_pixels, first_touch  # noqa: E402
 
 
@@ -83,6 +86,7 @@ def track_video(d: Path, cfg: MotionConfig) -> dict:
         labels.append(np.asarray(tracker.labels))
     ev = ds.eval_frame if ds.eval_frame is not None else first_touch(ds)
     sp = tracker.segment_probability("translation")
+    sph = tracker.segment_probability("homography")
     return {
         "labels": labels,
         "masks": [ds.mask(i) for i in range(len(ds))],
@@ -90,6 +94,7 @@ def track_video(d: Path, cfg: MotionConfig) -> dict:
         "touch": first_touch(ds),
         "n_segments": tracker.n_segments,
         "map": sp[labels[ev]],
+        "map_h": sph[labels[ev]],
         "scene": ds.scene,
         "seg_ms": float(np.median(seg_ms[2:])),
     }
@@ -130,6 +135,7 @@ def summarise(rec: dict) -> dict:
         "tan75": tanimoto(s >= 0.75, gt),
         "tan85": tanimoto(s >= 0.85, gt),
         "ap": average_precision(rec["map"], gt),
+        "ap_h": average_precision(rec["map_h"], gt),
         "seg_ms": rec["seg_ms"],
     }
 
@@ -144,20 +150,57 @@ KEYS = [
     "tan75",
     "tan85",
     "ap",
+    "ap_h",
     "seg_ms",
 ]
 GROUPS = ("pushed_static", "pushed_changing", "held_static", "held_changing")
 
 
+@jax.jit
+def scatter_order_splat(labels, flow):
+    """The splat before the layering fix (commit ef2091b), for the "before" variants: the
+    scatter's write order decides collisions, holes take the first labelled neighbour 1, 2,
+    2, 3 px right/left/down/up, then the backward lookup."""
+    h, w = labels.shape
+    yy, xx = jnp.meshgrid(jnp.arange(h), jnp.arange(w), indexing="ij")
+    dx = jnp.round(xx + flow[..., 0]).astype(jnp.int32)
+    dy = jnp.round(yy + flow[..., 1]).astype(jnp.int32)
+    inside = (dx >= 0) & (dx < w) & (dy >= 0) & (dy < h)
+    flat = jnp.where(inside, dy * w + dx, h * w)
+    out = (
+        jnp.full((h + 1) * w, -1, jnp.int32)
+        .at[flat.reshape(-1)]
+        .set(labels.astype(jnp.int32).reshape(-1), mode="promise_in_bounds")
+    )
+    out = out[: h * w].reshape(h, w)
+    for d in (1, 2, 2, 3):
+        padded = jnp.pad(out, d, mode="edge")
+        for oy, ox in ((0, d), (0, -d), (d, 0), (-d, 0)):
+            nb = padded[d + oy : d + oy + h, d + ox : d + ox + w]
+            out = jnp.where((out < 0) & (nb >= 0), nb, out)
+    return jnp.where(out >= 0, out, warp_labels(labels, flow))
+
+
+VARIANTS = {
+    # name: (scatter-order splat, grid-step candidates)
+    "before": (True, True),
+    "reach_only": (True, False),
+    "now": (False, False),
+}
+
+
 def run_variant(vids: list[Path], variant: str) -> dict:
-    """Per-video summaries with the tracking refinement of ``variant``: "now" (the package's
-    local candidates, :func:`jaxcr.motion.superpixels.track_reach`) or "before" (candidates
-    at the grid step, as before the fix)."""
+    """Per-video summaries with the tracking of ``variant`` (:data:`VARIANTS`): "now" is the
+    package; "before" the splat and refinement before the leakage fix (scatter-order splat,
+    candidates at the grid step); "reach_only" the local candidates with the old splat."""
     import jaxcr.motion.superpixels as sp
 
-    original = sp.track_reach
-    if variant == "before":
+    old_splat, old_reach = VARIANTS[variant]
+    original = sp.track_reach, sp.splat_labels
+    if old_reach:
         sp.track_reach = lambda step: step  # read when segment_track is traced
+    if old_splat:
+        sp.splat_labels = scatter_order_splat
     sp.segment_track.clear_cache()
     try:
         rows = {}
@@ -173,7 +216,7 @@ def run_variant(vids: list[Path], variant: str) -> dict:
             )
         return rows
     finally:
-        sp.track_reach = original
+        sp.track_reach, sp.splat_labels = original
         sp.segment_track.clear_cache()
 
 
@@ -190,13 +233,71 @@ def table(rows: dict) -> list[str]:
     return L
 
 
+def bench(data: str, repeats: int = 5) -> list[str]:
+    """Median time (ms) of one tracking step at 640x480 (superpixels at working scale 2, i.e.
+    a 320x240 working frame, step 20 working px, 2 refinement iterations: the defaults at
+    that size) for each variant, on the frames and LK flows of one pushed video (the 320x240
+    frames stand in for the working frames)."""
+    import jaxcr.motion.superpixels as sp
+    from jaxcr.motion import flow as fm
+
+    d = sorted(p for p in Path(data).iterdir() if p.name.startswith("pushed_changing"))[0]
+    frames = [f for _, f, _ in load_motion_dataset(d).frames()][:12]
+    h, w = frames[0].shape[:2]
+    k = int(np.prod(sp.grid_shape(h, w, 20)))
+    flows = []
+    for a, b in zip(frames[:-1], frames[1:], strict=True):
+        pts, fl, va = fm.grid_flow(fm.to_gray_u8(a), fm.to_gray_u8(b))
+        flows.append(jnp.asarray(fm.dense_from_grid(fl, va, h, w, 4, 1)))
+    rgbs = [jnp.asarray(f) for f in frames]
+    lbl0, _ = sp.segment_first(rgbs[0], k, 20, 10.0, 6, 2, 2 * h, 2 * w)
+    out = []
+    for variant, (old_splat, old_reach) in VARIANTS.items():
+        original = sp.track_reach, sp.splat_labels
+        if old_reach:
+            sp.track_reach = lambda step: step
+        if old_splat:
+            sp.splat_labels = scatter_order_splat
+        sp.segment_track.clear_cache()
+        try:
+            times = []
+            for rep in range(repeats + 1):
+                lbl = lbl0
+                for fl, rgb in zip(flows, rgbs[1:], strict=True):
+                    t = time.perf_counter()
+                    lbl, full = sp.segment_track(lbl, fl, rgb, k, 20, 10.0, 2, 2, 2 * h, 2 * w)
+                    full.block_until_ready()
+                    if rep:  # the first pass compiles
+                        times.append(1e3 * (time.perf_counter() - t))
+        finally:
+            sp.track_reach, sp.splat_labels = original
+            sp.segment_track.clear_cache()
+        q = np.percentile(times, [25, 50, 75])
+        out.append(f"| {variant} | {q[1]:.1f} | {q[0]:.1f}-{q[2]:.1f} | {len(times)} |")
+        print(out[-1], flush=True)
+    return [
+        f"Tracking step at 640x480 (working 320x240, load {os.getloadavg()[0]:.1f}; "
+        "`python experiments/motion_label_leakage.py --bench-only`):",
+        "",
+        "| variant | median ms | IQR ms | steps |",
+        "|---|---|---|---|",
+        *out,
+    ]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", default="/tmp/motion_data")
     ap.add_argument("--out", default="", help="Markdown report (default: print only)")
     ap.add_argument("--only", default="", help="substring filter on the video names")
-    ap.add_argument("--variants", default="before,now", help="comma-separated: before, now")
+    ap.add_argument(
+        "--variants", default="before,reach_only,now", help="comma-separated keys of VARIANTS"
+    )
+    ap.add_argument("--bench-only", action="store_true", help="only time the tracking step")
     a = ap.parse_args()
+    if a.bench_only:
+        print("\n".join(bench(a.data)))
+        return
     vids = sorted(
         p for p in Path(a.data).iterdir() if (p / "motion.json").exists() and a.only in p.name
     )
@@ -209,7 +310,7 @@ def main() -> None:
         "",
         f"commit {commit} (+ working tree), {len(vids)} videos of `{a.data}`, one core, "
         f"load {os.getloadavg()[0]:.1f}. Reproduce: `python experiments/motion_label_leakage.py "
-        f"--data {a.data} --out experiments/results/motion_label_leakage.md` (~4 min).",
+        f"--data {a.data} --out experiments/results/motion_label_leakage.md` (~6 min).",
         "",
         "Definitions (module docstring of experiments/motion_label_leakage.py): r = evaluation "
         "frame (pushed: first touch), object ids = segments >= 50 % on the object at r. "
@@ -218,13 +319,17 @@ def main() -> None:
         "side changed since r. *_pre: mean over the frames before the touch, *_touch_mean: "
         "over the touching frames, *_last: the last frame. tan75/tan85: Tanimoto distance of "
         "the M-L translation map thresholded at 0.75/0.85 of its maximum; ap: area under its "
-        "P-R curve; seg_ms: median segmentation time per frame (320x240).",
+        "P-R curve (lambda 5 px^2, the package default); ap_h: the same for the homography map; seg_ms: median segmentation time per frame (320x240).",
         "",
-        "Variants: *before* = the tracking refinement took its nine candidates at the grid "
-        "step (20 px); *now* = at 3 px (jaxcr.motion.superpixels.track_reach).",
+        "Variants: *before* = the tracking before the fix (splat collisions decided by the "
+        "scatter's write order, holes filled right/left/down/up first; refinement candidates "
+        "at the grid step, 20 px); *reach_only* = the old splat with the refinement "
+        "candidates 3 px apart (jaxcr.motion.superpixels.track_reach); *now* = the package "
+        "(plus the layered splat of jaxcr.motion.propagate).",
     ]
     for v, rows in results.items():
         L += ["", f"## {v}", ""] + table(rows)
+    L += ["", "## Speed", ""] + bench(a.data)
     last = list(results)[-1]
     L += [
         "",

@@ -6,7 +6,7 @@ frame i+1, f the dense forward flow of frame i. Occlusion and disocclusion are r
 motion layering, so that the result does not depend on the order in which a scatter writes:
 
 * where several pixels land on one target (occlusion), the one that moves most relative to
-  the dominant image motion (the median flow, i.e. the table and camera) wins: the pushed
+  the dominant image motion (a robust mean of the flow, i.e. the table and camera) wins: the pushed
   object and the arm move over the table, in front of it. (XLA's scatter let the last
   written pixel win, i.e. the background whenever the object moved right or down, and those
   background ids then rode along on the object.)
@@ -59,28 +59,38 @@ def fill_disoccluded(key: Int[Array, "h w"], n_pixels: int) -> Int[Array, "h w"]
     are static slices of an edge-padded map."""
     h, w = key.shape
     D = FILL_REACH
-    padded = jnp.pad(key, D, mode="edge")
     big = jnp.iinfo(jnp.int32).max
-    cands = [
-        padded[D + dy : D + dy + h, D + dx : D + dx + w]
-        for d in range(1, D + 1)
-        for dy, dx in ((0, d), (0, -d), (d, 0), (-d, 0))
-    ]
-    prio = [jnp.where(c >= 0, c // n_pixels, big) for c in cands]
-    pmin = functools.reduce(jnp.minimum, prio)
+    prio = jnp.where(key >= 0, key // n_pixels, big)
+    pk, pp = jnp.pad(key, D, mode="edge"), jnp.pad(prio, D, mode="edge")
+    offsets = [(dy, dx) for d in range(1, D + 1) for dy, dx in ((0, d), (0, -d), (d, 0), (-d, 0))]
+
+    def at(padded, dy, dx):
+        return padded[D + dy : D + dy + h, D + dx : D + dx + w]
+
+    pmin = functools.reduce(jnp.minimum, [at(pp, dy, dx) for dy, dx in offsets])
     out = key
-    for c, p in reversed(list(zip(cands, prio, strict=True))):  # nearest written last
-        out = jnp.where((key < 0) & (p <= pmin + _LEVELS), c, out)
+    for dy, dx in reversed(offsets):  # the nearest is written last
+        out = jnp.where((key < 0) & (at(pp, dy, dx) <= pmin + _LEVELS), at(pk, dy, dx), out)
     return out
 
 
-def motion_priority(flow: Float[Array, "h w 2"]) -> Int[Array, "h w"]:
-    """Occlusion priority of every pixel: |f(p) - median f| in 1/4 px, clipped at 64 px. The
-    median is taken per component over every 4th row and column (the dominant motion; a
-    quarter-pixel grid is enough to order layers)."""
+def dominant_motion(flow: Float[Array, "h w 2"], n_irls: int = 3) -> Float[Array, "2"]:
+    """The image's dominant motion (px): the mean flow over every 4th row and column, then
+    ``n_irls`` Cauchy reweightings w = 1 / (1 + |f - m|^2 / (1 px)^2), so that a pushed
+    object or the arm (a minority of the pixels) does not pull it (a robust M-estimate; a
+    median costs a sort, ~1 ms per frame on this CPU)."""
     sub = flow[::4, ::4].reshape(-1, 2)
-    med = jnp.median(sub, axis=0)
-    rel = jnp.sqrt(jnp.sum((flow - med) ** 2, axis=-1))
+    m = jnp.mean(sub, axis=0)
+    for _ in range(n_irls):
+        wt = 1.0 / (1.0 + jnp.sum((sub - m) ** 2, axis=1))
+        m = jnp.sum(sub * wt[:, None], axis=0) / jnp.sum(wt)
+    return m
+
+
+def motion_priority(flow: Float[Array, "h w 2"]) -> Int[Array, "h w"]:
+    """Occlusion priority of every pixel: |f(p) - dominant motion| (:func:`dominant_motion`)
+    in 1/4 px, clipped at 64 px (a quarter-pixel grid is enough to order layers)."""
+    rel = jnp.sqrt(jnp.sum((flow - dominant_motion(flow)) ** 2, axis=-1))
     return jnp.round(jnp.clip(rel, 0.0, _MAX_PRIORITY) * _LEVELS).astype(jnp.int32)
 
 
