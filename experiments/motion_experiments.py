@@ -343,7 +343,9 @@ def main() -> None:
         cwd=Path(__file__).parent,
     ).stdout.strip()
     cfg = cfg_of(lam)
-    _, _, flow_step = resolve_steps(cfg, load_motion_dataset(vids[0]).width)
+    ds0 = load_motion_dataset(vids[0])
+    _, _, flow_step = resolve_steps(cfg, ds0.width)
+    size = f"{ds0.width}x{ds0.height}, {len(ds0)} frames"
     tim = np.concatenate([v["timing"] for v in runs.values() if len(v["timing"])])
     n_st = sum("static" in k for k in pushed)
     n_ch = sum("changing" in k for k in pushed)
@@ -352,7 +354,7 @@ def main() -> None:
         "",
         f"commit {commit}, jax {jax.__version__}, {platform.processor() or platform.machine()}, one core; "
         f"superpixel step {a.superpixel_step} px, LK grid step {flow_step} px, {len(pushed)} pushed videos "
-        f"({n_st} static, {n_ch} changing), {len(held)} held (3-D) videos, 320x240, 24 frames each. "
+        f"({n_st} static, {n_ch} changing), {len(held)} held (3-D) videos, {size} each. "
         f"Flow stabilised by the background homography: {cfg.stabilise}; integration: {cfg.integration} "
         f"of the per-window means (prior {cfg.prior_frames:g} pseudo-frame).",
         "",
@@ -495,7 +497,7 @@ def main() -> None:
                 f"(homography better on {won}/{len(held_rows)} videos)."
             )
     L.append(
-        f"- timing of the experiment runs (320x240, median per frame): flow {np.median(tim[:, 0]):.1f} ms, segmentation "
+        f"- timing of the experiment runs ({ds0.width}x{ds0.height}, median per frame): flow {np.median(tim[:, 0]):.1f} ms, segmentation "
         f"{np.median(tim[:, 1]):.1f} ms, likelihood (both models) {np.median(tim[:, 2]):.1f} ms (shared machine, see motion_bench.md for 640x480)."
     )
     (out_dir / "motion_report.md").write_text("\n".join(L) + "\n")
