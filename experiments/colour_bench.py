@@ -93,7 +93,13 @@ def main() -> None:
     try:
         for name, impl in (("old", old_rgb_to_lab), ("new", current), ("none", lambda r: r * 100)):
             sp.rgb_to_lab = impl  # looked up when segment_track is traced
-            f = jax.jit(sp.segment_track.__wrapped__, static_argnames=statics)
+
+            # A fresh function object per variant: jax caches traces per function, so jitting
+            # segment_track.__wrapped__ itself again would reuse the first variant's trace.
+            def fresh(*a, **k):
+                return sp.segment_track.__wrapped__(*a, **k)
+
+            f = jax.jit(fresh, static_argnames=statics)
             labels[name] = np.asarray(f(lbl0, flow, x, **kw)[0])
             fns[name] = lambda f=f: f(lbl0, flow, x, **kw)
     finally:
@@ -104,6 +110,8 @@ def main() -> None:
         f"| {r['none']} |"
     )
     same = int((labels["old"] != labels["new"]).sum())
+    # Guard: the no-Lab variant must really be a different program (different labels).
+    assert (labels["none"] != labels["old"]).any(), "variants share one trace"
     lines += [
         "",
         f"Load average at the end: {load()}. Median [IQR] of 30 alternating calls after a "
