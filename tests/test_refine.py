@@ -10,10 +10,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from skimage.draw import polygon
+from _tube_render import render_tube
 
 from jaxcr.background import colour_mask
-from jaxcr.camera import Camera, project_points, project_xy, surface_points
+from jaxcr.camera import Camera, project_xy
 from jaxcr.errors import InputError
 from jaxcr.kinematics.cosserat import Centreline, integrate_centreline
 from jaxcr.metrics import iou
@@ -55,25 +55,7 @@ def _camera():
 
 
 def _render(cl, cam, seed):
-    """Independent renderer: eq. 7 surface points, projected, convex hull per segment filled
-    at pixel centres (scikit-image), grey tube over a noisy red background."""
-    pts = surface_points(cl, 16)
-    uv, _ = project_points(cam, pts.reshape(-1, 3))
-    uv = np.asarray(uv).reshape(pts.shape[0], 16, 2)
-    mask = np.zeros((H, W), bool)
-    import cv2
-
-    for i in range(pts.shape[0] - 1):
-        hull = cv2.convexHull(np.concatenate([uv[i], uv[i + 1]]).astype(np.float32))[:, 0]
-        rr, cc = polygon(hull[:, 1], hull[:, 0], mask.shape)
-        mask[rr, cc] = True
-    rng = np.random.default_rng(seed)
-    img = np.empty((H, W, 3), np.float32)
-    img[:] = [0.70, 0.25, 0.25]
-    img += rng.normal(0, 0.05, img.shape).astype(np.float32)
-    img[mask] = [0.6, 0.6, 0.62]
-    img[mask] += rng.normal(0, 0.03, (mask.sum(), 3)).astype(np.float32)
-    return np.clip(img, 0, 1), mask
+    return render_tube(cl, cam, seed, (W, H))
 
 
 @pytest.fixture(scope="module")
