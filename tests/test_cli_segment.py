@@ -267,3 +267,32 @@ def test_evaluate_several_runs_one_column_each(full_run, tmp_path):
     assert get[("tiny", "iou_refined")]["mean"] == get[("tiny (again)", "iou_refined")]["mean"]
     assert int(get[("all", "iou_refined")]["n"]) == 8
     assert not (rep / "iou.png").exists()
+
+
+def test_warm_start_carries_coefficients_and_camera_correction(dataset, tmp_path, monkeypatch):
+    """--warm-start: each chunk's refine_sequence starts from the previous chunk's last good
+    frame, both its delta-u coefficients and its camera-pose correction (physical units)."""
+    import jaxcr.refine as refine_mod
+
+    calls = []
+    real = refine_mod.refine_sequence
+
+    def spy(*args, **kw):
+        res = real(*args, **kw)
+        calls.append((kw.get("init"), kw.get("init_cam"), res))
+        return res
+
+    monkeypatch.setattr(refine_mod, "refine_sequence", spy)
+    out = tmp_path / "warm"
+    code = main(["segment", str(dataset), "-o", str(out), "--warm-start", *FAST])
+    assert code == 1  # the three bad frames
+    recs = _records(out)
+    assert all(recs[f]["ok"] for f in GOOD)
+    assert len(calls) >= 2
+    assert calls[0][0] is None and calls[0][1] is None
+    first = calls[0][2]
+    last_ok = max(i for i in range(len(first.ok)) if bool(first.ok[i]))
+    np.testing.assert_array_equal(np.asarray(calls[1][0]), np.asarray(first.coeffs[last_ok]))
+    np.testing.assert_array_equal(
+        np.asarray(calls[1][1]), np.asarray(first.camera_correction[last_ok])
+    )

@@ -95,6 +95,7 @@ class Segmenter:
         self.compile_s = 0.0
         self.run_s = 0.0
         self._coeffs_prev = None  # warm start carried across chunks
+        self._cam_prev = None  # and the camera-pose correction with it
 
     # ------------------------------------------------------------------ per-frame checks
 
@@ -201,6 +202,7 @@ class Segmenter:
                     tuple(bgs),
                     self.config,
                     init=self._coeffs_prev,
+                    init_cam=self._cam_prev,
                     valid=valid,
                 )
             else:
@@ -228,6 +230,7 @@ class Segmenter:
             ok_idx = [i for i in range(n) if bool(host.ok[i])]
             if ok_idx:
                 self._coeffs_prev = jnp.asarray(host.coeffs[ok_idx[-1]])
+                self._cam_prev = jnp.asarray(host.camera_correction[ok_idx[-1]])
 
         for i, (fid, images) in enumerate(chunk):
             frame = self.frames[fid]
