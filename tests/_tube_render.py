@@ -30,3 +30,41 @@ def render_tube(cl, cam, seed: int, size: tuple[int, int]) -> tuple[np.ndarray, 
     img[mask] = [0.6, 0.6, 0.62]
     img[mask] += rng.normal(0, 0.03, (mask.sum(), 3)).astype(np.float32)
     return np.clip(img, 0, 1), mask
+
+
+def arc_base(radius: float, n: int = 41):
+    """Nominal test centreline: a 12 cm planar arc (curvature 6 /m) leaving (-0.06, 0.01, 0)
+    along +x, body x towards -z (towards the camera of :func:`front_camera`)."""
+    import jax.numpy as jnp
+
+    from jaxcr.kinematics.cosserat import integrate_centreline
+
+    s = jnp.linspace(0.0, 0.12, n)
+    u = jnp.tile(jnp.array([6.0, 0.0, 0.0]), (n - 1, 1))
+    R0 = jnp.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+    return integrate_centreline(s, u, jnp.full(n, radius), jnp.array([-0.06, 0.01, 0.0]), R0)
+
+
+def front_camera(fx: float, size: tuple[int, int]):
+    """Camera 0.3 m in front of the arc's plane, looking at the origin."""
+    from jaxcr.camera import Camera
+
+    return Camera.look_at([0, 0, -0.3], [0, 0, 0], [0, -1, 0], fx=fx, size=size)
+
+
+def tube_frames(base, cam, coeffs, size: tuple[int, int]) -> list[dict]:
+    """One rendered, colour-masked frame per delta-u coefficient array: dicts with the
+    background-subtracted image ``img``, background ``bg``, truth ``mask`` and centreline
+    ``truth``."""
+    import jax.numpy as jnp
+
+    from jaxcr.background import colour_mask
+    from jaxcr.shape import perturbed_centreline
+
+    frames = []
+    for k, c in enumerate(coeffs):
+        truth_cl = perturbed_centreline(base, jnp.asarray(c))
+        img, mask = render_tube(truth_cl, cam, k, size)
+        bg, ip = colour_mask(jnp.asarray(img))
+        frames.append(dict(img=ip, bg=bg, mask=mask, truth=truth_cl))
+    return frames

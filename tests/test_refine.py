@@ -10,12 +10,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _tube_render import render_tube
+from _tube_render import arc_base, front_camera, render_tube, tube_frames
 
 from jaxcr.background import colour_mask
 from jaxcr.camera import Camera, project_xy
 from jaxcr.errors import InputError
-from jaxcr.kinematics.cosserat import Centreline, integrate_centreline
+from jaxcr.kinematics.cosserat import Centreline
 from jaxcr.metrics import iou
 from jaxcr.refine import RefineConfig, refine_batch, refine_frame
 from jaxcr.shape import perturbed_centreline
@@ -43,15 +43,12 @@ TRUE_COEFFS = [
 ]
 
 
-def _base(n=41):
-    s = jnp.linspace(0.0, 0.12, n)
-    u = jnp.tile(jnp.array([6.0, 0.0, 0.0]), (n - 1, 1))
-    R0 = jnp.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # tangent +x, body x towards -z
-    return integrate_centreline(s, u, jnp.full(n, 2.5e-3), jnp.array([-0.06, 0.01, 0.0]), R0)
+def _base():
+    return arc_base(2.5e-3)
 
 
 def _camera():
-    return Camera.look_at([0, 0, -0.3], [0, 0, 0], [0, -1, 0], fx=200.0, size=(W, H))
+    return front_camera(200.0, (W, H))
 
 
 def _render(cl, cam, seed):
@@ -61,13 +58,7 @@ def _render(cl, cam, seed):
 @pytest.fixture(scope="module")
 def scene():
     base, cam = _base(), _camera()
-    frames = []
-    for k, c in enumerate(TRUE_COEFFS):
-        truth_cl = perturbed_centreline(base, jnp.asarray(c))
-        img, mask = _render(truth_cl, cam, k)
-        bg, ip = colour_mask(jnp.asarray(img))
-        frames.append(dict(img=ip, bg=bg, mask=mask, truth=truth_cl))
-    return base, cam, frames
+    return base, cam, tube_frames(base, cam, TRUE_COEFFS, (W, H))
 
 
 @pytest.fixture(scope="module")

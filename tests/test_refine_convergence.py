@@ -11,12 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
-from _tube_render import render_tube
+from _tube_render import arc_base, front_camera, render_tube, tube_frames
 
-from jaxcr.background import colour_mask
-from jaxcr.camera import Camera, project_xy
+from jaxcr.camera import project_xy
 from jaxcr.errors import InputError
-from jaxcr.kinematics.cosserat import integrate_centreline
 from jaxcr.metrics import iou
 from jaxcr.refine import (
     ImageSpaceBFGS,
@@ -25,7 +23,6 @@ from jaxcr.refine import (
     refine_batch,
     refine_frame,
 )
-from jaxcr.shape import perturbed_centreline
 
 W, H = 128, 96
 CFG = RefineConfig(
@@ -48,15 +45,12 @@ TRUE = [
 ]
 
 
-def _base(n=41):
-    s = jnp.linspace(0.0, 0.12, n)
-    u = jnp.tile(jnp.array([6.0, 0.0, 0.0]), (n - 1, 1))
-    R0 = jnp.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])
-    return integrate_centreline(s, u, jnp.full(n, 3e-3), jnp.array([-0.06, 0.01, 0.0]), R0)
+def _base():
+    return arc_base(3e-3)
 
 
 def _camera():
-    return Camera.look_at([0, 0, -0.3], [0, 0, 0], [0, -1, 0], fx=160.0, size=(W, H))
+    return front_camera(160.0, (W, H))
 
 
 def _render(cl, cam, seed):
@@ -66,12 +60,7 @@ def _render(cl, cam, seed):
 @pytest.fixture(scope="module")
 def scene():
     base, cam = _base(), _camera()
-    frames = []
-    for k, c in enumerate(TRUE):
-        img, mask = _render(perturbed_centreline(base, jnp.asarray(c)), cam, k)
-        bg, ip = colour_mask(jnp.asarray(img))
-        frames.append(dict(img=ip, bg=bg, mask=mask))
-    return base, cam, frames
+    return base, cam, tube_frames(base, cam, TRUE, (W, H))
 
 
 @pytest.fixture(scope="module")
