@@ -9,11 +9,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _rgbd_pair import shifted_pair
 from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 
 from jaxcr.registration.clouds import organised_cloud
-from jaxcr.registration.icp import CloudArrays, IcpConfig
+from jaxcr.registration.icp import IcpConfig
 from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pairwise import register_pair
 from jaxcr.registration.projective import (
@@ -161,19 +162,7 @@ def _shaded_plane_view(shift_x):
 
 @pytest.fixture(scope="module")
 def shaded_planes():
-    Pt, Ct, Nt, okt = _shaded_plane_view(0.0)
-    Ps, Cs, Ns, oks = _shaded_plane_view(0.003)
-    tgt = depth_image(Pt, Ct, Nt, okt, K)
-    src_img = depth_image(Ps, Cs, Ns, oks, K)
-    ok = oks.reshape(-1)
-    n = int(ok.sum())
-    src = CloudArrays(
-        *(jnp.asarray(a.reshape(-1, 3)[ok], jnp.float32) for a in (Ps, Cs, Ns)),
-        jnp.ones(n, bool),
-    )
-    T_true = np.eye(4)
-    T_true[0, 3] = 0.003
-    return src, tgt, src_img, T_true
+    return shifted_pair(_shaded_plane_view, K, 0.003)
 
 
 CFG = IcpConfig(

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _rgbd_pair import shifted_pair
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -263,18 +264,7 @@ def _plane_view(shift_x):
 def test_photometric_term_fixes_the_direction_a_plane_leaves_free():
     # target <- source = translation by +3 mm in x (in the plane): point-to-plane alone
     # cannot see it; the dense photometric term must recover it (closed-form truth).
-    Pt, Ct, Nt, okt = _plane_view(0.0)
-    Ps, Cs, Ns, oks = _plane_view(0.003)
-    tgt = depth_image(Pt, Ct, Nt, okt, K)
-    src_img = depth_image(Ps, Cs, Ns, oks, K)
-    ok = oks.reshape(-1)
-    n = int(ok.sum())
-    src = CloudArrays(
-        *(jnp.asarray(a.reshape(-1, 3)[ok], jnp.float32) for a in (Ps, Cs, Ns)),
-        jnp.ones(n, bool),
-    )
-    T_true = np.eye(4)
-    T_true[0, 3] = 0.003
+    src, tgt, src_img, T_true = shifted_pair(_plane_view, K, 0.003)
     T0 = jnp.eye(4, dtype=jnp.float32)
     geo = projective_icp_jit(src, tgt, T0, CFG, window=0)
     pho = projective_icp_jit(src, tgt, T0, CFG, window=0, src_image=src_img)
