@@ -160,6 +160,20 @@ def gauss_newton_update(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints, extr
     colour where it is not (there a colour term's own systematic errors, e.g. texture
     blurred differently under different foreshortening, would otherwise compete with
     the geometry)."""
+    H, g = normal_equations(T, ps, q, nq, w, pl, cfg, kp, extra)
+    scale = jnp.maximum(jnp.trace(H) / 6.0, 1e-12)
+    delta = -jnp.linalg.solve(H + cfg.damping * scale * jnp.eye(6), g)
+    delta = jnp.where(jnp.all(jnp.isfinite(delta)) & (jnp.sum(w) > 0), delta, 0.0)
+    return make_transform(so3_exp(delta[3:]), delta[:3]) @ T
+
+
+def normal_equations(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints, extra=None):
+    """The normal equations (H (6, 6), g (6,)) of the combined weighted objective that
+    :func:`gauss_newton_update` solves (point-to-plane, optional point-to-point, keypoint
+    term, degeneracy split, ``extra``), increment ``delta = (v, w)`` applied as
+    ``T <- [exp(hat(w)), v] T`` (target frame, m and rad). ``H`` is also the (unscaled)
+    information of the registration: see
+    :func:`jaxcr.registration.projective.projective_information`."""
     # point-to-plane: r = n.(p + w x p + v - q)  ->  J = [n, p x n]
     J_pl = jnp.concatenate([nq, jnp.cross(ps, nq)], axis=1)  # (n, 6)
     H = (J_pl * w[:, None]).T @ J_pl
@@ -187,10 +201,7 @@ def gauss_newton_update(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints, extr
         if split is not None:  # the colour term only where the geometry is blind
             He, ge = project_normal_equations(He, ge, split[0], jnp.eye(6) - split[1])
         H, g = H + He, g + ge
-    scale = jnp.maximum(jnp.trace(H) / 6.0, 1e-12)
-    delta = -jnp.linalg.solve(H + cfg.damping * scale * jnp.eye(6), g)
-    delta = jnp.where(jnp.all(jnp.isfinite(delta)) & (jnp.sum(w) > 0), delta, 0.0)
-    return make_transform(so3_exp(delta[3:]), delta[:3]) @ T
+    return H, g
 
 
 def scaled_coordinates(ps: Float[Array, "n 3"], w: Float[Array, " n"]) -> Float[Array, "6 6"]:

@@ -23,7 +23,13 @@ from jaxcr.registration.clouds import Cloud, organised_cloud, pad_cloud, voxel_d
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, IcpConfig, Keypoints, icp_jit
 from jaxcr.registration.keypoints import matched_points
 from jaxcr.registration.metrics import pose_error
-from jaxcr.registration.projective import DepthImage, depth_image, projective_icp_jit
+from jaxcr.registration.pose_graph import inverted_edge
+from jaxcr.registration.projective import (
+    DepthImage,
+    depth_image,
+    projective_icp_jit,
+    projective_information_jit,
+)
 from jaxcr.registration.ransac import estimate_transform, inlier_set
 
 
@@ -112,6 +118,27 @@ class PairResult:
     fitness: float
     rmse: float
     seconds: float
+    # Information (6, 6) of T on its left perturbation in the target frame, order (v, w)
+    # (projective association; :func:`projective_information`), None when not computed.
+    information: np.ndarray | None = None
+
+    def reversed(self) -> PairResult:
+        """The same registration read the other way (``T^-1``, source <- target), its
+        information carried to the source frame
+        (:func:`jaxcr.registration.pose_graph.inverted_edge`)."""
+        T, info = np.linalg.inv(self.T), None
+        if self.information is not None:
+            T, info = inverted_edge(self.T, self.information)
+        return PairResult(
+            T,
+            self.n_matches,
+            self.n_inliers,
+            self.seeded_by_keypoints,
+            self.fitness,
+            self.rmse,
+            self.seconds,
+            info,
+        )
 
 
 def register_pair(
@@ -170,6 +197,19 @@ def register_pair(
         res = icp_jit(src.arrays, tgt.arrays, T0, cfg, kp)
     T = np.asarray(res.T, np.float64)
     fitness = float(res.fitness)
+    info = None
+    if association == "projective" and np.all(np.isfinite(T)):
+        info, _ = projective_information_jit(
+            res.T,
+            src.sample,
+            tgt.image,
+            cfg,
+            kp,
+            window=0,
+            src_image=src.image if photometric else None,
+            photometric=photometric or "intensity",
+        )
+        info = np.asarray(info, np.float64)
     if not np.all(np.isfinite(T)) or fitness < min_fitness:
         raise RegistrationFailed(
             f"no overlap between frames {src.label or '?'} and {tgt.label or '?'} "
@@ -177,7 +217,14 @@ def register_pair(
             f"{n_in} RANSAC inliers)"
         )
     return PairResult(
-        T, len(ka), n_in, T_kp is not None, fitness, float(res.rmse), time.perf_counter() - t0
+        T,
+        len(ka),
+        n_in,
+        T_kp is not None,
+        fitness,
+        float(res.rmse),
+        time.perf_counter() - t0,
+        info,
     )
 
 

@@ -35,6 +35,7 @@ from jaxcr.registration.icp import (
     Keypoints,
     gauss_newton_update,
     no_keypoints,
+    normal_equations,
     pair_weights,
 )
 
@@ -297,3 +298,42 @@ def projective_icp(
 
 
 projective_icp_jit = jax.jit(projective_icp, static_argnames=("window", "photometric"))
+
+
+def projective_information(
+    T: Mat4,
+    src: CloudArrays,
+    tgt: DepthImage,
+    cfg: IcpConfig = DEFAULT_ICP,
+    kp: Keypoints | None = None,
+    window: int = 0,
+    src_image: DepthImage | None = None,
+    photometric: str = "intensity",
+) -> tuple[Float[Array, "6 6"], Float[Array, ""]]:
+    """Information matrix (6, 6) of a registration ``T`` (target <- source) found by
+    :func:`projective_icp` with the same arguments: the Gauss-Newton normal matrix ``H``
+    of its weighted objective at ``T`` (matches within ``cfg.min_dist``; point-to-plane,
+    keypoint and photometric terms, degeneracy split; :func:`normal_equations`) divided by
+    ``s^2``, the weighted mean squared point-to-plane residual (m^2): the usual
+    least-squares covariance ``s^2 H^-1`` of the estimate, on the left perturbation
+    ``T <- [exp(hat(w)), v] T`` in the target frame, order (v, w), units 1/m^2, 1/rad^2.
+    Returns (information, s (m)). It assumes independent residuals, so it is optimistic in
+    absolute terms (systematic errors do not average out); its use is the *relative*
+    weight of registrations of different overlap and texture in a pose graph. Pure,
+    jit-able."""
+    kp = no_keypoints() if kp is None else kp
+    ps, q, nq, w, pl, keep = _matches(T, src, tgt, cfg.min_dist, cfg, window)
+    extra = None
+    if src_image is not None:
+        u, v, _ = project(src.points, src_image.K)
+        i_src, _ = bilinear(photometric_channels(src_image, photometric)[0], u, v)
+        extra = photometric_terms(ps, i_src, tgt, w, pl, keep, photometric)
+    H, _ = normal_equations(T, ps, q, nq, w, pl, cfg, kp, extra)
+    s2 = jnp.sum(w * pl**2) / jnp.maximum(jnp.sum(w), 1e-30)
+    s2 = jnp.maximum(s2, 1e-12)
+    return 0.5 * (H + H.T) / s2, jnp.sqrt(s2)
+
+
+projective_information_jit = jax.jit(
+    projective_information, static_argnames=("window", "photometric")
+)
