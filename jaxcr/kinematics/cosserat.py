@@ -63,16 +63,23 @@ def integrate_steps(
     p0 = jnp.zeros(3, dtype) if p0 is None else p0
     R0 = jnp.eye(3, dtype=dtype) if R0 is None else R0
     e3 = jnp.array([0.0, 0.0, 1.0], dtype)
+    # each step is the rigid motion (exp(w), J(w) h e3), w = h u; the poses are the prefix
+    # products of these motions, computed by a parallel (associative) scan: the same
+    # products as a sequential loop up to float rounding, but its reverse-mode gradient is
+    # about 8x cheaper on CPU than that of lax.scan (0.05 vs 0.43 ms for 96 steps), which
+    # matters because the refinement differentiates this at every solver step
+    w = ds[:, None] * u_steps
+    Rs = jax.vmap(so3_exp)(w)
+    ts = jax.vmap(lambda wi, h: so3_left_jacobian(wi) @ (h * e3))(w, ds)
 
-    def step(carry, inp):
-        p, R = carry
-        u, h = inp
-        w = h * u
-        p_next = p + R @ (so3_left_jacobian(w) @ (h * e3))
-        R_next = R @ so3_exp(w)
-        return (p_next, R_next), (p_next, R_next)
+    def compose(a, b):  # a before b: (Ra, ta) o (Rb, tb)
+        Ra, ta = a
+        Rb, tb = b
+        return Ra @ Rb, jnp.einsum("...ij,...j->...i", Ra, tb) + ta
 
-    _, (ps, Rs) = jax.lax.scan(step, (p0, R0), (u_steps, ds))
+    Rc, tc = jax.lax.associative_scan(compose, (Rs, ts))
+    Rs = R0 @ Rc
+    ps = p0 + tc @ R0.T
     return jnp.concatenate([p0[None], ps]), jnp.concatenate([R0[None], Rs])
 
 
