@@ -112,7 +112,12 @@ def evaluate_result(
     if len(idx) > max_points:
         idx = np.sort(rng.choice(len(idx), max_points, replace=False))
     seam_views, seam_sel = seam_overlap(result, truth)
-    for tag, poses in (("before", g.initial), ("after", g.poses), ("truth", truth)):
+    tags = [("before", g.initial), ("after", g.poses), ("truth", truth)]
+    a2 = result.alg2_result
+    if a2 is not None and a2 is not g:
+        # The pose graph is the final result: Algorithm 2 (the paper's) reported beside it.
+        tags.insert(2, ("alg2", a2.poses))
+    for tag, poses in tags:
         pts = model_cloud(result, poses).points[idx]
         knn = knn_mean_distance(pts, k)
         cnt = neighbour_counts(pts, radius)
@@ -144,10 +149,24 @@ def evaluate_result(
         edge_err.append(pose_error(e.T, np.linalg.inv(b.T_true) @ a.T_true))
     out["edge_errors"] = {"rot_deg": [r for r, _ in edge_err], "trans_m": [t for _, t in edge_err]}
     out["global"] = {
+        "method": "pose_graph" if result.pose_graph is not None else "alg2",
         "seconds": result.global_seconds,
         "refinements": g.n_refinements,
         "converged": g.converged,
         "views": len(result.ring),
+        "alg2_seconds": result.alg2_seconds,
+        "alg2_refinements": None if a2 is None else a2.n_refinements,
+        "alg2_converged": None if a2 is None else a2.converged,
+        "extra_edges": len(result.extra),
+        "extra_pairs": [[int(i), int(j)] for i, j, _ in result.extra],
+        "extra_seconds": result.extra_seconds,
+    }
+    extra_err = []
+    for i, j, e in result.extra:
+        extra_err.append(pose_error(e.T, np.linalg.inv(truth[j]) @ truth[i]))
+    out["extra_edge_errors"] = {
+        "rot_deg": [r for r, _ in extra_err],
+        "trans_m": [t for _, t in extra_err],
     }
     out["merge"] = {k: v for k, v in result.merge.items() if k != "T_B_A"}
     return out
