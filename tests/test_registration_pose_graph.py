@@ -286,3 +286,100 @@ def test_projective_information_matches_slow_finite_difference_loop():
     np.testing.assert_allclose(
         np.asarray(info), Href / s2, rtol=5e-3, atol=1e-3 * np.abs(Href / s2).max()
     )
+
+
+# --- pipeline glue: the graph's edges and the extra registrations (stub frames) -------
+
+from types import SimpleNamespace  # noqa: E402
+
+from jaxcr.registration import pipeline  # noqa: E402
+from jaxcr.registration.global_opt import GlobalResult  # noqa: E402
+from jaxcr.registration.pairwise import PairResult, RegistrationFailed  # noqa: E402
+
+
+def _stub_result(truth, route_pairs=()):
+    """A ModelResult whose ring views are stub frames (a few camera-frame points) on one
+    route, with exact ring edges and Algorithm 2 poses = the truth."""
+    m = len(truth)
+    rng = np.random.default_rng(6)
+    caps = []
+    for k in range(m):
+        pts = rng.normal([0, 0, 0.4], 0.05, (30, 3)).astype(np.float32)
+        arrays = SimpleNamespace(points=pts, mask=np.ones(30, bool))
+        caps.append(SimpleNamespace(frame=SimpleNamespace(arrays=arrays, label=str(k))))
+    pairs = [
+        PairResult(np.linalg.inv(truth[k + 1]) @ truth[k], 10, 10, True, 0.9, 1e-3, 0.1)
+        for k in range(m - 1)
+    ]
+    runs = [SimpleNamespace(captures=caps, pairs=pairs, name="1")]
+    ring = [(0, k) for k in range(m)]
+    edges = [
+        PairResult(
+            np.linalg.inv(truth[(k + 1) % m]) @ truth[k],
+            10,
+            10,
+            True,
+            0.9,
+            1e-3,
+            0.1,
+            np.diag([1e6, 1e6, 1e6, 1e4, 1e4, 1e4]) * (k + 1),
+        )
+        for k in range(m)
+    ]
+    g = GlobalResult(truth, truth, 1, True)
+    return pipeline.ModelResult(runs, ring, edges, g, 0.0, {}, [], g, 0.0)
+
+
+def test_graph_edges_weights():
+    truth = _ring(6)
+    res = _stub_result(truth)
+    m = len(truth)
+    ring = [(k, (k + 1) % m, e) for k, e in enumerate(res.edges)]
+    nominal = PairResult(res.edges[0].T, 0, 0, False, 0.0, float("nan"), 0.0)
+    no_info = PairResult(res.edges[1].T, 5, 5, True, 0.8, 1e-3, 0.1)
+    g = pipeline.graph_edges(res, ring + [(0, 1, nominal), (1, 2, no_info)], "information")
+    for k in range(m):
+        np.testing.assert_array_equal(g[k].info, res.edges[k].information)
+    ref = np.median([np.trace(e.information) for e in res.edges])
+    f0 = np.asarray(res.runs[0].captures[1].frame.arrays.points, np.float64)
+    T = no_info.T
+    expect = point_information(f0 @ T[:3, :3].T + T[:3, 3])
+    np.testing.assert_allclose(g[-1].info, expect * ref / np.trace(expect), rtol=1e-9)
+    assert np.trace(g[-2].info) == pytest.approx(ref / 100.0)  # nominal kinematics edge
+    gp = pipeline.graph_edges(res, ring, "points")
+    p0 = np.asarray(res.runs[0].captures[0].frame.arrays.points, np.float64)
+    T0 = res.edges[0].T
+    np.testing.assert_allclose(gp[0].info, point_information(p0 @ T0[:3, :3].T + T0[:3, 3]))
+    with pytest.raises(ValueError, match="weights"):
+        pipeline.graph_edges(res, ring, "uniform")
+
+
+def test_extra_edges_gate_and_skip(monkeypatch):
+    truth = _ring(8)
+    res = _stub_result(truth)
+    calls = []
+
+    def fake_register(src, tgt, K, prior=None, **kw):
+        i, j = int(src.label), int(tgt.label)
+        calls.append((i, j))
+        if (i, j) == (7, 1):
+            raise RegistrationFailed("no overlap")
+        T = np.linalg.inv(truth[j]) @ truth[i]
+        if (i, j) == (2, 4):  # a false match, 5 deg off the Algorithm 2 poses
+            T = _T([0, np.deg2rad(5.0), 0], [0, 0, 0]) @ T
+        np.testing.assert_allclose(prior, np.linalg.inv(truth[j]) @ truth[i], atol=1e-9)
+        return PairResult(T, 10, 10, True, 0.9, 1e-3, 0.1, np.eye(6))
+
+    monkeypatch.setattr(pipeline, "register_pair", fake_register)
+    cfg = pipeline.PipelineConfig(extra_gaps=(2,))
+    out = pipeline.extra_edges(res, np.eye(3), cfg)
+    assert calls == [(i, (i + 2) % 8) for i in range(8)]
+    assert [(i, j) for i, j, _ in out] == [(i, (i + 2) % 8) for i in range(8) if i not in (2, 7)]
+    for i, j, p in out:
+        np.testing.assert_allclose(p.T, np.linalg.inv(truth[j]) @ truth[i], atol=1e-9)
+    # The routes' own forward registrations off the ring are used without re-registering.
+    res.ring = [(0, 0), (0, 2), (0, 1), (0, 3), (0, 4), (0, 5), (0, 6), (0, 7)]
+    calls.clear()
+    out = pipeline.extra_edges(res, np.eye(3), pipeline.PipelineConfig(extra_gaps=()))
+    assert calls == []
+    assert {(i, j) for i, j, _ in out} == {(0, 2), (1, 3)}
