@@ -556,7 +556,8 @@ def main():
         *status,
         "",
         "The Fig. 13 statistics are computed on the same points (same views, same subset) "
-        "for the chained poses (before), the Algorithm 2 poses (after) and the true poses "
+        "for the chained poses (before), the Algorithm 2 poses, the final (pose graph) poses "
+        "(after) and the true poses "
         "(the level that sensor noise and sampling alone give). 'Loop-seam overlap': the "
         "points of the first and last ring views that overlap under the true poses; before "
         "Algorithm 2 the whole loop drift sits between these two views.",

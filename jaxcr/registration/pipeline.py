@@ -441,12 +441,17 @@ def graph_edges(
     weighting)."""
     if weights not in ("information", "points"):
         raise ValueError(f"weights must be 'information' or 'points', got {weights!r}")
-    infos = [e.information for _, _, e in edges if e.information is not None]
+
+    def usable(x):
+        return x is not None and np.all(np.isfinite(x)) and np.trace(x) > 0
+
+    infos = [_psd(e.information) for _, _, e in edges if usable(e.information)]
     ref = float(np.median([np.trace(x) for x in infos])) if infos else 1.0
     out = []
     for i, j, e in edges:
-        if weights == "information" and e.information is not None:
-            info = e.information
+        if weights == "information" and usable(e.information):
+            # float32 normal matrices: clip round-off negative eigenvalues
+            info = _psd(e.information)
         else:
             f = _capture(result.runs, result.ring[i]).frame
             p = np.asarray(f.arrays.points)[np.asarray(f.arrays.mask)]
@@ -460,6 +465,12 @@ def graph_edges(
                 )
         out.append(GraphEdge(i, j, e.T, info))
     return out
+
+
+def _psd(info: np.ndarray) -> np.ndarray:
+    """Symmetric part of ``info`` with negative eigenvalues (round-off) set to zero."""
+    lam, V = np.linalg.eigh(0.5 * (info + info.T))
+    return (V * np.maximum(lam, 0.0)) @ V.T
 
 
 def extra_edges(
