@@ -449,8 +449,17 @@ def main():
         action="store_true",
         help="also write results/model_object_bias.md (signed per-edge registration bias)",
     )
+    ap.add_argument(
+        "--sample-size",
+        type=int,
+        default=None,
+        help="projective-ICP source pixels per frame (default: the pipeline's)",
+    )
+    ap.add_argument("--results", default=None, help="output folder (default: results/)")
     args = ap.parse_args()
-    global _NO_OPEN3D
+    global _NO_OPEN3D, OUT
+    if args.results:
+        OUT = Path(args.results)
     _NO_OPEN3D = args.without_open3d
     OUT.mkdir(parents=True, exist_ok=True)
     commit = subprocess.run(
@@ -486,7 +495,10 @@ def main():
         scene = generate_task(f"{args.scratch}/task{task}", task, args.seed)
         sim = RgbdSimulator(scene, seed=args.seed)
         t0 = time.perf_counter()
-        result = build_model(sim, seed=args.seed)
+        pcfg = PipelineConfig()
+        if args.sample_size:
+            pcfg = PipelineConfig(sample_size=args.sample_size)
+        result = build_model(sim, pcfg, seed=args.seed)
         wall = time.perf_counter() - t0
         ev = evaluate_result(sim, result, seed=args.seed)
         ev["wall_seconds"] = wall

@@ -390,3 +390,27 @@ def test_extra_edges_gate_and_skip(monkeypatch):
     out = pipeline.extra_edges(res, np.eye(3), pipeline.PipelineConfig(extra_gaps=()))
     assert calls == []
     assert {(i, j) for i, j, _ in out} == {(0, 2), (1, 3)}
+
+
+def test_robust_rounds_downweight_an_outlier_edge():
+    from jaxcr.registration.pose_graph import robust_weights
+
+    truth = _ring(10)
+    rng = np.random.default_rng(7)
+    edges = _edges(truth, (1, 2), rng, noise=(0.0005, 0.001), info=lambda i, j: np.eye(6) * 1e6)
+    k = 3  # one registration 3 deg / 20 mm wrong
+    edges[k] = edges[k]._replace(Z=_T([0, 0.05, 0], [0.02, 0, 0]) @ edges[k].Z)
+    plain = optimize_pose_graph(truth, edges)
+    robust = optimize_pose_graph(truth, edges, robust_rounds=4)
+
+    def worst(P):
+        return max(np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(P, truth, strict=True))
+
+    assert worst(plain.poses) > 3e-3
+    assert worst(robust.poses) < 0.25 * worst(plain.poses)
+    # weights: 1 at zero residual, 1/2 at chi2 = c^2 s^2, monotone
+    # (median 5.348 = the chi^2_6 median: unit scale)
+    w = robust_weights(np.array([0.0, 5.348, 5.348, 5.348 * 2.3849**2, 1e9]))
+    np.testing.assert_allclose(w[1], 1.0 / (1.0 + 5.348 / 2.3849**2), rtol=1e-4)
+    np.testing.assert_allclose(w[[0, 3]], [1.0, 1.0 / (1.0 + 5.348)], rtol=1e-4)
+    assert w[4] < 1e-6

@@ -136,16 +136,39 @@ def _bucket(n: int) -> int:
     return max(16, -(-n // 16) * 16)
 
 
+edge_residuals_jit = jax.jit(jax.vmap(edge_residual))
+
+# Cauchy kernel width in units of the robust residual scale (95 % efficiency at Gaussian
+# residuals, Holland & Welsch 1977), and the median of chi^2 with 6 degrees of freedom.
+CAUCHY_C = 2.3849
+_CHI2_6_MEDIAN = 5.348
+
+
+def robust_weights(chi2: np.ndarray) -> np.ndarray:
+    """Cauchy IRLS weights of edges with squared whitened residuals ``chi2`` (e,):
+    ``1 / (1 + chi2 / (c^2 s^2))`` with the scale ``s^2 = median(chi2) / median(chi^2_6)``
+    estimated from the residuals themselves (the registrations' information is right in
+    its relative weights but optimistic in absolute terms, so a fixed chi^2 threshold would
+    reject everything)."""
+    chi2 = np.asarray(chi2, np.float64)
+    s2 = max(float(np.median(chi2)) / _CHI2_6_MEDIAN, 1e-30)
+    return 1.0 / (1.0 + chi2 / (CAUCHY_C**2 * s2))
+
+
 def optimize_pose_graph(
     initial: list[np.ndarray],
     edges: list[GraphEdge],
     anchor: int = -1,
     iterations: int = 10,
+    robust_rounds: int = 0,
 ) -> PoseGraphResult:
     """Solve the pose graph (module docstring) from the ``initial`` poses ``T_O,i`` with
-    the ``anchor`` pose fixed. Raises ``ValueError`` for a graph that does not constrain
-    every pose (fewer than 2 poses, an edge to a missing node, a node without edges, non-
-    finite or non positive semi-definite information)."""
+    the ``anchor`` pose fixed. ``robust_rounds`` > 0: that many further solves, each with
+    every edge's information scaled by its Cauchy weight (:func:`robust_weights`) from the
+    previous solution's residuals (iteratively reweighted least squares: a registration
+    that disagrees with the rest of the graph counts less). Raises ``ValueError`` for a
+    graph that does not constrain every pose (fewer than 2 poses, an edge to a missing
+    node, a node without edges, non-finite or non positive semi-definite information)."""
     m = len(initial)
     if m < 2:
         raise ValueError(f"a pose graph needs >= 2 poses, got {m}")
@@ -187,6 +210,22 @@ def optimize_pose_graph(
         jnp.int32(anchor),
         iterations=int(iterations),
     )
+    ne = len(edges)
+    for _ in range(int(robust_rounds)):
+        r = np.asarray(edge_residuals_jit(P[src[:ne]], P[tgt[:ne]], jnp.asarray(Z[:ne])))
+        r = r.astype(np.float64)
+        chi2 = np.einsum("ea,eab,eb->e", r, info[:ne].astype(np.float64), r)
+        w = np.zeros(n, np.float32)
+        w[:ne] = robust_weights(chi2)
+        P, _, c1, last = solve_pose_graph_jit(
+            P,
+            jnp.asarray(src),
+            jnp.asarray(tgt),
+            jnp.asarray(Z),
+            jnp.asarray(info * w[:, None, None]),
+            jnp.int32(anchor),
+            iterations=int(iterations),
+        )
     poses = [np.asarray(p, np.float64) for p in np.asarray(P)]
     return PoseGraphResult(
         poses,
