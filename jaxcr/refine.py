@@ -92,7 +92,7 @@ from jaxcr.energy import (
     region_terms,
 )
 from jaxcr.errors import InputError
-from jaxcr.geometry import so3_exp
+from jaxcr.geometry import so3_exp, so3_log
 from jaxcr.kinematics.cosserat import Centreline
 from jaxcr.shape import delta_u_steps, n_axes, perturbed_centreline, regularisation
 from jaxcr.silhouette import (
@@ -150,6 +150,17 @@ class RefineConfig(eqx.Module):
             the optical centre and translation) so that camera calibration error is not
             absorbed by the shape; regularised by ``g_cam`` (units: 0.01 rad and 1 % of
             the robot's depth).
+        camera_correction_mode: how the correction is shared between several cameras.
+            ``"camera"``: an independent 6-DOF correction per camera. ``"rig"``: one shared
+            correction E of the robot-to-rig transform, in camera 0's frame (regularised by
+            ``g_cam``), so that camera i's corrected pose is ``T_i' = (T_i T_0^-1) E T_0``: the
+            cameras keep their calibrated relative pose and their disparity measures depth,
+            plus, if ``g_cam_rel`` is not None, a residual correction of each camera i >= 1 in
+            its own frame (regularised by ``g_cam_rel``, same units as ``g_cam``). With one
+            camera both modes are the same parameterisation.
+        g_cam_rel: weight of the residual per-camera corrections of the ``"rig"`` mode (a
+            stereo rig's relative calibration is far better known than its registration to
+            the robot); None = rigid rig (no residual).
     """
 
     n_coeffs: int = eqx.field(static=True, default=4)
@@ -179,6 +190,8 @@ class RefineConfig(eqx.Module):
     robust: float = eqx.field(static=True, default=0.0)
     camera_correction: bool = eqx.field(static=True, default=True)
     g_cam: float = eqx.field(static=True, default=0.3)
+    camera_correction_mode: str = eqx.field(static=True, default="camera")
+    g_cam_rel: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         n = len(self.levels)
@@ -195,6 +208,14 @@ class RefineConfig(eqx.Module):
             )
         if not (self.xtol > 0 and self.ftol > 0):
             raise InputError("xtol and ftol must be > 0", field="RefineConfig")
+        if self.camera_correction_mode not in ("camera", "rig"):
+            raise InputError(
+                "camera_correction_mode must be 'camera' or 'rig', got "
+                f"{self.camera_correction_mode!r}",
+                field="RefineConfig",
+            )
+        if self.g_cam_rel is not None and not self.g_cam_rel > 0:
+            raise InputError("g_cam_rel must be > 0 or None", field="RefineConfig")
 
     @property
     def weights(self) -> Weights:
@@ -232,7 +253,8 @@ class RefineResult(eqx.Module):
         band_exact: the final masks are exact rasterisations (band reached every boundary tile).
         camera_correction: (n_cameras, 6) estimated camera pose correction: rotation vector
             (rad, about the optical centre) and translation (m), camera frame; zeros unless
-            ``config.camera_correction``. Masks use the corrected cameras.
+            ``config.camera_correction``. Masks use the corrected cameras. In the ``"rig"``
+            mode each row is that camera's effective correction ``T_i' T_i^-1``.
         time_s: wall time per frame in seconds (set by the Python entry points; 0 inside jit).
     """
 
@@ -294,6 +316,56 @@ def _corrected_camera(camera: Camera, p6: Float[Array, "6"], z_ref) -> Camera:
     T = camera.T_cam_robot
     top = jnp.concatenate([E @ T[:3, :3], (E @ T[:3, 3] + d)[:, None]], axis=1)
     return eqx.tree_at(lambda c: c.T_cam_robot, camera, jnp.concatenate([top, T[3:]], axis=0))
+
+
+def _rigid_inv(T: Float[Array, "4 4"]) -> Float[Array, "4 4"]:
+    R, t = T[:3, :3], T[:3, 3]
+    top = jnp.concatenate([R.T, (-R.T @ t)[:, None]], axis=1)
+    return jnp.concatenate([top, T[3:]], axis=0)
+
+
+def _rig_cameras(cameras: tuple[Camera, ...], p, z_ref, residual: bool) -> tuple[Camera, ...]:
+    """The ``"rig"`` correction (:class:`RefineConfig`): camera 0 gets E = ``p[0]``
+    (:func:`_corrected_camera`), camera i ``T_i' = T_i + (T_i T_0^-1)(T_0' - T_0)``, which is
+    ``(T_i T_0^-1) E T_0`` and exactly ``T_i`` at E = I; then, if ``residual``, its own
+    correction ``p[i]`` in its frame."""
+    cam0 = _corrected_camera(cameras[0], p[0], z_ref[0])
+    T0 = cameras[0].T_cam_robot
+    dT0 = cam0.T_cam_robot - T0
+    out = [cam0]
+    for i, cam in enumerate(cameras[1:], start=1):
+        Ti = cam.T_cam_robot + (cam.T_cam_robot @ _rigid_inv(T0)) @ dT0
+        ci = eqx.tree_at(lambda c: c.T_cam_robot, cam, Ti)
+        out.append(_corrected_camera(ci, p[i], z_ref[i]) if residual else ci)
+    return tuple(out)
+
+
+def _phys_to_params(p6: Float[Array, "... 6"], z_ref) -> Float[Array, "... 6"]:
+    """Physical correction (rad, m) -> parameter units of :func:`_corrected_camera`."""
+    return jnp.concatenate([p6[..., :3] / CAM_ROT_UNIT, p6[..., 3:] / (CAM_T_UNIT * z_ref)], -1)
+
+
+def _pose_delta(T_new: Float[Array, "4 4"], T: Float[Array, "4 4"]) -> Float[Array, "6"]:
+    """Correction (rotation vector (rad), translation (m)) with ``T_new = E T``."""
+    E = T_new @ _rigid_inv(T)
+    return jnp.concatenate([so3_log(E[:3, :3]), E[:3, 3]])
+
+
+def _rig_corrections_to_params(cameras, corr, z_ref, residual: bool) -> Float[Array, "r 6"]:
+    """Inverse of the ``"rig"`` mode's output: effective per-camera corrections ``corr``
+    (n_cameras, 6) (physical units, :attr:`RefineResult.camera_correction`) -> parameters of
+    :func:`_rig_cameras`: row 0 is E = camera 0's correction; with ``residual``, row i is what
+    is left of camera i's correction after the rig's motion (``T_i'' (A E T_0)^-1``)."""
+    p0 = _phys_to_params(corr[:1], z_ref[0])
+    if not residual:
+        return p0
+    shared = _rig_cameras(cameras, p0, z_ref, False)
+    rows = [p0]
+    for i in range(1, len(cameras)):
+        target = _corrected_camera(cameras[i], _phys_to_params(corr[i], z_ref[i]), z_ref[i])
+        res = _pose_delta(target.T_cam_robot, shared[i].T_cam_robot)
+        rows.append(_phys_to_params(res, z_ref[i])[None])
+    return jnp.concatenate(rows, axis=0)
 
 
 def _mask(tube: TubeImage, band: Band, data: RegionData) -> Bool[Array, "h w"]:
@@ -440,9 +512,14 @@ def refine_frame(
     weights = config.weights
     z_ref = jax.lax.stop_gradient(tuple(jnp.mean(base.p @ cam.R[2] + cam.t[2]) for cam in cameras))
 
+    rig = config.camera_correction_mode == "rig"
+    residual = rig and config.g_cam_rel is not None and n_cam > 1
+
     def cameras_of(params):
         if not config.camera_correction:
             return cameras
+        if rig:
+            return _rig_cameras(cameras, params["cam"], z_ref, residual)
         return tuple(
             _corrected_camera(cam, params["cam"][i], z_ref[i]) for i, cam in enumerate(cameras)
         )
@@ -453,7 +530,10 @@ def refine_frame(
 
     def reg_of(params):
         r = weights.g_reg * regularisation(params["c"], base.s, config.torsion)
-        if config.camera_correction:
+        if config.camera_correction and residual:
+            pc = params["cam"]
+            r = r + config.g_cam * jnp.sum(pc[0] ** 2) + config.g_cam_rel * jnp.sum(pc[1:] ** 2)
+        elif config.camera_correction:
             r = r + config.g_cam * jnp.sum(params["cam"] ** 2)
         return r
 
@@ -474,14 +554,16 @@ def refine_frame(
         return jax.lax.stop_gradient(jax.jacfwd(points)(flat))
 
     params0 = {"c": c0}
+    n_par = n_cam if (residual or not rig) else 1  # rows of params["cam"]
+    z_par = jnp.stack(z_ref[:n_par])[:, None]
     if config.camera_correction:
-        params0["cam"] = jnp.zeros((n_cam, 6), dtype)
+        params0["cam"] = jnp.zeros((n_par, 6), dtype)
         if init_cam is not None:
             ic = jnp.asarray(init_cam, dtype).reshape(n_cam, 6)
-            ic = jnp.concatenate(
-                [ic[:, :3] / CAM_ROT_UNIT, ic[:, 3:] / (CAM_T_UNIT * jnp.stack(z_ref)[:, None])],
-                axis=1,
-            )
+            if rig:
+                ic = _rig_corrections_to_params(cameras, ic, z_ref, residual)
+            else:
+                ic = _phys_to_params(ic, z_par)
             params0["cam"] = jnp.where(jnp.all(jnp.isfinite(ic)), ic, 0.0)
     zeros = jax.tree.map(jnp.zeros_like, params0)
 
@@ -621,7 +703,16 @@ def refine_frame(
         "total": e["J"],
         "total_nominal": e_nom["J"],
     }
-    if config.camera_correction:
+    if config.camera_correction and rig:
+        # effective per-camera correction T_i' T_i^-1
+        cams_c = cameras_of(params)
+        cam_corr = jnp.stack(
+            [
+                _pose_delta(cc.T_cam_robot, cam.T_cam_robot)
+                for cc, cam in zip(cams_c, cameras, strict=True)
+            ]
+        )
+    elif config.camera_correction:
         cam_corr = jnp.concatenate(
             [
                 CAM_ROT_UNIT * params["cam"][:, :3],

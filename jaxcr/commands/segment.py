@@ -83,6 +83,22 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "absorbed by the shape (default: core's, on)",
     )
     p.add_argument(
+        "--camera-correction-mode",
+        choices=["camera", "rig"],
+        default=None,
+        help="with several cameras: an independent pose correction per camera (camera), or one "
+        "shared correction of the robot-to-rig transform that keeps the cameras' calibrated "
+        "relative poses, so their disparity measures depth (rig) (default: core's, camera)",
+    )
+    p.add_argument(
+        "--g-cam-rel",
+        type=float,
+        default=None,
+        metavar="G",
+        help="rig mode: also estimate a residual correction of each further camera, "
+        "regularised by G (default: core's)",
+    )
+    p.add_argument(
         "--mu-out",
         choices=["local", "global"],
         default=None,
@@ -172,6 +188,10 @@ def refine_config(args):
     kw.update(sched)
     if getattr(args, "camera_correction", None) is not None:
         kw["camera_correction"] = bool(args.camera_correction)
+    if getattr(args, "camera_correction_mode", None) is not None:
+        kw["camera_correction_mode"] = args.camera_correction_mode
+    if getattr(args, "g_cam_rel", None) is not None:
+        kw["g_cam_rel"] = args.g_cam_rel
     if getattr(args, "mu_out", None) is not None:
         kw["local"] = args.mu_out == "local"
     return RefineConfig(**kw)
