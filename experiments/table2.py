@@ -32,6 +32,15 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 PRESETS = ["orthogonal", "orthogonal_occluded", "endoscopic", "endoscopic_occluded"]
+# Rig mode's residual per-camera regulariser (= the default g_cam, 0.3), chosen on seed 1 (10
+# frames per preset, 2 cameras; seeds 0 and 3 held out): the generator draws an independent
+# calibration error per camera, so the rig's relative pose is as wrong as its registration
+# (~0.4 deg, ~1.4 mm). Mean tip-error ratio refined/nominal and adjusted IoU left/right,
+# orthogonal | orth. occluded | endoscopic | endo. occluded: rigid rig (0) 0.98 0.84/0.84 |
+# 1.14 0.55/0.34 | 0.89 0.63/0.77 | 0.69 0.64/0.56; g_cam_rel 3: 0.79 | 1.03 0.67/0.40 | 0.89
+# | 0.67; 0.3: 0.72 0.91/0.94 | 0.77 0.85/0.81 | 0.88 0.70/0.83 | 0.69 0.73/0.71; per-camera
+# mode: 0.77 0.91/0.94 | 0.82 0.88/0.84 | 0.87 0.73/0.83 | 0.61 0.77/0.73.
+RIG_G_CAM_REL = 0.3
 
 
 def _sub_args(module, argv):
@@ -100,16 +109,18 @@ def main(argv=None) -> int:
         "--g-cam-rel",
         type=float,
         default=None,
-        help="rig mode: regularise a residual per-camera correction by this (default: core's)",
+        help="rig mode: regularise a residual correction of each further camera by this; 0 = "
+        f"rigid rig (default {RIG_G_CAM_REL}, see RIG_G_CAM_REL)",
     )
     a = ap.parse_args(argv)
     mode = a.camera_mode or ("rig" if a.cameras > 1 else None)
     seg_extra = [] if mode is None else ["--camera-correction-mode", mode]
-    if a.g_cam_rel is not None:
-        seg_extra += ["--g-cam-rel", str(a.g_cam_rel)]
+    g_rel = RIG_G_CAM_REL if a.g_cam_rel is None else a.g_cam_rel
+    if mode == "rig" and g_rel > 0:
+        seg_extra += ["--g-cam-rel", str(g_rel)]
     mode_sfx = "_percamera" if (a.cameras > 1 and mode == "camera") else ""
-    if a.g_cam_rel is not None:
-        mode_sfx += f"_gcamrel{a.g_cam_rel:g}"
+    if mode == "rig" and g_rel != RIG_G_CAM_REL:
+        mode_sfx += f"_gcamrel{g_rel:g}"
 
     from jaxcr.commands import evaluate, segment
     from jaxcr.io import report as rep
