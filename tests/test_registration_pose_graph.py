@@ -18,10 +18,10 @@ from jaxcr.registration.icp import CloudArrays, IcpConfig
 from jaxcr.registration.pose_graph import (
     GraphEdge,
     edge_residual,
+    graph_cost,
     inverted_edge,
     optimize_pose_graph,
     point_information,
-    solve_pose_graph,
     solve_pose_graph_jit,
 )
 from jaxcr.registration.projective import depth_image, projective_information
@@ -95,11 +95,11 @@ def _close(A, B, rot=1e-5, tra=1e-6):
 
 
 def test_noise_free_graph_is_recovered_exactly():
-    truth = _ring(10)
+    truth = _ring(8)  # 16 edges: the same compiled shape as the scipy reference test
     rng = np.random.default_rng(0)
     init = [P @ _T(rng.normal(0, 0.03, 3), rng.normal(0, 0.02, 3)) for P in truth]
     init[-1] = truth[-1]
-    res = optimize_pose_graph(init, _edges(truth, (1, 2)))
+    res = optimize_pose_graph(init, _edges(truth, (1, 3)))
     _close(res.poses, truth, rot=2e-6, tra=2e-6)
     assert res.cost_final < 1e-9 < res.cost_initial
 
@@ -142,30 +142,42 @@ def test_weights_give_the_closed_form_weighted_mean():
 
 
 def test_jit_equals_eager_and_residual_matches_numpy():
-    truth = _ring(6)
+    truth = _ring(4)
     rng = np.random.default_rng(2)
-    edges = _edges(truth, (1, 2), rng, noise=(0.001, 0.002))
+    edges = _edges(truth, (1,), rng, noise=(0.001, 0.002))
     args = (
         jnp.asarray(np.stack(truth), jnp.float32),
         jnp.asarray([e.i for e in edges]),
         jnp.asarray([e.j for e in edges]),
         jnp.asarray(np.stack([e.Z for e in edges]), jnp.float32),
         jnp.asarray(np.stack([e.info for e in edges]), jnp.float32),
-        jnp.int32(5),
+        jnp.int32(3),
     )
-    a = solve_pose_graph(*args, iterations=3)
-    b = solve_pose_graph_jit(*args, iterations=3)
-    np.testing.assert_allclose(np.asarray(a[0]), np.asarray(b[0]), atol=1e-6)
-    for e in edges:
-        r = np.asarray(
-            edge_residual(*(jnp.asarray(x, jnp.float32) for x in (truth[e.i], truth[e.j], e.Z)))
-        )
-        np.testing.assert_allclose(r, _np_residual(truth[e.i], truth[e.j], e.Z), atol=2e-6)
+    # The solver's jit == eager is covered through its pieces (an eager Gauss-Newton solve
+    # costs ~15 s of op-by-op dispatch): the cost eager vs jit, the vmapped residual vs a
+    # numpy loop; the jitted solve itself is checked against scipy above.
+    c_eager = graph_cost(*args[:5])
+    c_jit = jax.jit(graph_cost)(*args[:5])
+    np.testing.assert_allclose(float(c_eager), float(c_jit), rtol=1e-5)
+    r = np.asarray(jax.jit(jax.vmap(edge_residual))(args[0][args[1]], args[0][args[2]], args[3]))
+    for k, e in enumerate(edges):
+        np.testing.assert_allclose(r[k], _np_residual(truth[e.i], truth[e.j], e.Z), atol=2e-6)
+    ref = sum(
+        _np_residual(truth[e.i], truth[e.j], e.Z)
+        @ e.info
+        @ _np_residual(truth[e.i], truth[e.j], e.Z)
+        for e in edges
+    )
+    np.testing.assert_allclose(float(c_jit), ref, rtol=1e-3)
+    P, c0, c1, _ = solve_pose_graph_jit(*args, iterations=3)
+    assert float(c1) < 0.5 * float(c0)
 
 
 def test_residual_gradient_is_finite_at_zero_error():
     T = jnp.asarray(_ring(4)[1], jnp.float32)
-    g = jax.jacfwd(lambda d: edge_residual(T @ jnp.eye(4).at[:3, 3].set(d), T, T))(jnp.zeros(3))
+    g = jax.jit(jax.jacfwd(lambda d: edge_residual(T @ jnp.eye(4).at[:3, 3].set(d), T, T)))(
+        jnp.zeros(3)
+    )
     assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -395,7 +407,7 @@ def test_extra_edges_gate_and_skip(monkeypatch):
 def test_robust_rounds_downweight_an_outlier_edge():
     from jaxcr.registration.pose_graph import robust_weights
 
-    truth = _ring(10)
+    truth = _ring(8)
     rng = np.random.default_rng(7)
     edges = _edges(truth, (1, 2), rng, noise=(0.0005, 0.001), info=lambda i, j: np.eye(6) * 1e6)
     k = 3  # one registration 3 deg / 20 mm wrong
