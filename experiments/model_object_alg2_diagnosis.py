@@ -35,7 +35,7 @@ from jaxcr.geometry import kabsch
 from jaxcr.registration.evaluation import truth_poses
 from jaxcr.registration.global_opt import global_optimize
 from jaxcr.registration.metrics import pose_error
-from jaxcr.registration.pipeline import _capture, build_model
+from jaxcr.registration.pipeline import PipelineConfig, _capture, build_model
 from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task
 
 OUT = Path(__file__).parent / "results"
@@ -89,7 +89,7 @@ def diagnose(task: str, seed: int, scratch: str, trials: int = 0) -> list[str]:
     scene = generate_task(f"{scratch}/task{task}", task, seed)
     sim = RgbdSimulator(scene, seed=seed)
     t0 = time.perf_counter()
-    res = build_model(sim, seed=seed)
+    res = build_model(sim, PipelineConfig(global_method="alg2"), seed=seed)
     build_s = time.perf_counter() - t0
     md = [f"## Task {task}, seed {seed}", ""]
     if res.global_result is None:
