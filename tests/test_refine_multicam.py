@@ -35,12 +35,12 @@ from jaxcr.silhouette import project_tube
 W, H = 160, 120
 FX = 200.0
 BASELINE = 0.24  # m
-CFG = RefineConfig(
+CFG = RefineConfig(  # one full-resolution level keeps the compile short
     n_coeffs=3,
-    levels=(1, 0),
-    steps=(30, 20),
-    outer=(2, 1),
-    tau=(1.0, 0.8),
+    levels=(0,),
+    steps=(40,),
+    outer=(1,),
+    tau=(0.8,),
     band_tiles=96,
     min_tiles=24,
     g_reg=0.5,
@@ -111,7 +111,11 @@ def run():
 @pytest.fixture(scope="module")
 def rig_result(scene, run):
     base, cams, _, views = scene
-    return run(base, cams, tuple(v[0] for v in views), tuple(v[1] for v in views), CFG)
+    # explicit zero warm starts: the warm-start test reuses this compiled signature
+    zc, zcam = jnp.zeros(CFG.coeff_shape), jnp.zeros((2, 6))
+    return run(
+        base, cams, tuple(v[0] for v in views), tuple(v[1] for v in views), CFG, zc, True, zcam
+    )
 
 
 def test_rig_keeps_relative_poses_closed_form(scene):
@@ -168,9 +172,9 @@ def test_rig_recovers_shared_pose_and_out_of_plane_delta_u(scene, rig_result):
     _, dep_nom = tip_error_components(base.p, truth.p, cams[0].R)
     _, dep_ref = tip_error_components(r.centreline.p, truth.p, cams[0].R)
     assert tip_nom > 5e-3 and float(dep_nom) > 4e-3, (tip_nom, float(dep_nom))
-    # measured 2.97 of 13.70 mm and 2.66 of 13.17 mm (true cameras, no correction: 2.34 mm)
-    assert tip_ref < 0.35 * tip_nom, (tip_ref, tip_nom)
-    assert float(dep_ref) < 0.35 * float(dep_nom), (float(dep_ref), float(dep_nom))
+    # measured 2.04 of 26.2 mm and 1.65 of 25.0 mm
+    assert tip_ref < 0.25 * tip_nom, (tip_ref, tip_nom)
+    assert float(dep_ref) < 0.25 * float(dep_nom), (float(dep_ref), float(dep_nom))
     for k in range(2):
         assert float(iou(r.masks[k], views[k][2])) > 0.8
     # effective corrections applied to the calibrated cameras keep the relative pose
