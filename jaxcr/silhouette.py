@@ -117,10 +117,11 @@ def coarsen_tube(tube: TubeImage, stride: int) -> TubeImage:
     )
 
 
-def level_tube(tube: TubeImage, level: int) -> TubeImage:
+def level_tube(tube: TubeImage, level: int, merge: int = 1) -> TubeImage:
     """The tube drawn at pyramid level ``level``: :func:`scale_tube` to the level's pixel grid,
-    then :func:`coarsen_tube` by ``2**level`` so segments keep their length in level pixels."""
-    return coarsen_tube(scale_tube(tube, level), 2**level)
+    then :func:`coarsen_tube` by ``merge * 2**level`` so segments keep their length in level
+    pixels (``merge`` times the full-resolution segment length)."""
+    return coarsen_tube(scale_tube(tube, level), merge * 2**level)
 
 
 def capsule_margin(px, py, ax, ay, bx, by, ra, rb, valid):
@@ -298,32 +299,25 @@ def select_band(tube: TubeImage, grid: TileGrid, k_tiles: int, k_seg: int) -> Ba
 def band_margin(tube: TubeImage, grid: TileGrid, band: Band) -> Float[Array, "k p"]:
     """Margin (px) of every pixel of every band tile, differentiable w.r.t. ``tube``.
 
-    Each pixel takes the max over its tile's candidate segments (a max over a few values,
-    whose gradient flows to the winning segment only).
+    Each pixel takes the max over its tile's candidate segments. The max's gradient flows to
+    the winning segment only, so the winner is found without gradient and only its margin is
+    differentiated: the same value and gradient as differentiating ``max`` over all
+    candidates (up to float rounding and the split of ties), at about a third of the cost of
+    that gradient on CPU with 4 candidates.
     """
     dtype = tube.ax.dtype
     t = grid.tile
     ox, oy = grid.pixel_offsets(dtype)
     tx = (band.tiles % grid.cols).astype(dtype) * t
     ty = (band.tiles // grid.cols).astype(dtype) * t
-    px = (tx[:, None] + ox[None])[:, :, None]  # (k, p, 1)
-    py = (ty[:, None] + oy[None])[:, :, None]
-
-    def g(a):
-        return a[band.segs][:, None, :]  # (k, 1, c)
-
-    m = capsule_margin(
-        px,
-        py,
-        g(tube.ax),
-        g(tube.ay),
-        g(tube.bx),
-        g(tube.by),
-        g(tube.ra),
-        g(tube.rb),
-        g(tube.valid),
-    )
-    return jnp.max(m, axis=-1)
+    px = tx[:, None] + ox[None]  # (k, p)
+    py = ty[:, None] + oy[None]
+    fields = (tube.ax, tube.ay, tube.bx, tube.by, tube.ra, tube.rb)
+    valid = tube.valid[band.segs][:, None, :]  # (k, 1, c)
+    cand = [jax.lax.stop_gradient(a)[band.segs][:, None, :] for a in fields]
+    m_all = capsule_margin(px[..., None], py[..., None], *cand, valid)  # (k, p, c)
+    seg = jnp.take_along_axis(band.segs, jnp.argmax(m_all, axis=-1), axis=1)  # (k, p)
+    return capsule_margin(px, py, *(a[seg] for a in fields), tube.valid[seg])
 
 
 def rasterise(
