@@ -44,9 +44,16 @@ class IcpConfig(eqx.Module):
     # observed 10x worse (in standard deviation) than the best one at 0.01, are taken from
     # the keypoint / photometric terms only. On in DEFAULT_ICP (pairwise registration).
     degeneracy_ratio: float = eqx.field(static=True, default=0.0)
+    # Balance of the keypoint term against the dense term (:func:`normal_equations`):
+    # "fraction" (the keypoints' total weight is ``keypoint_weight`` x the dense total
+    # weight, a hand-set share) or "noise" (each keypoint residual weighted by its inverse
+    # variance in the units of the dense residuals, ``keypoint_weight`` x s_g^2 / s_k^2:
+    # s_g^2 the weighted mean squared point-to-plane residual, s_k the keypoints' robust
+    # scale; no hand-set share, like the photometric term's balance).
+    keypoint_balance: str = eqx.field(static=True, default="fraction")
 
 
-DEFAULT_ICP = IcpConfig(degeneracy_ratio=0.01)
+DEFAULT_ICP = IcpConfig(degeneracy_ratio=0.01, keypoint_weight=1.0, keypoint_balance="noise")
 
 
 class IcpResult(NamedTuple):
@@ -190,7 +197,16 @@ def normal_equations(T, ps, q, nq, w, pl, cfg: IcpConfig, kp: Keypoints, extra=N
     rk2 = jnp.sum((ks - kp.tgt) ** 2, -1)
     sk = cfg.sigma_keypoint if kp.scale is None else kp.scale
     wk = jnp.where(kp.mask, jnp.exp(-rk2 / (2 * sk**2)), 0.0)
-    wk = wk * cfg.keypoint_weight * jnp.sum(w) / jnp.maximum(jnp.sum(kp.mask), 1)
+    if cfg.keypoint_balance == "noise":
+        # weight width sk = 3 sigma_k (pairwise.keypoint_scale); dense residual variance s_g^2
+        s_g2 = jnp.sum(w * pl**2) / jnp.maximum(jnp.sum(w), 1e-30)
+        wk = wk * cfg.keypoint_weight * s_g2 / jnp.maximum((sk / 3.0) ** 2, 1e-12)
+    elif cfg.keypoint_balance == "fraction":
+        wk = wk * cfg.keypoint_weight * jnp.sum(w) / jnp.maximum(jnp.sum(kp.mask), 1)
+    else:
+        raise ValueError(
+            f"keypoint_balance must be 'fraction' or 'noise', got {cfg.keypoint_balance!r}"
+        )
     # Keypoint depth is the noisy coordinate: keep only the residual across the target ray.
     ray = kp.tgt / jnp.maximum(jnp.linalg.norm(kp.tgt, axis=-1, keepdims=True), 1e-9)
     P = jnp.eye(3) - ray[:, :, None] * ray[:, None, :]

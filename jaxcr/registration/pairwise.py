@@ -13,13 +13,20 @@ from clouds that do not overlap is garbage and is never returned.
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass
 
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcr.registration.clouds import Cloud, organised_cloud, pad_cloud, voxel_downsample
+from jaxcr.registration.clouds import (
+    Cloud,
+    organised_cloud,
+    pad_cloud,
+    plane_points,
+    voxel_downsample,
+)
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, IcpConfig, Keypoints, icp_jit
 from jaxcr.registration.keypoints import matched_points
 from jaxcr.registration.metrics import pose_error
@@ -50,6 +57,9 @@ class Frame:
     label: str = ""
     image: DepthImage | None = None
     sample: CloudArrays | None = None
+    # Denoised positions of the sample's pixels (clouds.plane_points), same rows: where the
+    # photometric term predicts each source pixel lands in the target image.
+    sample_plane: jnp.ndarray | None = None
 
 
 def _arrays(p, c, n, m) -> CloudArrays:
@@ -74,9 +84,14 @@ def make_frame(
     down = voxel_downsample(full, voxel)
     rng = np.random.default_rng(seed)
     arrays = _arrays(*pad_cloud(down, size, rng))
+    rng_sample = copy.deepcopy(rng)  # the same draw for the denoised positions
     sample = _arrays(*pad_cloud(full, sample_size, rng))
+    Pd = plane_points(P, N, ok)
+    plane = pad_cloud(Cloud(Pd[ok], C[ok], N[ok]), sample_size, rng_sample)[0]
     image = depth_image(P, C, N, ok, K)
-    return Frame(np.asarray(rgb), np.asarray(depth), full, arrays, label, image, sample)
+    return Frame(
+        np.asarray(rgb), np.asarray(depth), full, arrays, label, image, sample, jnp.asarray(plane)
+    )
 
 
 def keypoint_scale(ka, kb, T, upper: float) -> float:
@@ -192,6 +207,7 @@ def register_pair(
             window=0,
             src_image=src.image if photometric else None,
             photometric=photometric or "intensity",
+            photo_points=src.sample_plane if photometric else None,
         )
     else:
         res = icp_jit(src.arrays, tgt.arrays, T0, cfg, kp)
@@ -208,6 +224,7 @@ def register_pair(
             window=0,
             src_image=src.image if photometric else None,
             photometric=photometric or "intensity",
+            photo_points=src.sample_plane if photometric else None,
         )
         info = np.asarray(info, np.float64)
     if not np.all(np.isfinite(T)) or fitness < min_fitness:

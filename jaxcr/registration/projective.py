@@ -240,12 +240,17 @@ def projective_icp_step(
     window: int,
     i_src=None,
     channels: str = "intensity",
+    photo_points=None,
 ) -> Mat4:
     """One weighted Gauss-Newton step with projective association (plus the photometric
     term when the source values ``i_src`` (n, c) of the photometric ``channels`` are
-    given); returns the new ``T``."""
+    given, evaluated at ``photo_points`` (n, 3) (source frame) if given, else at the source
+    points); returns the new ``T``."""
     ps, q, nq, w, pl, keep = _matches(T, src, tgt, radius, cfg, window)
-    extra = None if i_src is None else photometric_terms(ps, i_src, tgt, w, pl, keep, channels)
+    extra = None
+    if i_src is not None:
+        pp = ps if photo_points is None else photo_points @ T[:3, :3].T + T[:3, 3]
+        extra = photometric_terms(pp, i_src, tgt, w, pl, keep, channels)
     return gauss_newton_update(T, ps, q, nq, w, pl, cfg, kp, extra)
 
 
@@ -269,6 +274,7 @@ def projective_icp(
     window: int = 1,
     src_image: DepthImage | None = None,
     photometric: str = "intensity",
+    photo_points: Float[Array, "n 3"] | None = None,
 ) -> IcpResult:
     """Register the source cloud ``src`` (any padded sample of a view, camera frame) to the
     organised target view ``tgt`` from ``T0`` (target <- source), optionally with matched
@@ -280,6 +286,15 @@ def projective_icp(
     keypoint terms: it constrains the directions along which the geometry slides (planes,
     cylinders) with every textured pixel. With ``cfg.degeneracy_ratio > 0`` it acts in the
     geometry's degenerate directions only (:func:`jaxcr.registration.icp.gauss_newton_update`).
+    ``photo_points`` (n, 3), optional: the source pixels' denoised positions
+    (:func:`jaxcr.registration.clouds.plane_points`, same rows as ``src``) at which the
+    photometric term predicts where each source pixel lands in the target image. A pixel's
+    raw depth noise sigma moves that prediction along the epipolar line by about
+    f sigma sin(angle between the rays) / z; near the target's silhouette the shifts that
+    leave the valid region are dropped and the others kept, so on a wide baseline the
+    surviving samples are shifted one way: a systematic pull along the colour term's own
+    direction (a can's axis rotation). The geometric term keeps the raw points (their
+    residuals are independent; the denoised ones are correlated over a window).
     """
     kp = no_keypoints() if kp is None else kp
     i_src = None
@@ -291,7 +306,9 @@ def projective_icp(
 
     def body(k, T):
         radius = cfg.max_dist * ratio ** jnp.minimum(k, n - 1)
-        return projective_icp_step(T, radius, src, tgt, cfg, kp, window, i_src, photometric)
+        return projective_icp_step(
+            T, radius, src, tgt, cfg, kp, window, i_src, photometric, photo_points
+        )
 
     T = jax.lax.fori_loop(0, n, body, T0.astype(src.points.dtype))
     return projective_evaluate(T, src, tgt, cfg, window)
@@ -309,6 +326,7 @@ def projective_information(
     window: int = 0,
     src_image: DepthImage | None = None,
     photometric: str = "intensity",
+    photo_points: Float[Array, "n 3"] | None = None,
 ) -> tuple[Float[Array, "6 6"], Float[Array, ""]]:
     """Information matrix (6, 6) of a registration ``T`` (target <- source) found by
     :func:`projective_icp` with the same arguments: the Gauss-Newton normal matrix ``H``
@@ -327,7 +345,8 @@ def projective_information(
     if src_image is not None:
         u, v, _ = project(src.points, src_image.K)
         i_src, _ = bilinear(photometric_channels(src_image, photometric)[0], u, v)
-        extra = photometric_terms(ps, i_src, tgt, w, pl, keep, photometric)
+        pp = ps if photo_points is None else photo_points @ T[:3, :3].T + T[:3, 3]
+        extra = photometric_terms(pp, i_src, tgt, w, pl, keep, photometric)
     H, _ = normal_equations(T, ps, q, nq, w, pl, cfg, kp, extra)
     s2 = jnp.sum(w * pl**2) / jnp.maximum(jnp.sum(w), 1e-30)
     s2 = jnp.maximum(s2, 1e-12)
