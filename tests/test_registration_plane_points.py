@@ -115,35 +115,14 @@ def test_photo_points_equal_points_gives_same_result():
         jnp.ones(len(idx), bool),
     )
     si, ti = depth_image(Ps, Cs, Ns, oks, K), depth_image(Pt, Ct, Nt, okt, K)
-    a = projective_icp_jit(
-        src, ti, jnp.eye(4), DEFAULT_ICP, None, window=0, src_image=si, photometric="chromaticity"
-    )
-    b = projective_icp_jit(
-        src,
-        ti,
-        jnp.eye(4),
-        DEFAULT_ICP,
-        None,
-        window=0,
-        src_image=si,
-        photometric="chromaticity",
-        photo_points=src.points,
-    )
+    kw = dict(window=0, src_image=si, photometric="chromaticity")
+    a = projective_icp_jit(src, ti, jnp.eye(4), DEFAULT_ICP, None, **kw)
+    b = projective_icp_jit(src, ti, jnp.eye(4), DEFAULT_ICP, None, **kw, photo_points=src.points)
     np.testing.assert_allclose(np.asarray(a.T), np.asarray(b.T), atol=1e-6)
     # truth: target <- source = translation by +0.004 in x (plane points shift +x)
     np.testing.assert_allclose(np.asarray(a.T[:3, 3]), [0.004, 0, 0], atol=3e-4)
     # jit == eager with photo_points
-    c = projective_icp(
-        src,
-        ti,
-        jnp.eye(4),
-        DEFAULT_ICP,
-        None,
-        window=0,
-        src_image=si,
-        photometric="chromaticity",
-        photo_points=src.points,
-    )
+    c = projective_icp(src, ti, jnp.eye(4), DEFAULT_ICP, None, **kw, photo_points=src.points)
     np.testing.assert_allclose(np.asarray(c.T), np.asarray(b.T), atol=2e-5)
 
 

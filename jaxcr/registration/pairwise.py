@@ -197,35 +197,22 @@ def register_pair(
     T0 = T_kp if T_kp is not None else (np.eye(4) if prior is None else prior)
     kp = _keypoint_arrays(ka, kb, T_kp, upper=cfg.sigma_keypoint)
     T0 = jnp.asarray(T0, jnp.float32)
+    # data association and photometric options shared by the ICP and its information
+    proj_kw = dict(
+        window=0,
+        src_image=src.image if photometric else None,
+        photometric=photometric or "intensity",
+        photo_points=src.sample_plane if photometric else None,
+    )
     if association == "projective":
-        res = projective_icp_jit(
-            src.sample,
-            tgt.image,
-            T0,
-            cfg,
-            kp,
-            window=0,
-            src_image=src.image if photometric else None,
-            photometric=photometric or "intensity",
-            photo_points=src.sample_plane if photometric else None,
-        )
+        res = projective_icp_jit(src.sample, tgt.image, T0, cfg, kp, **proj_kw)
     else:
         res = icp_jit(src.arrays, tgt.arrays, T0, cfg, kp)
     T = np.asarray(res.T, np.float64)
     fitness = float(res.fitness)
     info = None
     if association == "projective" and np.all(np.isfinite(T)):
-        info, _ = projective_information_jit(
-            res.T,
-            src.sample,
-            tgt.image,
-            cfg,
-            kp,
-            window=0,
-            src_image=src.image if photometric else None,
-            photometric=photometric or "intensity",
-            photo_points=src.sample_plane if photometric else None,
-        )
+        info, _ = projective_information_jit(res.T, src.sample, tgt.image, cfg, kp, **proj_kw)
         info = np.asarray(info, np.float64)
     if not np.all(np.isfinite(T)) or fitness < min_fitness:
         raise RegistrationFailed(
