@@ -120,6 +120,22 @@ class PipelineConfig:
     # edge the same point information, Algorithm 2's objective).
     edge_weights: str = "information"
 
+    def register(self, src, tgt, K, prior, seed: int, prior_gate=None) -> PairResult:
+        """:func:`register_pair` with this configuration's ICP, keypoint and colour options."""
+        return register_pair(
+            src,
+            tgt,
+            K,
+            prior=prior,
+            prior_gate=prior_gate,
+            cfg=self.icp,
+            asift=self.asift,
+            min_fitness=self.min_fitness,
+            association=self.association,
+            photometric=self.photometric or False,
+            seed=seed,
+        )
+
 
 def _winding(T: np.ndarray, centre: np.ndarray) -> float:
     return float(np.arctan2(T[1, 3] - centre[1], T[0, 3] - centre[0]))
@@ -185,20 +201,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
         if log.captures:
             prev = log.captures[-1]
             prior = np.linalg.inv(T_nom) @ prev.T_nominal
-            log.pairs.append(
-                register_pair(
-                    prev.frame,
-                    frame,
-                    K,
-                    prior=prior,
-                    cfg=cfg.icp,
-                    asift=cfg.asift,
-                    min_fitness=cfg.min_fitness,
-                    association=cfg.association,
-                    photometric=cfg.photometric or False,
-                    seed=seed + step,
-                )
-            )
+            log.pairs.append(cfg.register(prev.frame, frame, K, prior, seed + step))
         log.captures.append(cap)
         if progress is not None:
             progress(log, cap)
@@ -226,18 +229,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
                 first = log.captures[k0]
                 prior = np.linalg.inv(first.T_nominal) @ T_nom
                 try:
-                    closure = register_pair(
-                        frame,
-                        first.frame,
-                        K,
-                        prior=prior,
-                        cfg=cfg.icp,
-                        asift=cfg.asift,
-                        min_fitness=cfg.min_fitness,
-                        association=cfg.association,
-                        photometric=cfg.photometric or False,
-                        seed=seed,
-                    )
+                    closure = cfg.register(frame, first.frame, K, prior, seed)
                 except RegistrationFailed:
                     continue
                 # Gate against the chained forward registrations (their drift is small; the
@@ -363,19 +355,7 @@ def build_model(
             gate = (cfg.nominal_gate_deg, cfg.nominal_gate_m)
             for prior, pg in ((np.linalg.inv(est[b]) @ est[a], None), (nom, gate)):
                 try:
-                    cand = register_pair(
-                        fa,
-                        fb,
-                        K,
-                        prior=prior,
-                        prior_gate=pg,
-                        cfg=cfg.icp,
-                        asift=cfg.asift,
-                        min_fitness=cfg.min_fitness,
-                        association=cfg.association,
-                        photometric=cfg.photometric or False,
-                        seed=seed + j,
-                    )
+                    cand = cfg.register(fa, fb, K, prior, seed + j, prior_gate=pg)
                 except RegistrationFailed as e:
                     why = str(e)
                     continue
@@ -520,18 +500,13 @@ def extra_edges(
             have.add(frozenset((i, j)))
             prior = np.linalg.inv(poses[j]) @ poses[i]
             try:
-                pair = register_pair(
+                pair = cfg.register(
                     _capture(result.runs, ring[i]).frame,
                     _capture(result.runs, ring[j]).frame,
                     K,
-                    prior=prior,
+                    prior,
+                    seed + 1000 + i,
                     prior_gate=gate,
-                    cfg=cfg.icp,
-                    asift=cfg.asift,
-                    min_fitness=cfg.min_fitness,
-                    association=cfg.association,
-                    photometric=cfg.photometric or False,
-                    seed=seed + 1000 + i,
                 )
             except RegistrationFailed:
                 continue
