@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
-from _tube_render import arc_base, front_camera, render_tube, tube_frames
+from _tube_render import arc_base, front_camera, tube_frames
 
 from jaxcr.camera import project_xy
 from jaxcr.errors import InputError
@@ -53,10 +53,6 @@ def _base():
 
 def _camera():
     return front_camera(160.0, (W, H))
-
-
-def _render(cl, cam, seed):
-    return render_tube(cl, cam, seed, (W, H))
 
 
 @pytest.fixture(scope="module")
