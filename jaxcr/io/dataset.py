@@ -151,6 +151,17 @@ def _png_size(path: Path) -> tuple[int, int] | None:
     return None
 
 
+def _safe_id(fid: str) -> bool:
+    """True when a frame id can be used as a file name inside an output folder: no path
+    separators, no control characters, not ``.`` or ``..``."""
+    return (
+        fid not in (".", "..")
+        and "/" not in fid
+        and "\\" not in fid
+        and not any(ord(c) < 32 or ord(c) == 127 for c in fid)
+    )
+
+
 def _robot_from_dict(d: Mapping[str, Any], file: str):
     """The robot model, or None when the kind is valid but its module is not available in
     this build (then only ``kind`` is validated)."""
@@ -331,6 +342,13 @@ class _Scan:
             ferr("missing frame id", "id")
         elif not isinstance(fid, str | int) or isinstance(fid, bool):
             ferr(f"expected a string id, got {fid!r}", "id")
+        elif not _safe_id(str(fid)):
+            # ids name output files (segment's masks/<cam>/<id>.png): never a path
+            ferr(
+                f"frame id {str(fid)!r} is not usable as a file name "
+                "(no '/', '\\', control characters, '.' or '..')",
+                "id",
+            )
         else:
             fid = str(fid)
             if fid in seen:

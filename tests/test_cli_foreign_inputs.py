@@ -1,0 +1,35 @@
+"""Command-line tools on inputs we did not generate (foreign or damaged files): every problem is
+one line naming file/frame/field with exit code 2, or a failed-frame record in a batch; never
+a traceback, a write outside the output folder, or a partial output that looks complete."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from _datasets import edit_json, make_dataset
+
+from jaxcr.io.dataset import load_dataset, validate_dataset
+
+
+def test_frame_id_that_is_a_path_is_a_bad_frame(tmp_path):
+    """Frame ids name output files (segment's masks/<cam>/<id>.png, centrelines/<id>.npy);
+    before, an id '../../evil' passed validation and segment wrote outside OUT."""
+    root = make_dataset(tmp_path / "d", n_frames=4)
+
+    def ids(d):
+        d["frames"][1]["id"] = "../../evil"
+        d["frames"][2]["id"] = "a\\b"
+        d["frames"][3]["id"] = ".."
+
+    edit_json(root, ids)
+    ds = load_dataset(root)
+    assert [f.id for f in ds.frames] == ["000000"]
+    assert sorted(ds.bad_frames) == ["#1", "#2", "#3"]
+    assert all("not usable as a file name" in m for m in ds.bad_frames.values())
+    errs = validate_dataset(root)
+    assert len(errs) == 3 and all(e.field == "id" for e in errs)
+    assert all("\n" not in str(e) for e in errs)
+    # an id with spaces and unicode is a fine file name
+    edit_json(root, lambda d: d["frames"][1].update(id="frame ü 1"))
+    assert "frame ü 1" in [f.id for f in load_dataset(root).frames]
+    assert not any(p.name.startswith("evil") for p in Path(tmp_path).rglob("*"))
