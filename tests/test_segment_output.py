@@ -229,6 +229,9 @@ def test_refine_config_from_cli_options():
     assert c.tau == base.tau[-2:]
     c = cfg(levels=len(base.levels) + 1)
     assert c.levels == (max(base.levels) + 1, *base.levels)
-    for bad in ({"levels": 0}, {"max_steps": 0}, {"basis": 0}):
+    assert cfg(prior_weight=2.5).g_reg == 2.5 and cfg(prior_weight=2.5).g_in == base.g_in
+    bads = ({"levels": 0}, {"max_steps": 0}, {"basis": 0}, {"prior_weight": -1.0},
+            {"prior_weight": float("nan")})  # fmt: skip
+    for bad in bads:
         with pytest.raises(InputError):
             cfg(**bad)

@@ -99,6 +99,15 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "regularised by G (default: core's)",
     )
     p.add_argument(
+        "--prior-weight",
+        type=float,
+        default=None,
+        metavar="G",
+        help="gamma_3 of eq. 5, the weight of the curvature-change prior |delta-u|^2: larger "
+        "keeps the shape nearer the kinematic model where the images say little (e.g. depth "
+        "in one camera) (default: core's)",
+    )
+    p.add_argument(
         "--mu-out",
         choices=["local", "global"],
         default=None,
@@ -194,6 +203,10 @@ def refine_config(args):
         kw["g_cam_rel"] = args.g_cam_rel
     if getattr(args, "mu_out", None) is not None:
         kw["local"] = args.mu_out == "local"
+    if getattr(args, "prior_weight", None) is not None:
+        if not (args.prior_weight >= 0 and math.isfinite(args.prior_weight)):
+            raise InputError("--prior-weight must be a finite number >= 0", field="prior-weight")
+        kw["g_reg"] = float(args.prior_weight)
     return RefineConfig(**kw)
 
 
@@ -288,6 +301,15 @@ def prepare_output(out: Path, resume: bool, overwrite: bool, run_info: dict) -> 
     has_results = layout.results.exists() and layout.results.stat().st_size > 0
     if resume and overwrite:
         raise InputError("--resume and --overwrite exclude each other")
+    # Never write into (or --overwrite) a folder that holds something else, e.g. the dataset
+    # itself: its masks/<cam>/<id>.png ground truth would be replaced by our predictions.
+    if out.is_dir() and not layout.run.exists() and any(out.iterdir()):
+        what = "a dataset" if (out / "dataset.json").exists() else "other files"
+        raise InputError(
+            f"output folder is not empty and holds {what}, not a jaxcr segment run "
+            "(no run.json); choose a new or empty folder",
+            file=str(out),
+        )
     if has_results and not (resume or overwrite):
         raise InputError(
             "output folder already has results; use --resume to continue or --overwrite",
