@@ -33,3 +33,33 @@ def test_frame_id_that_is_a_path_is_a_bad_frame(tmp_path):
     edit_json(root, lambda d: d["frames"][1].update(id="frame ü 1"))
     assert "frame ü 1" in [f.id for f in load_dataset(root).frames]
     assert not any(p.name.startswith("evil") for p in Path(tmp_path).rglob("*"))
+
+
+def _one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0], err
+    return err[0]
+
+
+def test_segment_refuses_to_write_into_the_dataset_or_a_foreign_folder(tmp_path, capsys):
+    """Before, `jaxcr segment D -o D` replaced D's ground-truth masks/<cam>/<id>.png with its
+    predictions (exit 0), and --overwrite deleted D/masks and D/background."""
+    from jaxcr.cli import main
+    from jaxcr.commands.segment import prepare_output
+
+    root = make_dataset(tmp_path / "d", n_frames=2)
+    before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+    for extra in ([], ["--overwrite"], ["--resume"]):
+        assert main(["segment", str(root), "-o", str(root), "--quiet", *extra]) == 2
+        assert "holds a dataset" in _one_line_error(capsys)
+    assert {p: p.read_bytes() for p in root.rglob("*") if p.is_file()} == before
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    assert main(["segment", str(root), "-o", str(other), "--quiet", "--overwrite"]) == 2
+    assert "other files" in _one_line_error(capsys)
+    assert (other / "notes.txt").read_text() == "mine"
+    # an empty existing folder is fine
+    (tmp_path / "empty").mkdir()
+    assert prepare_output(tmp_path / "empty", False, False, {"format": "x"}) == []
+    assert (tmp_path / "empty" / "run.json").exists()
