@@ -2,7 +2,8 @@
 exposes ``add_parser(subparsers)`` (registering its arguments and ``set_defaults(func=run)``)
 and ``run(args) -> int``.
 
-Exit codes: 0 success, 1 a run that failed (e.g. some frames failed), 2 bad usage or input.
+Exit codes: 0 success, 1 a run that failed (e.g. some frames failed), 2 bad usage or input
+(including an output that cannot be written, e.g. a read-only folder), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -60,6 +61,12 @@ def main(argv: list[str] | None = None) -> int:
         code = args.func(args)
     except InputError as err:
         print(f"jaxcr {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        # e.g. a read-only or full output folder, a file where a folder is expected: one line
+        # naming the file (outputs are written atomically, so nothing partial looks complete)
+        where = err.filename if err.filename is not None else "file system"
+        print(f"jaxcr {args.command}: error: {where}: {err.strerror or err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"jaxcr {args.command}: interrupted", file=sys.stderr)

@@ -63,3 +63,26 @@ def test_segment_refuses_to_write_into_the_dataset_or_a_foreign_folder(tmp_path,
     (tmp_path / "empty").mkdir()
     assert prepare_output(tmp_path / "empty", False, False, {"format": "x"}) == []
     assert (tmp_path / "empty" / "run.json").exists()
+
+
+def test_unwritable_output_is_one_line_exit_2(tmp_path, capsys):
+    """An output under a regular file (as for a read-only folder: OSError) was a traceback;
+    now one line naming the path, exit 2, and fk fails before compiling."""
+    import json
+
+    from _datasets import ROBOT
+
+    from jaxcr.cli import main
+
+    robot = tmp_path / "robot.json"
+    robot.write_text(json.dumps(ROBOT))
+    q = tmp_path / "q.csv"
+    q.write_text("5.0,0.1\n")
+    blocker = tmp_path / "a file"
+    blocker.write_text("")
+    assert main(["fk", str(robot), str(q), "-o", str(blocker / "out")]) == 2
+    line = _one_line_error(capsys)
+    assert line.startswith("jaxcr fk: error: ") and str(blocker) in line
+    root = make_dataset(tmp_path / "d", n_frames=1)
+    assert main(["segment", str(root), "-o", str(blocker / "out"), "--quiet"]) == 2
+    assert str(blocker) in _one_line_error(capsys)

@@ -218,9 +218,9 @@ def run(args) -> int:
     if args.chunk < 1:
         raise InputError(f"--chunk must be >= 1, got {args.chunk}", field="--chunk")
     q = read_q_csv(args.q_csv, model.n_joints)
+    os.makedirs(args.out, exist_ok=True)  # an unwritable OUT fails now, not after the compile
     out = batch_forward(model, q, chunk=args.chunk)
 
-    os.makedirs(args.out, exist_ok=True)
     npz_path = os.path.join(args.out, "centrelines.npz")
     csv_path = os.path.join(args.out, "tips.csv")
 
