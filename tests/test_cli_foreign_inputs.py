@@ -86,3 +86,27 @@ def test_unwritable_output_is_one_line_exit_2(tmp_path, capsys):
     root = make_dataset(tmp_path / "d", n_frames=1)
     assert main(["segment", str(root), "-o", str(blocker / "out"), "--quiet"]) == 2
     assert str(blocker) in _one_line_error(capsys)
+
+
+def test_absurd_centreline_samples_are_refused(tmp_path, capsys):
+    """`jaxcr fk --points 100000000` asked XLA for 61 GB (a traceback, or the shared machine
+    out of memory); a robot file with such an n_points validated. Now both are input errors."""
+    import json
+
+    import pytest
+    from _datasets import ROBOT
+
+    from jaxcr.cli import main
+    from jaxcr.errors import InputError
+    from jaxcr.kinematics.robots import robot_from_dict
+
+    for kind in (ROBOT, {"kind": "single_segment", "length": 0.05, "radius": 0.001}):
+        with pytest.raises(InputError, match="n_points.*<= 10000"):
+            robot_from_dict({**kind, "n_points": 100_000_000})
+        assert robot_from_dict({**kind, "n_points": 10_000}).n_points == 10_000
+    robot = tmp_path / "robot.json"
+    robot.write_text(json.dumps(ROBOT))
+    q = tmp_path / "q.csv"
+    q.write_text("5.0,0.1\n")
+    assert main(["fk", str(robot), str(q), "-o", str(tmp_path / "o"), "--points", "100000000"]) == 2
+    assert "--points must be in [2, 10000]" in _one_line_error(capsys)

@@ -47,7 +47,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("q_csv", metavar="Q.csv", help="joint values, one row per configuration")
     p.add_argument("-o", "--out", required=True, help="output folder (created if missing)")
     p.add_argument(
-        "--points", type=int, default=None, help="centreline samples N (default: robot's)"
+        "--points",
+        type=int,
+        default=None,
+        help="centreline samples N, 2..10000 (default: robot's)",
     )
     p.add_argument(
         "--chunk", type=int, default=CHUNK, help="rows per compiled batch (default %(default)s)"
@@ -110,8 +113,10 @@ def read_q_csv(path: str, n_joints: int) -> np.ndarray:
 
 
 def _with_points(model, n_points: int):
-    if n_points < 2:
-        raise InputError(f"--points must be >= 2, got {n_points}", field="--points")
+    from jaxcr.kinematics.base import MAX_POINTS
+
+    if not 2 <= n_points <= MAX_POINTS:
+        raise InputError(f"--points must be in [2, {MAX_POINTS}], got {n_points}", field="--points")
     try:
         return dataclasses.replace(model, n_points=n_points)
     except (TypeError, ValueError) as err:

@@ -158,6 +158,12 @@ def get_number(
     return v
 
 
+# Upper bound on centreline samples N read from user input (robot files, --points): far
+# beyond any need (0.01 mm spacing on a 10 cm robot), and it keeps a typo such as 100000000
+# from allocating tens of GB (measured: `jaxcr fk --points 100000000` asked XLA for 61 GB).
+MAX_POINTS = 10_000
+
+
 def get_int(
     d: Mapping[str, Any],
     key: str,
@@ -166,6 +172,7 @@ def get_int(
     prefix: str = "",
     default: int | None = None,
     minimum: int | None = None,
+    maximum: int | None = None,
 ) -> int:
     """Read the integer ``d[key]`` (``default`` if absent and given)."""
     field = f"{prefix}{key}"
@@ -178,6 +185,8 @@ def get_int(
         raise InputError(f"expected an integer, got {v!r}", file=file, field=field)
     if minimum is not None and v < minimum:
         raise InputError(f"must be >= {minimum}, got {v}", file=file, field=field)
+    if maximum is not None and v > maximum:
+        raise InputError(f"must be <= {maximum}, got {v}", file=file, field=field)
     return int(v)
 
 

@@ -27,6 +27,7 @@ import numpy as np
 from jaxcr._types import Array, Float
 from jaxcr.errors import InputError
 from jaxcr.kinematics.base import (
+    MAX_POINTS,
     FkResult,
     check_keys,
     closed_form_result,
@@ -197,7 +198,7 @@ class ConstantCurvature(eqx.Module):
                     ),
                 )
             )
-        n_points = get_int(d, "n_points", file=file, default=64, minimum=len(sections) + 1)
+        n_points = get_int(d, "n_points", file=file, default=64, minimum=len(sections) + 1, maximum=MAX_POINTS)
         a = np.asarray(rows, np.float64)
         return cls.make(
             length=a[:, 0],

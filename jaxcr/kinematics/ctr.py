@@ -65,6 +65,7 @@ from jaxcr._types import Array, Float
 from jaxcr.errors import InputError
 from jaxcr.geometry import rot_z
 from jaxcr.kinematics.base import (
+    MAX_POINTS,
     FkResult,
     check_keys,
     get_int,
@@ -238,7 +239,7 @@ class ConcentricTubeRobot(eqx.Module):
             raise InputError(
                 f"expected true or false, got {tt!r}", file=file, field="transmission_torsion"
             )
-        n_points = get_int(d, "n_points", file=file, default=97, minimum=2 * len(rows) + 1)
+        n_points = get_int(d, "n_points", file=file, default=97, minimum=2 * len(rows) + 1, maximum=MAX_POINTS)
         options = {"transmission_torsion": tt, "n_points": n_points} | kwargs
         return cls.make(rows, **options)
 

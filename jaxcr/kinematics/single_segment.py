@@ -31,6 +31,7 @@ import jax.numpy as jnp
 from jaxcr._types import Array, Float, Mat3
 from jaxcr.geometry import rot_y, rot_z
 from jaxcr.kinematics.base import (
+    MAX_POINTS,
     FkResult,
     check_keys,
     closed_form_result,
@@ -138,7 +139,7 @@ class SingleSegment(eqx.Module):
             bending_stiffness=get_number(
                 d, "bending_stiffness", file=file, default=0.0, nonnegative=True
             ),
-            n_points=get_int(d, "n_points", file=file, default=64, minimum=2),
+            n_points=get_int(d, "n_points", file=file, default=64, minimum=2, maximum=MAX_POINTS),
         )
 
     def to_dict(self) -> dict[str, Any]:
