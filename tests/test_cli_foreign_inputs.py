@@ -110,3 +110,25 @@ def test_absurd_centreline_samples_are_refused(tmp_path, capsys):
     q.write_text("5.0,0.1\n")
     assert main(["fk", str(robot), str(q), "-o", str(tmp_path / "o"), "--points", "100000000"]) == 2
     assert "--points must be in [2, 10000]" in _one_line_error(capsys)
+
+
+def test_negative_seed_and_infinite_model_error_are_usage_errors(capsys):
+    """--seed -5 was a numpy traceback (synth; every command shares the argparse type now);
+    synth --model-error inf blamed 'tubes[0].E'."""
+    import pytest
+
+    from jaxcr.cli import main
+
+    for argv in (
+        ["synth", "--preset", "orthogonal", "-o", "x"],
+        ["segment", "d", "-o", "x"],
+        ["stereo", "synth", "-o", "x"],
+        ["manifold", "synth", "-o", "x"],
+        ["model-object", "synth", "-o", "x"],
+    ):
+        with pytest.raises(SystemExit) as exc:
+            main([*argv, "--seed", "-5"])
+        assert exc.value.code == 2
+        assert "--seed: expected a non-negative integer, got -5" in capsys.readouterr().err
+    assert main(["synth", "--preset", "orthogonal", "-o", "x", "--model-error", "inf"]) == 2
+    assert "field 'model-error': model-error scale must be finite" in _one_line_error(capsys)

@@ -28,6 +28,7 @@ import platform
 import sys
 from pathlib import Path
 
+from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
 from jaxcr.io import results as R
 
@@ -63,7 +64,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="segment: frames per batch")
     p.add_argument("--size", default=None, metavar="WxH", help="segment: image size")
     p.add_argument("--batch", type=int, default=None, help="fk: joint vectors per batch")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
     p.set_defaults(func=run)
     return p  # fmt: skip
 

@@ -13,6 +13,7 @@ import argparse
 import time
 from pathlib import Path
 
+from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
 
 HELP = "generate a small synthetic dataset, segment it and print the IoU table"
@@ -37,7 +38,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--preset", default=DEFAULT_PRESET, help=f"synthetic preset (default {DEFAULT_PRESET})"
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed of the scene (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed of the scene (default 0)")
     p.set_defaults(func=run)
     return p  # fmt: skip
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
 
 
@@ -80,7 +81,7 @@ def add_parser(subparsers) -> None:
         "--marker-index", type=int, default=None, help="marker cluster index instead of a colour"
     )
     t.add_argument("--cameras", default="left,right", help="the two views, left first")
-    t.add_argument("--seed", type=int, default=0, help="seed of the colour clustering")
+    t.add_argument("--seed", type=_seed, default=0, help="seed of the colour clustering")
     t.set_defaults(func=run_train)
 
     q = sub.add_parser("query", help="estimate every frame of a dataset with a model")
@@ -97,7 +98,7 @@ def add_parser(subparsers) -> None:
     s.add_argument("--split", choices=["train", "test"], default="train", help="random stream")
     s.add_argument("--size", default="1024x768", help="image size WIDTHxHEIGHT (default 1024x768)")
     s.add_argument("--occluded", action="store_true", help="add a laparoscopic instrument")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     s.set_defaults(func=run_synth)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
 
 
@@ -61,7 +62,7 @@ def add_parser(subparsers) -> None:
         "registrations of views two apart (default), or the paper's Algorithm 2 alone "
         "(Algorithm 2 is reported either way)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the sensor noise / sampling")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of the sensor noise / sampling")
     g = p.add_argument_group("synth (with SCENE = synth)")
     g.add_argument("--task", choices=["1", "2"], default="1")
     g.add_argument("--size", default="320x240", help="WIDTHxHEIGHT")

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
 
 
@@ -94,7 +95,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--no-baseline", action="store_true", help="skip the grabCut baseline")
     g = p.add_argument_group("synth (with DATASET = synth)")
     g.add_argument("--preset", default="pushed_static")
-    g.add_argument("--seed", type=int, default=0, help="random seed of the generated scene")
+    g.add_argument("--seed", type=_seed, default=0, help="random seed of the generated scene")
     g.add_argument("--size", default="320x240", help="WIDTHxHEIGHT")
     g.add_argument("--frames", type=int, default=24)
     g.add_argument("--video", action="store_true", help="also encode video.avi and read from it")

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
 from jaxcr.io import results as R
 
@@ -145,7 +146,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--seed",
-        type=int,
+        type=_seed,
         default=0,
         help="random seed (recorded; the refinement itself is deterministic)",
     )

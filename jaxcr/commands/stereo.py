@@ -42,6 +42,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
 
 FORMAT = "jaxcr.stereo/1"
@@ -70,7 +71,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--segments", type=int, default=None, help="number of tubes if known")
     p.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs")
     p.add_argument("--frames", type=int, default=8, help="synth: number of frames")
-    p.add_argument("--seed", type=int, default=0, help="synth: random seed")
+    p.add_argument("--seed", type=_seed, default=0, help="synth: random seed")
     p.add_argument("--size", default="640x480", help="synth: image size WxH")
     p.add_argument("--background", choices=["green", "blue"], default="green",
                    help="synth: chroma cloth colour")  # fmt: skip

@@ -21,10 +21,12 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
 
+from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
 
 
@@ -43,7 +45,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--all", action="store_true", help="every preset, one sub-folder each")
     p.add_argument("-o", "--out", required=True, help="output folder")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (default %(default)s)")
     p.add_argument("--frames", type=int, default=None, help="frames per preset (default 20)")
     p.add_argument("--size", default=None, help="image size WIDTHxHEIGHT (default 640x480)")
     p.add_argument(
@@ -100,9 +102,10 @@ def run(args) -> int:
     size = None if args.size is None else parse_size(args.size)
     if args.frames is not None and args.frames < 1:
         raise InputError(f"need at least one frame, got {args.frames}", field="frames")
-    if args.model_error is not None and not args.model_error >= 0:
+    if args.model_error is not None and not 0 <= args.model_error < math.inf:
         raise InputError(
-            f"model-error scale must be >= 0, got {args.model_error}", field="model-error"
+            f"model-error scale must be finite and >= 0, got {args.model_error}",
+            field="model-error",
         )
     n_cameras = args.cameras
     if args.stereo:
