@@ -132,3 +132,23 @@ def test_negative_seed_and_infinite_model_error_are_usage_errors(capsys):
         assert "--seed: expected a non-negative integer, got -5" in capsys.readouterr().err
     assert main(["synth", "--preset", "orthogonal", "-o", "x", "--model-error", "inf"]) == 2
     assert "field 'model-error': model-error scale must be finite" in _one_line_error(capsys)
+
+
+def test_truncated_or_foreign_run_json_is_one_line(tmp_path, capsys):
+    """A truncated run.json (a run killed by the OS while the folder was copied, a hand edit)
+    was a JSONDecodeError traceback in evaluate and in segment --resume."""
+    import json
+
+    from jaxcr.cli import main
+
+    root = make_dataset(tmp_path / "d", n_frames=1)
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "results.jsonl").write_text('{"frame": "000000", "ok": false, "reason": "x"}\n')
+    good = {"format": "jaxcr.segment-run/1", "dataset": str(root)}
+    for text in (json.dumps(good)[:30], "[1, 2]", json.dumps({**good, "format": "other/9"})):
+        (out / "run.json").write_text(text)
+        assert main(["evaluate", str(out), "--no-plot"]) == 2
+        assert "run.json" in _one_line_error(capsys)
+        assert main(["segment", str(root), "-o", str(out), "--resume", "--quiet"]) == 2
+        assert "run.json" in _one_line_error(capsys)

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import csv
 import io
-import json
 import math
 import sys
 from pathlib import Path
@@ -99,7 +98,7 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
         raise InputError("not a segment output folder", file=str(out))
     if not layout.run.exists():
         raise InputError("no run.json: not a jaxcr segment output folder", file=str(out))
-    run_info = json.loads(layout.run.read_text())
+    run_info = R.read_run(layout.run)
     try:
         records = R.read_results(layout.results)
     except ValueError as err:

@@ -323,9 +323,7 @@ def prepare_output(out: Path, resume: bool, overwrite: bool, run_info: dict) -> 
             f.unlink(missing_ok=True)
     records: list[dict] = []
     if resume and layout.run.exists():
-        import json
-
-        prev = json.loads(layout.run.read_text())
+        prev = R.read_run(layout.run)
         for key in ("dataset", "cameras", "background", "config"):
             if R.to_jsonable(prev.get(key)) != R.to_jsonable(run_info.get(key)):
                 raise InputError(

@@ -207,6 +207,30 @@ class OutputLayout:
 # --------------------------------------------------------------------------- results log
 
 
+def read_run(path: str | os.PathLike) -> dict:
+    """Read ``run.json`` (format ``jaxcr.segment-run/1``); an unreadable, truncated or foreign
+    file raises :class:`jaxcr.errors.InputError` naming it (never a JSON traceback)."""
+    from jaxcr.errors import InputError
+
+    path = Path(path)
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise InputError("not a UTF-8 JSON file", file=str(path)) from None
+    except json.JSONDecodeError as err:
+        raise InputError(f"not valid JSON ({err.msg}, line {err.lineno})", file=str(path)) from None
+    if not isinstance(info, dict) or not isinstance(info.get("dataset"), str):
+        raise InputError("not a jaxcr segment run.json (no 'dataset')", file=str(path))
+    fmt = info.get("format")
+    if fmt != RUN_FORMAT:
+        raise InputError(
+            f"unsupported format {fmt!r}; this jaxcr reads {RUN_FORMAT!r}",
+            file=str(path),
+            field="format",
+        )
+    return info
+
+
 def read_results(path: str | os.PathLike) -> list[dict]:
     """Read a ``results.jsonl`` file: one dict per complete line, in file order.
 
