@@ -152,3 +152,26 @@ def test_truncated_or_foreign_run_json_is_one_line(tmp_path, capsys):
         assert "run.json" in _one_line_error(capsys)
         assert main(["segment", str(root), "-o", str(out), "--resume", "--quiet"]) == 2
         assert "run.json" in _one_line_error(capsys)
+
+
+def test_evaluate_marks_an_incomplete_run_in_the_report(tmp_path, capsys):
+    """An interrupted run's table2.md read exactly like a complete one (only a stderr warning)."""
+    import json
+
+    from jaxcr.cli import main
+
+    root = make_dataset(tmp_path / "d", n_frames=2)
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "run.json").write_text(
+        json.dumps({"format": "jaxcr.segment-run/1", "dataset": str(root), "cameras": ["main"]})
+    )
+    rec = {"format": "jaxcr.segment/1", "frame": "000000", "ok": False, "reason": "x"}
+    (out / "results.jsonl").write_text(json.dumps(rec) + "\n")
+    assert main(["evaluate", str(out), "--no-plot"]) == 0
+    assert "is incomplete" in capsys.readouterr().err
+    md = (out / "table2.md").read_text()
+    assert "**INCOMPLETE RUN**" in md and "only its 1 processed frames" in md
+    (out / "DONE").write_text("now\n")
+    assert main(["evaluate", str(out), "--no-plot"]) == 0
+    assert "INCOMPLETE" not in (out / "table2.md").read_text()

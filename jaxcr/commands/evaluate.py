@@ -136,6 +136,7 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
                         e3[f"tip_depth_{tag}_mm"] = 1e3 * float(dep)
         for cam in cams:
             row = {
+                "out": str(out),
                 "dataset": name,
                 "group": group,
                 "frame": fid,
@@ -245,12 +246,22 @@ def iou_plot(rows: list[dict], path: Path) -> None:
     R.atomic_write_bytes(path, buf.getvalue())
 
 
-def write_report(rows, infos, report_dir: Path, title: str | None = None, plot: bool = True):
-    """Write table2.md/csv, per_frame.csv (and iou.png); return the :class:`Table2`."""
+def write_report(rows, infos, report_dir: Path, title: str | None = None, plot: bool = True,
+                 incomplete=()):  # fmt: skip
+    """Write table2.md/csv, per_frame.csv (and iou.png); return the :class:`Table2`.
+
+    ``incomplete``: output folders without a DONE marker (interrupted or ``--limit`` runs);
+    table2.md then says so at the top, so a partial report never reads as a complete one.
+    """
     table = rep.build_table2(rows)
     report_dir.mkdir(parents=True, exist_ok=True)
     title = title or "Kinematic-prior segmentation (Watson et al. Table II layout)"
     lines = [f"# {title}", ""]
+    for o in incomplete:
+        n = len({r["frame"] for r in rows if r.get("out") == str(o)})
+        lines.append(f"**INCOMPLETE RUN**: `{o}` has no DONE marker (interrupted or --limit); "
+                     f"only its {n} processed frames are in this report.")  # fmt: skip
+        lines.append("")
     lines.append("IoU mean ± std over frames (raw | adjusted where occlusion masks exist).")
     lines.append("")
     lines.append(rep.table2_markdown(table))
@@ -284,10 +295,11 @@ def run(args) -> int:
         raise InputError("no results to evaluate (empty results.jsonl)", file=str(outs[0]))
     report_dir = Path(args.out) if args.out else (outs[0] if len(outs) == 1 else
                                                   Path("jaxcr-report"))  # fmt: skip
-    table = write_report(rows, infos, report_dir, args.title, plot=not args.no_plot)
-    for o in outs:
-        if not R.output_is_complete(o):
-            print(f"jaxcr evaluate: warning: {o} is incomplete (no DONE marker)", file=sys.stderr)
+    incomplete = [o for o in outs if not R.output_is_complete(o)]
+    table = write_report(rows, infos, report_dir, args.title, plot=not args.no_plot,
+                         incomplete=incomplete)  # fmt: skip
+    for o in incomplete:
+        print(f"jaxcr evaluate: warning: {o} is incomplete (no DONE marker)", file=sys.stderr)
     from rich.console import Console
 
     Console().print(rep.table2_rich(table))
