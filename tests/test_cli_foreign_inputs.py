@@ -175,3 +175,19 @@ def test_evaluate_marks_an_incomplete_run_in_the_report(tmp_path, capsys):
     (out / "DONE").write_text("now\n")
     assert main(["evaluate", str(out), "--no-plot"]) == 0
     assert "INCOMPLETE" not in (out / "table2.md").read_text()
+
+
+def test_help_texts_do_not_repeat_themselves():
+    """stereo/calibrate --help printed the first paragraph twice (description, then again as
+    the start of the epilog); every subcommand's help is checked."""
+    import collections
+
+    from jaxcr.cli import build_parser
+
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction"]
+    assert {"segment", "evaluate", "stereo", "calibrate", "fk", "validate"} <= set(sub.choices)
+    for name, p in sub.choices.items():
+        lines = [ln.strip() for ln in p.format_help().splitlines() if len(ln.strip()) > 25]
+        repeated = [ln for ln, c in collections.Counter(lines).items() if c > 1]
+        assert not repeated, (name, repeated)

@@ -33,7 +33,7 @@ def add_parser(subparsers) -> None:
         help="stereo calibration from chessboard / circle-grid image pairs (OpenCV)",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n", 1)[1],
+        epilog=__doc__.split("\n\n", 1)[1],
     )
     p.add_argument("left", help="folder or glob of camera-1 images")
     p.add_argument("right", help="folder or glob of camera-2 images")

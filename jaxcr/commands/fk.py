@@ -41,7 +41,7 @@ def add_parser(subparsers) -> None:
         help="forward kinematics of a robot for rows of joint values",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n", 1)[1],
+        epilog=__doc__.split("\n\n", 1)[1],
     )
     p.add_argument("robot", help="robot.json, dataset.json or dataset folder")
     p.add_argument("q_csv", metavar="Q.csv", help="joint values, one row per configuration")

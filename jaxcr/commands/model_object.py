@@ -42,7 +42,7 @@ def add_parser(subparsers) -> None:
         help="build a 3-D object model with a continuum arm's tip RGB-D camera, or 'synth'",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n", 1)[1],
+        epilog=__doc__.split("\n\n", 1)[1],
     )
     p.add_argument("scene", help="scene folder (jaxcr.rgbd_scene/1), or 'synth' to generate one")
     p.add_argument("-o", "--out", required=True, help="output folder")

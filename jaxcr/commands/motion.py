@@ -41,7 +41,7 @@ def add_parser(subparsers) -> None:
         help="segment the object the robot pushes or holds (Motion-Likelihood), or 'synth'",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n", 1)[1],
+        epilog=__doc__.split("\n\n", 1)[1],
     )
     p.add_argument("dataset", help="dataset folder (jaxcr.motion/1), or 'synth' to generate one")
     p.add_argument("-o", "--out", required=True, help="output folder")

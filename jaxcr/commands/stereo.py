@@ -59,7 +59,7 @@ def add_parser(subparsers) -> None:
         help="3-D backbone shape sensing from stereo pairs (or 'synth' for a synthetic set)",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n", 1)[1],
+        epilog=__doc__.split("\n\n", 1)[1],
     )
     p.add_argument("dataset", help="stereo dataset folder (stereo.json), or 'synth'")
     p.add_argument("-o", "--out", required=True, help="output folder (created if missing)")

@@ -38,7 +38,7 @@ def add_parser(subparsers) -> None:
         help="generate synthetic CTR datasets (ray-cast images, masks, true centrelines)",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n", 1)[1],
+        epilog=__doc__.split("\n\n", 1)[1],
     )
     p.add_argument(
         "--preset", action="append", default=[], choices=sorted(PRESETS), help="preset (repeatable)"

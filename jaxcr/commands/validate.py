@@ -29,7 +29,7 @@ def add_parser(subparsers) -> None:
         help="check a dataset (files, robot, cameras, frames) and list every problem",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n", 1)[1],
+        epilog=__doc__.split("\n\n", 1)[1],
     )
     p.add_argument("dataset", help="dataset folder or its dataset.json")
     p.add_argument("-o", "--out", default=None, help="also write the problems as JSON here")
