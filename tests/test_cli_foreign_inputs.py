@@ -191,3 +191,16 @@ def test_help_texts_do_not_repeat_themselves():
         lines = [ln.strip() for ln in p.format_help().splitlines() if len(ln.strip()) > 25]
         repeated = [ln for ln, c in collections.Counter(lines).items() if c > 1]
         assert not repeated, (name, repeated)
+
+
+def test_non_finite_truth_centreline_is_a_bad_frame(tmp_path):
+    """A NaN truth centreline validated; evaluate then dropped that frame's errors from the
+    means without a word (nanmean)."""
+    import numpy as np
+
+    root = make_dataset(tmp_path / "d", n_frames=3)
+    np.save(root / "truth" / "000001.npy", np.full((8, 3), np.nan))
+    np.save(root / "truth" / "000002.npy", np.zeros((1, 3)))
+    ds = load_dataset(root)
+    assert [f.id for f in ds.frames] == ["000000"]
+    assert all("truth.centreline" in m and "finite" in m for m in ds.bad_frames.values())

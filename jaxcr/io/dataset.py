@@ -445,6 +445,17 @@ class _Scan:
                                 file=str(path),
                             )
                             continue
+                        if k == "centreline" and not (
+                            np.issubdtype(arr.dtype, np.number)
+                            and arr.shape[0] >= 2
+                            and np.all(np.isfinite(arr))
+                        ):
+                            ferr(
+                                "expected at least 2 finite points (NaN, inf or non-numbers found)",
+                                f"truth.{k}",
+                                file=str(path),
+                            )
+                            continue
                     truth[k] = path.resolve()
                 else:
                     truth[k] = v
