@@ -17,7 +17,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jaxcr._types import Array, Float
-from jaxcr.kinematics.cosserat import Centreline, integrate_centreline, perturb_centreline
+from jaxcr.kinematics.cosserat import Centreline, perturb_centreline
 
 
 def n_axes(torsion: bool) -> int:
@@ -65,45 +65,11 @@ def delta_u_steps(
     return du
 
 
-def tip_section(rho: Float[Array, " n"]) -> Float[Array, " n-1"]:
-    """1.0 on the integration steps of the tip section, the distal steps whose end radius
-    equals the tip's (for a concentric-tube robot: the innermost tube's exposed part; for a
-    robot of one radius: the whole length), else 0.0."""
-    tol = 1e-6 * jnp.maximum(jnp.max(jnp.abs(rho)), jnp.finfo(rho.dtype).tiny)
-    on = jnp.abs(rho[1:] - rho[-1]) <= tol
-    # only the distal run: a step counts if it and every step after it match
-    distal = jnp.flip(jnp.cumprod(jnp.flip(on.astype(rho.dtype))))
-    return distal
-
-
-def stretch_tip_section(
-    s: Float[Array, " n"], rho: Float[Array, " n"], extension: Float[Array, ""]
-) -> Float[Array, " n"]:
-    """Arclengths with the tip section (:func:`tip_section`) lengthened by ``extension``
-    metres, spread uniformly over its steps (its curvature per unit length unchanged, as when
-    the innermost tube of a concentric-tube robot is translated); shortening is limited to 90 %
-    of the section."""
-    ds = jnp.diff(s)
-    w = tip_section(rho)
-    l_tip = jnp.maximum(jnp.sum(ds * w), jnp.finfo(s.dtype).tiny)
-    factor = 1.0 + w * jnp.maximum(extension / l_tip, -0.9)
-    return jnp.concatenate([s[:1], s[0] + jnp.cumsum(ds * factor)])
-
-
 def perturbed_centreline(
-    base: Centreline,
-    coeffs: Float[Array, "a k"],
-    torsion: bool = False,
-    extension: Float[Array, ""] | None = None,
+    base: Centreline, coeffs: Float[Array, "a k"], torsion: bool = False
 ) -> Centreline:
-    """Watson et al. eq. 1 re-integrated with u + delta-u(coeffs) from the base pose of ``base``;
-    with ``extension`` (m), the tip section is also lengthened by it
-    (:func:`stretch_tip_section`). delta-u is defined on the base arclength."""
-    du = delta_u_steps(coeffs, base.s, torsion)
-    if extension is None:
-        return perturb_centreline(base, du)
-    s = stretch_tip_section(base.s, base.rho, extension)
-    return integrate_centreline(s, base.u[1:] + du, base.rho, base.p[0], base.R[0])
+    """Watson et al. eq. 1 re-integrated with u + delta-u(coeffs) from the base pose of ``base``."""
+    return perturb_centreline(base, delta_u_steps(coeffs, base.s, torsion))
 
 
 def regularisation(
