@@ -115,10 +115,14 @@ class PipelineConfig:
     # (3 x the baseline) err ~2x more than gap 2's and, sharing the views' errors, made
     # the poses worse (experiments/results/model_object_pose_graph.md).
     extra_gaps: tuple[int, ...] = (2,)
-    # Edge weights of the pose graph: "information" (each registration's ICP information,
-    # :func:`jaxcr.registration.projective.projective_information`) or "points" (every
-    # edge the same point information, Algorithm 2's objective).
-    edge_weights: str = "information"
+    # Edge weights of the pose graph: "calibrated" (each registration's ICP information,
+    # then the covariance model scale * Omega^-1 + isotropic floor estimated from the
+    # graph's own cycles by variance components / REML and the graph solved again:
+    # :func:`jaxcr.registration.pose_graph.calibrate_edges`), "information" (the ICP
+    # information as stated, :func:`jaxcr.registration.projective.projective_information`:
+    # optimistic ~5x in scale and far too anisotropic, e^T Omega e medians ~100 against
+    # truth) or "points" (every edge the same point information, Algorithm 2's objective).
+    edge_weights: str = "calibrated"
 
     def register(self, src, tgt, K, prior, seed: int, prior_gate=None) -> PairResult:
         """:func:`register_pair` with this configuration's ICP, keypoint and colour options."""
@@ -412,8 +416,10 @@ def build_model(
     result.extra_seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
     ring_edges = [(k, (k + 1) % len(ring), e) for k, e in enumerate(edges)]
-    graph = graph_edges(result, ring_edges + result.extra, cfg.edge_weights)
-    pg = optimize_pose_graph(g.poses, graph, anchor=len(ring) - 1)
+    graph = graph_edges(result, ring_edges + result.extra, _graph_weights(cfg.edge_weights))
+    pg = optimize_pose_graph(
+        g.poses, graph, anchor=len(ring) - 1, calibrate=cfg.edge_weights == "calibrated"
+    )
     result.pose_graph = pg
     # Frame O = the last ring view exactly (it is the anchor; re-anchor against float32).
     anchor = np.linalg.inv(pg.poses[-1])
@@ -421,6 +427,16 @@ def build_model(
     result.global_result = GlobalResult(poses, g.initial, pg.iterations, pg.step_norm < 1e-5)
     result.global_seconds = time.perf_counter() - t0
     return result
+
+
+def _graph_weights(edge_weights: str) -> str:
+    """``graph_edges`` weighting of a ``PipelineConfig.edge_weights`` value ("calibrated"
+    starts from the stated information)."""
+    if edge_weights not in ("calibrated", "information", "points"):
+        raise ValueError(
+            f"edge_weights must be 'calibrated', 'information' or 'points', got {edge_weights!r}"
+        )
+    return "information" if edge_weights == "calibrated" else edge_weights
 
 
 def graph_edges(

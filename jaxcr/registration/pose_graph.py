@@ -48,6 +48,10 @@ class PoseGraphResult(NamedTuple):
     cost_final: float
     iterations: int
     step_norm: float  # size of the last Gauss-Newton step (m and rad, max abs component)
+    # calibrate=True: the covariance model estimated from the graph (EdgeCalibration) and the
+    # poses of the first solve with the information as stated.
+    calibration: object = None
+    stated_poses: list | None = None
 
 
 def edge_residual(T_i: Mat4, T_j: Mat4, Z: Mat4) -> Float[Array, "6"]:
@@ -161,9 +165,14 @@ def optimize_pose_graph(
     anchor: int = -1,
     iterations: int = 10,
     robust_rounds: int = 0,
+    calibrate: bool = False,
 ) -> PoseGraphResult:
     """Solve the pose graph (module docstring) from the ``initial`` poses ``T_O,i`` with
-    the ``anchor`` pose fixed. ``robust_rounds`` > 0: that many further solves, each with
+    the ``anchor`` pose fixed. ``calibrate``: solve with the information as stated, estimate
+    the covariance model ``scale * Omega^-1 + floor`` from that solution's residuals
+    (:func:`calibrate_edges`: variance components / REML on the graph's cycles), then
+    solve again from there with the calibrated information (a graph without a cycle keeps
+    the stated information). ``robust_rounds`` > 0: that many further solves, each with
     every edge's information scaled by its Cauchy weight (:func:`robust_weights`) from the
     previous solution's residuals (iteratively reweighted least squares: a registration
     that disagrees with the rest of the graph counts less). Raises ``ValueError`` for a
@@ -190,6 +199,19 @@ def optimize_pose_graph(
         seen.update((e.i, e.j))
     if len(seen) < m:
         raise ValueError(f"poses {sorted(set(range(m)) - seen)} have no edge (unconstrained)")
+    if calibrate:
+        first = optimize_pose_graph(initial, edges, anchor, iterations)
+        try:
+            cal_edges, cal = calibrate_edges(first.poses, edges, anchor)
+        except ValueError:  # no cycle: nothing to calibrate from
+            return first._replace(stated_poses=first.poses)
+        out = optimize_pose_graph(first.poses, cal_edges, anchor, iterations, robust_rounds)
+        return out._replace(
+            initial=[np.asarray(p, np.float64).copy() for p in initial],
+            cost_initial=first.cost_initial,
+            calibration=cal,
+            stated_poses=first.poses,
+        )
     n = _bucket(len(edges))
     src = np.zeros(n, np.int32)
     tgt = np.zeros(n, np.int32)
@@ -275,3 +297,193 @@ def point_information(points: np.ndarray) -> np.ndarray:
     # sum hat(p)^T hat(p) / n = (|p|^2 I - p p^T) averaged = hc^T hc + (tr S I - S)
     info[3:, 3:] = hc.T @ hc + np.trace(S) * np.eye(3) - S
     return info
+
+
+# --- covariance calibration from the graph's own redundancy ---------------------------------
+
+
+def _hat(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of a rotation matrix (float64; angles below pi)."""
+    c = np.clip(0.5 * (np.trace(R) - 1.0), -1.0, 1.0)
+    th = np.arccos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return v * (0.5 if th < 1e-8 else th / (2.0 * np.sin(th)))
+
+
+def _so3_jac_inv(phi: np.ndarray, left: bool) -> np.ndarray:
+    """Inverse left (right) Jacobian of SO(3): ``d log(exp(d) R) / dd`` at ``log R = phi``
+    (``d log(R exp(d)) / dd`` for the right one)."""
+    th = float(np.linalg.norm(phi))
+    P = _hat(phi)
+    if th < 1e-6:
+        c = 1.0 / 12.0
+    else:
+        c = (1.0 - th * np.sin(th) / (2.0 * (1.0 - np.cos(th)))) / th**2
+    return np.eye(3) + (-0.5 if left else 0.5) * P + c * P @ P
+
+
+def graph_linearisation(
+    poses: list[np.ndarray], edges: list[GraphEdge], anchor: int = -1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals ``r`` (6e,) of the edges at ``poses`` (:func:`edge_residual`, float64) and
+    their exact Jacobian ``J`` (6e, 6(m-1)) with respect to the pose updates of
+    :func:`solve_pose_graph` (``T_i <- T_i [exp(hat(w_i)), v_i]``, order (v, w)), the
+    anchor's columns removed. With ``E = T_j^-1 T_i Z^-1`` and ``P(d) = [exp(hat(w)), v]``:
+    ``T_i P(d) -> E Z P(d) Z^-1`` (a right perturbation ``Ad_Z d`` of E), ``T_j P(d) ->
+    P(d)^-1 E`` (a left perturbation ``-d``); the residual ``(t_E, log R_E)`` maps these by
+    ``[[R_E, 0], [0, Jr^-1]]`` and ``[[I, -hat(t_E)], [0, Jl^-1]]``."""
+    m = len(poses)
+    a = anchor % m
+    cols = [k for k in range(m) if k != a]
+    col = {k: n for n, k in enumerate(cols)}
+    r = np.zeros(6 * len(edges))
+    J = np.zeros((6 * len(edges), 6 * len(cols)))
+    for n, e in enumerate(edges):
+        Ti, Tj, Z = (np.asarray(x, np.float64) for x in (poses[e.i], poses[e.j], e.Z))
+        E = np.linalg.inv(Tj) @ Ti @ np.linalg.inv(Z)
+        t, phi = E[:3, 3], _rotvec(E[:3, :3])
+        r[6 * n : 6 * n + 3], r[6 * n + 3 : 6 * n + 6] = t, phi
+        if e.i in col:
+            A = np.zeros((6, 6))
+            A[:3, :3], A[3:, 3:] = E[:3, :3], _so3_jac_inv(phi, left=False)
+            J[6 * n : 6 * n + 6, 6 * col[e.i] : 6 * col[e.i] + 6] += A @ adjoint(Z)
+        if e.j in col:
+            B = np.zeros((6, 6))
+            B[:3, :3], B[:3, 3:], B[3:, 3:] = np.eye(3), -_hat(t), _so3_jac_inv(phi, left=True)
+            J[6 * n : 6 * n + 6, 6 * col[e.j] : 6 * col[e.j] + 6] -= B
+    return r, J
+
+
+class EdgeCalibration(NamedTuple):
+    """Covariance model of the registrations, ``Sigma_e = scale * Omega_e^-1 + diag(floor_t
+    I3, floor_r I3)``: a common variance factor of the registrations' own information and an
+    additive isotropic floor (errors that do not average out over a registration's matches:
+    depth bias, correlated residuals), estimated from the graph's redundancy."""
+
+    scale: float  # dimensionless
+    floor_t: float  # m^2
+    floor_r: float  # rad^2
+    redundancy: float  # 6e - 6(m-1): the degrees of freedom the estimate rests on
+    iterations: int
+    converged: bool
+
+    def covariance(self, info: np.ndarray) -> np.ndarray:
+        """Calibrated covariance (6, 6) of an edge with information ``info``."""
+        floor = np.diag([self.floor_t] * 3 + [self.floor_r] * 3)
+        return self.scale * _covariance(info) + floor
+
+
+def _sym(x: np.ndarray) -> np.ndarray:
+    return 0.5 * (x + x.T)
+
+
+def _covariance(info: np.ndarray) -> np.ndarray:
+    """Inverse of a positive semi-definite information matrix, directions without
+    information (eigenvalue below 1e-10 of the largest) given a variance 1e10 times the
+    largest observed one (they stay unconstrained after calibration)."""
+    lam, V = np.linalg.eigh(_sym(np.asarray(info, np.float64)))
+    lam = np.maximum(lam, 1e-10 * max(float(lam.max()), 1e-300))
+    return (V / lam) @ V.T
+
+
+def variance_components(
+    r: np.ndarray,
+    J: np.ndarray,
+    infos: list[np.ndarray],
+    iterations: int = 200,
+    tol: float = 1e-6,
+) -> EdgeCalibration:
+    """Variance-component estimate (Foerstner 1979; its fixed point is the restricted
+    maximum likelihood, REML) of ``Sigma_e = a Q_e + f_t [I 0; 0 0] + f_r [0 0; 0 I]``
+    with ``Q_e = Omega_e^-1``, from the residuals ``r`` (6e,) of a linearised pose graph
+    with Jacobian ``J`` (:func:`graph_linearisation`). Each step solves the weighted least
+    squares with the current ``Sigma``, then updates every component ``theta_k <- theta_k
+    (v^T W S_k W v) / tr(W S_k W Q_vv)`` (``S_k`` its current share of Sigma, ``v`` the
+    residuals, ``Q_vv = Sigma - J N^-1 J^T`` their covariance: the denominator is the
+    component's share of the redundancy). float64, positive components stay positive.
+    Raises ``ValueError`` without redundancy (a tree: no cycle to calibrate from)."""
+    e = len(infos)
+    if r.shape != (6 * e,) or J.shape[0] != 6 * e:
+        raise ValueError(f"r must be (6e,) and J (6e, n) for e = {e} edges")
+    red = 6 * e - J.shape[1]
+    if red <= 0:
+        raise ValueError("the graph has no redundancy (no cycle): nothing to calibrate from")
+    Q = np.stack([_covariance(w) for w in infos])
+    It = np.diag([1.0, 1, 1, 0, 0, 0])
+    Ir = np.diag([0.0, 0, 0, 1, 1, 1])
+    # start: the information as stated, floors at the median stated variance
+    th = np.array(
+        [
+            1.0,
+            float(np.median(np.trace(Q[:, :3, :3], axis1=1, axis2=2))) / 3,
+            float(np.median(np.trace(Q[:, 3:, 3:], axis1=1, axis2=2))) / 3,
+        ]
+    )
+    Jb = J.reshape(e, 6, -1)
+    rb = r.reshape(e, 6)
+    converged, n_it = False, 0
+    for _ in range(iterations):
+        n_it += 1
+        S = [th[0] * Q, th[1] * It[None], th[2] * Ir[None]]
+        W = np.linalg.inv(S[0] + S[1] + S[2])
+        WJ = W @ Jb  # (e, 6, n)
+        N = np.einsum("eai,eaj->ij", Jb, WJ)
+        Ni = np.linalg.inv(N)
+        x = -Ni @ np.einsum("eai,ea->i", WJ, rb)
+        v = rb + Jb @ x
+        Wv = np.einsum("eab,eb->ea", W, v)
+        Qvv = S[0] + S[1] + S[2] - (Jb @ Ni) @ np.swapaxes(Jb, 1, 2)
+        WQW = W @ Qvv @ W
+        new = th.copy()
+        for k in range(3):
+            num = float(np.einsum("ea,eab,eb->", Wv, S[k], Wv))
+            den = float(np.einsum("eab,eba->", S[k], WQW))
+            if den > 1e-12 * red:
+                new[k] = th[k] * num / den
+        new = np.maximum(new, 1e-12 * np.maximum(th, 1e-300))
+        done = np.all(np.abs(new - th) <= tol * np.maximum(th, 1e-300))
+        th = new
+        if done:
+            converged = True
+            break
+    return EdgeCalibration(float(th[0]), float(th[1]), float(th[2]), float(red), n_it, converged)
+
+
+def calibrate_edges(
+    poses: list[np.ndarray], edges: list[GraphEdge], anchor: int = -1, **kw
+) -> tuple[list[GraphEdge], EdgeCalibration]:
+    """The edges with their information replaced by the inverse of the calibrated
+    covariance (:class:`EdgeCalibration`, :func:`variance_components`) estimated at
+    ``poses`` (a pose-graph solution with the stated information)."""
+    r, J = graph_linearisation(poses, edges, anchor)
+    cal = variance_components(r, J, [e.info for e in edges], **kw)
+    out = [e._replace(info=_sym(np.linalg.inv(cal.covariance(e.info)))) for e in edges]
+    return out, cal
+
+
+def consistency_chi2(
+    poses: list[np.ndarray], edges: list[GraphEdge], anchor: int = -1
+) -> tuple[float, int]:
+    """Consistency test of a set of edges (e.g. the ring alone: the loop closure against
+    the chain): the minimum of ``sum_e r_e^T Omega_e r_e`` over the poses, linearised at
+    ``poses`` (one Gauss-Newton step from there, float64), and its degrees of freedom
+    ``6e - 6(m'-1)`` (m' the poses the edges touch). chi^2 with those degrees of freedom
+    when ``Omega_e`` are calibrated inverse covariances (:func:`calibrate_edges`)."""
+    used = sorted({k for e in edges for k in (e.i, e.j)})
+    a = anchor % len(poses)
+    if a not in used:
+        raise ValueError(f"the anchor {a} is not on any of the edges")
+    idx = {k: n for n, k in enumerate(used)}
+    sub = [e._replace(i=idx[e.i], j=idx[e.j]) for e in edges]
+    r, J = graph_linearisation([poses[k] for k in used], sub, idx[a])
+    W = [np.asarray(e.info, np.float64) for e in sub]
+    Jb, rb = J.reshape(len(sub), 6, -1), r.reshape(len(sub), 6)
+    WJ = np.stack(W) @ Jb
+    N = np.einsum("eai,eaj->ij", Jb, WJ)
+    x = -np.linalg.lstsq(N, np.einsum("eai,ea->i", WJ, rb), rcond=None)[0]
+    v = rb + Jb @ x
+    return float(np.einsum("ea,eab,eb->", v, np.stack(W), v)), 6 * len(sub) - J.shape[1]
