@@ -235,3 +235,34 @@ def test_refine_config_from_cli_options():
     for bad in bads:
         with pytest.raises(InputError):
             cfg(**bad)
+
+
+def test_robot_hsv_option_sets_the_colour_mask():
+    import argparse
+
+    import jax.numpy as jnp
+
+    from jaxcr.commands._segmenter import _background_fn
+    from jaxcr.commands.segment import robot_hsv_ranges
+    from jaxcr.errors import InputError
+
+    def ranges(*texts, background="colour"):
+        return robot_hsv_ranges(argparse.Namespace(robot_hsv=list(texts), background=background))
+
+    assert robot_hsv_ranges(argparse.Namespace(robot_hsv=None, background="colour")) is None
+    blue = ranges("190,250,0.3,1,0.1,1")
+    assert len(blue) == 1 and (blue[0].h_lo, blue[0].s_hi) == (190.0, 1.0)
+    # one blue (hue 220) pixel, one grey pixel, one red pixel: (1, 1, 3, 3) batch
+    img = jnp.array([[[[0.1, 0.3, 0.8], [0.5, 0.5, 0.5], [0.8, 0.1, 0.1]]]])
+    bg_default, _ = _background_fn("colour", None, "cam")(img)
+    bg_blue, sub = _background_fn("colour", None, "cam", blue)(img)
+    assert bg_default.tolist() == [[[True, False, True]]]  # greys are the default robot
+    assert bg_blue.tolist() == [[[False, True, True]]]
+    np.testing.assert_allclose(sub[0, 0, 1], 0.0)  # I' = I o M
+    two = ranges("190,250,0.3,1,0.1,1", "0,360,0,0.3,0.06,1")
+    assert _background_fn("colour", None, "cam", two)(img)[0].tolist() == [[[False, False, True]]]
+    for bad in ("1,2,3", "0,360,0.5,0.2,0,1", "0,400,0,1,0,1", "a,b,c,d,e,f", "0,360,0,1,0,nan"):
+        with pytest.raises(InputError, match="robot-hsv"):
+            ranges(bad)
+    with pytest.raises(InputError, match="needs --background colour"):
+        ranges("190,250,0.3,1,0.1,1", background="gmm")

@@ -30,12 +30,14 @@ def _fk_batch(robot, qs):
     return jax.vmap(robot.forward)(qs)
 
 
-def _background_fn(kind: str, ds, camera: str) -> Callable:
-    """A jitted batch function images (F, h, w, 3) -> (B (F, h, w), I' (F, h, w, 3))."""
+def _background_fn(kind: str, ds, camera: str, colour_ranges=None) -> Callable:
+    """A jitted batch function images (F, h, w, 3) -> (B (F, h, w), I' (F, h, w, 3));
+    ``colour_ranges``: the colour mask's robot HSV boxes (None = its default)."""
     from jaxcr import background as bgm
 
     if kind == "colour":
-        return jax.jit(jax.vmap(bgm.colour_mask))
+        ranges = bgm.ROBOT_HSV if colour_ranges is None else tuple(colour_ranges)
+        return jax.jit(jax.vmap(lambda im: bgm.colour_mask(im, ranges)))
     if kind == "none":
         return jax.jit(jax.vmap(bgm.no_mask))
     if kind == "gmm":
@@ -74,6 +76,7 @@ class Segmenter:
         overlays: bool = True,
         warm_start: bool = False,
         batch_size: int = 4,
+        colour_ranges=None,
     ):
         if ds.robot is None:
             raise InputError(
@@ -90,7 +93,7 @@ class Segmenter:
         self.batch_size = int(batch_size)
         self.frames = {f.id: f for f in ds.frames}
         self.frame_ids = list(ds.bad_frames) + [f.id for f in ds.frames]
-        self.bg_fns = {c: _background_fn(background, ds, c) for c in self.cams}
+        self.bg_fns = {c: _background_fn(background, ds, c, colour_ranges) for c in self.cams}
         self.cameras = tuple(ds.cameras[c] for c in self.cams)
         self.compile_s = 0.0
         self.run_s = 0.0

@@ -55,6 +55,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "fitted to the dataset's background images, or none",
     )
     p.add_argument(
+        "--robot-hsv",
+        action="append",
+        default=None,
+        metavar="H0,H1,S0,S1,V0,V1",
+        help="colour mask: an HSV box of robot colours (hue in degrees 0-360, wrapping when "
+        "H0 > H1; saturation and value 0-1); repeat for several boxes; pixels in none of them "
+        "are background. Default: greys/metals/whites, 0,360,0,0.3,0.06,1 (for a coloured "
+        "robot, e.g. a blue sheath: 190,250,0.3,1,0.1,1)",
+    )
+    p.add_argument(
         "--basis",
         type=int,
         default=None,
@@ -211,6 +221,39 @@ def refine_config(args):
     return RefineConfig(**kw)
 
 
+def _hsv_tuple(r) -> tuple[float, ...]:
+    return (r.h_lo, r.h_hi, r.s_lo, r.s_hi, r.v_lo, r.v_hi)
+
+
+def robot_hsv_ranges(args):
+    """The ``--robot-hsv`` boxes as :class:`jaxcr.background.HSVRange` (None = the default
+    :data:`jaxcr.background.ROBOT_HSV`)."""
+    texts = getattr(args, "robot_hsv", None)
+    if not texts:
+        return None
+    if args.background != "colour":
+        raise InputError("--robot-hsv needs --background colour", field="robot-hsv")
+    from jaxcr.background import HSVRange
+
+    out = []
+    for text in texts:
+        try:
+            v = [float(x) for x in text.split(",")]
+        except ValueError:
+            v = []
+        ok = len(v) == 6 and all(math.isfinite(x) for x in v)
+        ok = ok and 0 <= v[0] <= 360 and 0 <= v[1] <= 360
+        ok = ok and 0 <= v[2] <= v[3] <= 1 and 0 <= v[4] <= v[5] <= 1
+        if not ok:
+            raise InputError(
+                f"--robot-hsv {text!r}: need six numbers H0,H1,S0,S1,V0,V1 with hue in "
+                "[0, 360] and 0 <= S0 <= S1 <= 1, 0 <= V0 <= V1 <= 1",
+                field="robot-hsv",
+            )
+        out.append(HSVRange(*v))
+    return tuple(out)
+
+
 def config_dict(cfg) -> dict:
     import dataclasses
 
@@ -324,7 +367,7 @@ def prepare_output(out: Path, resume: bool, overwrite: bool, run_info: dict) -> 
     records: list[dict] = []
     if resume and layout.run.exists():
         prev = R.read_run(layout.run)
-        for key in ("dataset", "cameras", "background", "config"):
+        for key in ("dataset", "cameras", "background", "robot_hsv", "config"):
             if R.to_jsonable(prev.get(key)) != R.to_jsonable(run_info.get(key)):
                 raise InputError(
                     f"cannot resume: '{key}' differs from the interrupted run "
@@ -354,6 +397,7 @@ def run(args) -> int:
     if args.limit is not None and args.limit < 0:
         raise InputError("--limit must be >= 0", field="limit")
     cfg = refine_config(args)
+    ranges = robot_hsv_ranges(args)
     out = Path(args.out)
     run_info = {
         "format": R.RUN_FORMAT,
@@ -362,6 +406,7 @@ def run(args) -> int:
         "dataset_name": ds.name,
         "cameras": cams,
         "background": args.background,
+        "robot_hsv": None if ranges is None else [list(_hsv_tuple(r)) for r in ranges],
         "warm_start": bool(args.warm_start),
         "batch_size": args.batch_size,
         "seed": args.seed,
@@ -387,6 +432,7 @@ def run(args) -> int:
         overlays=not args.no_overlays,
         warm_start=args.warm_start,
         batch_size=args.batch_size,
+        colour_ranges=ranges,
     )
     done = R.done_frame_ids(previous)
     todo = [f for f in seg.frame_ids if f not in done]
