@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from _datasets import edit_json, make_dataset
 
 from jaxcr.io.dataset import load_dataset, validate_dataset
@@ -204,3 +205,99 @@ def test_non_finite_truth_centreline_is_a_bad_frame(tmp_path):
     ds = load_dataset(root)
     assert [f.id for f in ds.frames] == ["000000"]
     assert all("truth.centreline" in m and "finite" in m for m in ds.bad_frames.values())
+
+
+# ----------------------------------------------------------------------------- stereo
+
+
+@pytest.fixture(scope="module")
+def stereo_set(tmp_path_factory):
+    from jaxcr.synth.stereo_ctr import generate_stereo_set
+
+    d = tmp_path_factory.mktemp("stereo") / "set"
+    generate_stereo_set(d, 1, 0, (320, 240), "green", progress=False)
+    return d
+
+
+def _stereo_variant(src, dst, fn):
+    import json
+    import shutil
+
+    shutil.copytree(src, dst)
+    meta = json.loads((dst / "stereo.json").read_text())
+    meta = fn(meta, dst) or meta
+    (dst / "stereo.json").write_text(json.dumps(meta))
+    return dst
+
+
+def test_stereo_json_with_foreign_content_is_one_line(stereo_set, tmp_path, capsys):
+    """Each of these was an AttributeError/ValueError/KeyError traceback (or, for the id, a
+    write outside OUT/frames) in `jaxcr stereo`."""
+    import cv2
+
+    from jaxcr.cli import main
+
+    def plate_small(m, d):
+        p = d / m["background_plates"]["cam1"]
+        cv2.imwrite(str(p), cv2.resize(cv2.imread(str(p)), (100, 80)))
+
+    def dup(m, d):
+        m["frames"].append(dict(m["frames"][0]))
+
+    cases = {
+        "top": (lambda m, d: [1], "top level"),
+        "bg": (lambda m, d: m.update(background=["green"]), "field 'background'"),
+        "key": (
+            lambda m, d: m["background"].update(key_rgb=["a", 1, 2]),
+            "field 'background.key_rgb': expected 3 finite numbers",
+        ),
+        "base": (lambda m, d: m.update(robot_base="origin"), "field 'robot_base'"),
+        "plates": (
+            lambda m, d: m.update(background_plates={"cam1": "background/cam1.png"}),
+            "field 'background_plates'",
+        ),
+        "plate_size": (plate_small, "image is 100x80, the calibration is 320x240"),
+        "id": (lambda m, d: m["frames"][0].update(id="../x"), "not usable as a file name"),
+        "dup": (dup, "duplicate frame id"),
+        "cams": (lambda m, d: m.update(cameras=["a", "a"]), "field 'cameras'"),
+    }
+    for name, (fn, expect) in cases.items():
+        d = _stereo_variant(stereo_set, tmp_path / name, fn)
+        assert main(["stereo", str(d), "-o", str(tmp_path / f"o_{name}")]) == 2, name
+        assert expect in _one_line_error(capsys), name
+    assert not (tmp_path / "x.json").exists() and not list(tmp_path.glob("o_*/frames"))
+
+
+def test_stereo_black_view_is_a_failed_frame_not_a_shape(stereo_set):
+    """A black first view (foreground everywhere under the chroma key) was 'reconstructed'
+    into a 1-segment backbone 7 cm from the true one, ok=true."""
+    import numpy as np
+
+    from jaxcr.commands.stereo import _read_rgb, load_stereo_dataset
+    from jaxcr.stereo.pipeline import StereoFailure, reconstruct_pair
+
+    ds = load_stereo_dataset(stereo_set)
+    fr = ds["frames"][0]
+    im1, im2 = (_read_rgb(ds["root"] / fr["images"][n]) for n in ds["names"])
+    with pytest.raises(StereoFailure, match="covers .* of view 1"):
+        reconstruct_pair(np.zeros_like(im1), im2, ds["cam1"], ds["cam2"], ds["config"], None)
+
+
+def test_stereo_rerun_with_other_options_is_refused(stereo_set, tmp_path):
+    """A rerun into the same OUT skipped the frames already in results.jsonl whatever the
+    options, so e.g. --segmentation plate silently mixed with earlier chroma results."""
+    from jaxcr.commands.stereo import _check_run, load_stereo_dataset
+    from jaxcr.errors import InputError
+
+    ds = load_stereo_dataset(stereo_set)
+    out = tmp_path / "o"
+    out.mkdir()
+    _check_run(out, ds)
+    _check_run(out, ds)  # same options: continue
+    ds["config"].segmentation = "plate"
+    with pytest.raises(InputError, match="different options"):
+        _check_run(out, ds)
+    other = tmp_path / "old"
+    (other / "frames").mkdir(parents=True)
+    with pytest.raises(InputError, match="without run.json"):
+        _check_run(other, ds)

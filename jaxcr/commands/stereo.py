@@ -17,7 +17,8 @@ DATASET is a folder with ``stereo.json`` (format ``jaxcr.stereo/1``)::
 The calibration is an OpenCV FileStorage stereo file as ``cv2.stereoCalibrate`` users
 save it (``K1 D1 K2 D2 R T [E F]``, image sizes; read by :mod:`jaxcr.io.calibration`).
 
-Outputs in OUT (written as frames complete; a rerun skips frames already done):
+Outputs in OUT (written as frames complete; a rerun into the same OUT skips frames already
+done, and is refused if the dataset or options differ from ``OUT/run.json``):
 
 - ``results.jsonl``: one line per frame: ``id``, ``ok``, ``reason`` and ``message`` on
   failure (``calibration_size``, ``markers``, ``robot_not_found``, ``correspondence``,
@@ -81,17 +82,42 @@ def add_parser(subparsers) -> None:
 # ------------------------------------------------------------------------------ loading
 
 
-def _read_rgb(path: Path, frame=None) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise InputError("cannot read image", file=str(path), frame=frame)
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+def _read_rgb(path: Path, frame=None, size=None, field=None) -> np.ndarray:
+    """8-bit RGB (H, W, 3) (grey, RGBA and 16-bit files are converted by OpenCV); ``size``
+    (width, height) is checked when given. InputError naming the file otherwise."""
+    from jaxcr.io.images import read_image
+
+    try:
+        img = read_image(path)  # float RGB in [0, 1]; one-line errors for missing/corrupt
+    except InputError as err:
+        raise InputError(err.message, file=err.file, frame=frame, field=field) from None
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        raise InputError(
+            f"image is {img.shape[1]}x{img.shape[0]}, the calibration is {size[0]}x{size[1]}",
+            file=str(path),
+            frame=frame,
+            field=field,
+        )
+    return np.round(img * 255.0).astype(np.uint8)
+
+
+def _finite_tuple(v, n: int, file: str, field: str) -> tuple[float, ...]:
+    """``v`` as a tuple of ``n`` finite floats, else InputError naming ``field``."""
+    if (
+        not isinstance(v, list)
+        or len(v) != n
+        or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in v)
+        or not all(np.isfinite(v))
+    ):
+        raise InputError(f"expected {n} finite numbers, got {v!r}", file=file, field=field)
+    return tuple(float(x) for x in v)
 
 
 def load_stereo_dataset(folder: str | os.PathLike) -> dict:
     """Parse ``stereo.json`` (see module docstring): returns ``{"root", "meta", "cam1",
     "cam2", "config", "plates", "frames"}``. Bad input raises :class:`InputError`."""
     from jaxcr.io.calibration import load_stereo
+    from jaxcr.io.dataset import is_safe_frame_id
     from jaxcr.stereo.aruco import MarkerLayout
     from jaxcr.stereo.chroma import KEY_COLOURS
     from jaxcr.stereo.pipeline import StereoConfig
@@ -99,46 +125,94 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
     root = Path(folder)
     path = root / "stereo.json" if root.is_dir() else root
     root = path.parent
+    file = str(path)
     if not path.exists():
-        raise InputError("no stereo.json found", file=str(path))
+        raise InputError("no stereo.json found", file=file)
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise InputError("not a UTF-8 JSON file", file=file) from None
     except json.JSONDecodeError as err:
-        raise InputError(f"invalid JSON ({err.msg}, line {err.lineno})", file=str(path)) from None
+        raise InputError(f"invalid JSON ({err.msg}, line {err.lineno})", file=file) from None
+    if not isinstance(meta, dict):
+        raise InputError("expected a JSON object at the top level", file=file)
     if meta.get("format") != FORMAT:
-        raise InputError(f"expected format {FORMAT!r}", file=str(path), field="format")
-    if "calibration" not in meta:
-        raise InputError("missing required key", file=str(path), field="calibration")
+        raise InputError(
+            f"expected format {FORMAT!r}, got {meta.get('format')!r}", file=file, field="format"
+        )
+    if not isinstance(meta.get("calibration"), str):
+        raise InputError("missing required key (a path string)", file=file, field="calibration")
     cam1, cam2 = load_stereo(root / meta["calibration"])
     names = meta.get("cameras", ["cam1", "cam2"])
-    if len(names) != 2:
-        raise InputError("exactly two cameras expected", file=str(path), field="cameras")
+    if (
+        not isinstance(names, list)
+        or len(names) != 2
+        or not all(isinstance(n, str) for n in names)
+        or names[0] == names[1]
+    ):
+        raise InputError("expected two distinct camera names", file=file, field="cameras")
     try:
         layout = MarkerLayout.from_dict(meta["markers"]) if "markers" in meta else MarkerLayout()
-    except (KeyError, TypeError, ValueError, IndexError):
-        raise InputError("bad marker layout", file=str(path), field="markers") from None
+    except (AttributeError, KeyError, TypeError, ValueError, IndexError):
+        raise InputError(
+            "bad marker layout (expected {'centres': {id: [x, y]}, 'size': metres})",
+            file=file,
+            field="markers",
+        ) from None
     bg = meta.get("background", {})
+    if not isinstance(bg, dict):
+        raise InputError("expected an object", file=file, field="background")
     if "key_rgb" in bg:
-        key = tuple(float(v) for v in bg["key_rgb"])
+        key = _finite_tuple(bg["key_rgb"], 3, file, "background.key_rgb")
     else:
         name = bg.get("key", "green")
-        if name not in KEY_COLOURS:
-            raise InputError(f"unknown key colour {name!r}", file=str(path), field="background.key")
+        if not isinstance(name, str) or name not in KEY_COLOURS:
+            raise InputError(f"unknown key colour {name!r}", file=file, field="background.key")
         key = KEY_COLOURS[name]
     cfg = StereoConfig(layout=layout, key_rgb=key)
     if meta.get("robot_base") is not None:
-        cfg.robot_base = tuple(float(v) for v in meta["robot_base"])
+        cfg.robot_base = _finite_tuple(meta["robot_base"], 3, file, "robot_base")
+    sizes = {names[0]: (cam1.width, cam1.height), names[1]: (cam2.width, cam2.height)}
     plates = None
     if meta.get("background_plates"):
-        plates = tuple(_read_rgb(root / meta["background_plates"][n]) for n in names)
+        bp = meta["background_plates"]
+        if not isinstance(bp, dict) or any(not isinstance(bp.get(n), str) for n in names):
+            raise InputError(
+                f"expected {{camera: path}} for cameras {names}",
+                file=file,
+                field="background_plates",
+            )
+        plates = tuple(
+            _read_rgb(root / bp[n], size=sizes[n], field=f"background_plates.{n}") for n in names
+        )
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
-        raise InputError("no frames", file=str(path), field="frames")
+        raise InputError("no frames", file=file, field="frames")
+    seen: set[str] = set()
     for k, fr in enumerate(frames):
-        if "id" not in fr or "images" not in fr or any(n not in fr["images"] for n in names):
+        if (
+            not isinstance(fr, dict)
+            or "id" not in fr
+            or not isinstance(fr.get("images"), dict)
+            or any(not isinstance(fr["images"].get(n), str) for n in names)
+        ):
             raise InputError(
-                f"frame {k} needs an id and images for {names}", file=str(path), field="frames"
+                f"frame {k} needs an id and images for {names}", file=file, field="frames"
             )
+        fid = fr["id"]
+        if isinstance(fid, bool) or not isinstance(fid, str | int) or not str(fid).strip():
+            raise InputError(f"expected a string id, got {fid!r}", file=file, frame=k, field="id")
+        if not is_safe_frame_id(str(fid)):
+            raise InputError(
+                f"frame id {str(fid)!r} is not usable as a file name (no '/', '\\', control "
+                "characters, '.' or '..')",
+                file=file,
+                frame=k,
+                field="id",
+            )
+        if str(fid) in seen:
+            raise InputError(f"duplicate frame id {str(fid)!r}", file=file, frame=k, field="id")
+        seen.add(str(fid))
     return {"root": root, "meta": meta, "names": names, "cam1": cam1, "cam2": cam2,
             "config": cfg, "plates": plates, "frames": frames}  # fmt: skip
 
@@ -231,17 +305,66 @@ def write_tables(out: Path, frame_ids: list[str]) -> int:
 # ------------------------------------------------------------------------------ running
 
 
+RUN_FORMAT = "jaxcr.stereo-run/1"
+
+
+def _check_run(out: Path, dataset: dict) -> None:
+    """Write ``OUT/run.json`` (dataset and options) on the first run; a rerun into the same
+    OUT continues it only with the same dataset and options (frames already in results.jsonl
+    are skipped, so different options would silently mix two configurations)."""
+    from jaxcr.io import results as R
+
+    cfg = dataset["config"]
+    info = {
+        "format": RUN_FORMAT,
+        "dataset": str(Path(dataset["root"]).resolve()),
+        "options": {
+            "segmentation": cfg.segmentation,
+            "tolerance": [cfg.tol_lo, cfg.tol_hi],
+            "segments": cfg.n_segments,
+        },
+    }
+    path = out / "run.json"
+    if path.exists():
+        try:
+            prev = json.loads(path.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            prev = None
+        if not isinstance(prev, dict) or prev.get("format") != RUN_FORMAT:
+            raise InputError("not a jaxcr stereo run.json; choose another -o", file=str(path))
+        for key in ("dataset", "options"):
+            if R.to_jsonable(prev.get(key)) != R.to_jsonable(info[key]):
+                raise InputError(
+                    f"OUT holds a run with different {key} ({prev.get(key)!r} vs {info[key]!r}); "
+                    "choose a new -o or delete it",
+                    file=str(path),
+                    field=key,
+                )
+        return
+    if (out / "results.jsonl").exists() or (out / "frames").exists():
+        raise InputError(
+            "OUT holds stereo results without run.json (an older jaxcr); choose a new -o",
+            file=str(out),
+        )
+    R.atomic_write_json(path, info)
+
+
 def run_batch(
     dataset: dict, out: str | os.PathLike, overlays: bool = True, progress: bool = True
 ) -> list[dict]:
     """Reconstruct every frame of a loaded dataset into ``out`` (see module docstring);
     returns the log records of all frames (including ones done by an earlier run)."""
+    from jaxcr.io import results as R
     from jaxcr.stereo.pipeline import StereoFailure, reconstruct_pair
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / "results.jsonl"
+    _check_run(out, dataset)
     done = _read_log(log_path)
+    # the tables are rebuilt at the end: none is left over that looks like this run's
+    for name in ("segments.csv", "segments.md"):
+        (out / name).unlink(missing_ok=True)
     todo = [
         fr
         for fr in dataset["frames"]
@@ -256,12 +379,15 @@ def run_batch(
         it = tqdm(todo, desc="stereo", unit="pair")
     names = dataset["names"]
     cams = (dataset["cam1"], dataset["cam2"])
-    with open(log_path, "a", encoding="utf-8") as log:
+    with R.ResultsLog(log_path) as log:  # cuts a line left half-written by a killed run
         for fr in it:
             fid = str(fr["id"])
             rec: dict = {"id": fid}
             try:
-                images = [_read_rgb(dataset["root"] / fr["images"][n], fid) for n in names]
+                images = [
+                    _read_rgb(dataset["root"] / fr["images"][n], fid, field=f"images.{n}")
+                    for n in names
+                ]
                 r = reconstruct_pair(
                     images[0], images[1], cams[0], cams[1], dataset["config"], dataset["plates"]
                 )
@@ -274,8 +400,7 @@ def run_batch(
                 rec.update(ok=False, reason=err.reason, message=str(err))
             except InputError as err:
                 rec.update(ok=False, reason="image", message=str(err))
-            log.write(json.dumps(rec) + "\n")
-            log.flush()
+            log.append(rec)
             done[fid] = rec
     write_tables(out, [str(fr["id"]) for fr in dataset["frames"]])
     return [done[str(fr["id"])] for fr in dataset["frames"]]

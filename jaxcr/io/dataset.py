@@ -151,7 +151,7 @@ def _png_size(path: Path) -> tuple[int, int] | None:
     return None
 
 
-def _safe_id(fid: str) -> bool:
+def is_safe_frame_id(fid: str) -> bool:
     """True when a frame id can be used as a file name inside an output folder: no path
     separators, no control characters, not ``.`` or ``..``."""
     return (
@@ -342,7 +342,7 @@ class _Scan:
             ferr("missing frame id", "id")
         elif not isinstance(fid, str | int) or isinstance(fid, bool):
             ferr(f"expected a string id, got {fid!r}", "id")
-        elif not _safe_id(str(fid)):
+        elif not is_safe_frame_id(str(fid)):
             # ids name output files (segment's masks/<cam>/<id>.png): never a path
             ferr(
                 f"frame id {str(fid)!r} is not usable as a file name "

@@ -119,6 +119,9 @@ class StereoConfig:
     smooth_sigma: float = 1.0e-3
     trim: float = 1.5e-3
     min_robot_pixels: int = 40
+    # A connected "robot" region larger than this fraction of the view is the background not
+    # matching the key (e.g. a black or wrongly exposed image), not a thin tube.
+    max_robot_fraction: float = 0.5
     refine_iterations: int = 2
     tip_extension_px: int = 12
     joint_fit: bool = True
@@ -517,6 +520,13 @@ def reconstruct_pair(
         robot = flood_component(mask, loc.seed)
         if np.count_nonzero(robot) < cfg.min_robot_pixels:
             raise StereoFailure("robot_not_found", f"robot region too small in view {k + 1}")
+        frac = np.count_nonzero(robot) / robot.size
+        if frac > cfg.max_robot_fraction:
+            raise StereoFailure(
+                "robot_not_found",
+                f"robot region covers {frac:.0%} of view {k + 1}: the background does not "
+                "match the key colour",
+            )
         views.append({"robot": robot, "loc": loc})
     t0 = _tick(timings, "base_floodfill", t0)
     # 4. Thinning: both views' bounding-box crops in one vmapped call.
