@@ -301,3 +301,32 @@ def test_stereo_rerun_with_other_options_is_refused(stereo_set, tmp_path):
     (other / "frames").mkdir(parents=True)
     with pytest.raises(InputError, match="without run.json"):
         _check_run(other, ds)
+
+
+# ----------------------------------------------------------------------------- motion
+
+
+def test_motion_json_mistyped_fields_are_one_line(tmp_path, capsys):
+    """frames[i].x given as a string raised IndexError while formatting its own error message;
+    eval_frame true was read as frame 1."""
+    import json
+    import shutil
+
+    from jaxcr.cli import main
+    from jaxcr.errors import InputError
+    from jaxcr.motion.dataset import load_motion_dataset
+
+    src = tmp_path / "mo"
+    assert main(["motion", "synth", "-o", str(src), "--size", "64x48", "--frames", "6"]) == 0
+    capsys.readouterr()
+    for name, edit, expect in (
+        ("x", lambda m: m["frames"][2].update(x="abc"), "field 'frames[2].x': must be a 5 number"),
+        ("ev", lambda m: m.update(eval_frame=True), "field 'eval_frame'"),
+    ):
+        d = tmp_path / name
+        shutil.copytree(src, d)
+        meta = json.loads((d / "motion.json").read_text())
+        edit(meta)
+        (d / "motion.json").write_text(json.dumps(meta))
+        with pytest.raises(InputError, match=expect.replace("[", r"\[").replace("]", r"\]")):
+            load_motion_dataset(d)

@@ -109,7 +109,7 @@ def _matrix(v, shape, file, field) -> np.ndarray:
         a = np.asarray(v, np.float64)
     except (TypeError, ValueError):
         raise InputError(
-            f"must be a {shape[0]}x{shape[1]} number array", file=file, field=field
+            f"must be a {'x'.join(map(str, shape))} number array", file=file, field=field
         ) from None
     if a.shape != shape or not np.all(np.isfinite(a)):
         raise InputError(
@@ -182,7 +182,9 @@ def load_motion_dataset(path: str | os.PathLike) -> MotionDataset:
             "source must be {'video': file} or {'images': folder}", file=f, field="source"
         )
     ev = meta.get("eval_frame")
-    if ev is not None and not (isinstance(ev, int) and 0 <= ev < len(frames)):
+    if ev is not None and not (
+        isinstance(ev, int) and not isinstance(ev, bool) and 0 <= ev < len(frames)
+    ):
         raise InputError("eval_frame must be a frame index", file=f, field="eval_frame")
     return MotionDataset(
         root,
