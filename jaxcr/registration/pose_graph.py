@@ -26,6 +26,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 
 from jaxcr._types import Array, Float, Int, Mat4
 from jaxcr.geometry import invert_transform, make_transform, so3_exp, so3_log
@@ -395,7 +396,7 @@ def variance_components(
     J: np.ndarray,
     infos: list[np.ndarray],
     iterations: int = 200,
-    tol: float = 1e-6,
+    tol: float = 1e-4,
 ) -> EdgeCalibration:
     """Variance-component estimate (Foerstner 1979; its fixed point is the restricted
     maximum likelihood, REML) of ``Sigma_e = a Q_e + f_t [I 0; 0 0] + f_r [0 0; 0 I]``
@@ -425,6 +426,7 @@ def variance_components(
     )
     Jb = J.reshape(e, 6, -1)
     rb = r.reshape(e, 6)
+    qd = np.diagonal(Q, axis1=1, axis2=2)  # (e, 6)
     converged, n_it = False, 0
     for _ in range(iterations):
         n_it += 1
@@ -432,11 +434,12 @@ def variance_components(
         W = np.linalg.inv(S[0] + S[1] + S[2])
         WJ = W @ Jb  # (e, 6, n)
         N = np.einsum("eai,eaj->ij", Jb, WJ)
-        Ni = np.linalg.inv(N)
-        x = -Ni @ np.einsum("eai,ea->i", WJ, rb)
+        # N^-1 J^T by Cholesky (one factorisation; no explicit inverse of N)
+        X = cho_solve(cho_factor(N), J.T).reshape(-1, e, 6)  # (n, e, 6)
+        x = -np.einsum("nea,ea->n", X, np.einsum("eab,eb->ea", W, rb))
         v = rb + Jb @ x
         Wv = np.einsum("eab,eb->ea", W, v)
-        Qvv = S[0] + S[1] + S[2] - (Jb @ Ni) @ np.swapaxes(Jb, 1, 2)
+        Qvv = S[0] + S[1] + S[2] - np.einsum("ean,neb->eab", Jb, X)
         WQW = W @ Qvv @ W
         new = th.copy()
         for k in range(3):
@@ -445,7 +448,11 @@ def variance_components(
             if den > 1e-12 * red:
                 new[k] = th[k] * num / den
         new = np.maximum(new, 1e-12 * np.maximum(th, 1e-300))
-        done = np.all(np.abs(new - th) <= tol * np.maximum(th, 1e-300))
+        # converged when no edge's covariance changes by more than tol (relative, on its
+        # diagonal): a component shrinking towards 0 need not converge in relative terms
+        d_old = th[0] * qd + th[1] * It.diagonal() + th[2] * Ir.diagonal()
+        d_new = new[0] * qd + new[1] * It.diagonal() + new[2] * Ir.diagonal()
+        done = np.all(np.abs(d_new - d_old) <= tol * d_old)
         th = new
         if done:
             converged = True
