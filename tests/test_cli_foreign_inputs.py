@@ -330,3 +330,46 @@ def test_motion_json_mistyped_fields_are_one_line(tmp_path, capsys):
         (d / "motion.json").write_text(json.dumps(meta))
         with pytest.raises(InputError, match=expect.replace("[", r"\[").replace("]", r"\]")):
             load_motion_dataset(d)
+
+
+# ----------------------------------------------------------------------------- model-object
+
+
+def test_rgbd_scene_foreign_content_is_one_line(tmp_path, capsys):
+    """Each of these was a traceback (ValueError, KeyError, IndexError, AttributeError) in
+    `jaxcr model-object SCENE`, or (negative focal length) a 30 s run ending in exit 0."""
+    import json
+    import shutil
+
+    from jaxcr.cli import main
+    from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task
+
+    for task in ("1", "2"):  # the generator's own scenes still load
+        RgbdSimulator(generate_task(tmp_path / f"t{task}", task, 0, (64, 48)))
+    src = tmp_path / "t1"
+
+    def edit(fn):
+        def apply(d):
+            meta = json.loads((d / "scene.json").read_text())
+            meta = fn(meta) or meta
+            (d / "scene.json").write_text(json.dumps(meta))
+
+        return apply
+
+    cases = {
+        "top": (edit(lambda m: [1]), "top level"),
+        "K": (edit(lambda m: m["camera"].update(K="eye")), "field 'camera.K'"),
+        "fx": (edit(lambda m: m["camera"]["K"][0].__setitem__(0, -10.0)), "focal lengths"),
+        "runs": (edit(lambda m: m.update(runs=[])), "field 'runs'"),
+        "kind": (edit(lambda m: m["object"].update(kind="sphere")), "field 'object.kind'"),
+        "arm": (edit(lambda m: m["arm"].update(n_sections="three")), "field 'arm.n_sections'"),
+        "dir": (edit(lambda m: m["runs"][0].update(direction=0)), "field 'runs[0].direction'"),
+        "obs": (lambda d: (d / "obstacles.npy").write_bytes(b"junk"), "obstacles.npy"),
+        "tex": (lambda d: (d / "textures" / "face0.png").write_bytes(b""), "image file is empty"),
+    }
+    for name, (fn, expect) in cases.items():
+        d = tmp_path / name
+        shutil.copytree(src, d)
+        fn(d)
+        assert main(["model-object", str(d), "-o", str(tmp_path / f"o_{name}")]) == 2, name
+        assert expect in _one_line_error(capsys), name

@@ -26,6 +26,7 @@ Scene format "jaxcr.rgbd_scene/1": see docs/rgbd-scene-format.md.
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -262,9 +263,13 @@ def load_scene(path) -> dict[str, Any]:
     if not f.is_file():
         raise InputError("not an RGB-D scene directory (no scene.json)", file=str(path))
     try:
-        cfg = json.loads(f.read_text())
+        cfg = json.loads(f.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise InputError("not a UTF-8 JSON file", file=str(f)) from None
     except json.JSONDecodeError as e:
         raise InputError(f"invalid JSON ({e.msg} at line {e.lineno})", file=str(f)) from None
+    if not isinstance(cfg, dict):
+        raise InputError("expected a JSON object at the top level", file=str(f))
     if cfg.get("format") != FORMAT:
         raise InputError(
             f"expected format {FORMAT!r}, got {cfg.get('format')!r}", file=str(f), field="format"
@@ -272,7 +277,92 @@ def load_scene(path) -> dict[str, Any]:
     for key in ("object", "camera", "arm", "runs", "obstacles", "view_radius"):
         if key not in cfg:
             raise InputError("missing required key", file=str(f), field=key)
+    _check_scene(cfg, str(f))
     return cfg
+
+
+def _num(d, key, file, field, *, positive=False, integer=False, n=None):
+    """``d[key]`` as a finite number (or a list of ``n``), else a one-line InputError."""
+    v = d.get(key) if isinstance(d, dict) else None
+    vals = v if n is not None else [v]
+    ok = isinstance(vals, list) and (n is None or len(vals) == n)
+    ok = ok and all(
+        isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) for x in vals
+    )
+    ok = ok and (not integer or all(isinstance(x, int) for x in vals))
+    ok = ok and (not positive or all(x > 0 for x in vals))
+    if not ok:
+        what = "integer" if integer else "number"
+        what = f"{'positive ' if positive else 'finite '}{what}"
+        what = f"a list of {n} {what}s" if n is not None else f"a {what}"
+        raise InputError(f"expected {what}, got {v!r}", file=file, field=field)
+    return v
+
+
+def _check_scene(cfg: dict, file: str) -> None:
+    """Types and ranges of the ``jaxcr.rgbd_scene/1`` fields the simulator reads
+    (docs/rgbd-scene-format.md), so a foreign scene fails with one line naming the field."""
+
+    def obj(key, parent=cfg, prefix=""):
+        v = parent.get(key)
+        if not isinstance(v, dict):
+            raise InputError("expected an object", file=file, field=prefix + key)
+        return v
+
+    o = obj("object")
+    if o.get("kind") == "box":
+        _num(o, "half", file, "object.half", positive=True, n=3)
+    elif o.get("kind") == "cylinder":
+        _num(o, "radius", file, "object.radius", positive=True)
+        _num(o, "height", file, "object.height", positive=True)
+    else:
+        raise InputError(
+            f"expected 'box' or 'cylinder', got {o.get('kind')!r}", file=file, field="object.kind"
+        )
+    if "yaw" in o:
+        _num(o, "yaw", file, "object.yaw")
+    tex = o.get("textures")
+    if not isinstance(tex, list) or not tex or not all(isinstance(t, str) for t in tex):
+        raise InputError("expected a list of paths", file=file, field="object.textures")
+    cam = obj("camera")
+    K = cam.get("K")
+    try:
+        Ka = np.asarray(K, np.float64)
+    except (TypeError, ValueError):
+        Ka = None
+    if Ka is None or Ka.shape != (3, 3) or not np.all(np.isfinite(Ka)):
+        raise InputError("expected a finite 3x3 matrix", file=file, field="camera.K")
+    if not (Ka[0, 0] > 0 and Ka[1, 1] > 0) or not np.allclose(Ka[2], [0, 0, 1]):
+        raise InputError(
+            "focal lengths must be positive and the last row [0, 0, 1]", file=file, field="camera.K"
+        )
+    for key in ("width", "height"):
+        _num(cam, key, file, f"camera.{key}", positive=True, integer=True)
+    arm = obj("arm")
+    _num(arm, "n_sections", file, "arm.n_sections", positive=True, integer=True)
+    for key in ("max_length", "radius", "max_kappa"):
+        _num(arm, key, file, f"arm.{key}", positive=True)
+    _num(arm, "height", file, "arm.height")
+    runs = cfg.get("runs")
+    if not isinstance(runs, list) or not runs:
+        raise InputError("expected a non-empty list of runs", file=file, field="runs")
+    for i, r in enumerate(runs):
+        if not isinstance(r, dict):
+            raise InputError("expected an object", file=file, field=f"runs[{i}]")
+        _num(r, "base", file, f"runs[{i}].base", n=3)
+        _num(r, "delta_s", file, f"runs[{i}].delta_s", positive=True)
+        if r.get("direction") not in (1, -1) or isinstance(r.get("direction"), bool):
+            raise InputError("expected +1 or -1", file=file, field=f"runs[{i}].direction")
+    if not isinstance(cfg.get("obstacles"), list):
+        raise InputError("expected a list", file=file, field="obstacles")
+    _num(cfg, "view_radius", file, "view_radius", positive=True)
+    if "tilt_target_z" in cfg:
+        _num(cfg, "tilt_target_z", file, "tilt_target_z")
+    noise = cfg.get("depth_noise", {})
+    if not isinstance(noise, dict):
+        raise InputError("expected an object", file=file, field="depth_noise")
+    for key in noise:
+        _num(noise, key, file, f"depth_noise.{key}")
 
 
 class RgbdSimulator:
@@ -285,15 +375,26 @@ class RgbdSimulator:
         self.width = int(self.cfg["camera"]["width"])
         self.height = int(self.cfg["camera"]["height"])
         self.textures = []
+        from jaxcr.io.images import read_image
+
         for name in self.cfg["object"]["textures"]:
-            img = cv2.imread(str(self.path / name), cv2.IMREAD_COLOR)
-            if img is None:
-                raise InputError("cannot read texture", file=str(self.path / name))
-            self.textures.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0)
+            try:  # float32 RGB in [0, 1] (grey, RGBA, 16-bit accepted)
+                self.textures.append(read_image(self.path / name))
+            except InputError as err:
+                raise InputError(
+                    f"cannot read texture: {err.message}", file=err.file, field="object.textures"
+                ) from None
         obs = self.path / "obstacles.npy"
         if not obs.is_file():
             raise InputError("missing obstacle cloud", file=str(obs))
-        self.obstacles = np.load(obs).astype(np.float64)
+        try:
+            self.obstacles = np.load(obs).astype(np.float64)
+        except (ValueError, OSError, TypeError) as err:
+            raise InputError(f"not a readable .npy point cloud ({err})", file=str(obs)) from None
+        if self.obstacles.ndim != 2 or self.obstacles.shape[1] != 3:
+            raise InputError(
+                f"expected an (n, 3) point cloud, got shape {self.obstacles.shape}", file=str(obs)
+            )
         self.rng = np.random.default_rng(seed)
         yaw = float(self.cfg["object"].get("yaw", 0.0))
         c, s = np.cos(yaw), np.sin(yaw)
