@@ -373,3 +373,23 @@ def test_rgbd_scene_foreign_content_is_one_line(tmp_path, capsys):
         fn(d)
         assert main(["model-object", str(d), "-o", str(tmp_path / f"o_{name}")]) == 2, name
         assert expect in _one_line_error(capsys), name
+
+
+def test_implausible_intrinsics_are_reported_by_validate(tmp_path):
+    """fx = 1e-30 or 1e30 and cx = 1e6 validated as OK; segment then failed every frame with
+    'robot out of view' instead of naming the calibration."""
+    from jaxcr.io.calibration import check_intrinsics_range
+
+    root = make_dataset(tmp_path / "d", n_frames=1)
+    for k, (r, c, v) in enumerate([(0, 0, 1e-30), (1, 1, 1e30), (0, 2, 1e6), (1, 2, -500.0)]):
+        d = make_dataset(tmp_path / f"d{k}", n_frames=1)
+        edit_json(d, lambda j, r=r, c=c, v=v: j["cameras"]["main"]["K"][r].__setitem__(c, v))
+        (err,) = [e for e in validate_dataset(d) if e.frame is None]
+        assert err.field == "cameras.main.K" and ("field of view" in str(err) or "far" in str(err))
+    assert validate_dataset(root) == []
+    # the bounds: 0.1..179 degrees, principal point within one image size
+    K = [[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]]
+    check_intrinsics_range(K, 100, 80)
+    check_intrinsics_range([[100.0, 0, -99], [0, 100.0, 159], [0, 0, 1]], 100, 80)
+    with pytest.raises(Exception, match="field of view"):
+        check_intrinsics_range([[0.3, 0, 50], [0, 100.0, 40], [0, 0, 1]], 100, 80)

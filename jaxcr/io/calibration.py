@@ -164,6 +164,29 @@ def check_intrinsics(K, file=None, field="camera_matrix") -> np.ndarray:
     return K
 
 
+def check_intrinsics_range(K, width: int, height: int, file=None, field="camera_matrix") -> None:
+    """Plausibility of intrinsics for a ``width x height`` image, with bounds no physical
+    camera comes near: horizontal and vertical field of view within 0.1..179 degrees, and the
+    principal point within one image size of the image (``-w <= cx <= 2w``, same for cy)."""
+    K = np.asarray(K, np.float64)
+    for f, n, name in ((K[0, 0], width, "fx"), (K[1, 1], height, "fy")):
+        fov = np.degrees(2.0 * np.arctan2(n / 2.0, f))
+        if not 0.1 <= fov <= 179.0:
+            raise InputError(
+                f"{name}={f:g} px gives a {fov:.3g} deg field of view over {n} px "
+                "(expected 0.1..179 deg)",
+                file=file,
+                field=field,
+            )
+    for c, n, name in ((K[0, 2], width, "cx"), (K[1, 2], height, "cy")):
+        if not -n <= c <= 2 * n:
+            raise InputError(
+                f"principal point {name}={c:g} px is far outside the {width}x{height} image",
+                file=file,
+                field=field,
+            )
+
+
 def check_distortion(dist, file=None, field="distortion_coefficients") -> np.ndarray:
     """Validated distortion reduced to the 5 OpenCV coefficients (see module docstring)."""
     d = _matrix(dist, lambda s: len(s) <= 2 and (len(s) < 2 or 1 in s), "1xN or Nx1", file, field)
@@ -248,6 +271,7 @@ def camera_from_dict(d: Mapping[str, Any], file: str | None = None, prefix: str 
     kd, dist = _get(d, ("distortion_coefficients", "dist"), file, prefix, required=False)
     dist = np.zeros(5) if dist is None else check_distortion(dist, file, prefix + kd)
     w, h = _image_size(d, file, prefix)
+    check_intrinsics_range(K, w, h, file, prefix + kK)
     T = d.get("T_cam_robot")
     T = np.eye(4) if T is None else check_transform(T, file, prefix + "T_cam_robot", scale)
     return camera_from_arrays(K, dist, T, w, h)
@@ -272,6 +296,7 @@ def load_stereo(path: str | os.PathLike) -> tuple[Camera, Camera]:
         kd, D = _get(d, (f"D{i}", f"distortion_coefficients_{i}"), path, "", required=False)
         D = np.zeros(5) if D is None else check_distortion(D, path, kd)
         size = _image_size(d, path, "", suffix=f"_{i}")
+        check_intrinsics_range(K, *size, path, kK)
         cams_intr.append((K, D, size))
     R = _matrix(
         d.get("R") if "R" in d else _missing(path, "R"), lambda s: s == (3, 3), "3x3", path, "R"
