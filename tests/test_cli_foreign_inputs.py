@@ -393,3 +393,29 @@ def test_implausible_intrinsics_are_reported_by_validate(tmp_path):
     check_intrinsics_range([[100.0, 0, -99], [0, 100.0, 159], [0, 0, 1]], 100, 80)
     with pytest.raises(Exception, match="field of view"):
         check_intrinsics_range([[0.3, 0, 50], [0, 100.0, 40], [0, 0, 1]], 100, 80)
+
+
+def test_dataset_json_with_byte_order_mark_or_deep_nesting(tmp_path):
+    """A dataset.json saved with a UTF-8 byte-order mark (Notepad) was 'not valid JSON';
+    a pathologically nested one was a RecursionError traceback."""
+    root = make_dataset(tmp_path / "d", n_frames=1)
+    p = root / "dataset.json"
+    p.write_bytes(b"\xef\xbb\xbf" + p.read_bytes())
+    assert validate_dataset(root) == []
+    p.write_text("[" * 100_000 + "]" * 100_000)
+    (err,) = validate_dataset(root)
+    assert "nested too deeply" in str(err)
+
+
+def test_segment_joint_values_beyond_float32_fail_the_frame_cleanly(tmp_path):
+    """q = 1e300 is finite in float64 but inf in float32: it reached the kinematics (numpy
+    overflow warning, then 'kinematics failed'); now the frame fails with the reason."""
+    from jaxcr.commands._segmenter import Segmenter
+    from jaxcr.refine import RefineConfig
+
+    root = make_dataset(tmp_path / "d", n_frames=1)
+    edit_json(root, lambda j: j["frames"][0]["q"].__setitem__(0, 1e300))
+    ds = load_dataset(root)
+    seg = Segmenter(ds, ["main"], RefineConfig(), "none", tmp_path / "o", batch_size=1)
+    images, reason = seg._check_frame("000000")
+    assert images is None and "float32 range" in reason

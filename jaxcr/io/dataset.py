@@ -218,10 +218,14 @@ class _Scan:
             self.errors.append(InputError(f"missing {DATASET_FILE}", file=str(self.root)))
             return None
         try:
-            with open(self.json_path, encoding="utf-8") as fh:
+            # utf-8-sig: a byte-order mark (Windows editors write one) is skipped
+            with open(self.json_path, encoding="utf-8-sig") as fh:
                 d = json.load(fh)
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             self.err(f"not valid JSON ({e})")
+            return None
+        except RecursionError:
+            self.err("not valid JSON (nested too deeply)")
             return None
         except OSError as e:
             self.err(f"cannot read ({e.strerror})")
