@@ -112,6 +112,8 @@ class Segmenter:
             return None, f"q has {q.size} values, the robot has {self.ds.robot.n_joints} joints"
         if not np.all(np.isfinite(q)):
             return None, "non-finite joint values (NaN or inf in q)"
+        if np.any(np.abs(q) > np.finfo(np.float32).max):
+            return None, "joint values beyond the float32 range (|q| > 3.4e38)"
         images = []
         for cname, cam in zip(self.cams, self.cameras, strict=True):
             try:
