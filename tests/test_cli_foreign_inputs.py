@@ -419,3 +419,19 @@ def test_segment_joint_values_beyond_float32_fail_the_frame_cleanly(tmp_path):
     seg = Segmenter(ds, ["main"], RefineConfig(), "none", tmp_path / "o", batch_size=1)
     images, reason = seg._check_frame("000000")
     assert images is None and "float32 range" in reason
+
+
+def test_bench_counts_are_checked_before_running(capsys):
+    """bench fk --batch 0 and bench segment --frames 0 were numpy 'need at least one array to
+    stack' tracebacks after the compile; --batch 10000000 ran into the machine's memory."""
+    from jaxcr.cli import main
+
+    for argv, expect in (
+        (["fk", "--batch", "0"], "--batch must be >= 1"),
+        (["fk", "--batch", "10000000"], "--batch must be <= 65536"),
+        (["fk", "--repeats", "0"], "--repeats must be >= 1"),
+        (["segment", "--frames", "0"], "--frames must be >= 1"),
+        (["segment", "--size", "5x5"], "image size must be between"),
+    ):
+        assert main(["bench", *argv, "-o", "unused.md"]) == 2
+        assert expect in _one_line_error(capsys)

@@ -63,7 +63,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=None, help="timed repetitions")
     p.add_argument("--frames", type=int, default=None, help="segment: frames per batch")
     p.add_argument("--size", default=None, metavar="WxH", help="segment: image size")
-    p.add_argument("--batch", type=int, default=None, help="fk: joint vectors per batch")
+    p.add_argument("--batch", type=int, default=None, help="fk: joint vectors per batch (<= 65536)")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
     p.set_defaults(func=run)
     return p  # fmt: skip
@@ -232,7 +232,26 @@ def to_markdown(result: dict, meta: dict, provider: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: upper bound of --batch: keeps a typo (e.g. 10000000) from exhausting the shared machine's
+#: memory (the CTR batch holds N = 97 frames per joint vector)
+MAX_BATCH = 65536
+
+
+def _check_counts(args) -> None:
+    for opt in ("repeats", "frames", "batch"):
+        v = getattr(args, opt)
+        if v is not None and v < 1:
+            raise InputError(f"--{opt} must be >= 1, got {v}", field=opt)
+    if args.batch is not None and args.batch > MAX_BATCH:
+        raise InputError(f"--batch must be <= {MAX_BATCH}, got {args.batch}", field="batch")
+    if args.size is not None:
+        from jaxcr.synth.generate import parse_size
+
+        parse_size(args.size)
+
+
 def run(args) -> int:
+    _check_counts(args)
     fn, provider = find_provider(args.what)
     if isinstance(fn, _ScriptProvider):
         out = Path(args.out or f"bench_{args.what}.md")
