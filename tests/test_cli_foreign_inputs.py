@@ -435,3 +435,23 @@ def test_bench_counts_are_checked_before_running(capsys):
     ):
         assert main(["bench", *argv, "-o", "unused.md"]) == 2
         assert expect in _one_line_error(capsys)
+
+
+def test_synth_never_overwrites_a_foreign_dataset_or_a_run(tmp_path, capsys):
+    """`jaxcr synth -o X` replaced X's dataset.json and images/<cam>/<id>.png whatever X
+    held (a real dataset, or a segment output whose masks/ it overwrote), exit 0."""
+    import json
+
+    from jaxcr.cli import main
+
+    root = make_dataset(tmp_path / "d", n_frames=1)  # meta has no 'generator'
+    before = (root / "dataset.json").read_bytes()
+    argv = ["synth", "--preset", "orthogonal", "--frames", "1", "--size", "64x48", "--quiet"]
+    assert main([*argv, "-o", str(root)]) == 2
+    assert "not written by jaxcr synth" in _one_line_error(capsys)
+    assert (root / "dataset.json").read_bytes() == before
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.json").write_text(json.dumps({"format": "jaxcr.segment-run/1"}))
+    assert main([*argv, "-o", str(run)]) == 2
+    assert "run's output" in _one_line_error(capsys)

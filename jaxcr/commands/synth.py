@@ -44,7 +44,12 @@ def add_parser(subparsers) -> None:
         "--preset", action="append", default=[], choices=sorted(PRESETS), help="preset (repeatable)"
     )
     p.add_argument("--all", action="store_true", help="every preset, one sub-folder each")
-    p.add_argument("-o", "--out", required=True, help="output folder")
+    p.add_argument(
+        "-o",
+        "--out",
+        required=True,
+        help="output folder: new, empty, or an earlier jaxcr synth dataset (replaced)",
+    )
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default %(default)s)")
     p.add_argument("--frames", type=int, default=None, help="frames per preset (default 20)")
     p.add_argument("--size", default=None, help="image size WIDTHxHEIGHT (default 640x480)")
@@ -92,6 +97,32 @@ def _enable_compile_cache() -> None:
         pass
 
 
+def _check_out(out: str) -> None:
+    """OUT may be new, empty, or a dataset this command wrote (it is then replaced); never a
+    dataset from elsewhere or a run's output folder, whose files would be overwritten."""
+    import json
+
+    if not os.path.isdir(out):
+        if os.path.exists(out):
+            raise InputError("output path exists and is not a folder", file=out)
+        return
+    ds = os.path.join(out, "dataset.json")
+    if os.path.exists(ds):
+        try:
+            with open(ds, encoding="utf-8-sig") as fh:
+                gen = (json.load(fh).get("meta") or {}).get("generator")
+        except (OSError, ValueError, AttributeError):
+            gen = None
+        if gen != "jaxcr synth":
+            raise InputError(
+                "holds a dataset not written by jaxcr synth (its images would be "
+                "overwritten); choose a new or empty folder",
+                file=out,
+            )
+    elif any(os.path.exists(os.path.join(out, f)) for f in ("run.json", "results.jsonl")):
+        raise InputError("holds a jaxcr run's output; choose a new or empty folder", file=out)
+
+
 def run(args) -> int:
     from jaxcr.synth.generate import generate, parse_size
     from jaxcr.synth.presets import PRESETS
@@ -120,6 +151,8 @@ def run(args) -> int:
 
         robot = robot_to_dict(load_robot(args.robot))
     several = len(names) > 1 or args.all
+    for name in names:
+        _check_out(os.path.join(args.out, name) if several else args.out)
     _enable_compile_cache()
     t0 = time.perf_counter()
     written = []
