@@ -455,3 +455,25 @@ def test_synth_never_overwrites_a_foreign_dataset_or_a_run(tmp_path, capsys):
     (run / "run.json").write_text(json.dumps({"format": "jaxcr.segment-run/1"}))
     assert main([*argv, "-o", str(run)]) == 2
     assert "run's output" in _one_line_error(capsys)
+
+
+def test_resume_with_other_config_names_only_the_differing_keys(tmp_path):
+    """The refusal printed both whole RefineConfig dicts (~1500 characters) on one line."""
+    import json
+
+    from jaxcr.commands.segment import prepare_output
+    from jaxcr.errors import InputError
+
+    out = tmp_path / "o"
+    out.mkdir()
+    info = {"format": "jaxcr.segment-run/1", "dataset": "/d", "cameras": ["main"]}
+    cfg = {f"k{i}": i for i in range(30)}
+    (out / "run.json").write_text(json.dumps({**info, "config": cfg}))
+    (out / "results.jsonl").write_text('{"frame": "a", "ok": true}\n')
+    new = {**info, "config": {**cfg, "k3": 4, "new_field": "x"}}
+    with pytest.raises(InputError) as exc:
+        prepare_output(out, True, False, new)
+    msg = str(exc.value)
+    assert "k3: 3 -> 4" in msg and "new_field: '(absent)' -> 'x'" in msg
+    assert "k4" not in msg and len(msg) < 300
+    assert prepare_output(out, True, False, {**info, "config": cfg}) == [{"frame": "a", "ok": True}]

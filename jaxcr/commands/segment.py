@@ -368,10 +368,18 @@ def prepare_output(out: Path, resume: bool, overwrite: bool, run_info: dict) -> 
     if resume and layout.run.exists():
         prev = R.read_run(layout.run)
         for key in ("dataset", "cameras", "background", "robot_hsv", "config"):
-            if R.to_jsonable(prev.get(key)) != R.to_jsonable(run_info.get(key)):
+            a, b = R.to_jsonable(prev.get(key)), R.to_jsonable(run_info.get(key))
+            if a != b:
+                if isinstance(a, dict) and isinstance(b, dict):  # name only what differs
+                    diff = sorted(k for k in set(a) | set(b) if a.get(k, "?") != b.get(k, "?"))
+                    what = ", ".join(
+                        f"{k}: {a.get(k, '(absent)')!r} -> {b.get(k, '(absent)')!r}" for k in diff
+                    )
+                else:
+                    what = f"{a!r} -> {b!r}"
                 raise InputError(
-                    f"cannot resume: '{key}' differs from the interrupted run "
-                    f"({prev.get(key)!r} vs {run_info.get(key)!r})",
+                    f"cannot resume: '{key}' differs from the interrupted run ({what}); "
+                    "use the same options (or --overwrite, or a new -o)",
                     file=str(layout.run),
                 )
         try:
