@@ -182,6 +182,7 @@ class RegionTerms(eqx.Module):
         e_out: int_{R^c - B} |I' - mu_out|^2.
         e_pen: |R intersect B| (pixels).
         area_in: |R - B| (pixels).
+        area_out: |R^c - B| (pixels; within the band when ``local``).
         e_out_empty: e_out for an empty R (the constant the solver subtracts).
     """
 
@@ -189,6 +190,7 @@ class RegionTerms(eqx.Module):
     e_out: Float[Array, ""]
     e_pen: Float[Array, ""]
     area_in: Float[Array, ""]
+    area_out: Float[Array, ""]
     e_out_empty: Float[Array, ""]
 
 
@@ -254,6 +256,7 @@ def region_terms(
         e_out=a * jnp.maximum(e_out, 0.0),
         e_pen=a * pen,
         area_in=a * s0,
+        area_out=a * (jnp.sum(bw * (1.0 - soft)) if local else data.total_w - s0),
         e_out_empty=a * e_out_empty,
     )
 
@@ -282,6 +285,7 @@ def chan_vese_energy(
     area_ref: Float[Array, ""],
     local: bool = False,
     robust: float = 0.0,
+    var: Float[Array, ""] | None = None,
 ) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
     """Watson et al. eq. 5 (with eq. 6) for one image at one pyramid level.
 
@@ -295,6 +299,9 @@ def chan_vese_energy(
         area_ref: reference silhouette area (full-resolution pixels) normalising the terms.
         local: restrict R^c to the band (see :func:`region_terms`).
         robust: occlusion-robust inside term (see :func:`region_terms`); 0 = eq. 6 as is.
+        var: colour variance (colour^2) that normalises the data terms; None = the image's
+            mean squared centred colour (module docstring). :func:`residual_variance` gives
+            the regions' own noise variance instead (Gaussian likelihood of eq. 6).
 
     Returns:
         ``(J, terms)``: the normalised objective minimised by the solver, and a dict with the
@@ -303,7 +310,8 @@ def chan_vese_energy(
     """
     soft = soft_band(tube, band, data.grid, tau)
     t = region_terms(soft, band, data, local, robust)
-    var = data.pix_area * data.total_s2 / jnp.maximum(data.pix_area * data.total_w, 1e-6)
+    if var is None:
+        var = data.pix_area * data.total_s2 / jnp.maximum(data.pix_area * data.total_w, 1e-6)
     scale = jnp.maximum(area_ref, 1.0)
     data_term = (weights.g_in * t.e_in + weights.g_out * (t.e_out - t.e_out_empty)) / (
         scale * jnp.maximum(var, 1e-8)
@@ -315,5 +323,23 @@ def chan_vese_energy(
         "e_reg": reg,
         "e_pen": t.e_pen,
         "area_in": t.area_in,
+        "area_out": t.area_out,
     }
     return J, terms
+
+
+def residual_variance(terms: dict[str, Float[Array, ""]]) -> Float[Array, ""]:
+    """Per-pixel noise variance of the piecewise-constant model of eq. 6 (colour^2):
+    ``(e_in + e_out) / (|R - B| + |R^c - B|)`` from :func:`chan_vese_energy`'s terms, under
+    ``stop_gradient``.
+
+    Eq. 6 is the negative log-likelihood of Gaussian colour noise around mu_in and mu_out up
+    to the factor ``1 / (2 sigma^2)``; normalising the data terms by this estimate of
+    ``sigma^2`` (instead of the whole image's colour variance) weighs the data against the
+    shape prior by how well the two-region model explains the pixels, not by how much the
+    scene's colours vary overall (an image with a tissue-coloured background and a grey plate
+    has a large colour variance but a small robot-to-surroundings contrast).
+    """
+    n = terms["area_in"] + terms["area_out"]
+    v = (terms["e_in"] + terms["e_out"]) / jnp.maximum(n, 1e-6)
+    return jax.lax.stop_gradient(jnp.maximum(v, 1e-8))

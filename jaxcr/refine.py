@@ -91,6 +91,7 @@ from jaxcr.energy import (
     pyramid,
     region_data_from_level,
     region_terms,
+    residual_variance,
 )
 from jaxcr.errors import InputError
 from jaxcr.geometry import so3_exp, so3_log
@@ -152,6 +153,10 @@ class RefineConfig(eqx.Module):
             on the camera-correction test scene (0.85 vs 0.79).
         robust: occlusion-robust inside term, Welsch scale in image colour std
             (:func:`jaxcr.energy.region_terms`); 0 = the paper's quadratic eq. 6.
+        data_var: what normalises the data terms during the solves: ``"image"`` (the
+            image's colour variance, :mod:`jaxcr.energy`) or ``"residual"`` (the
+            two-region model's own noise variance at the start of each solve,
+            :func:`jaxcr.energy.residual_variance`).
         local: mu_out over the band around the silhouette instead of the whole image
             (:func:`jaxcr.energy.region_terms`).
         camera_correction: also estimate a small per-camera pose correction (rotation about
@@ -200,6 +205,7 @@ class RefineConfig(eqx.Module):
     solver: str = eqx.field(static=True, default="bfgs")
     local: bool = eqx.field(static=True, default=True)
     robust: float = eqx.field(static=True, default=0.0)
+    data_var: str = eqx.field(static=True, default="image")
     camera_correction: bool = eqx.field(static=True, default=True)
     g_cam: float = eqx.field(static=True, default=0.3)
     camera_correction_mode: str = eqx.field(static=True, default="camera")
@@ -226,6 +232,11 @@ class RefineConfig(eqx.Module):
             raise InputError(
                 "camera_correction_mode must be 'camera' or 'rig', got "
                 f"{self.camera_correction_mode!r}",
+                field="RefineConfig",
+            )
+        if self.data_var not in ("image", "residual"):
+            raise InputError(
+                f"data_var must be 'image' or 'residual', got {self.data_var!r}",
                 field="RefineConfig",
             )
         if self.g_cam_rel is not None and not self.g_cam_rel > 0:
@@ -604,10 +615,10 @@ def refine_frame(
     in_view = area_ref > 1.0
 
     def objective(params, args):
-        bands, datas, level, tau = args
+        bands, datas, level, tau, vars_ = args
         _, tubes = tubes_of(params)
         J = reg_of(params)
-        for tube, band, data in zip(tubes, bands, datas, strict=True):
+        for tube, band, data, var in zip(tubes, bands, datas, vars_, strict=True):
             Jc, _ = chan_vese_energy(
                 level_tube(tube, level, config.seg_merge),
                 band,
@@ -618,6 +629,7 @@ def refine_frame(
                 area_ref,
                 config.local,
                 config.robust,
+                var,
             )
             J = J + Jc
         return J
@@ -644,7 +656,19 @@ def refine_frame(
                 select_band(level_tube(t, level, config.seg_merge), d.grid, k_tiles, config.k_seg)
                 for t, d in zip(tubes, datas, strict=True)
             )
-            args = (bands, datas, level, tau)
+            if config.data_var == "residual":
+                vars_ = tuple(
+                    residual_variance(
+                        chan_vese_energy(
+                            level_tube(t, level, config.seg_merge), bd, d, 0.0, weights, tau,
+                            area_ref, config.local, config.robust,
+                        )[1]
+                    )
+                    for t, bd, d in zip(tubes, bands, datas, strict=True)
+                )  # fmt: skip
+            else:
+                vars_ = (None,) * len(tubes)
+            args = (bands, datas, level, tau, vars_)
             # solve in image-motion units (see ImageSpaceBFGS): z_i = scale_i * y_i with
             # scale_i the RMS motion (level px) of the projected points per unit of y_i, and
             # J divided by kappa so that the first, steepest-descent step moves the tube by
