@@ -477,3 +477,46 @@ def test_resume_with_other_config_names_only_the_differing_keys(tmp_path):
     assert "k3: 3 -> 4" in msg and "new_field: '(absent)' -> 'x'" in msg
     assert "k4" not in msg and len(msg) < 300
     assert prepare_output(out, True, False, {**info, "config": cfg}) == [{"frame": "a", "ok": True}]
+
+
+def test_motion_rerun_stopped_early_leaves_no_earlier_report(tmp_path, monkeypatch, capsys):
+    """A rerun into the same OUT truncated frames.jsonl but left the earlier run's
+    summary.json/report.md/probability maps, which then read as this run's results."""
+    from jaxcr.cli import main
+    from jaxcr.motion import run as motion_run
+
+    src = tmp_path / "mo"
+    assert main(["motion", "synth", "-o", str(src), "--size", "64x48", "--frames", "6"]) == 0
+    out = tmp_path / "out"
+    out.mkdir()
+    stale = ["summary.json", "report.md", "prob_translation.npy", "mask_homography.png"]
+    for name in stale:
+        (out / name).write_text("earlier run")
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(motion_run, "run_motion", interrupted)
+    assert main(["motion", str(src), "-o", str(out), "--no-baseline"]) == 130
+    assert not any((out / name).exists() for name in stale)
+
+
+def test_model_object_rerun_stopped_early_leaves_no_earlier_model(tmp_path, monkeypatch):
+    """A rerun that failed or was stopped left the earlier run's model.ply and report.md."""
+    from jaxcr.cli import main
+    from jaxcr.registration import pipeline
+    from jaxcr.synth.rgbd_tasks import generate_task
+
+    scene = generate_task(tmp_path / "s", "1", 0, (64, 48))
+    out = tmp_path / "out"
+    out.mkdir()
+    stale = ["report.md", "report.json", "model.ply", "poses.csv", "partial_1.ply"]
+    for name in stale:
+        (out / name).write_text("earlier run")
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "build_model", interrupted)
+    assert main(["model-object", str(scene), "-o", str(out)]) == 130
+    assert not any((out / name).exists() for name in stale)

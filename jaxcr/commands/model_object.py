@@ -91,6 +91,10 @@ def run(args) -> int:
     sim = RgbdSimulator(args.scene, seed=args.seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    # an earlier run's model and report must not outlive a rerun that fails or is stopped
+    for stale in ("report.md", "report.json", "model.ply", "model_before.ply", "poses.csv",
+                  "fig13.png", "plan.png", *(p.name for p in out.glob("partial_*.ply"))):  # fmt: skip
+        (out / stale).unlink(missing_ok=True)
     cfg = PipelineConfig(
         asift=args.asift, association=args.association, global_method=args.global_opt
     )

@@ -33,6 +33,7 @@ import numpy as np
 
 from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
+from jaxcr.io import results as R
 
 
 def add_parser(subparsers) -> None:
@@ -163,6 +164,13 @@ def run(args) -> int:
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    # An earlier run's results must not sit beside this run's partial log if it stops early:
+    # remove them now; summary.json and report.md (last) are written only when it completes.
+    for stale in ("summary.json", "report.md", "baseline_pr.csv"):
+        (out / stale).unlink(missing_ok=True)
+    for pattern in ("prob_*.npy", "prob_*.png", "mask_*.png", "pr_*.csv"):
+        for f in out.glob(pattern):
+            f.unlink()
     t0 = time.time()
     log = open(out / "frames.jsonl", "w")
     bar = tqdm(total=len(ds), desc="motion", unit="frame", disable=None)
@@ -282,7 +290,7 @@ def run(args) -> int:
         median_ms=timing,
         wall_s=time.time() - t0,
     )
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    R.atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     lines = [
         f"# Motion-Likelihood: {args.dataset}",
         "",
@@ -325,6 +333,6 @@ def run(args) -> int:
         f"Median per-frame time: flow {timing['flow_ms']} ms, segmentation {timing['segmentation_ms']} ms, "
         f"likelihood {timing['likelihood_ms']} ms.",
     ]
-    (out / "report.md").write_text("\n".join(lines) + "\n")
+    R.atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0 if used else 1
