@@ -520,3 +520,22 @@ def test_model_object_rerun_stopped_early_leaves_no_earlier_model(tmp_path, monk
     monkeypatch.setattr(pipeline, "build_model", interrupted)
     assert main(["model-object", str(scene), "-o", str(out)]) == 130
     assert not any((out / name).exists() for name in stale)
+
+
+def test_truncated_png_is_one_line_without_libpng_noise(tmp_path, capfd):
+    """A PNG cut short was reported, but libpng also printed 'libpng error: PNG input buffer
+    is incomplete' on stderr (a second line); a PNG with data after IEND still reads."""
+    import numpy as np
+
+    from jaxcr.errors import InputError
+    from jaxcr.io.images import read_image, write_png
+
+    img = np.random.default_rng(0).random((24, 32, 3))
+    p = write_png(tmp_path / "a.png", img)
+    full = p.read_bytes()
+    (tmp_path / "extra.png").write_bytes(full + b"\0" * 2048)
+    assert read_image(tmp_path / "extra.png").shape == (24, 32, 3)
+    p.write_bytes(full[: len(full) // 2])
+    with pytest.raises(InputError, match="truncated PNG"):
+        read_image(p)
+    assert "libpng" not in capfd.readouterr().err

@@ -36,6 +36,10 @@ def _quiet_decode(data: np.ndarray, flags: int) -> np.ndarray | None:
         cvlog.setLogLevel(level)
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_IEND = b"IEND\xaeB`\x82"  # the end chunk's type and CRC
+
+
 def _imread(path: str | os.PathLike, flags: int) -> np.ndarray:
     path = os.fspath(path)
     if not os.path.exists(path):
@@ -49,6 +53,9 @@ def _imread(path: str | os.PathLike, flags: int) -> np.ndarray:
         raise InputError(f"cannot read image ({err.strerror})", file=path) from None
     if data.size == 0:
         raise InputError("image file is empty", file=path)
+    if data[:8].tobytes() == _PNG_SIGNATURE and _PNG_IEND not in data.tobytes():
+        # caught here: libpng would print its own "libpng error" line on stderr
+        raise InputError("truncated PNG file (no IEND chunk)", file=path)
     img = _quiet_decode(data, flags)
     if img is None:
         raise InputError("not a readable image (corrupt or unsupported format)", file=path)
