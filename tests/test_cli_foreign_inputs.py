@@ -539,3 +539,29 @@ def test_truncated_png_is_one_line_without_libpng_noise(tmp_path, capfd):
     with pytest.raises(InputError, match="truncated PNG"):
         read_image(p)
     assert "libpng" not in capfd.readouterr().err
+
+
+def test_broken_calibration_file_messages_say_what_is_wrong(tmp_path):
+    """A truncated FileStorage file was reported as '(<class 'cv2.FileStorage'> returned a
+    result with an exception set)'; an empty one likewise."""
+    import cv2
+    import numpy as np
+
+    from jaxcr.errors import InputError
+    from jaxcr.io.calibration import load_camera
+
+    p = tmp_path / "cam.yaml"
+    fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]]))
+    fs.write("image_width", 100)
+    fs.write("image_height", 80)
+    fs.release()
+    assert load_camera(p).width == 100
+    text = p.read_bytes()
+    p.write_bytes(text[: len(text) // 2])
+    with pytest.raises(InputError) as exc:
+        load_camera(p)
+    assert "exception set" not in str(exc.value) and "Parsing error" in str(exc.value)
+    p.write_bytes(b"")
+    with pytest.raises(InputError, match="calibration file is empty"):
+        load_camera(p)

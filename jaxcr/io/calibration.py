@@ -80,12 +80,17 @@ def read_filestorage(path: str | os.PathLike) -> dict[str, Any]:
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise InputError("calibration file not found", file=path)
+    if os.path.getsize(path) == 0:
+        raise InputError("calibration file is empty", file=path)
     try:
         fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as err:
         # cv2 raises cv2.error (sometimes wrapped in SystemError) with a multi-line message
-        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
-        msg = lines[-1] if lines else "parse error"
+        # (a SystemError "returned a result with an exception set" carries it as its cause)
+        src = err.__cause__ if isinstance(err, SystemError) and err.__cause__ else err
+        lines = [ln.strip() for ln in str(src).splitlines() if ln.strip()]
+        msg = lines[-1] if lines and "exception set" not in lines[-1] else "parse error"
+        msg = msg.split(" error: ", 1)[-1]  # drop "OpenCV(x.y) /path/to/source.cpp:N"
         raise InputError(f"not a readable OpenCV FileStorage file ({msg})", file=path) from None
     try:
         if not fs.isOpened():
@@ -95,8 +100,11 @@ def read_filestorage(path: str | os.PathLike) -> dict[str, Any]:
             raise InputError("expected a map of named entries at the top level", file=path)
         return {k: _fs_node_value(fs.getNode(k)) for k in root.keys()}
     except (cv2.error, SystemError) as err:
-        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
-        msg = lines[-1] if lines else "parse error"
+        # (a SystemError "returned a result with an exception set" carries it as its cause)
+        src = err.__cause__ if isinstance(err, SystemError) and err.__cause__ else err
+        lines = [ln.strip() for ln in str(src).splitlines() if ln.strip()]
+        msg = lines[-1] if lines and "exception set" not in lines[-1] else "parse error"
+        msg = msg.split(" error: ", 1)[-1]  # drop "OpenCV(x.y) /path/to/source.cpp:N"
         raise InputError(f"cannot parse OpenCV FileStorage file ({msg})", file=path) from None
     finally:
         fs.release()
