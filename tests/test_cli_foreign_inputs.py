@@ -536,7 +536,7 @@ def test_truncated_png_is_one_line_without_libpng_noise(tmp_path, capfd):
     (tmp_path / "extra.png").write_bytes(full + b"\0" * 2048)
     assert read_image(tmp_path / "extra.png").shape == (24, 32, 3)
     p.write_bytes(full[: len(full) // 2])
-    with pytest.raises(InputError, match="truncated PNG"):
+    with pytest.raises(InputError, match="truncated PNG: no IEND"):
         read_image(p)
     assert "libpng" not in capfd.readouterr().err
 
@@ -565,3 +565,47 @@ def test_broken_calibration_file_messages_say_what_is_wrong(tmp_path):
     p.write_bytes(b"")
     with pytest.raises(InputError, match="calibration file is empty"):
         load_camera(p)
+
+
+def _png_bomb(path, w, h):
+    """A valid 8-bit grey PNG of w x h zero pixels, streamed (never held in memory)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    z = zlib.compressobj(9)
+    row = b"\0" * (w + 1)
+    idat = b"".join(z.compress(row) for _ in range(h)) + z.flush()
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
+    data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat)
+    path.write_bytes(data + chunk(b"IEND", b""))
+
+
+def test_huge_declared_images_are_never_decoded(tmp_path):
+    """A 12000x12000 PNG of zeros is 140 kB on disk; validate decoded it (and would decode
+    a 30000x30000 one into ~11 GB of float32). JPEG sizes are now read from the header too."""
+    import cv2
+    import numpy as np
+
+    from jaxcr.errors import InputError
+    from jaxcr.io.images import MAX_PIXELS, header_size, read_image
+
+    bomb = tmp_path / "bomb.png"
+    _png_bomb(bomb, 12000, 12000)
+    assert bomb.stat().st_size < 1_000_000 and 12000**2 > MAX_PIXELS
+    with pytest.raises(InputError, match="exceeds the 134217728 pixel limit"):
+        read_image(bomb)
+    root = make_dataset(tmp_path / "d", n_frames=1)
+    img = root / "images" / "main" / "000000.png"
+    _png_bomb(img, 4000, 3000)  # under the limit, but not the camera's size
+    (err,) = validate_dataset(root)
+    assert "size 4000x3000 does not match camera 'main' (96x72)" in str(err)
+    # JPEG headers (baseline and progressive) agree with OpenCV's decoded size
+    im = (np.random.default_rng(0).random((37, 53, 3)) * 255).astype(np.uint8)
+    for flags in ([], [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]):
+        ok, buf = cv2.imencode(".jpg", im, flags)
+        assert header_size(buf.tobytes()) == (53, 37)

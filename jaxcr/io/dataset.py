@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import struct
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +28,7 @@ import numpy as np
 from jaxcr.camera import Camera
 from jaxcr.errors import InputError, InputErrors
 from jaxcr.io.calibration import camera_from_dict, camera_to_dict, load_camera
-from jaxcr.io.images import image_size, read_image, read_mask, write_png
+from jaxcr.io.images import file_header_size, image_size, read_image, read_mask, write_png
 
 FORMAT = "jaxcr.dataset/1"
 DATASET_FILE = "dataset.json"
@@ -136,19 +135,6 @@ class Dataset:
 
 
 # ------------------------------------------------------------------------------- checking
-
-
-def _png_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) from a PNG header without decoding; None if not a PNG."""
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(24)
-    except OSError:
-        return None
-    if len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
-        w, h = struct.unpack(">II", head[16:24])
-        return int(w), int(h)
-    return None
 
 
 def is_safe_frame_id(fid: str) -> bool:
@@ -313,18 +299,23 @@ class _Scan:
                 self.errors.append(e)
                 self.bad_cameras.add(name)
 
-    def _image_size(self, path: Path, kind: str) -> tuple[int, int] | InputError:
+    def _image_size(self, path: Path, kind: str, expected=None) -> tuple[int, int] | InputError:
         if path in self._size_cache:
             return self._size_cache[path]
+        head = file_header_size(path)
+        if head is not None and expected is not None and head != expected:
+            return head  # the caller reports the mismatch; never decode a wrong-size file
         try:
-            if self.decode:
+            if head is not None and not self.decode:
+                size = head
+            elif self.decode:
                 if kind == "images":
                     a = read_image(path)
                 else:
                     a = read_mask(path)
                 size = (a.shape[1], a.shape[0])
             else:
-                size = _png_size(path) or image_size(path)
+                size = image_size(path)
         except InputError as e:
             size = e
         self._size_cache[path] = size
@@ -406,11 +397,12 @@ class _Scan:
                     ferr(f"file not found: {rel}", fld)
                     continue
                 paths[kind][cam] = path.resolve()
-                size = self._image_size(path, kind)
+                cam_obj = self.cameras.get(cam)
+                want = None if cam_obj is None else (cam_obj.width, cam_obj.height)
+                size = self._image_size(path, kind, want)
                 if isinstance(size, InputError):
                     ferr(size.message, fld, file=str(path))
                     continue
-                cam_obj = self.cameras.get(cam)
                 if cam_obj is not None and size != (cam_obj.width, cam_obj.height):
                     ferr(
                         f"size {size[0]}x{size[1]} does not match camera {cam!r} "
@@ -529,11 +521,11 @@ class _Scan:
                 if not path.is_file():
                     self.err(f"file not found: {rel}", field=fld)
                     continue
-                size = self._image_size(path, "images")
+                c = self.cameras.get(cam)
+                size = self._image_size(path, "images", None if c is None else (c.width, c.height))
                 if isinstance(size, InputError):
                     self.errors.append(InputError(size.message, file=str(path), field=fld))
                     continue
-                c = self.cameras.get(cam)
                 if c is not None and size != (c.width, c.height):
                     self.err(
                         f"size {size[0]}x{size[1]} does not match camera {cam!r} ({c.width}x{c.height})",
@@ -623,7 +615,7 @@ def validate_dataset(path: str | os.PathLike, decode_images: bool = True) -> lis
 
     Dataset-level problems come first, then per-frame problems in file order. With
     ``decode_images`` (default) every image and mask is fully decoded, so corrupt files are
-    found; otherwise only PNG headers are read (sizes), which is much faster.
+    found; otherwise only PNG/JPEG headers are read (sizes), which is much faster.
     """
     return check_dataset(path, decode_images).all_errors
 
@@ -635,7 +627,7 @@ def load_dataset(
 
     Dataset-level problems raise :class:`InputErrors`. Frame-level problems put the frame in
     ``bad_frames`` (id -> "; "-joined messages), or raise with ``strict=True``. Images are not
-    decoded here (only PNG headers are read for the size check) unless ``decode_images``.
+    decoded here (only PNG/JPEG headers are read for the size check) unless ``decode_images``.
     """
     s = _scan(path, decode_images)
     if s.errors or (strict and s.frame_errors):

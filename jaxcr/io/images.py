@@ -40,6 +40,55 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"IEND\xaeB`\x82"  # the end chunk's type and CRC
 
 
+#: Largest image decoded (pixels), checked on the file header before decoding: a float32 RGB
+#: copy of it is 1.6 GB. A PNG can declare 30000x30000 zero pixels in under 1 MB of file
+#: (a "decompression bomb"); decoding it would take ~11 GB on this path.
+MAX_PIXELS = 1 << 27
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's SOF segment, or None if not found."""
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+            i += 2
+            continue
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
+            if i + 9 > len(data):
+                return None
+            h = int.from_bytes(data[i + 5 : i + 7], "big")
+            w = int.from_bytes(data[i + 7 : i + 9], "big")
+            return w, h
+        i += 2 + int.from_bytes(data[i + 2 : i + 4], "big")
+    return None
+
+
+def header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) declared in a PNG or JPEG header, without decoding; None for other
+    formats or an unreadable header."""
+    if data[:8] == _PNG_SIGNATURE and len(data) >= 24 and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    return _jpeg_size(data)
+
+
+def file_header_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """(width, height) from a PNG/JPEG file's header (first MB), or None (other format,
+    unreadable). Does not decode."""
+    try:
+        with open(path, "rb") as fh:
+            return header_size(fh.read(1 << 20))
+    except OSError:
+        return None
+
+
 def _imread(path: str | os.PathLike, flags: int) -> np.ndarray:
     path = os.fspath(path)
     if not os.path.exists(path):
@@ -55,7 +104,13 @@ def _imread(path: str | os.PathLike, flags: int) -> np.ndarray:
         raise InputError("image file is empty", file=path)
     if data[:8].tobytes() == _PNG_SIGNATURE and _PNG_IEND not in data.tobytes():
         # caught here: libpng would print its own "libpng error" line on stderr
-        raise InputError("truncated PNG file (no IEND chunk)", file=path)
+        raise InputError("not a readable image (truncated PNG: no IEND chunk)", file=path)
+    size = header_size(data[: 1 << 20].tobytes())
+    if size is not None and size[0] * size[1] > MAX_PIXELS:
+        raise InputError(
+            f"image of {size[0]}x{size[1]} pixels exceeds the {MAX_PIXELS} pixel limit",
+            file=path,
+        )
     img = _quiet_decode(data, flags)
     if img is None:
         raise InputError("not a readable image (corrupt or unsupported format)", file=path)
