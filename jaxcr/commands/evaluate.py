@@ -114,8 +114,11 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
     def m(x):
         return float(x) if x is not None else math.nan
 
+    from tqdm import tqdm
+
     rows = []
-    for rec in records:
+    # progress on a terminal only (disable=None); reading masks of long runs takes a while
+    for rec in tqdm(records, desc=f"evaluate {out.name}", unit="frame", disable=None, leave=False):
         fid = str(rec["frame"])
         frame = frames.get(fid)
         tags = rec.get("tags") or (list(frame.tags) if frame is not None else [])
