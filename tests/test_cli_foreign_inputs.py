@@ -609,3 +609,19 @@ def test_huge_declared_images_are_never_decoded(tmp_path):
     for flags in ([], [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]):
         ok, buf = cv2.imencode(".jpg", im, flags)
         assert header_size(buf.tobytes()) == (53, 37)
+
+
+def test_manifold_train_reports_frames_the_loader_rejected(tmp_path, capsys):
+    """A training frame with a missing image vanished: the summary said '23/23 frames' for
+    a 24-frame dataset and nothing named the frame."""
+    from jaxcr.cli import main
+
+    d = tmp_path / "train"
+    argv = ["manifold", "synth", "-o", str(d), "--frames", "12", "--size", "256x192"]
+    assert main(argv) == 0
+    (d / "images" / "left" / "000003.png").unlink()
+    capsys.readouterr()
+    assert main(["manifold", "train", str(d), "-o", str(tmp_path / "m.npz")]) == 0
+    out, err = capsys.readouterr()
+    assert "/12 frames" in out
+    assert "1 bad frame(s) not used" in err and "000003" in err

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -203,12 +204,21 @@ def run_train(args) -> int:
         "dataset": str(Path(args.dataset).resolve()),
         "frames_used": int(ok.sum()),
         "frames_failed": [i for i, o in zip(sc.ids, ok, strict=True) if not o],
+        "frames_bad": dict(ds.bad_frames),  # rejected by the dataset loader
         "descriptor_s": t1 - t0,
         "train_s": t2 - t1,
     }
     save_model(model, args.out, meta=meta)
+    if ds.bad_frames:
+        shown = "; ".join(list(ds.bad_frames.values())[:3])
+        more = f" (and {len(ds.bad_frames) - 3} more)" if len(ds.bad_frames) > 3 else ""
+        print(
+            f"jaxcr manifold: warning: {len(ds.bad_frames)} bad frame(s) not used: {shown}{more}",
+            file=sys.stderr,
+        )
     print(
-        f"manifold: {int(ok.sum())}/{len(ok)} frames, {cfg.n_bins} bins, {model.n_components} components "
+        f"manifold: {int(ok.sum())}/{len(ok) + len(ds.bad_frames)} frames, {cfg.n_bins} bins, "
+        f"{model.n_components} components "
         f"({cfg.variance:.0%} variance), {model.manifold.psi.shape[0]} manifold points; "
         f"descriptors {t1 - t0:.1f} s, training {t2 - t1:.2f} s -> {args.out}"
     )
