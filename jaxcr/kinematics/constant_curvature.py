@@ -198,7 +198,9 @@ class ConstantCurvature(eqx.Module):
                     ),
                 )
             )
-        n_points = get_int(d, "n_points", file=file, default=64, minimum=len(sections) + 1, maximum=MAX_POINTS)
+        n_points = get_int(
+            d, "n_points", file=file, default=64, minimum=len(sections) + 1, maximum=MAX_POINTS
+        )
         a = np.asarray(rows, np.float64)
         return cls.make(
             length=a[:, 0],

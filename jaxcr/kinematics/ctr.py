@@ -239,7 +239,9 @@ class ConcentricTubeRobot(eqx.Module):
             raise InputError(
                 f"expected true or false, got {tt!r}", file=file, field="transmission_torsion"
             )
-        n_points = get_int(d, "n_points", file=file, default=97, minimum=2 * len(rows) + 1, maximum=MAX_POINTS)
+        n_points = get_int(
+            d, "n_points", file=file, default=97, minimum=2 * len(rows) + 1, maximum=MAX_POINTS
+        )
         options = {"transmission_torsion": tt, "n_points": n_points} | kwargs
         return cls.make(rows, **options)
 
