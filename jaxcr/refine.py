@@ -157,6 +157,9 @@ class RefineConfig(eqx.Module):
             image's colour variance, :mod:`jaxcr.energy`) or ``"residual"`` (the
             two-region model's own noise variance at the start of each solve,
             :func:`jaxcr.energy.residual_variance`).
+        robust_envelope: with ``robust``, the solver's gradient does not flow through the
+            robust mean's reweightings (envelope-theorem gradient, cheaper;
+            :func:`jaxcr.energy.region_terms`).
         local: mu_out over the band around the silhouette instead of the whole image
             (:func:`jaxcr.energy.region_terms`).
         camera_correction: also estimate a small per-camera pose correction (rotation about
@@ -206,6 +209,7 @@ class RefineConfig(eqx.Module):
     local: bool = eqx.field(static=True, default=True)
     robust: float = eqx.field(static=True, default=0.0)
     data_var: str = eqx.field(static=True, default="image")
+    robust_envelope: bool = eqx.field(static=True, default=False)
     camera_correction: bool = eqx.field(static=True, default=True)
     g_cam: float = eqx.field(static=True, default=0.3)
     camera_correction_mode: str = eqx.field(static=True, default="camera")
@@ -630,6 +634,7 @@ def refine_frame(
                 config.local,
                 config.robust,
                 var,
+                config.robust_envelope,
             )
             J = J + Jc
         return J
