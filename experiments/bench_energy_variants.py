@@ -67,7 +67,9 @@ def main(argv=None) -> int:
         steps = float(np.median(np.asarray(r.num_steps)))
         m = np.asarray(r.masks[0])
         io = float(np.mean([iou(m[k], truth[k]) for k in range(a.frames)]))
-        print(f"| {v or 'defaults'} | {c:.1f} | {ms:.1f} | {steps:.0f} | {ms / steps:.2f} | {io:.3f} |")
+        print(
+            f"| {v or 'defaults'} | {c:.1f} | {ms:.1f} | {steps:.0f} | {ms / steps:.2f} | {io:.3f} |"
+        )
     return 0
 
 
