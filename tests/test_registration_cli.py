@@ -104,3 +104,20 @@ def test_prior_gate_drops_a_keypoint_estimate_far_from_the_prior(scene):
     assert free.seeded_by_keypoints and free.n_inliers >= 3
     assert not gated.seeded_by_keypoints
     np.testing.assert_allclose(free.T, np.eye(4), atol=1e-3)
+
+
+def test_cli_edge_weights_option():
+    import argparse
+
+    from jaxcr.commands import model_object
+    from jaxcr.registration.pipeline import PipelineConfig
+
+    p = argparse.ArgumentParser(prog="jaxcr")
+    model_object.add_parser(p.add_subparsers())
+    a = p.parse_args(["model-object", "synth", "-o", "x"])
+    assert a.edge_weights == PipelineConfig().edge_weights == "calibrated"
+    assert p.parse_args(["model-object", "synth", "-o", "x", "--edge-weights", "information"]
+                        ).edge_weights == "information"  # fmt: skip
+    with pytest.raises(SystemExit) as e:
+        p.parse_args(["model-object", "synth", "-o", "x", "--edge-weights", "robust"])
+    assert e.value.code == 2
