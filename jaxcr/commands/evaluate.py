@@ -117,6 +117,7 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
     from tqdm import tqdm
 
     rows = []
+    eval_failed: dict[str, str] = {}
     # progress on a terminal only (disable=None); reading masks of long runs takes a while
     for rec in tqdm(records, desc=f"evaluate {out.name}", unit="frame", disable=None, leave=False):
         fid = str(rec["frame"])
@@ -126,6 +127,8 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
         files = rec.get("files") or {}
         truth_cl = frame.load_truth("centreline") if frame is not None else None
         e3 = {k: math.nan for k in _METRIC_FIELDS[5:]}
+        bad = None  # set when this frame's outputs cannot be compared with its ground truth
+        first = len(rows)
         if rec.get("ok") and truth_cl is not None and "centreline" in files:
             t = jnp.asarray(np.asarray(truth_cl, np.float64), jnp.float32)
             for tag, key in (("refined", "centreline"), ("nominal", "centreline_nominal")):
@@ -161,15 +164,32 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
                     if pred is None:
                         continue
                     if pred.shape != visible.shape:
-                        raise InputError(
-                            f"mask {key}/{cam} is {pred.shape}, ground truth {visible.shape}",
-                            file=str(out), frame=fid,
-                        )  # fmt: skip
+                        bad = (f"evaluate: mask {key}/{cam} is {pred.shape}, ground truth "
+                               f"{visible.shape}")  # fmt: skip
+                        break
                     pj = jnp.asarray(pred)
                     row[f"iou_{kind}"] = m(metrics.iou(pj, vj))
                     if occ is not None and kind != "background":
                         row[f"adj_iou_{kind}"] = m(metrics.adjusted_iou(pj, vj, jnp.asarray(occ)))
             rows.append(row)
+            if bad is not None:
+                break
+        if bad is not None:
+            # one frame's outputs do not match its ground truth: that frame is failed (all its
+            # cameras, NaN metrics, the reason recorded) and the report goes on
+            del rows[first:]
+            for cam in cams:
+                rows.append({
+                    "out": str(out), "dataset": name, "group": group, "frame": fid,
+                    "camera": cam, "ok": False, "reason": bad, "num_steps": rec.get("num_steps"),
+                    "time_s": rec.get("time_s"), **{k: math.nan for k in _METRIC_FIELDS},
+                })  # fmt: skip
+            eval_failed[fid] = bad
+    if eval_failed:
+        fid, why = next(iter(eval_failed.items()))
+        more = f" (and {len(eval_failed) - 1} more)" if len(eval_failed) > 1 else ""
+        print(f"jaxcr evaluate: warning: {out}: {len(eval_failed)} frame(s) counted as failed: "
+              f"frame {fid}: {why}{more}", file=sys.stderr)  # fmt: skip
     return rows, run_info
 
 

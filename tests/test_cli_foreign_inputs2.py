@@ -1,0 +1,53 @@
+"""Command-line tools on foreign or damaged inputs, continued (see test_cli_foreign_inputs.py):
+one bad frame is a failed frame and the batch goes on; bad input is one line, exit 2; a run
+can be resumed and re-tried; no output looks complete when it is not."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+from _datasets import H, W, make_dataset
+
+
+def _one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0], err
+    return err[0]
+
+
+def _fake_run(root, out, frames, sizes):
+    """A segment output folder for ``frames`` whose refined masks have the given (h, w)."""
+    from jaxcr.io import results as R
+
+    out.mkdir()
+    (out / "run.json").write_text(
+        json.dumps({"format": R.RUN_FORMAT, "dataset": str(root), "cameras": ["main"]})
+    )
+    lines = []
+    for fid, (h, w) in zip(frames, sizes, strict=True):
+        rel = f"masks/main/{fid}.png"
+        R.atomic_write_png(out / rel, np.ones((h, w), bool))
+        lines.append(json.dumps({"format": R.RESULTS_FORMAT, "frame": fid, "ok": True,
+                                 "files": {"masks": {"main": rel}}}))  # fmt: skip
+    (out / "results.jsonl").write_text("\n".join(lines) + "\n")
+    (out / "DONE").write_text("done\n")
+
+
+def test_evaluate_counts_a_frame_with_a_wrong_mask_size_as_failed(tmp_path, capsys):
+    """One frame whose predicted mask had another size than its ground truth aborted the
+    whole report (exit 2, no table); now that frame is failed with the reason, the rest go on."""
+    from jaxcr.cli import main
+
+    root = make_dataset(tmp_path / "d", n_frames=3)
+    out = tmp_path / "run"
+    _fake_run(root, out, ["000000", "000001", "000002"], [(H, W), (H // 2, W), (H, W)])
+    assert main(["evaluate", str(out), "--no-plot"]) == 0
+    err = capsys.readouterr().err
+    assert "1 frame(s) counted as failed: frame 000001" in err and "(36, 96)" in err
+    rows = {r["frame"]: r for r in csv.DictReader(open(out / "per_frame.csv"))}
+    assert rows["000001"]["ok"] == "False" and "(36, 96)" in rows["000001"]["reason"]
+    assert rows["000001"]["iou_refined"] == ""
+    assert rows["000000"]["ok"] == "True" and float(rows["000000"]["iou_refined"]) > 0
+    assert "3 (1)" in (out / "table2.md").read_text()  # Frames (failed)
