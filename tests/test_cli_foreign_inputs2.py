@@ -51,3 +51,36 @@ def test_evaluate_counts_a_frame_with_a_wrong_mask_size_as_failed(tmp_path, caps
     assert rows["000001"]["iou_refined"] == ""
     assert rows["000000"]["ok"] == "True" and float(rows["000000"]["iou_refined"]) > 0
     assert "3 (1)" in (out / "table2.md").read_text()  # Frames (failed)
+
+
+FAST = ["--levels", "1", "--max-steps", "2", "--batch-size", "1", "--no-overlays", "--quiet"]
+
+
+def test_segment_retry_failed_reruns_a_frame_whose_image_was_fixed(tmp_path, capsys):
+    """--resume treats failed records as done, so a frame whose image was later repaired was
+    never re-run; --retry-failed re-runs it and its new record supersedes the failed one."""
+    from jaxcr.cli import main
+    from jaxcr.io import results as R
+
+    root = make_dataset(tmp_path / "d", n_frames=2)
+    img = root / "images" / "main" / "000001.png"
+    good = img.read_bytes()
+    img.write_bytes(b"not a png")
+    out = tmp_path / "run"
+    assert main(["segment", str(root), "-o", str(out), *FAST]) == 1
+    (rec,) = [r for r in R.read_results(out / "results.jsonl") if r["frame"] == "000001"]
+    assert not rec["ok"]
+    img.write_bytes(good)
+    assert main(["segment", str(root), "-o", str(out), "--resume", *FAST]) == 1  # unchanged
+    assert len((out / "results.jsonl").read_text().splitlines()) == 2
+    assert main(["segment", str(root), "-o", str(out), "--retry-failed", *FAST]) == 0
+    lines = (out / "results.jsonl").read_text().splitlines()
+    assert [json.loads(x)["frame"] for x in lines] == ["000001", "000000", "000001"]
+    recs = R.read_results(out / "results.jsonl")  # readers: the last record per frame
+    assert [(r["frame"], r["ok"]) for r in recs] == [("000001", True), ("000000", True)]
+    assert json.loads((out / "summary.json").read_text())["failed"] == 0
+    assert (out / "DONE").exists() and (out / "masks" / "main" / "000001.png").exists()
+    capsys.readouterr()
+    argv = ["segment", str(root), "-o", str(out), "--retry-failed", "--overwrite", *FAST]
+    assert main(argv) == 2
+    assert "exclude each other" in _one_line_error(capsys)

@@ -144,6 +144,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="continue an interrupted run in OUT (skips frames in results.jsonl)",
     )
     p.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="with --resume (implied): also re-run the frames whose last record failed, e.g. "
+        "after fixing their images (the new record supersedes the failed one)",
+    )
+    p.add_argument(
         "--overwrite", action="store_true", help="delete previous results in OUT and start again"
     )
     p.add_argument("--no-overlays", action="store_true", help="do not write overlay PNGs")
@@ -404,6 +410,10 @@ def run(args) -> int:
         raise InputError("--batch-size must be >= 1", field="batch-size")
     if args.limit is not None and args.limit < 0:
         raise InputError("--limit must be >= 0", field="limit")
+    if args.retry_failed:
+        if args.overwrite:
+            raise InputError("--retry-failed and --overwrite exclude each other")
+        args.resume = True
     cfg = refine_config(args)
     ranges = robot_hsv_ranges(args)
     out = Path(args.out)
@@ -442,7 +452,7 @@ def run(args) -> int:
         batch_size=args.batch_size,
         colour_ranges=ranges,
     )
-    done = R.done_frame_ids(previous)
+    done = R.done_frame_ids(previous, retry_failed=args.retry_failed)
     todo = [f for f in seg.frame_ids if f not in done]
     if args.limit is not None:
         todo = todo[: args.limit]

@@ -293,9 +293,12 @@ class ResultsLog:
         self.close()
 
 
-def done_frame_ids(records: Iterable[dict]) -> set[str]:
-    """Frame ids that need no re-run: every record present (ok or failed with a reason)."""
-    return {str(r["frame"]) for r in records}
+def done_frame_ids(records: Iterable[dict], retry_failed: bool = False) -> set[str]:
+    """Frame ids that need no re-run: every record present (ok or failed with a reason), or
+    with ``retry_failed`` only the frames whose last record is ok (``records`` as returned by
+    :func:`read_results`, one final record per frame; a re-run appends a newer record, which
+    readers take as the frame's result)."""
+    return {str(r["frame"]) for r in records if r.get("ok") or not retry_failed}
 
 
 def output_is_complete(root: str | os.PathLike) -> bool:
