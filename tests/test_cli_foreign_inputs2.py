@@ -84,3 +84,21 @@ def test_segment_retry_failed_reruns_a_frame_whose_image_was_fixed(tmp_path, cap
     argv = ["segment", str(root), "-o", str(out), "--retry-failed", "--overwrite", *FAST]
     assert main(argv) == 2
     assert "exclude each other" in _one_line_error(capsys)
+
+
+def test_motion_exits_1_when_a_frame_could_not_be_read(tmp_path, capsys):
+    """An unreadable frame was skipped (used: false) and the run exited 0, though the README's
+    exit codes say 1 when some frames fail; pairs the method does not use are no failures."""
+    from jaxcr.cli import main
+
+    src = tmp_path / "mo"
+    assert main(["motion", "synth", "-o", str(src), "--size", "64x48", "--frames", "6"]) == 0
+    (src / "frames" / "000003.png").write_bytes(b"not a png")
+    capsys.readouterr()
+    assert main(["motion", str(src), "-o", str(tmp_path / "b"), "--no-baseline"]) == 1
+    assert "1 frame(s) failed: frame 3: unreadable image 000003.png" in capsys.readouterr().err
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert summary["failed"] == {"3": "unreadable image 000003.png"} and summary["used"] >= 3
+    assert (tmp_path / "b" / "report.md").exists()
+    lines = [json.loads(x) for x in (tmp_path / "b" / "frames.jsonl").read_text().splitlines()]
+    assert lines[0]["reason"] == "first frame" and not lines[0]["used"]  # not a failure

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -151,6 +152,19 @@ def run(args) -> int:
             field="--superpixel-step",
         )
     ds = load_motion_dataset(args.dataset)
+    # Frames the reader could not use (unreadable, corrupt, wrong size) are failed frames: the
+    # run goes on without them but exits 1 (README exit codes). Pairs the method itself does not
+    # use (first frame, end-effector still or out of view, no valid flow) are not failures.
+    failed: dict[int, str] = {}
+    read_frames = ds.frames
+
+    def frames_noting_failures():
+        for i, rgb, why in read_frames():
+            if rgb is None:
+                failed[int(i)] = why
+            yield i, rgb, why
+
+    ds.frames = frames_noting_failures
     models = MODELS if args.model == "both" else (args.model,)
     cfg = MotionConfig(
         superpixel_step=args.superpixel_step,
@@ -287,6 +301,7 @@ def run(args) -> int:
         frames=len(ds),
         used=len(used),
         skipped=len(skipped),
+        failed={str(k): v for k, v in sorted(failed.items())},
         median_ms=timing,
         wall_s=time.time() - t0,
     )
@@ -335,4 +350,9 @@ def run(args) -> int:
     ]
     R.atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
-    return 0 if used else 1
+    if failed:
+        i, why = min(failed.items())
+        more = f" (and {len(failed) - 1} more)" if len(failed) > 1 else ""
+        print(f"jaxcr motion: {len(failed)} frame(s) failed: frame {i}: {why}{more}",
+              file=sys.stderr)  # fmt: skip
+    return 0 if used and not failed else 1
