@@ -102,3 +102,21 @@ def test_motion_exits_1_when_a_frame_could_not_be_read(tmp_path, capsys):
     assert (tmp_path / "b" / "report.md").exists()
     lines = [json.loads(x) for x in (tmp_path / "b" / "frames.jsonl").read_text().splitlines()]
     assert lines[0]["reason"] == "first frame" and not lines[0]["used"]  # not a failure
+
+
+def test_empty_dataset_is_said_by_validate_and_refused_by_segment(tmp_path, capsys):
+    """A dataset with "frames": [] validated as a bare OK and segment wrote DONE with 0/0 frames, exit 0."""
+    from _datasets import edit_json
+
+    from jaxcr.cli import main
+
+    root = make_dataset(tmp_path / "d", n_frames=1)
+    edit_json(root, lambda d: d.__setitem__("frames", []))
+    assert main(["validate", str(root), "-o", str(tmp_path / "v.json")]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and "OK but empty (no frames: nothing to process)" in out[0]
+    assert json.loads((tmp_path / "v.json").read_text())["warnings"] != []
+    assert main(["segment", str(root), "-o", str(tmp_path / "o"), "--quiet"]) == 2
+    msg = _one_line_error(capsys)
+    assert "dataset.json" in msg and "'frames'" in msg and "no frames" in msg
+    assert not (tmp_path / "o").exists()

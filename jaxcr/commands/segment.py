@@ -405,6 +405,12 @@ def prepare_output(out: Path, resume: bool, overwrite: bool, run_info: dict) -> 
 
 def run(args) -> int:
     ds = load(args.dataset)
+    if not ds.frames and not ds.bad_frames:  # else a DONE run of 0/0 frames, exit 0
+        raise InputError(
+            "the dataset has no frames: nothing to segment",
+            file=str(Path(ds.root) / "dataset.json"),
+            field="frames",
+        )
     cams = select_cameras(ds, args.camera)
     if args.batch_size < 1:
         raise InputError("--batch-size must be >= 1", field="batch-size")

@@ -8,7 +8,8 @@ frame id and the field.
 Exit code 0 when the dataset is clean, 2 when any problem was found.
 With ``-o report.json`` the problems are also written as JSON
 (``{"format": "jaxcr.validate/1", "dataset", "ok", "n_frames", "n_bad_frames",
-"problems": [{"file", "frame", "field", "message"}]}``).
+"warnings", "problems": [{"file", "frame", "field", "message"}]}``).
+A dataset without frames is well-formed (exit 0) but the summary line says it is empty.
 """
 
 from __future__ import annotations
@@ -71,6 +72,13 @@ def run(args) -> int:
         for err in problems:
             print(err.format())
     status = "OK" if check.ok else f"{len(problems)} problem(s)"
+    # "frames": [] is well-formed (the format and DatasetWriter allow it, e.g. a dataset being
+    # assembled), so it is no problem and the exit code stays 0; but a batch run has nothing
+    # to do (jaxcr segment refuses it), so the summary says so instead of a bare "OK".
+    warnings = []
+    if check.n_frames == 0 and not check.errors:
+        warnings.append("the dataset has no frames: nothing to process")
+        status += " but empty (no frames: nothing to process)"
     cams = ", ".join(check.cameras) or "-"
     print(
         f"{check.path}: {status}; robot {check.robot_kind or '?'}; cameras {cams}; "
@@ -83,6 +91,7 @@ def run(args) -> int:
             "ok": check.ok,
             "n_frames": check.n_frames,
             "n_bad_frames": check.n_bad_frames,
+            "warnings": warnings,
             "problems": [
                 {"file": e.file, "frame": e.frame, "field": e.field, "message": e.message}
                 for e in problems
