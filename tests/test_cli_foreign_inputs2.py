@@ -8,6 +8,7 @@ import csv
 import json
 
 import numpy as np
+import pytest
 from _datasets import H, W, make_dataset
 
 
@@ -120,3 +121,71 @@ def test_empty_dataset_is_said_by_validate_and_refused_by_segment(tmp_path, caps
     msg = _one_line_error(capsys)
     assert "dataset.json" in msg and "'frames'" in msg and "no frames" in msg
     assert not (tmp_path / "o").exists()
+
+
+def _stereo_result():
+    K = np.array([[100.0, 0, 47.5], [0, 100.0, 35.5], [0, 0, 1]])
+    return {"K1": K, "D1": np.zeros(5), "K2": K, "D2": np.zeros(5), "R": np.eye(3),
+            "T": np.array([-0.1, 0.0, 0.0]), "size1": (W, H), "size2": (W, H),
+            "rms_1": 0.1, "rms_2": 0.2, "rms_stereo": 0.3, "used": [0, 1, 2]}  # fmt: skip
+
+
+def _rms_stereo(path) -> float:
+    if path.suffix == ".json":
+        return json.loads(path.read_text())["rms_stereo"]
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        return fs.getNode("rms_stereo").real()
+    finally:
+        fs.release()
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".json"])
+def test_calibrate_output_is_written_atomically(tmp_path, monkeypatch, suffix):
+    """save_stereo wrote the file, then the RMS values were appended in a second write: an
+    interruption between (or in) them left a file that reads as a complete calibration."""
+    from jaxcr.commands import calibrate
+    from jaxcr.io.calibration import load_stereo
+
+    out = tmp_path / "sub" / f"stereo{suffix}"
+    calibrate.save_calibration(_stereo_result(), str(out))
+    c1, c2 = load_stereo(out)
+    assert c1.width == W and np.isclose(float(c2.T_cam_robot[0, 3]), -0.1)
+    text = out.read_text()
+    assert abs(_rms_stereo(out) - 0.3) < 1e-9
+    real = calibrate._write_calibration
+
+    def interrupted(res, path):
+        real(res, path)  # the temporary file is complete, then the run stops before the rename
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(calibrate, "_write_calibration", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        calibrate.save_calibration({**_stereo_result(), "rms_stereo": 9.0}, str(out))
+    assert out.read_text() == text  # the earlier file is untouched
+    fresh = tmp_path / f"new{suffix}"
+    with pytest.raises(KeyboardInterrupt):
+        calibrate.save_calibration(_stereo_result(), str(fresh))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sub"]  # nothing, no temporaries
+    assert [p.name for p in (tmp_path / "sub").iterdir()] == [out.name]
+
+
+def test_calibrate_names_the_image_of_another_size(tmp_path, capsys):
+    """'images of one camera differ in size' named no file."""
+    import cv2
+
+    from jaxcr.cli import main
+
+    for side in ("L", "R"):
+        (tmp_path / side).mkdir()
+        for k in range(3):
+            cv2.imwrite(str(tmp_path / side / f"{k}.png"), np.zeros((H, W), np.uint8))
+    cv2.imwrite(str(tmp_path / "R" / "1.png"), np.zeros((H, W + 2), np.uint8))
+    argv = ["calibrate", str(tmp_path / "L"), str(tmp_path / "R"), "-o", str(tmp_path / "s.yaml"),
+            "--cols", "8", "--rows", "6", "--square", "0.02"]  # fmt: skip
+    assert main(argv) == 2
+    msg = _one_line_error(capsys)
+    assert "R/1.png" in msg and "98x72 differs from 96x72" in msg and "R/0.png" in msg
+    assert not (tmp_path / "s.yaml").exists()

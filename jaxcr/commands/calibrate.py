@@ -120,7 +120,27 @@ def calibrate_stereo(
 
 
 def save_calibration(res: dict, path: str) -> None:
-    """Write with :func:`jaxcr.io.calibration.save_stereo`, then append the RMS values."""
+    """Write with :func:`jaxcr.io.calibration.save_stereo`, then append the RMS values.
+
+    Atomic: the file is assembled under a temporary name in the destination folder (same
+    suffix, which selects the format) and renamed over ``path`` only when complete, so an
+    interrupted or failed write never leaves a truncated calibration (or one without RMS)."""
+    import tempfile
+
+    from jaxcr.io.results import atomic_write_bytes
+
+    dest = Path(path)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=dest.suffix, dir=dest.parent)
+    os.close(fd)
+    try:
+        _write_calibration(res, tmp)
+        atomic_write_bytes(dest, Path(tmp).read_bytes())
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
+def _write_calibration(res: dict, path: str) -> None:
     from jaxcr.camera import camera_from_arrays
     from jaxcr.io.calibration import save_stereo
 
@@ -160,8 +180,14 @@ def run(args) -> int:
             raise InputError("cannot read image", file=f)
         imgs.append(g)
     left, right = imgs[: len(lf)], imgs[len(lf) :]
-    if len({im.shape for im in left}) > 1 or len({im.shape for im in right}) > 1:
-        raise InputError("images of one camera differ in size")
+    for files, ims in ((lf, left), (rf, right)):
+        for f, im in zip(files, ims, strict=True):
+            if im.shape != ims[0].shape:
+                raise InputError(
+                    f"image size {im.shape[1]}x{im.shape[0]} differs from "
+                    f"{ims[0].shape[1]}x{ims[0].shape[0]} of {files[0]} (one camera, one size)",
+                    file=f,
+                )
     try:
         res = calibrate_stereo(left, right, args.pattern, args.cols, args.rows, args.square)
     except ValueError as err:
