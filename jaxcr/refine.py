@@ -156,10 +156,16 @@ class RefineConfig(eqx.Module):
         data_var: what normalises the data terms during the solves: ``"image"`` (the
             image's colour variance, :mod:`jaxcr.energy`) or ``"residual"`` (the
             two-region model's own noise variance at the start of each solve,
-            :func:`jaxcr.energy.residual_variance`).
+            :func:`jaxcr.energy.residual_variance`). Measured (adjusted IoU, orthogonal /
+            orth. occluded / endoscopic / endo. occluded) with ``robust=1.0``: seed 1 (12
+            frames) 0.928/0.877/0.713/0.814 -> 0.935/0.904/0.817/0.876, but held out seed 0
+            0.901/0.891/0.894/0.750 -> 0.875/0.880/0.890/0.722 and seed 3
+            0.931/0.889/0.927/0.723 -> 0.901/0.871/0.921/0.782
+            (``experiments/results/energy_variants.md``): not the default.
         robust_envelope: with ``robust``, the solver's gradient does not flow through the
             robust mean's reweightings (envelope-theorem gradient, cheaper;
-            :func:`jaxcr.energy.region_terms`).
+            :func:`jaxcr.energy.region_terms`): ms per solver step over the quadratic term
+            +17-24 % instead of +60-75 % (``experiments/bench_energy_variants.py``, loaded).
         local: mu_out over the band around the silhouette instead of the whole image
             (:func:`jaxcr.energy.region_terms`).
         camera_correction: also estimate a small per-camera pose correction (rotation about
