@@ -173,12 +173,10 @@ def run(args) -> int:
     lf, rf = _list_images(args.left), _list_images(args.right)
     if len(lf) != len(rf):
         raise InputError(f"{len(lf)} left but {len(rf)} right images")
-    imgs = []
-    for f in lf + rf:
-        g = cv2.imread(f, cv2.IMREAD_GRAYSCALE)
-        if g is None:
-            raise InputError("cannot read image", file=f)
-        imgs.append(g)
+    from jaxcr.io.images import read_raw
+
+    # checked reader: names the file, never decodes a header declaring > MAX_PIXELS pixels
+    imgs = [read_raw(f, cv2.IMREAD_GRAYSCALE) for f in lf + rf]
     left, right = imgs[: len(lf)], imgs[len(lf) :]
     for files, ims in ((lf, left), (rf, right)):
         for f, im in zip(files, ims, strict=True):

@@ -117,6 +117,14 @@ def _imread(path: str | os.PathLike, flags: int) -> np.ndarray:
     return img
 
 
+def read_raw(path: str | os.PathLike, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    """``cv2.imread(path, flags)`` with the checks of :func:`read_image`: a missing, empty,
+    truncated, corrupt file, or one whose PNG/JPEG header declares more than
+    :data:`MAX_PIXELS` pixels (never decoded), raises :class:`InputError` naming the file.
+    For callers that need OpenCV's own layout (BGR, grey uint8, 16-bit)."""
+    return _imread(path, flags)
+
+
 def _to_unit_float(img: np.ndarray, path: str) -> np.ndarray:
     if img.dtype == np.uint8:
         return img.astype(np.float32) / np.float32(255.0)

@@ -112,12 +112,15 @@ def atomic_write_npy(path: str | os.PathLike, array: np.ndarray) -> Path:
 
 
 def read_mask_png(path: str | os.PathLike) -> np.ndarray:
-    """Read an 8-bit mask PNG as a boolean (H, W) array (pixel > 127)."""
-    import cv2
+    """Read an 8-bit mask PNG as a boolean (H, W) array (pixel > 127).
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
+    A missing file raises ``FileNotFoundError``; an unreadable one, or one declaring more than
+    :data:`jaxcr.io.images.MAX_PIXELS` pixels (never decoded), :class:`InputError`."""
+    from jaxcr.io.images import read_raw
+
+    if not os.path.isfile(path):
         raise FileNotFoundError(str(path))
+    img = read_raw(path)
     if img.ndim == 3:
         img = img[..., 0]
     if img.dtype != np.uint8:  # 16-bit masks: threshold at half range

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from jaxcr.errors import InputError
+from jaxcr.io.images import MAX_PIXELS, file_header_size, read_raw
 from jaxcr.motion.arm import ArmModel, arm_from_dict
 
 FORMAT = "jaxcr.motion/1"
@@ -50,10 +51,16 @@ class MotionDataset:
         """Yield (index, rgb float32 (H, W, 3) or None, reason) for every frame in order."""
         if self._images is not None:
             for i, p in enumerate(self._images[: len(self)]):
-                img = _read_rgb(p)
-                if img is None:
-                    yield i, None, f"unreadable image {p.name}"
-                elif img.shape[:2] != (self.height, self.width):
+                size = file_header_size(p)  # a wrong-size file is never decoded
+                if size is not None and size != (self.width, self.height):
+                    yield i, None, f"image size {size[0]}x{size[1]} != {self.width}x{self.height}"
+                    continue
+                try:
+                    img = _read_rgb(p)
+                except InputError as err:
+                    yield i, None, f"unreadable image {p.name}: {err.message}"
+                    continue
+                if img.shape[:2] != (self.height, self.width):
                     yield (
                         i,
                         None,
@@ -64,6 +71,16 @@ class MotionDataset:
             return
         cap = cv2.VideoCapture(str(self._video))
         try:
+            vw = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+            vh = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            if vw * vh > MAX_PIXELS:  # declared by the container: no frame is decoded
+                for i in range(len(self)):
+                    yield (
+                        i,
+                        None,
+                        f"video frame size {vw}x{vh} exceeds the {MAX_PIXELS} pixel limit",
+                    )
+                return
             for i in range(len(self)):
                 ok, bgr = cap.read()
                 if not ok or bgr is None:
@@ -84,23 +101,18 @@ class MotionDataset:
         p = self.masks[i]
         if p is None:
             return None
-        m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-        if m is None:
-            raise InputError("unreadable ground-truth mask", file=str(p), frame=i)
+        try:
+            m = read_raw(p, cv2.IMREAD_GRAYSCALE)
+        except InputError as err:
+            raise InputError(
+                f"unreadable ground-truth mask: {err.message}", file=str(p), frame=i
+            ) from None
         return m >= 128
 
 
-def _read_rgb(path: Path) -> np.ndarray | None:
-    from cv2.utils import logging as cvlog
-
-    level = cvlog.getLogLevel()
-    cvlog.setLogLevel(cvlog.LOG_LEVEL_SILENT)
-    try:
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    finally:
-        cvlog.setLogLevel(level)
-    if bgr is None:
-        return None
+def _read_rgb(path: Path) -> np.ndarray:
+    """Float RGB in [0, 1]; InputError when unreadable or over the MAX_PIXELS limit."""
+    bgr = read_raw(path, cv2.IMREAD_COLOR)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
 
 
@@ -160,6 +172,12 @@ def load_motion_dataset(path: str | os.PathLike) -> MotionDataset:
         raise InputError("width and height (pixels) are required", file=f, field="width") from None
     if width < 16 or height < 16:
         raise InputError("image size must be at least 16x16", file=f, field="width")
+    if width * height > MAX_PIXELS:
+        raise InputError(
+            f"image size {width}x{height} exceeds the {MAX_PIXELS} pixel limit",
+            file=f,
+            field="width",
+        )
     src = meta.get("source")
     images = video = None
     if isinstance(src, dict) and "video" in src:
