@@ -273,3 +273,31 @@ def test_motion_video_declaring_too_many_pixels_is_not_decoded(tmp_path, monkeyp
     monkeypatch.setattr(mds, "MAX_PIXELS", 64 * 48 - 1)
     reasons = [why for _, rgb, why in ds.frames() if rgb is None]
     assert reasons == [f"video frame size 64x48 exceeds the {64 * 48 - 1} pixel limit"] * 6
+
+
+def test_validate_reports_a_broken_camera_once(tmp_path, capsys):
+    """One broken camera file gave one 'camera has an invalid calibration' line per frame and
+    per image kind (2 x frames lines); now one line for the camera's own error and one naming
+    the frames that use it. The frames still count as bad."""
+    from _datasets import edit_json
+
+    from jaxcr.cli import main
+    from jaxcr.io.dataset import check_dataset
+
+    root = make_dataset(tmp_path / "d", n_frames=7)
+    (root / "cam.yaml").write_text("garbage: [")
+    edit_json(root, lambda d: d["cameras"].__setitem__("main", "cam.yaml"))
+    edit_json(root, lambda d: d["frames"][2].__setitem__("q", [1.0]))  # an unrelated problem
+    assert main(["validate", str(root), "-o", str(tmp_path / "v.json")]) == 2
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 4, out  # camera file, its frames, frame 000002's q, summary
+    assert "cam.yaml" in out[0] and "Parsing error" in out[0]
+    assert sum("invalid calibration" in ln for ln in out) == 1
+    assert "field 'cameras.main'" in out[1] and "7 frame(s) use it" in out[1]
+    assert "(000000, 000001, 000002, 000003, 000004 and 2 more)" in out[1]
+    assert "frame 000002: field 'q'" in out[2] and "3 problem(s)" in out[3]
+    assert len(json.loads((tmp_path / "v.json").read_text())["problems"]) == 3
+    check = check_dataset(root)
+    assert len(check.frame_errors) == 7 and check.n_bad_frames == 7  # no frame reads as OK
+    for errs in check.frame_errors.values():
+        assert sum("invalid calibration" in str(e) for e in errs) == 1

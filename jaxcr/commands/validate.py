@@ -66,7 +66,7 @@ def run(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    problems = check.all_errors
+    problems = check.report_errors  # one line per broken camera, not per frame using it
     n_ok = check.n_frames - check.n_bad_frames
     if not args.quiet:
         for err in problems:

@@ -375,6 +375,7 @@ class _Scan:
                     q = None
 
         paths: dict[str, dict[str, Path]] = {k: {} for k in IMAGE_KINDS}
+        bad_cams_used: set[str] = set()
         if "images" not in fr:
             ferr("missing required key", "images")
         for kind in IMAGE_KINDS:
@@ -410,8 +411,11 @@ class _Scan:
                         fld,
                         file=str(path),
                     )
-                if cam in self.bad_cameras:
-                    ferr(f"camera {cam!r} has an invalid calibration", fld)
+                if cam in self.bad_cameras and cam not in bad_cams_used:
+                    # once per frame and camera (not per image kind); validate folds these
+                    # into one line per camera (DatasetCheck.report_errors)
+                    bad_cams_used.add(cam)
+                    ferr(f"camera {cam!r} {_BAD_CAMERA_SUFFIX}", f"cameras.{cam}")
 
         tags = fr.get("tags", [])
         if not isinstance(tags, list) or not all(isinstance(t, str) for t in tags):
@@ -564,6 +568,9 @@ def _scan(path, decode_images: bool, progress=None) -> _Scan:
     return _Scan(root, json_path, decode_images, progress).run()
 
 
+_BAD_CAMERA_SUFFIX = "has an invalid calibration"
+
+
 @dataclass
 class DatasetCheck:
     """Outcome of :func:`check_dataset`: dataset-level ``errors``, per-frame problems
@@ -580,6 +587,40 @@ class DatasetCheck:
     @property
     def all_errors(self) -> list[InputError]:
         return list(self.errors) + [e for es in self.frame_errors.values() for e in es]
+
+    @property
+    def report_errors(self) -> list[InputError]:
+        """:attr:`all_errors` for a report: the per-frame "camera has an invalid calibration"
+        consequences of one broken camera are folded into one line naming how many frames
+        (and which) use that camera; the camera's own error is reported as it is."""
+        out: list[InputError | list] = []
+        folded: dict[str | None, list] = {}
+        for e in self.all_errors:
+            if e.frame is not None and e.message.endswith(_BAD_CAMERA_SUFFIX):
+                if e.field in folded:
+                    folded[e.field][1].append(e.frame)
+                    continue
+                folded[e.field] = [e, [e.frame]]
+                out.append(folded[e.field])
+            else:
+                out.append(e)
+        result = []
+        for item in out:
+            if isinstance(item, InputError):
+                result.append(item)
+                continue
+            e, frames = item
+            shown = ", ".join(str(f) for f in frames[:5])
+            more = f" and {len(frames) - 5} more" if len(frames) > 5 else ""
+            result.append(
+                InputError(
+                    f"{e.message}: {len(frames)} frame(s) use it and cannot be processed "
+                    f"({shown}{more})",
+                    file=e.file,
+                    field=e.field,
+                )
+            )
+        return result
 
     @property
     def n_bad_frames(self) -> int:
