@@ -54,6 +54,37 @@ def test_evaluate_counts_a_frame_with_a_wrong_mask_size_as_failed(tmp_path, caps
     assert "3 (1)" in (out / "table2.md").read_text()  # Frames (failed)
 
 
+def test_evaluate_counts_a_frame_with_damaged_outputs_as_failed(tmp_path, capsys):
+    """A missing or corrupt mask PNG aborted the report (exit 2); a corrupt centreline .npy
+    was a numpy traceback. Now each fails its own frame, with the file named."""
+    from jaxcr.cli import main
+
+    root = make_dataset(tmp_path / "d", n_frames=4)
+    out = tmp_path / "run"
+    _fake_run(root, out, ["000000", "000001", "000002", "000003"], [(H, W)] * 4)
+    (out / "masks" / "main" / "000001.png").unlink()
+    (out / "masks" / "main" / "000002.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+    lines[3]["files"]["centreline"] = "centrelines/000003.npy"
+    (out / "centrelines").mkdir()
+    (out / "centrelines" / "000003.npy").write_bytes(b"\x93NUMPY truncated")
+    (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    assert main(["evaluate", str(out), "--no-plot"]) == 0
+    assert "3 frame(s) counted as failed" in capsys.readouterr().err
+    rows = {r["frame"]: r for r in csv.DictReader(open(out / "per_frame.csv"))}
+    assert rows["000000"]["ok"] == "True" and float(rows["000000"]["iou_refined"]) > 0
+    assert "missing output file masks/main/000001.png" in rows["000001"]["reason"]
+    assert (
+        "000002.png" in rows["000002"]["reason"]
+        and "not a readable image" in rows["000002"]["reason"]
+    )
+    assert (
+        "000003.npy" in rows["000003"]["reason"]
+        and "not a readable .npy" in rows["000003"]["reason"]
+    )
+    assert all(rows[f]["ok"] == "False" for f in ("000001", "000002", "000003"))
+
+
 FAST = ["--levels", "1", "--max-steps", "2", "--batch-size", "1", "--no-overlays", "--quiet"]
 
 

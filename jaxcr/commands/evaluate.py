@@ -79,6 +79,20 @@ def _load_pred(out: Path, files: dict, kind: str, camera: str):
         raise InputError(f"missing output file {rel}", file=str(out)) from None
 
 
+def _load_centreline(out: Path, rel: str) -> np.ndarray:
+    """An output centreline (N, 3); InputError naming the file when missing or unreadable."""
+    try:
+        arr = np.load(out / rel, allow_pickle=False)
+    except FileNotFoundError:
+        raise InputError(f"missing output file {rel}", file=str(out)) from None
+    except (OSError, ValueError, EOFError) as err:
+        raise InputError(f"not a readable .npy file ({err})", file=str(out / rel)) from None
+    if arr.ndim != 2 or arr.shape[1] != 3 or not np.issubdtype(arr.dtype, np.number):
+        raise InputError(f"expected an (N, 3) array, got {arr.dtype} {arr.shape}",
+                         file=str(out / rel))  # fmt: skip
+    return arr
+
+
 def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dict]:
     """Per-frame, per-camera metric rows of one segment output folder (see
     :mod:`jaxcr.io.report`), and its run.json.
@@ -129,54 +143,59 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
         e3 = {k: math.nan for k in _METRIC_FIELDS[5:]}
         bad = None  # set when this frame's outputs cannot be compared with its ground truth
         first = len(rows)
-        if rec.get("ok") and truth_cl is not None and "centreline" in files:
-            t = jnp.asarray(np.asarray(truth_cl, np.float64), jnp.float32)
-            for tag, key in (("refined", "centreline"), ("nominal", "centreline_nominal")):
-                if key in files:
-                    p = jnp.asarray(np.load(out / files[key]), jnp.float32)
-                    e3[f"tip_{tag}_mm"] = 1e3 * float(metrics.tip_error(p, t))
-                    e3[f"cl_{tag}_mm"] = 1e3 * float(metrics.mean_centreline_error(p, t))
-                    if cams and cams[0] in ds.cameras:
-                        lat, dep = metrics.tip_error_components(p, t, ds.cameras[cams[0]].R)
-                        e3[f"tip_lateral_{tag}_mm"] = 1e3 * float(lat)
-                        e3[f"tip_depth_{tag}_mm"] = 1e3 * float(dep)
-        for cam in cams:
-            row = {
-                "out": str(out),
-                "dataset": name,
-                "group": group,
-                "frame": fid,
-                "camera": cam,
-                "ok": bool(rec.get("ok")),
-                "reason": rec.get("reason"),
-                "num_steps": rec.get("num_steps"),
-                "time_s": rec.get("time_s"),
-                **{k: math.nan for k in _METRIC_FIELDS},
-            }
-            row.update(e3)
-            visible = frame.load_mask(cam) if frame is not None and cam in frame.masks else None
-            if rec.get("ok") and visible is not None:
-                occ = _occluded_region(frame, cam, visible)
-                vj = jnp.asarray(visible)
-                for kind, key in (("background", "background"), ("nominal", "nominal"),
-                                  ("refined", "masks")):  # fmt: skip
-                    pred = _load_pred(out, files, key, cam)
-                    if pred is None:
-                        continue
-                    if pred.shape != visible.shape:
-                        bad = (f"evaluate: mask {key}/{cam} is {pred.shape}, ground truth "
-                               f"{visible.shape}")  # fmt: skip
-                        break
-                    pj = jnp.asarray(pred)
-                    row[f"iou_{kind}"] = m(metrics.iou(pj, vj))
-                    if occ is not None and kind != "background":
-                        row[f"adj_iou_{kind}"] = m(metrics.adjusted_iou(pj, vj, jnp.asarray(occ)))
-            rows.append(row)
-            if bad is not None:
-                break
+        try:  # a damaged output file of this frame fails this frame only
+            if rec.get("ok") and truth_cl is not None and "centreline" in files:
+                t = jnp.asarray(np.asarray(truth_cl, np.float64), jnp.float32)
+                for tag, key in (("refined", "centreline"), ("nominal", "centreline_nominal")):
+                    if key in files:
+                        p = jnp.asarray(_load_centreline(out, files[key]), jnp.float32)
+                        e3[f"tip_{tag}_mm"] = 1e3 * float(metrics.tip_error(p, t))
+                        e3[f"cl_{tag}_mm"] = 1e3 * float(metrics.mean_centreline_error(p, t))
+                        if cams and cams[0] in ds.cameras:
+                            lat, dep = metrics.tip_error_components(p, t, ds.cameras[cams[0]].R)
+                            e3[f"tip_lateral_{tag}_mm"] = 1e3 * float(lat)
+                            e3[f"tip_depth_{tag}_mm"] = 1e3 * float(dep)
+            for cam in cams:
+                row = {
+                    "out": str(out),
+                    "dataset": name,
+                    "group": group,
+                    "frame": fid,
+                    "camera": cam,
+                    "ok": bool(rec.get("ok")),
+                    "reason": rec.get("reason"),
+                    "num_steps": rec.get("num_steps"),
+                    "time_s": rec.get("time_s"),
+                    **{k: math.nan for k in _METRIC_FIELDS},
+                }
+                row.update(e3)
+                visible = frame.load_mask(cam) if frame is not None and cam in frame.masks else None
+                if rec.get("ok") and visible is not None:
+                    occ = _occluded_region(frame, cam, visible)
+                    vj = jnp.asarray(visible)
+                    for kind, key in (("background", "background"), ("nominal", "nominal"),
+                                      ("refined", "masks")):  # fmt: skip
+                        pred = _load_pred(out, files, key, cam)
+                        if pred is None:
+                            continue
+                        if pred.shape != visible.shape:
+                            bad = (f"evaluate: mask {key}/{cam} is {pred.shape}, ground truth "
+                                   f"{visible.shape}")  # fmt: skip
+                            break
+                        pj = jnp.asarray(pred)
+                        row[f"iou_{kind}"] = m(metrics.iou(pj, vj))
+                        if occ is not None and kind != "background":
+                            row[f"adj_iou_{kind}"] = m(
+                                metrics.adjusted_iou(pj, vj, jnp.asarray(occ))
+                            )
+                rows.append(row)
+                if bad is not None:
+                    break
+        except InputError as err:
+            bad = f"evaluate: {err.format()}"
         if bad is not None:
-            # one frame's outputs do not match its ground truth: that frame is failed (all its
-            # cameras, NaN metrics, the reason recorded) and the report goes on
+            # one frame's outputs are damaged or do not match its ground truth: that frame is
+            # failed (all its cameras, NaN metrics, the reason recorded), the report goes on
             del rows[first:]
             for cam in cams:
                 rows.append({
