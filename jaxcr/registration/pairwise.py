@@ -124,6 +124,38 @@ def _keypoint_arrays(ka, kb, T_kp, size: int = 256, upper: float = 0.005) -> Key
     return Keypoints(jnp.asarray(s), jnp.asarray(t), jnp.asarray(m), jnp.float32(scale))
 
 
+def geometric_sample(frame: Frame, points: str = "plane") -> CloudArrays:
+    """The projective-ICP source sample of ``frame`` with the positions the point-to-plane
+    term uses: ``"raw"``, the measured back-projections (``Frame.sample``), or ``"plane"``,
+    the same pixels at their denoised positions (``Frame.sample_plane``: moved along their
+    own viewing rays onto the local plane fit, :func:`jaxcr.registration.clouds.plane_points`;
+    colours, normals and mask unchanged; raw when the frame has none).
+
+    Why denoised (measured, mechanism not isolated): with raw points the geometric term
+    is biased by the depth noise itself. Task 1 seed 3, ring views re-rendered at their true
+    poses, 6 noise draws of one view, ICP from the true pose without keypoints or colour:
+    edge 4->6 mean error 3.3 mm (along z) with raw points, 0.12 mm denoised; the first
+    view's edges (that view 0.6 m from the object, 4.4k object pixels; the others 0.2-0.33 m,
+    12-30k) 1.4 / 1.9 mm sideways raw against 0.19 / 0.03 mm without depth noise. A likely
+    cause: the association, the radius gate and the robust weights are non-linear in each
+    point's own noise near face boundaries (silhouettes, creases); associating with the
+    denoised positions but keeping the raw residual removed only part of it. The plane
+    fit's own error (a window straddling a crease, a curved surface) is the price: it grows
+    with the window's footprint, i.e. with depth and with the object's size in pixels (the
+    first view's edges ~1 mm along the viewing axis; a noise-free 2.5k-pixel box corner
+    0.86 mm against 0.12 mm raw, tests/test_registration_pairwise.py). The residuals of
+    denoised points are correlated over the window: the ICP information then overstates
+    the precision (the pose graph's calibrated weights rescale it)."""
+    if points not in ("plane", "raw"):
+        raise ValueError(f"points must be 'plane' or 'raw', got {points!r}")
+    s = frame.sample
+    if points == "raw" or frame.sample_plane is None or s is None:
+        return s
+    return CloudArrays(
+        jnp.asarray(frame.sample_plane, s.points.dtype), s.colours, s.normals, s.mask
+    )
+
+
 @dataclass
 class PairResult:
     T: np.ndarray  # target <- source (camera frames)
@@ -168,6 +200,7 @@ def register_pair(
     association: str = "projective",
     photometric: bool | str = False,
     prior_gate: tuple[float, float] | None = None,
+    geometric_points: str = "raw",
 ) -> PairResult:
     """``T`` with ``tgt ~ T src`` (see module docstring). ``prior_gate`` (deg, m): a
     keypoint estimate farther than this from ``prior`` is taken for a false RANSAC consensus
@@ -175,7 +208,14 @@ def register_pair(
     ``photometric`` (projective association only): False (none), ``"chromaticity"`` or
     ``"intensity"`` (True) dense colour term
     (:func:`jaxcr.registration.projective.photometric_terms`); with the degeneracy-aware
-    ``cfg`` (DEFAULT_ICP) it acts only in the directions the geometry cannot observe."""
+    ``cfg`` (DEFAULT_ICP) it acts only in the directions the geometry cannot observe.
+    ``geometric_points`` (projective association only): the source positions of the
+    point-to-plane term, ``"plane"`` (default: the denoised ``Frame.sample_plane``,
+    :func:`jaxcr.registration.clouds.plane_points`, when the frame has them) or ``"raw"``
+    (the measured back-projections, the behaviour before 2026-11-26); see
+    :func:`geometric_sample`."""
+    if geometric_points not in ("plane", "raw"):
+        raise ValueError(f"geometric_points must be 'plane' or 'raw', got {geometric_points!r}")
     if association not in ("projective", "nearest"):
         raise ValueError(f"association must be 'projective' or 'nearest', got {association!r}")
     if photometric is True:
@@ -204,15 +244,16 @@ def register_pair(
         photometric=photometric or "intensity",
         photo_points=src.sample_plane if photometric else None,
     )
+    src_sample = geometric_sample(src, geometric_points)
     if association == "projective":
-        res = projective_icp_jit(src.sample, tgt.image, T0, cfg, kp, **proj_kw)
+        res = projective_icp_jit(src_sample, tgt.image, T0, cfg, kp, **proj_kw)
     else:
         res = icp_jit(src.arrays, tgt.arrays, T0, cfg, kp)
     T = np.asarray(res.T, np.float64)
     fitness = float(res.fitness)
     info = None
     if association == "projective" and np.all(np.isfinite(T)):
-        info, _ = projective_information_jit(res.T, src.sample, tgt.image, cfg, kp, **proj_kw)
+        info, _ = projective_information_jit(res.T, src_sample, tgt.image, cfg, kp, **proj_kw)
         info = np.asarray(info, np.float64)
     if not np.all(np.isfinite(T)) or fitness < min_fitness:
         raise RegistrationFailed(
