@@ -293,8 +293,9 @@ def projective_icp(
     f sigma sin(angle between the rays) / z; near the target's silhouette the shifts that
     leave the valid region are dropped and the others kept, so on a wide baseline the
     surviving samples are shifted one way: a systematic pull along the colour term's own
-    direction (a can's axis rotation). The geometric term keeps the raw points (their
-    residuals are independent; the denoised ones are correlated over a window).
+    direction (a can's axis rotation). The geometric term uses ``src.points`` as given:
+    :func:`jaxcr.registration.pairwise.geometric_sample` chooses raw or denoised positions
+    (the pipeline uses denoised ones: raw points bias the geometric term too).
     """
     kp = no_keypoints() if kp is None else kp
     i_src = None
