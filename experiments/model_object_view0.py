@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import os
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -32,20 +33,10 @@ from jaxcr.registration.pipeline import PipelineConfig, _capture, build_model
 from jaxcr.registration.projective import projective_icp_jit
 from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from model_object_edge_noise import render  # noqa: E402  (the frame with or without depth noise)
+
 OUT = Path(__file__).parent / "results"
-
-
-def render(sim, T, noisy: bool):
-    """The simulator's frame at ``T``; without depth noise: sigma = 0 (restored after)."""
-    if noisy:
-        return sim.capture(T)
-    saved = dict(sim.cfg["depth_noise"])
-    try:
-        sim.cfg["depth_noise"].update(sigma0=0.0, sigma2=0.0)
-        return sim.capture(T)
-    finally:
-        sim.cfg["depth_noise"].clear()
-        sim.cfg["depth_noise"].update(saved)
 
 
 def err(T, truth):
