@@ -84,7 +84,7 @@ def allocate_steps(lengths: Float[Array, " k"], n_steps: int) -> Int[Array, " k"
     """
     lengths = jnp.maximum(lengths, 0.0)
     nonempty = lengths > 0.0
-    m = jnp.sum(nonempty.astype(jnp.int32))
+    m = jnp.sum(nonempty, dtype=jnp.int32)  # int32 under x64 too (counts are int32)
     spare = (n_steps - m).astype(lengths.dtype)
     total = jnp.sum(lengths)
     cum = jnp.cumsum(lengths) / jnp.where(total > 0.0, total, 1.0)
