@@ -45,6 +45,7 @@ import numpy as np
 
 from jaxcr.commands import seed as _seed
 from jaxcr.errors import InputError
+from jaxcr.io.jsonfile import read_json
 
 FORMAT = "jaxcr.stereo/1"
 TABLE_FIELDS = [
@@ -128,12 +129,7 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
     file = str(path)
     if not path.exists():
         raise InputError("no stereo.json found", file=file)
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise InputError("not a UTF-8 JSON file", file=file) from None
-    except json.JSONDecodeError as err:
-        raise InputError(f"invalid JSON ({err.msg}, line {err.lineno})", file=file) from None
+    meta = read_json(path)
     if not isinstance(meta, dict):
         raise InputError("expected a JSON object at the top level", file=file)
     if meta.get("format") != FORMAT:

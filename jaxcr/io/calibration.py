@@ -47,6 +47,7 @@ import numpy as np
 
 from jaxcr.camera import Camera, camera_from_arrays
 from jaxcr.errors import InputError
+from jaxcr.io.jsonfile import read_json
 from jaxcr.io.results import atomic_write_text
 
 _FS_EXT = (".yaml", ".yml", ".xml")
@@ -119,15 +120,9 @@ def read_raw(path: str | os.PathLike) -> dict[str, Any]:
         raise InputError(
             "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path
         )
-    try:
-        with open(path, encoding="utf-8") as fh:
-            d = json.load(fh)
-    except FileNotFoundError:
-        raise InputError("calibration file not found", file=path) from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise InputError(f"not valid JSON ({err})", file=path) from None
-    except OSError as err:
-        raise InputError(f"cannot read ({err.strerror})", file=path) from None
+    if not os.path.exists(path):
+        raise InputError("calibration file not found", file=path)
+    d = read_json(path)
     if not isinstance(d, dict):
         raise InputError("expected a JSON object", file=path)
     return d

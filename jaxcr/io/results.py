@@ -214,14 +214,10 @@ def read_run(path: str | os.PathLike) -> dict:
     """Read ``run.json`` (format ``jaxcr.segment-run/1``); an unreadable, truncated or foreign
     file raises :class:`jaxcr.errors.InputError` naming it (never a JSON traceback)."""
     from jaxcr.errors import InputError
+    from jaxcr.io.jsonfile import read_json
 
     path = Path(path)
-    try:
-        info = json.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise InputError("not a UTF-8 JSON file", file=str(path)) from None
-    except json.JSONDecodeError as err:
-        raise InputError(f"not valid JSON ({err.msg}, line {err.lineno})", file=str(path)) from None
+    info = read_json(path)
     if not isinstance(info, dict) or not isinstance(info.get("dataset"), str):
         raise InputError("not a jaxcr segment run.json (no 'dataset')", file=str(path))
     fmt = info.get("format")

@@ -61,17 +61,9 @@ def robot_to_dict(model: RobotModel) -> dict[str, Any]:
 
 
 def _read_json(path: str) -> Any:
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return json.load(fh)
-    except FileNotFoundError:
-        raise InputError("file not found", file=path) from None
-    except IsADirectoryError:
-        raise InputError("is a directory, expected a JSON file", file=path) from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise InputError(f"not valid JSON ({err})", file=path) from None
-    except OSError as err:
-        raise InputError(f"cannot read ({err.strerror})", file=path) from None
+    from jaxcr.io.jsonfile import read_json
+
+    return read_json(path)
 
 
 def load_robot(path: str | os.PathLike) -> RobotModel:

@@ -8,7 +8,6 @@ fatal; malformed metadata raises :class:`jaxcr.errors.InputError` naming file an
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ import numpy as np
 
 from jaxcr.errors import InputError
 from jaxcr.io.images import MAX_PIXELS, file_header_size, read_raw
+from jaxcr.io.jsonfile import read_json
 from jaxcr.motion.arm import ArmModel, arm_from_dict
 
 FORMAT = "jaxcr.motion/1"
@@ -140,12 +140,7 @@ def load_motion_dataset(path: str | os.PathLike) -> MotionDataset:
             "no motion.json (expected a jaxcr.motion/1 dataset folder)", file=str(path)
         )
     f = str(meta_path)
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise InputError(
-            f"not valid JSON ({err.msg if hasattr(err, 'msg') else err})", file=f
-        ) from None
+    meta = read_json(meta_path)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise InputError(f"format must be '{FORMAT}'", file=f, field="format")
     P = _matrix(meta.get("P"), (3, 4), f, "P")

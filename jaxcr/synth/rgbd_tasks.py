@@ -262,12 +262,9 @@ def load_scene(path) -> dict[str, Any]:
     f = path / "scene.json"
     if not f.is_file():
         raise InputError("not an RGB-D scene directory (no scene.json)", file=str(path))
-    try:
-        cfg = json.loads(f.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise InputError("not a UTF-8 JSON file", file=str(f)) from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"invalid JSON ({e.msg} at line {e.lineno})", file=str(f)) from None
+    from jaxcr.io.jsonfile import read_json
+
+    cfg = read_json(f)
     if not isinstance(cfg, dict):
         raise InputError("expected a JSON object at the top level", file=str(f))
     if cfg.get("format") != FORMAT:
