@@ -147,16 +147,8 @@ def test_keypoint_noise_balance_matches_slow_loop():
     cfg = IcpConfig(keypoint_weight=0.7, keypoint_balance="noise")
     f = jnp.float32
     kp = Keypoints(jnp.asarray(ks, f), jnp.asarray(kt, f), jnp.asarray(mask), f(sk))
-    H, g = normal_equations(
-        jnp.eye(4),
-        jnp.asarray(ps, f),
-        jnp.asarray(q, f),
-        jnp.asarray(nq, f),
-        jnp.asarray(w, f),
-        jnp.asarray(pl, f),
-        cfg,
-        kp,
-    )
+    data = tuple(jnp.asarray(x, f) for x in (ps, q, nq, w, pl))
+    H, g = normal_equations(jnp.eye(4), *data, cfg, kp)
     Hr, gr = np.zeros((6, 6)), np.zeros(6)
     for i in range(n):
         J = np.r_[nq[i], np.cross(ps[i], nq[i])]
@@ -177,13 +169,4 @@ def test_keypoint_noise_balance_matches_slow_loop():
     np.testing.assert_allclose(np.asarray(H), Hr, rtol=2e-4, atol=1e-6 * np.abs(Hr).max())
     np.testing.assert_allclose(np.asarray(g), gr, rtol=2e-4, atol=1e-5 * np.abs(gr).max())
     with pytest.raises(ValueError, match="keypoint_balance"):
-        normal_equations(
-            jnp.eye(4),
-            jnp.asarray(ps, f),
-            jnp.asarray(q, f),
-            jnp.asarray(nq, f),
-            jnp.asarray(w, f),
-            jnp.asarray(pl, f),
-            IcpConfig(keypoint_balance="x"),
-            kp,
-        )
+        normal_equations(jnp.eye(4), *data, IcpConfig(keypoint_balance="x"), kp)
