@@ -39,10 +39,18 @@ class InputError(Exception):
 
 
 class InputErrors(InputError):
-    """Several input problems found at once (e.g. by the dataset validator)."""
+    """Several input problems found at once (e.g. by the dataset validator).
 
-    def __init__(self, errors: list[InputError]):
+    The one-line message is the first problem and, when there are more, their exact count and
+    ``where`` (e.g. "run jaxcr validate DATASET") they are all listed.
+    """
+
+    def __init__(self, errors: list[InputError], where: str | None = None):
         self.errors = list(errors)
         first = self.errors[0].format() if self.errors else "no errors"
-        more = f" (and {len(self.errors) - 1} more problems)" if len(self.errors) > 1 else ""
+        n = len(self.errors) - 1
+        more = ""
+        if n > 0:
+            more = f" (and {n} more problem{'s' if n > 1 else ''}"
+            more += f"; {where})" if where else ")"
         super().__init__(first + more)

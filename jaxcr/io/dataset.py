@@ -571,6 +571,43 @@ def _scan(path, decode_images: bool, progress=None) -> _Scan:
 _BAD_CAMERA_SUFFIX = "has an invalid calibration"
 
 
+def fold_camera_consequences(errors: list[InputError]) -> list[InputError]:
+    """``errors`` with the per-frame "camera X has an invalid calibration" consequences of one
+    broken camera folded into one line naming how many frames (and which) use that camera.
+
+    One broken calibration file is one problem, not one per frame: this is the list
+    ``jaxcr validate`` prints and whose length the loader's "(and N more problems)" counts.
+    """
+    out: list[InputError | list] = []
+    folded: dict[str | None, list] = {}
+    for e in errors:
+        if e.frame is not None and e.message.endswith(_BAD_CAMERA_SUFFIX):
+            if e.field in folded:
+                folded[e.field][1].append(e.frame)
+                continue
+            folded[e.field] = [e, [e.frame]]
+            out.append(folded[e.field])
+        else:
+            out.append(e)
+    result = []
+    for item in out:
+        if isinstance(item, InputError):
+            result.append(item)
+            continue
+        e, frames = item
+        shown = ", ".join(str(f) for f in frames[:5])
+        more = f" and {len(frames) - 5} more" if len(frames) > 5 else ""
+        result.append(
+            InputError(
+                f"{e.message}: {len(frames)} frame(s) use it and cannot be processed "
+                f"({shown}{more})",
+                file=e.file,
+                field=e.field,
+            )
+        )
+    return result
+
+
 @dataclass
 class DatasetCheck:
     """Outcome of :func:`check_dataset`: dataset-level ``errors``, per-frame problems
@@ -593,34 +630,7 @@ class DatasetCheck:
         """:attr:`all_errors` for a report: the per-frame "camera has an invalid calibration"
         consequences of one broken camera are folded into one line naming how many frames
         (and which) use that camera; the camera's own error is reported as it is."""
-        out: list[InputError | list] = []
-        folded: dict[str | None, list] = {}
-        for e in self.all_errors:
-            if e.frame is not None and e.message.endswith(_BAD_CAMERA_SUFFIX):
-                if e.field in folded:
-                    folded[e.field][1].append(e.frame)
-                    continue
-                folded[e.field] = [e, [e.frame]]
-                out.append(folded[e.field])
-            else:
-                out.append(e)
-        result = []
-        for item in out:
-            if isinstance(item, InputError):
-                result.append(item)
-                continue
-            e, frames = item
-            shown = ", ".join(str(f) for f in frames[:5])
-            more = f" and {len(frames) - 5} more" if len(frames) > 5 else ""
-            result.append(
-                InputError(
-                    f"{e.message}: {len(frames)} frame(s) use it and cannot be processed "
-                    f"({shown}{more})",
-                    file=e.file,
-                    field=e.field,
-                )
-            )
-        return result
+        return fold_camera_consequences(self.all_errors)
 
     @property
     def n_bad_frames(self) -> int:
@@ -673,7 +683,9 @@ def load_dataset(
     s = _scan(path, decode_images)
     if s.errors or (strict and s.frame_errors):
         errs = list(s.errors) + [e for es in s.frame_errors.values() for e in es]
-        raise InputErrors(errs)
+        raise InputErrors(
+            fold_camera_consequences(errs), where=f"jaxcr validate {s.root} lists them all"
+        )
     bad = {k: "; ".join(e.format() for e in es) for k, es in s.frame_errors.items()}
     return Dataset(
         root=s.root.resolve(),
