@@ -169,12 +169,12 @@ def test_evaluate_marks_an_incomplete_run_in_the_report(tmp_path, capsys):
     )
     rec = {"format": "jaxcr.segment/1", "frame": "000000", "ok": False, "reason": "x"}
     (out / "results.jsonl").write_text(json.dumps(rec) + "\n")
-    assert main(["evaluate", str(out), "--no-plot"]) == 0
+    assert main(["evaluate", str(out), "--no-plot"]) == 1  # its one frame failed
     assert "is incomplete" in capsys.readouterr().err
     md = (out / "table2.md").read_text()
     assert "**INCOMPLETE RUN**" in md and "only its 1 processed frames" in md
     (out / "DONE").write_text("now\n")
-    assert main(["evaluate", str(out), "--no-plot"]) == 0
+    assert main(["evaluate", str(out), "--no-plot"]) == 1
     assert "INCOMPLETE" not in (out / "table2.md").read_text()
 
 
@@ -621,7 +621,7 @@ def test_manifold_train_reports_frames_the_loader_rejected(tmp_path, capsys):
     assert main(argv) == 0
     (d / "images" / "left" / "000003.png").unlink()
     capsys.readouterr()
-    assert main(["manifold", "train", str(d), "-o", str(tmp_path / "m.npz")]) == 0
+    assert main(["manifold", "train", str(d), "-o", str(tmp_path / "m.npz")]) == 1
     out, err = capsys.readouterr()
     assert "/12 frames" in out
     assert "1 bad frame(s) not used" in err and "000003" in err

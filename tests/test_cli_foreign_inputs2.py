@@ -44,7 +44,7 @@ def test_evaluate_counts_a_frame_with_a_wrong_mask_size_as_failed(tmp_path, caps
     root = make_dataset(tmp_path / "d", n_frames=3)
     out = tmp_path / "run"
     _fake_run(root, out, ["000000", "000001", "000002"], [(H, W), (H // 2, W), (H, W)])
-    assert main(["evaluate", str(out), "--no-plot"]) == 0
+    assert main(["evaluate", str(out), "--no-plot"]) == 1
     err = capsys.readouterr().err
     assert "1 frame(s) counted as failed: frame 000001" in err and "(36, 96)" in err
     rows = {r["frame"]: r for r in csv.DictReader(open(out / "per_frame.csv"))}
@@ -69,7 +69,7 @@ def test_evaluate_counts_a_frame_with_damaged_outputs_as_failed(tmp_path, capsys
     (out / "centrelines").mkdir()
     (out / "centrelines" / "000003.npy").write_bytes(b"\x93NUMPY truncated")
     (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
-    assert main(["evaluate", str(out), "--no-plot"]) == 0
+    assert main(["evaluate", str(out), "--no-plot"]) == 1
     assert "3 frame(s) counted as failed" in capsys.readouterr().err
     rows = {r["frame"]: r for r in csv.DictReader(open(out / "per_frame.csv"))}
     assert rows["000000"]["ok"] == "True" and float(rows["000000"]["iou_refined"]) > 0

@@ -3,8 +3,12 @@ counts, quiet video reading, implausible distortion, plain-text --help."""
 
 from __future__ import annotations
 
+import csv
+import json
+
+import numpy as np
 import pytest
-from _datasets import edit_json, make_dataset
+from _datasets import H, W, edit_json, make_dataset
 
 
 def _one_line_error(capsys) -> str:
@@ -54,3 +58,54 @@ def test_loader_counts_problems_as_validate_does(tmp_path, capsys):
     with pytest.raises(InputErrors) as ei:
         load_dataset(root2)
     assert len(ei.value.errors) == 1 and "more problem" not in str(ei.value)
+
+
+# ------------------------------------------------------------------ exit codes of batch commands
+
+
+def _fake_run(root, out, oks):
+    """A finished segment output folder: frame k ok (a full-size refined mask) or failed."""
+    from jaxcr.io import results as R
+
+    out.mkdir()
+    (out / "run.json").write_text(
+        json.dumps({"format": R.RUN_FORMAT, "dataset": str(root), "cameras": ["main"]})
+    )
+    lines = []
+    for k, ok in enumerate(oks):
+        fid = f"{k:06d}"
+        rec = {"format": R.RESULTS_FORMAT, "frame": fid, "ok": ok}
+        if ok:
+            rel = f"masks/main/{fid}.png"
+            R.atomic_write_png(out / rel, np.ones((H, W), bool))
+            rec["files"] = {"masks": {"main": rel}}
+        else:
+            rec["reason"] = "kinematics failed"
+        lines.append(json.dumps(rec))
+    (out / "results.jsonl").write_text("\n".join(lines) + "\n")
+    (out / "DONE").write_text("done\n")
+
+
+def test_evaluate_exit_code_says_whether_frames_failed(tmp_path, capsys):
+    """evaluate exited 0 whatever the report counted as failed; now 0 only when every frame
+    is ok, 1 when some failed (in the run or in evaluation), with where they are listed."""
+    from jaxcr.cli import main
+
+    root = make_dataset(tmp_path / "d", n_frames=3)
+    good = tmp_path / "good"
+    _fake_run(root, good, [True, True, True])
+    assert main(["evaluate", str(good), "--no-plot"]) == 0
+    assert "failed" not in capsys.readouterr().err
+
+    mixed = tmp_path / "mixed"
+    _fake_run(root, mixed, [True, False, True])
+    (mixed / "masks" / "main" / "000002.png").unlink()  # fails in evaluation
+    assert main(["evaluate", str(mixed), "--no-plot"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "2 of 3 frame(s) failed (1 in the segment run, 1 in evaluation)" in err
+    assert str(mixed / "per_frame.csv") in err
+    rows = {r["frame"]: r["ok"] for r in csv.DictReader(open(mixed / "per_frame.csv"))}
+    assert rows == {"000000": "True", "000001": "False", "000002": "False"}
+    # several runs: one failed frame anywhere makes it 1
+    assert main(["evaluate", str(good), str(mixed), "-o", str(tmp_path / "r"), "--no-plot"]) == 1
+    assert "2 of 6 frame(s) failed" in capsys.readouterr().err

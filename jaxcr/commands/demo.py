@@ -73,9 +73,9 @@ def run(args) -> int:
     code = segment.run(_sub_args(segment, seg_argv))
     t2 = time.perf_counter()
     ev_args = _sub_args(evaluate, ["evaluate", str(seg_dir), "--title", "jaxcr demo"])
-    evaluate.run(ev_args)
+    ev_code = evaluate.run(ev_args)
     t3 = time.perf_counter()
     print(f"jaxcr demo: done in {t3 - t0:.0f} s (synth {t1 - t0:.0f} s, segment "
           f"{t2 - t1:.0f} s incl. compilation, evaluate {t3 - t2:.0f} s); overlays in "
           f"{seg_dir / 'overlays'}")  # fmt: skip
-    return code
+    return max(code, ev_code)  # 1 when some frames failed (either step), 0 when all ok

@@ -9,6 +9,8 @@ Sec. III-B) after "|" where occlusion masks exist; tip and mean centreline error
 nominal and refined shapes; median solver steps and time per frame; failed frame counts.
 
 Writes ``table2.md``, ``table2.csv`` (long format), ``per_frame.csv`` and ``iou.png``.
+Exit code 1 when the report counts failed frames (failed in the segment run, or outputs
+missing/damaged/mis-sized); they are listed in ``per_frame.csv`` with the reason.
 """
 
 from __future__ import annotations
@@ -346,4 +348,14 @@ def run(args) -> int:
 
     Console().print(rep.table2_rich(table))
     print(f"report: {report_dir / 'table2.md'}")
+    # exit 1 when the report counts failed frames (failed in the segment run, or whose outputs
+    # could not be evaluated): the numbers are over fewer frames than the run was given
+    frames = {(r["out"], r["frame"]): r for r in rows}
+    failed = [r for r in frames.values() if not r["ok"]]
+    if failed:
+        n_eval = sum(1 for r in failed if str(r.get("reason") or "").startswith("evaluate: "))
+        print(f"jaxcr evaluate: {len(failed)} of {len(frames)} frame(s) failed ("
+              f"{len(failed) - n_eval} in the segment run, {n_eval} in evaluation); reasons in "
+              f"{report_dir / 'per_frame.csv'} (rows with ok False)", file=sys.stderr)  # fmt: skip
+        return 1
     return 0

@@ -10,7 +10,9 @@ angular-histogram descriptors of every frame, keeps the PCA components for the v
 fraction, fits the thin-plate spline manifold and resamples it; the model file is
 versioned (``jaxcr.manifold/2``). ``query`` estimates psi = (theta_L, delta) (or the tip
 position) of every frame and, where the dataset has the truth, the errors; frames without
-marker pixels in a view are reported as failed (exit code 1 if any failed).
+marker pixels in a view are reported as failed. Both exit with code 1 when some frames
+failed (train still writes the model from the others and lists them on stderr and in the
+model's metadata).
 """
 
 from __future__ import annotations
@@ -216,13 +218,25 @@ def run_train(args) -> int:
             f"jaxcr manifold: warning: {len(ds.bad_frames)} bad frame(s) not used: {shown}{more}",
             file=sys.stderr,
         )
+    if meta["frames_failed"]:
+        ids = meta["frames_failed"]
+        shown = ", ".join(map(str, ids[:10])) + (
+            f" and {len(ids) - 10} more" if len(ids) > 10 else ""
+        )
+        print(
+            f"jaxcr manifold: warning: {len(ids)} frame(s) not used: too few marker pixels in a "
+            f"view ({shown})",
+            file=sys.stderr,
+        )
     print(
         f"manifold: {int(ok.sum())}/{len(ok) + len(ds.bad_frames)} frames, {cfg.n_bins} bins, "
         f"{model.n_components} components "
         f"({cfg.variance:.0%} variance), {model.manifold.psi.shape[0]} manifold points; "
         f"descriptors {t1 - t0:.1f} s, training {t2 - t1:.2f} s -> {args.out}"
     )
-    return 0
+    # the model is written, but frames of the training set failed (listed above and in the
+    # model's metadata): exit 1, as every batch command with failed frames
+    return 1 if ds.bad_frames or meta["frames_failed"] else 0
 
 
 def _atomic_text(path: Path, text: str) -> None:

@@ -353,6 +353,7 @@ def run(args) -> int:
     if failed:
         i, why = min(failed.items())
         more = f" (and {len(failed) - 1} more)" if len(failed) > 1 else ""
+        more += f"; all listed in {out / 'summary.json'}"
         print(f"jaxcr motion: {len(failed)} frame(s) failed: frame {i}: {why}{more}",
               file=sys.stderr)  # fmt: skip
     return 0 if used and not failed else 1

@@ -491,7 +491,7 @@ def run(args) -> int:
     R.atomic_write_text(layout.done, summary["finished"] + "\n")
     print(
         f"jaxcr segment: {summary['ok']}/{summary['frames']} frames ok"
-        + (f", {n_failed} failed" if n_failed else "")
+        + (f", {n_failed} failed (reasons in {layout.summary})" if n_failed else "")
         + f" -> {out}"
     )
     return 1 if n_failed else 0

@@ -436,7 +436,9 @@ def run(args) -> int:
         )
     recs = run_batch(ds, args.out, overlays=not args.no_overlays)
     n_ok = sum(r["ok"] for r in recs)
-    print(f"{n_ok}/{len(recs)} frames reconstructed; results in {args.out}")
+    print(f"{n_ok}/{len(recs)} frames reconstructed; results in {args.out}"
+          + (f" (failed frames listed below and in {Path(args.out) / 'results.jsonl'})"
+             if n_ok < len(recs) else ""))  # fmt: skip
     for r in recs:
         if not r["ok"]:
             print(f"  frame {r['id']}: {r['message']}")
