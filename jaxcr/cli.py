@@ -12,6 +12,7 @@ import argparse
 import importlib
 import importlib.util
 import os
+import re
 import sys
 
 from jaxcr.errors import InputError
@@ -33,6 +34,42 @@ COMMANDS = [
 ]
 
 
+# reST markup of the module docstrings that become --help texts: roles (:func:`~a.b` shows as
+# b), inline literals (``x``, possibly across a line break), interpreted text (`x`), strong
+# emphasis (**x**) and the literal-block marker "::" ending a paragraph line
+_REST = (
+    (re.compile(r":[a-z]+(?::[a-z]+)?:`~[^`]*?([^`.]+)`"), r"\1"),
+    (re.compile(r":[a-z]+(?::[a-z]+)?:`([^`]+)`"), r"\1"),
+    (re.compile(r"``(.+?)``", re.S), r"\1"),
+    (re.compile(r"`([^`]+)`_?"), r"\1"),
+    (re.compile(r"\*\*(.+?)\*\*", re.S), r"\1"),
+    (re.compile(r" ?::$", re.M), ":"),
+)
+
+
+def plain_text(text: str | None) -> str | None:
+    """``text`` (a docstring-derived help text) with its reST markup removed, for --help."""
+    if not text:
+        return text
+    for pattern, repl in _REST:
+        text = pattern.sub(repl, text)
+    return text
+
+
+def _plain_help(parser: argparse.ArgumentParser) -> None:
+    """Apply :func:`plain_text` to the description, epilog and argument helps of ``parser`` and
+    of every subcommand parser below it."""
+    parser.description = plain_text(parser.description)
+    parser.epilog = plain_text(parser.epilog)
+    for action in parser._actions:
+        action.help = plain_text(action.help)
+        if isinstance(action, argparse._SubParsersAction):
+            for choice in action._choices_actions:
+                choice.help = plain_text(choice.help)
+            for sub in dict.fromkeys(action.choices.values()):  # aliases share a parser
+                _plain_help(sub)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxcr",
@@ -47,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
         if importlib.util.find_spec(modname) is None:
             continue
         importlib.import_module(modname).add_parser(sub)
+    _plain_help(parser)
     return parser
 
 

@@ -109,3 +109,44 @@ def test_evaluate_exit_code_says_whether_frames_failed(tmp_path, capsys):
     # several runs: one failed frame anywhere makes it 1
     assert main(["evaluate", str(good), str(mixed), "-o", str(tmp_path / "r"), "--no-plot"]) == 1
     assert "2 of 6 frame(s) failed" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ plain-text --help
+
+_MARKUP = r"``|:[a-z]+:`|`[^`\n]+`|\*\*|::$"
+
+
+def _command_paths():
+    """Every (sub)command path of the CLI, nested ones included (manifold train, ...)."""
+    import argparse
+
+    from jaxcr.cli import build_parser
+
+    def walk(parser, path):
+        yield path
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sp in a.choices.items():
+                    yield from walk(sp, [*path, name])
+
+    return list(walk(build_parser(), []))
+
+
+def test_every_help_is_plain_text(capsys):
+    """Module docstrings became --help texts with their reST markup (``x``, :func:`x`, `x`,
+    a trailing '::'); every command's and subcommand's --help is now plain text."""
+    import re
+
+    from jaxcr.cli import main
+
+    paths = _command_paths()
+    names = {" ".join(p) for p in paths}
+    assert {"", "segment", "evaluate", "manifold train", "manifold query", "model-object"} <= names
+    for path in paths:
+        with pytest.raises(SystemExit) as exc:
+            main([*path, "--help"])
+        assert exc.value.code == 0, path
+        out, err = capsys.readouterr()
+        assert out.startswith("usage: jaxcr") and "Traceback" not in out + err, path
+        bad = [m.group(0) for m in re.finditer(_MARKUP, out, re.M)]
+        assert not bad, (path, bad)
