@@ -150,3 +150,117 @@ def test_every_help_is_plain_text(capsys):
         assert out.startswith("usage: jaxcr") and "Traceback" not in out + err, path
         bad = [m.group(0) for m in re.finditer(_MARKUP, out, re.M)]
         assert not bad, (path, bad)
+
+
+# ------------------------------------------------------------------ video files
+
+
+@pytest.fixture(scope="module")
+def motion_video(tmp_path_factory):
+    """A 64x48, 8-frame MJPG motion dataset (video.avi and the same frames as PNGs)."""
+    from jaxcr.synth.motion_scenes import generate_motion_video
+
+    d = tmp_path_factory.mktemp("mv") / "mv"
+    generate_motion_video(d, "pushed_static", seed=0, size=(64, 48), n_frames=8, video=True)
+    return d
+
+
+_READ_FRAMES = (
+    "import sys\n"
+    "from jaxcr.errors import InputError\n"
+    "from jaxcr.motion.dataset import load_motion_dataset\n"
+    "try:\n"
+    "    ds = load_motion_dataset(sys.argv[1])\n"
+    "except InputError as e:\n"
+    "    print('InputError:', e)\n"
+    "    sys.exit(2)\n"
+    "for i, img, why in ds.frames():\n"
+    "    print(i, img is not None, why)\n"
+)
+
+
+def _read_frames(d):
+    """Frames of the motion dataset ``d`` read in a fresh process: (stdout lines, stderr)."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-c", _READ_FRAMES, str(d)], capture_output=True,
+                       text=True, timeout=120)  # fmt: skip
+    return p.returncode, p.stdout.splitlines(), p.stderr
+
+
+def test_truncated_video_is_quiet_and_fails_the_damaged_frames(motion_video, tmp_path):
+    """A truncated AVI: FFmpeg printed '[mjpeg @ 0x...] overread 8' and OpenCV's AVI reader
+    'Unexpected element. Expected: LIST. Got: <raw bytes>' on stderr, and the frame cut short
+    was used with its missing part grey. Now stderr stays empty, the cut frame and the missing
+    ones fail with a reason, and a file cut inside its header is one InputError (exit 2)."""
+    import shutil
+
+    data = (motion_video / "video.avi").read_bytes()
+    d = tmp_path / "cut"
+    shutil.copytree(motion_video, d)
+    # cut in the middle of frame 3's JPEG data: find frame 3's JPEG start marker
+    starts = [k for k in range(len(data) - 2) if data[k : k + 3] == b"\xff\xd8\xff"]
+    assert len(starts) == 8
+    cut = (starts[3] + starts[4]) // 2
+    (d / "video.avi").write_bytes(data[:cut])
+    code, lines, err = _read_frames(d)
+    assert code == 0 and err == "", err
+    rows = [ln.split(" ", 2) for ln in lines]
+    assert [r[1] for r in rows] == ["True"] * 3 + ["False"] * 5
+    assert rows[3][2].startswith("corrupt video frame (decoder: ")
+    assert rows[4][2] == (f"no such frame: the video ends after 4 frame(s) (file truncated: "
+                          f"{cut} of {len(data)} bytes)")  # fmt: skip
+    # the whole CLI: a file cut inside its header is bad input, one line, nothing else
+    (d / "video.avi").write_bytes(data[:300])
+    code, lines, err = _read_frames(d)
+    assert code == 2 and err == ""
+    assert lines == [f"InputError: {d / 'video.avi'}: field 'source.video': not a readable "
+                     f"video (the file is truncated (300 of {len(data)} bytes))"]  # fmt: skip
+    import subprocess
+
+    p = subprocess.run(["jaxcr", "motion", str(d), "-o", str(tmp_path / "o")],
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert p.returncode == 2
+    assert p.stderr.splitlines() == [f"jaxcr motion: error: {lines[0][len('InputError: ') :]}"]
+
+
+def test_video_extension_that_lies(motion_video, tmp_path):
+    """The container is recognised by content: an MP4 renamed .avi decodes as its frames; a
+    PNG/JPEG renamed .avi (FFmpeg read it as a one-frame video, the other frames failing
+    as 'corrupt') and a text file are refused with one line naming the file."""
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    d = tmp_path / "v"
+    shutil.copytree(motion_video, d)
+    pngs = sorted((d / "frames").glob("*.png"))
+    w = cv2.VideoWriter(str(tmp_path / "x.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 10, (64, 48))
+    for p in pngs:
+        w.write(cv2.imread(str(p)))
+    w.release()
+    shutil.copy(tmp_path / "x.mp4", d / "video.avi")
+    from jaxcr.motion.dataset import load_motion_dataset
+
+    frames = [(img, why) for _, img, why in load_motion_dataset(d).frames()]
+    assert [why for _, why in frames] == [""] * 8
+    refs = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) / 255.0 for p in pngs]
+    diff = np.array([[np.abs(img - ref).mean() for ref in refs] for img, _ in frames])
+    # lossy MPEG-4 at 64x48: each frame is its own PNG up to compression noise (about 0.03)
+    # and nearer to it than to any other frame
+    assert np.all(np.diag(diff) < 0.05), np.diag(diff)
+    assert np.all(np.argmin(diff, axis=1) == np.arange(8)), diff
+    for src, kind in ((pngs[0], "a PNG image"), (None, "not a readable video")):
+        if src is None:
+            (d / "video.avi").write_text("not a video\n" * 50)
+        else:
+            shutil.copy(src, d / "video.avi")
+        code, lines, err = _read_frames(d)
+        assert code == 2 and err == "" and len(lines) == 1, (lines, err)
+        assert f"{d / 'video.avi'}: field 'source.video': " in lines[0] and kind in lines[0]
+    cv2.imwrite(str(d / "video.avi.jpg"), cv2.imread(str(pngs[0])))
+    (d / "video.avi").write_bytes((d / "video.avi.jpg").read_bytes())
+    code, lines, _ = _read_frames(d)
+    assert code == 2 and "is a JPEG image, not a video" in lines[0]

@@ -1,9 +1,12 @@
 """Reading motion-segmentation datasets (format ``jaxcr.motion/1``, docs/motion-format.md).
 
 A dataset is a folder with ``motion.json``; the frames come from a video file (any format
-OpenCV's VideoCapture reads) or an image folder (PNG/JPEG, sorted by name). Unreadable frames
-are reported per frame (``None`` from :meth:`MotionDataset.frame` plus a reason), never
-fatal; malformed metadata raises :class:`jaxcr.errors.InputError` naming file and field.
+OpenCV's VideoCapture reads, through :class:`jaxcr.io.video.VideoReader`) or an image folder
+(PNG/JPEG, sorted by name). Unreadable frames (a damaged image, a video frame the decoder
+reported damaged, frames missing from a truncated video) are reported per frame (``None``
+from :meth:`MotionDataset.frames` plus a reason), never fatal; malformed metadata, and a
+video file that is no video at all (a still image under a video extension, a container no
+backend opens), raise :class:`jaxcr.errors.InputError` naming file and field.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import numpy as np
 from jaxcr.errors import InputError
 from jaxcr.io.images import MAX_PIXELS, file_header_size, read_raw
 from jaxcr.io.jsonfile import read_json
+from jaxcr.io.video import VideoReader
 from jaxcr.motion.arm import ArmModel, arm_from_dict
 
 FORMAT = "jaxcr.motion/1"
@@ -69,10 +73,11 @@ class MotionDataset:
                 else:
                     yield i, img, ""
             return
-        cap = cv2.VideoCapture(str(self._video))
+        # quiet reader: no native library output on stderr; a frame the decoder reported
+        # damaged, or missing from a truncated file, is a failed frame with the reason
+        reader = VideoReader(self._video, field="source.video")
         try:
-            vw = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
-            vh = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            vw, vh = reader.width, reader.height
             if vw * vh > MAX_PIXELS:  # declared by the container: no frame is decoded
                 for i in range(len(self)):
                     yield (
@@ -82,9 +87,9 @@ class MotionDataset:
                     )
                 return
             for i in range(len(self)):
-                ok, bgr = cap.read()
-                if not ok or bgr is None:
-                    yield i, None, "corrupt or missing video frame"
+                bgr, why = reader.read()
+                if bgr is None:
+                    yield i, None, why
                     continue
                 if bgr.shape[:2] != (self.height, self.width):
                     yield (
@@ -95,7 +100,7 @@ class MotionDataset:
                     continue
                 yield i, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0, ""
         finally:
-            cap.release()
+            reader.release()
 
     def mask(self, i: int) -> np.ndarray | None:
         p = self.masks[i]
@@ -177,8 +182,9 @@ def load_motion_dataset(path: str | os.PathLike) -> MotionDataset:
     images = video = None
     if isinstance(src, dict) and "video" in src:
         video = root / src["video"]
-        if not video.exists():
-            raise InputError("video file not found", file=str(video), field="source.video")
+        # refused here (exit 2) when it is no video at all: missing, empty, a still image
+        # under a video extension, a container no backend opens
+        VideoReader(video, field="source.video").release()
     elif isinstance(src, dict) and "images" in src:
         folder = root / src["images"]
         if not folder.is_dir():
