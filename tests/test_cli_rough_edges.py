@@ -264,3 +264,138 @@ def test_video_extension_that_lies(motion_video, tmp_path):
     (d / "video.avi").write_bytes((d / "video.avi.jpg").read_bytes())
     code, lines, _ = _read_frames(d)
     assert code == 2 and "is a JPEG image, not a video" in lines[0]
+
+
+# ------------------------------------------------------------------ distortion plausibility
+
+
+def _first_fold_dense(k1, k2, k3, r_max=20.0, n=2_000_001):
+    """Reference for radial_fold: r_d sampled densely, the first sample where it decreases."""
+    import numpy as np
+
+    r = np.linspace(0.0, r_max, n)
+    rd = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
+    down = np.flatnonzero(np.diff(rd) < 0)
+    return None if down.size == 0 else (r[down[0]], rd[down[0]])
+
+
+def test_radial_fold_against_dense_sampling():
+    import numpy as np
+
+    from jaxcr.io.calibration import radial_fold
+
+    # k1 only: closed form r_c = 1/sqrt(-3 k1), r_d(r_c) = 2/3 r_c
+    rc, rdc = radial_fold([-0.5, 0, 0, 0, 0])
+    assert rc == pytest.approx(1 / np.sqrt(1.5), rel=1e-12) and rdc == pytest.approx(2 / 3 * rc)
+    rng = np.random.default_rng(0)
+    cases = [(-0.12, 0.08, -0.01), (-0.3, 0.1, 0.04), (0.1, -0.05, 0.001), (0.2, 0.0, 0.0),
+             (-5.0, 0.0, 0.0), (0.0, 0.0, -0.3)] + [tuple(rng.normal(0, 0.5, 3)) for _ in range(20)]  # fmt: skip
+    n_fold = 0
+    for k1, k2, k3 in cases:
+        got = radial_fold([k1, k2, 1e-3, -1e-3, k3])  # tangential terms do not enter
+        ref = _first_fold_dense(k1, k2, k3)
+        if ref is None:  # monotone up to r = 20 (87 deg off-axis)
+            assert got is None or got[0] > 19.99, (k1, k2, k3, got)
+            continue
+        n_fold += 1
+        assert got is not None and got[0] == pytest.approx(ref[0], abs=2e-5), (k1, k2, k3)
+        assert got[1] == pytest.approx(ref[1], abs=1e-4)
+    assert n_fold >= 5
+
+
+def _camera_yaml(path, dist, fx=500.0, size=(640, 480)):
+    import cv2
+    import numpy as np
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.array([[fx, 0, (size[0] - 1) / 2], [0, fx, (size[1] - 1) / 2],
+                                        [0, 0, 1.0]]))  # fmt: skip
+    fs.write("distortion_coefficients", np.asarray(dist, float).reshape(1, -1))
+    fs.write("image_width", size[0])
+    fs.write("image_height", size[1])
+    fs.release()
+    return path
+
+
+def test_implausible_distortion_is_refused_naming_file_and_field(tmp_path, capsys):
+    """Any finite distortion was accepted; k1 = -5 (e.g. a coefficient in the wrong unit)
+    folds the image onto itself 14 deg off-axis. Refused when the radial model is not monotone
+    over the image's own field of view: the same k1 = -0.5 is fine for a narrow camera and
+    refused for a wide one; a typical strong barrel lens passes."""
+    import math
+
+    from jaxcr.cli import main
+    from jaxcr.errors import InputError
+    from jaxcr.io.calibration import load_camera
+
+    # k1 = -0.5 folds at r_d = 0.544: inside a 640x480 fx=500 image (corner radius 0.8),
+    # outside a fx=1000 one (corner radius 0.4)
+    load_camera(_camera_yaml(tmp_path / "narrow.yaml", [-0.5, 0, 0, 0, 0], fx=1000.0))
+    with pytest.raises(InputError) as ei:
+        load_camera(_camera_yaml(tmp_path / "wide.yaml", [-0.5, 0, 0, 0, 0], fx=500.0))
+    e = ei.value
+    assert e.file.endswith("wide.yaml") and e.field == "distortion_coefficients"
+    assert "not monotone over the 640x480 image" in e.message and "peaks at 0.544" in e.message
+    # a typical strong barrel lens: monotone over its image
+    load_camera(_camera_yaml(tmp_path / "real.yaml", [-0.29, 0.11, 1e-3, 0.0, 0.04], fx=535.0))
+    # non-finite: always refused
+    bad = _camera_yaml(tmp_path / "nan.yaml", [math.nan, 0, 0, 0, 0])
+    with pytest.raises(InputError, match="NaN or infinite") as ei:
+        load_camera(bad)
+    assert ei.value.field == "distortion_coefficients"
+    # in a dataset (inline camera): validate names dataset.json and the field, exit 2
+    root = make_dataset(tmp_path / "d", n_frames=2)
+    edit_json(root, lambda d: d["cameras"]["main"].update(dist=[-5.0, 0, 0, 0, 0]))
+    capsys.readouterr()
+    assert main(["validate", str(root)]) == 2
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"{root / 'dataset.json'}: field 'cameras.main.dist': radial "
+                             "distortion (k1=-5, k2=0, k3=0) is not monotone")  # fmt: skip
+    # a stereo calibration names D1/D2
+    import cv2
+    import numpy as np
+
+    from jaxcr.io.calibration import load_stereo
+
+    fs = cv2.FileStorage(str(tmp_path / "st.yaml"), cv2.FILE_STORAGE_WRITE)
+    K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+    for k, v in (("K1", K), ("D1", np.zeros((1, 5))), ("K2", K),
+                 ("D2", np.array([[0.0, -3.0, 0, 0, 0]])), ("R", np.eye(3)),
+                 ("T", np.array([[0.1], [0], [0]]))):  # fmt: skip
+        fs.write(k, v)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.release()
+    with pytest.raises(InputError) as ei:
+        load_stereo(tmp_path / "st.yaml")
+    assert ei.value.field == "D2" and "k2=-3" in ei.value.message
+
+
+def test_calibrate_does_not_write_a_folding_distortion(tmp_path, monkeypatch, capsys):
+    """A calibration whose distortion folds inside the image would be written and then refused
+    by every loader; calibrate now says so and writes nothing (exit 1)."""
+    import cv2
+    import numpy as np
+
+    from jaxcr.cli import main
+    from jaxcr.commands import calibrate
+
+    K = np.array([[150.0, 0, (W - 1) / 2], [0, 150.0, (H - 1) / 2], [0, 0, 1]])
+    res = {"K1": K, "D1": np.zeros((1, 5)), "K2": K, "D2": np.array([[-3.0, 0, 0, 0, 0]]),
+           "R": np.eye(3), "T": np.array([-0.1, 0, 0]), "E": np.eye(3), "F": np.eye(3),
+           "size1": (W, H), "size2": (W, H), "rms_1": 0.2, "rms_2": 0.2, "rms_stereo": 0.3,
+           "used": [0, 1, 2]}  # fmt: skip
+    monkeypatch.setattr(calibrate, "calibrate_stereo", lambda *a, **k: res)
+    for side in ("L", "R"):
+        (tmp_path / side).mkdir()
+        for k in range(3):
+            cv2.imwrite(str(tmp_path / side / f"{k}.png"), np.zeros((H, W), np.uint8))
+    out = tmp_path / "s.yaml"
+    argv = ["calibrate", str(tmp_path / "L"), str(tmp_path / "R"), "-o", str(out),
+            "--cols", "8", "--rows", "6", "--square", "0.02"]  # fmt: skip
+    assert main(argv) == 1
+    msg = capsys.readouterr().out
+    assert "field 'D2': radial distortion (k1=-3, k2=0, k3=0) is not monotone" in msg
+    assert "nothing written" in msg and not out.exists()
+    res["D2"] = np.array([[-0.1, 0.01, 0, 0, 0]])
+    assert main(argv) == 0 and out.exists()

@@ -10,8 +10,9 @@ patterns. ``--pattern chessboard`` uses ``--cols x --rows`` inner corners
 (``cv2.findChessboardCornersSB``); ``circles``/``acircles`` a symmetric/asymmetric circle
 grid (``cv2.findCirclesGrid``). ``--square`` is the corner (or circle) spacing in metres.
 Pairs where the pattern is not found in both images are skipped and listed; at least 3
-usable pairs are required. Exit 0 on success, 1 if calibration failed (too few pairs, or
-stereo RMS above ``--max-rms``), 2 on bad input.
+usable pairs are required. Exit 0 on success, 1 if calibration failed (too few pairs,
+stereo RMS above ``--max-rms``, or a radial distortion that is not monotone over the image,
+which the calibration loaders refuse), 2 on bad input.
 """
 
 from __future__ import annotations
@@ -194,6 +195,15 @@ def run(args) -> int:
     if not res["rms_stereo"] <= args.max_rms:
         print(f"jaxcr calibrate: stereo RMS {res['rms_stereo']:.3f} px exceeds --max-rms "
               f"{args.max_rms}; nothing written (wrong pattern size?)")  # fmt: skip
+        return 1
+    from jaxcr.io.calibration import check_distortion_range
+
+    try:  # the loaders refuse such a file, so it is not written
+        for i in (1, 2):
+            check_distortion_range(res[f"D{i}"], res[f"K{i}"], *res[f"size{i}"], field=f"D{i}")
+    except InputError as err:
+        print(f"jaxcr calibrate: {err.format()}; nothing written (too few pattern views "
+              "near the image corners?)")  # fmt: skip
         return 1
     save_calibration(res, args.out)
     skipped = sorted(set(range(len(lf))) - set(res["used"]))

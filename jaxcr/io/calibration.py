@@ -210,6 +210,63 @@ def check_distortion(dist, file=None, field="distortion_coefficients") -> np.nda
     return d[:5]
 
 
+def max_image_radius(K, width: int, height: int) -> float:
+    """Largest normalised radius sqrt(x^2 + y^2) of the image, x, y = K^-1 (u, v, 1) over the
+    corners of the pixel area (``-0.5 <= u <= width - 0.5``, same for v): the distorted radius
+    the distortion model must reach monotonically (dimensionless, tan of the off-axis angle
+    for an undistorted camera)."""
+    K = np.asarray(K, np.float64)
+    u = np.array([-0.5, width - 0.5, -0.5, width - 0.5])
+    v = np.array([-0.5, -0.5, height - 0.5, height - 0.5])
+    y = (v - K[1, 2]) / K[1, 1]
+    x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return float(np.max(np.hypot(x, y)))
+
+
+def radial_fold(dist) -> tuple[float, float] | None:
+    """Where the radial distortion r_d(r) = r (1 + k1 r^2 + k2 r^4 + k3 r^6) (OpenCV, r the
+    normalised undistorted radius) stops increasing: ``(r_c, r_d(r_c))`` at the smallest
+    r_c > 0 with dr_d/dr = 1 + 3 k1 r^2 + 5 k2 r^4 + 7 k3 r^6 = 0, or None when r_d increases
+    for every r > 0. Beyond r_c two ray directions map to one distorted radius."""
+    k1, k2, _p1, _p2, k3 = (float(v) for v in np.asarray(dist, np.float64).reshape(-1)[:5])
+    coeffs = np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0])  # in t = r^2, highest power first
+    nz = np.flatnonzero(coeffs)
+    roots = np.roots(coeffs[nz[0] :]) if nz[0] < 3 else np.array([])
+    t = [r.real for r in roots if abs(r.imag) <= 1e-9 * max(1.0, abs(r)) and r.real > 0]
+    if not t:
+        return None
+    tc = min(t)
+    rc = float(np.sqrt(tc))
+    return rc, rc * (1.0 + k1 * tc + k2 * tc**2 + k3 * tc**3)
+
+
+def check_distortion_range(dist, K, width: int, height: int, file=None,
+                           field="distortion_coefficients") -> None:  # fmt: skip
+    """Refuse radial distortion that is not monotone over the image: the distorted radius must
+    increase with the undistorted one up to the image's largest radius
+    (:func:`max_image_radius`). Otherwise pixels near the corners have no ray (the model's
+    distorted radius peaks inside the image) and two directions meet at one radius, so the
+    model cannot describe this camera (typically coefficients in the wrong units or order, or
+    a calibration extrapolated far outside the pattern's coverage). Tangential terms are not
+    part of the check."""
+    fold = radial_fold(dist)
+    if fold is None:
+        return
+    rc, rd_c = fold
+    rho = max_image_radius(K, width, height)
+    if rd_c <= rho:
+        k1, k2, _, _, k3 = (float(v) for v in np.asarray(dist, np.float64).reshape(-1)[:5])
+        raise InputError(
+            f"radial distortion (k1={k1:g}, k2={k2:g}, k3={k3:g}) is not monotone over the "
+            f"{width}x{height} image: the distorted radius peaks at {rd_c:.3g} (undistorted "
+            f"radius {rc:.3g}, {np.degrees(np.arctan(rc)):.3g} deg off-axis) below the image "
+            f"corners' {rho:.3g}, so part of the image has no ray and directions fold onto "
+            "each other",
+            file=file,
+            field=field,
+        )
+
+
 def check_transform(T, file=None, field="T_cam_robot", scale: float = 1.0) -> np.ndarray:
     """Validated 4x4 rigid transform (rotation orthonormal to 1e-4, det +1, last row 0 0 0 1);
     the translation is multiplied by ``scale`` (unit conversion to metres)."""
@@ -275,6 +332,7 @@ def camera_from_dict(d: Mapping[str, Any], file: str | None = None, prefix: str 
     dist = np.zeros(5) if dist is None else check_distortion(dist, file, prefix + kd)
     w, h = _image_size(d, file, prefix)
     check_intrinsics_range(K, w, h, file, prefix + kK)
+    check_distortion_range(dist, K, w, h, file, prefix + kd)
     T = d.get("T_cam_robot")
     T = np.eye(4) if T is None else check_transform(T, file, prefix + "T_cam_robot", scale)
     return camera_from_arrays(K, dist, T, w, h)
@@ -300,6 +358,7 @@ def load_stereo(path: str | os.PathLike) -> tuple[Camera, Camera]:
         D = np.zeros(5) if D is None else check_distortion(D, path, kd)
         size = _image_size(d, path, "", suffix=f"_{i}")
         check_intrinsics_range(K, *size, path, kK)
+        check_distortion_range(D, K, *size, path, kd)
         cams_intr.append((K, D, size))
     R = _matrix(
         d.get("R") if "R" in d else _missing(path, "R"), lambda s: s == (3, 3), "3x3", path, "R"
