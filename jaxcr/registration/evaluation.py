@@ -75,6 +75,61 @@ def pose_errors(result: ModelResult, poses: list[np.ndarray]) -> dict:
     }
 
 
+def statistics_points(
+    result: ModelResult, max_points: int = 20000, seed: int = 0
+) -> tuple[np.ndarray, tuple[list[Cloud], np.ndarray]]:
+    """The points the Fig. 13 statistics are computed on, fixed for every set of poses:
+    indices of at most ``max_points`` points of :func:`model_cloud` (a seeded random
+    subset) and the loop seam (:func:`seam_overlap` under the true poses)."""
+    n = len(model_cloud(result, truth_poses(result)).points)
+    idx = np.arange(n)
+    if n > max_points:
+        idx = np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+    return idx, seam_overlap(result, truth_poses(result))
+
+
+def model_statistics(
+    sim,
+    result: ModelResult,
+    poses: list[np.ndarray],
+    idx: np.ndarray,
+    seam: tuple[list[Cloud], np.ndarray],
+    k: int = 100,
+    radius: float = 0.003,
+) -> dict:
+    """The Fig. 13 statistics (mean distance to the ``k`` nearest neighbours, number of
+    neighbours within ``radius``; whole model ``model_cloud(...).points[idx]`` and the
+    loop seam ``seam = seam_overlap(...)``), the pose errors and the model-to-truth
+    surface distance of the model built with ``poses`` (T_O,i). The same ``idx`` and
+    ``seam`` for every set of poses make the numbers differ only by the poses."""
+    seam_views, seam_sel = seam
+    anchor = _capture(result.runs, result.ring[-1]).T_true
+    pts = model_cloud(result, poses).points[idx]
+    knn = knn_mean_distance(pts, k)
+    cnt = neighbour_counts(pts, radius)
+    seam_pts = np.concatenate(
+        [c.transformed(poses[j]).points for j, c in zip((0, -1), seam_views, strict=True)]
+    )
+    seam_knn = knn_mean_distance(seam_pts, k, seam_sel)
+    seam_cnt = neighbour_counts(seam_pts, radius, seam_sel)
+    world = pts @ anchor[:3, :3].T + anchor[:3, 3]
+    sd = sim.surface_distance(world)
+    return {
+        "seam_knn_mean_mm": 1000 * float(np.mean(seam_knn)),
+        "seam_neigh3mm_mean": float(np.mean(seam_cnt)),
+        "pose": pose_errors(result, poses),
+        "knn_mean_mm": 1000 * float(np.mean(knn)),
+        "knn_median_mm": 1000 * float(np.median(knn)),
+        "neigh3mm_mean": float(np.mean(cnt)),
+        "neigh3mm_median": float(np.median(cnt)),
+        "surface_mean_mm": 1000 * float(np.mean(sd)),
+        "surface_median_mm": 1000 * float(np.median(sd)),
+        "surface_p95_mm": 1000 * float(np.percentile(sd, 95)),
+        "_knn": knn,
+        "_cnt": cnt,
+    }
+
+
 def evaluate_result(
     sim,
     result: ModelResult,
@@ -101,47 +156,18 @@ def evaluate_result(
     g = result.global_result
     if g is None:
         return out
-    rng = np.random.default_rng(seed)
-    anchor = _capture(result.runs, result.ring[-1]).T_true
     # The same points (same views, same subset) for every set of poses, so the Fig. 13
     # numbers differ only by the poses; the true poses give the reference level (sensor
     # noise and sampling alone).
     truth = truth_poses(result)
-    _, views = model_cloud(result, g.initial, with_views=True)
-    idx = np.arange(len(views))
-    if len(idx) > max_points:
-        idx = np.sort(rng.choice(len(idx), max_points, replace=False))
-    seam_views, seam_sel = seam_overlap(result, truth)
+    idx, seam = statistics_points(result, max_points, seed)
     tags = [("before", g.initial), ("after", g.poses), ("truth", truth)]
     a2 = result.alg2_result
     if a2 is not None and a2 is not g:
         # The pose graph is the final result: Algorithm 2 (the paper's) reported beside it.
         tags.insert(2, ("alg2", a2.poses))
     for tag, poses in tags:
-        pts = model_cloud(result, poses).points[idx]
-        knn = knn_mean_distance(pts, k)
-        cnt = neighbour_counts(pts, radius)
-        seam_pts = np.concatenate(
-            [c.transformed(poses[j]).points for j, c in zip((0, -1), seam_views, strict=True)]
-        )
-        seam_knn = knn_mean_distance(seam_pts, k, seam_sel)
-        seam_cnt = neighbour_counts(seam_pts, radius, seam_sel)
-        world = pts @ anchor[:3, :3].T + anchor[:3, 3]
-        sd = sim.surface_distance(world)
-        out[tag] = {
-            "seam_knn_mean_mm": 1000 * float(np.mean(seam_knn)),
-            "seam_neigh3mm_mean": float(np.mean(seam_cnt)),
-            "pose": pose_errors(result, poses),
-            "knn_mean_mm": 1000 * float(np.mean(knn)),
-            "knn_median_mm": 1000 * float(np.median(knn)),
-            "neigh3mm_mean": float(np.mean(cnt)),
-            "neigh3mm_median": float(np.median(cnt)),
-            "surface_mean_mm": 1000 * float(np.mean(sd)),
-            "surface_median_mm": 1000 * float(np.median(sd)),
-            "surface_p95_mm": 1000 * float(np.percentile(sd, 95)),
-            "_knn": knn,
-            "_cnt": cnt,
-        }
+        out[tag] = model_statistics(sim, result, poses, idx, seam, k, radius)
     edge_err = []
     for j, e in enumerate(result.edges):
         a = _capture(result.runs, result.ring[j])
