@@ -399,3 +399,40 @@ def test_calibrate_does_not_write_a_folding_distortion(tmp_path, monkeypatch, ca
     assert "nothing written" in msg and not out.exists()
     res["D2"] = np.array([[-0.1, 0.01, 0, 0, 0]])
     assert main(argv) == 0 and out.exists()
+
+
+# ------------------------------------------------------------------ confusing messages
+
+
+@pytest.mark.parametrize(
+    "marker, what",
+    [("stereo.json", "jaxcr stereo"), ("motion.json", "jaxcr motion"),
+     ("scene.json", "jaxcr model-object"), ("run.json", "jaxcr evaluate")],
+)  # fmt: skip
+def test_another_format_folder_says_what_it_is(tmp_path, capsys, marker, what):
+    """Giving a stereo/motion/RGB-D/segment-output folder to a dataset command said only
+    'missing dataset.json'; it now says which format the folder holds and which command
+    reads it."""
+    from jaxcr.cli import main
+
+    d = tmp_path / "x"
+    d.mkdir()
+    (d / marker).write_text("{}")
+    hint = f"(this folder has {marker}: "
+    assert main(["segment", str(d), "-o", str(tmp_path / "o")]) == 2
+    msg = _one_line_error(capsys)
+    assert f"{d}: missing dataset.json {hint}" in msg and msg.endswith(f"read by {what})")
+    (tmp_path / "q.csv").write_text("0,0\n")
+    assert main(["fk", str(d), str(tmp_path / "q.csv"), "-o", str(tmp_path / "f")]) == 2
+    assert f"folder has no dataset.json {hint}" in _one_line_error(capsys)
+    assert main(["validate", str(d)]) == 2
+    assert hint in capsys.readouterr().out
+
+
+def test_manifold_query_with_a_folder_as_model(tmp_path, capsys):
+    """A folder given as MODEL said 'model file not found' although it exists."""
+    from jaxcr.cli import main
+
+    root = make_dataset(tmp_path / "d", n_frames=1)
+    assert main(["manifold", "query", str(root), str(root), "-o", str(tmp_path / "o")]) == 2
+    assert "is a folder, expected a model file" in _one_line_error(capsys)

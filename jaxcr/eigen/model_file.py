@@ -83,6 +83,9 @@ def save_model(
 def load_model(path: str | os.PathLike) -> EigenModel:
     """Read a model written by :func:`save_model`; InputError if corrupt or incompatible."""
     f = str(path)
+    if Path(path).is_dir():
+        raise InputError("is a folder, expected a model file (jaxcr manifold train -o M.npz)",
+                         file=f)  # fmt: skip
     if not Path(path).is_file():
         raise InputError("model file not found", file=f)
     try:

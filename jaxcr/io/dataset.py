@@ -201,7 +201,8 @@ class _Scan:
 
     def read_json(self) -> dict | None:
         if not self.json_path.exists():
-            self.errors.append(InputError(f"missing {DATASET_FILE}", file=str(self.root)))
+            msg = f"missing {DATASET_FILE}{other_format_hint(self.root)}"
+            self.errors.append(InputError(msg, file=str(self.root)))
             return None
         try:
             # utf-8-sig: a byte-order mark (Windows editors write one) is skipped
@@ -550,6 +551,25 @@ class _Scan:
         self.check_frames(d)
         self.check_background(d)
         return self
+
+
+# folders of jaxcr's other formats, recognised to say what a folder without dataset.json is
+_OTHER_FORMATS = (
+    ("stereo.json", "a jaxcr.stereo/1 stereo dataset, read by jaxcr stereo"),
+    ("motion.json", "a jaxcr.motion/1 motion dataset, read by jaxcr motion"),
+    ("scene.json", "a jaxcr.rgbd_scene/1 RGB-D scene, read by jaxcr model-object"),
+    ("run.json", "a jaxcr segment output folder, read by jaxcr evaluate"),
+)
+
+
+def other_format_hint(folder: str | os.PathLike) -> str:
+    """`` (this folder has stereo.json: a jaxcr.stereo/1 ..., read by jaxcr stereo)`` when
+    ``folder`` holds another jaxcr format instead of a dataset.json, else ``""``."""
+    folder = Path(folder)
+    for name, what in _OTHER_FORMATS:
+        if (folder / name).is_file():
+            return f" (this folder has {name}: {what})"
+    return ""
 
 
 def _locate(path: str | os.PathLike) -> tuple[Path, Path]:

@@ -76,7 +76,10 @@ def load_robot(path: str | os.PathLike) -> RobotModel:
     if os.path.isdir(path):
         path = os.path.join(path, "dataset.json")
         if not os.path.exists(path):
-            raise InputError("folder has no dataset.json", file=os.path.dirname(path))
+            from jaxcr.io.dataset import other_format_hint
+
+            folder = os.path.dirname(path)
+            raise InputError(f"folder has no dataset.json{other_format_hint(folder)}", file=folder)
     d = _read_json(path)
     d = require_mapping(d, file=path, field=None)
     if "kind" not in d and "robot" in d:  # a dataset.json
