@@ -436,3 +436,15 @@ def test_manifold_query_with_a_folder_as_model(tmp_path, capsys):
     root = make_dataset(tmp_path / "d", n_frames=1)
     assert main(["manifold", "query", str(root), str(root), "-o", str(tmp_path / "o")]) == 2
     assert "is a folder, expected a model file" in _one_line_error(capsys)
+
+
+def test_motion_report_times_are_rounded():
+    """report.md said 'flow 46.62798000208568 ms' (and 'None ms' without used frames)."""
+    from jaxcr.commands.motion import timing_line
+
+    t = {"flow_ms": 46.62798000208568, "segmentation_ms": 2.134474, "likelihood_ms": 21.902257}
+    assert timing_line(t) == (
+        "Median per-frame time: flow 46.6 ms, segmentation 2.1 ms, likelihood 21.9 ms."
+    )
+    none = dict.fromkeys(t)
+    assert timing_line(none) == "Median per-frame time: flow -, segmentation -, likelihood -."

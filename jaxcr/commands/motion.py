@@ -130,6 +130,15 @@ def _png(path: Path, a: np.ndarray) -> None:
     write_png(path, a)
 
 
+def timing_line(timing: dict) -> str:
+    """The report's median per-frame times (ms, one decimal; '-' without used frames)."""
+    parts = []
+    for k in ("flow", "segmentation", "likelihood"):
+        v = timing.get(f"{k}_ms")
+        parts.append(f"{k} -" if v is None else f"{k} {v:.1f} ms")
+    return "Median per-frame time: " + ", ".join(parts) + "."
+
+
 def run(args) -> int:
     if args.dataset == "synth":
         return _synth(args)
@@ -345,8 +354,7 @@ def run(args) -> int:
         )
     lines += [
         "",
-        f"Median per-frame time: flow {timing['flow_ms']} ms, segmentation {timing['segmentation_ms']} ms, "
-        f"likelihood {timing['likelihood_ms']} ms.",
+        timing_line(timing),
     ]
     R.atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
