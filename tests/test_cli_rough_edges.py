@@ -448,3 +448,39 @@ def test_motion_report_times_are_rounded():
     )
     none = dict.fromkeys(t)
     assert timing_line(none) == "Median per-frame time: flow -, segmentation -, likelihood -."
+
+
+def test_fk_says_why_rows_failed(tmp_path, capsys):
+    """'jaxcr fk: 0/2 rows ok, 2 failed (rows 0, 1)' gave no reason; a CTR row outside its
+    joint limits looked like a solver failure. Now each failed row has its reason."""
+    import numpy as np
+
+    from jaxcr.cli import main
+    from jaxcr.commands.fk import failure_reasons
+    from jaxcr.kinematics.ctr import make_test_ctr
+
+    ctr = make_test_ctr()
+    n = len(ctr.length)
+    good = np.concatenate([-0.5 * np.asarray(ctr.length) * [0.9, 0.6, 0.3], np.zeros(n)])
+    q = np.stack([good, good, good, good, good])
+    q[1, 0] = np.nan
+    q[2, :n] = [0.01, 0.02, 0.03]  # beta > 0: tubes pulled behind the actuation unit
+    out = {"ok": np.array([True, False, False, False, False]),
+           "residual": np.array([0.0, np.nan, 0.0, 1.0, 0.0]),
+           "p": np.zeros((5, 4, 3))}  # fmt: skip
+    out["p"][4, 2] = np.nan
+    reasons = failure_reasons(ctr, q, out)
+    assert sorted(reasons) == [1, 2, 3, 4]
+    assert reasons[1] == "non-finite joint values"
+    assert reasons[2].startswith("outside the joint limits (beta_1 <= ... <= beta_n <= 0")
+    assert reasons[3] == f"no converged solution (residual 1 > tolerance {ctr.tol:g})"
+    assert reasons[4] == "non-finite centreline"
+    # through the command (a constant-curvature robot compiles quickly)
+    robot = tmp_path / "robot.json"
+    robot.write_text(json.dumps({"kind": "constant_curvature", "n_points": 8,
+                                 "sections": [{"length": 0.05, "radius": 0.001}],
+                                 "joints": ["kappa", "phi"]}))  # fmt: skip
+    (tmp_path / "q.csv").write_text("5,0\nnan,0\n")
+    assert main(["fk", str(robot), str(tmp_path / "q.csv"), "-o", str(tmp_path / "o")]) == 1
+    assert ("1/2 rows ok, 1 failed (row 1: non-finite joint values; ok = 0 in tips.csv)"
+            in capsys.readouterr().out)  # fmt: skip

@@ -13,7 +13,8 @@ Outputs (format ``jaxcr.fk/1``), written atomically (temp file, then rename):
 - ``OUT/tips.csv``: ``# format: jaxcr.fk/1`` then a header
   ``row,ok,x,y,z,rx,ry,rz,residual,energy`` (tip position in m, tip rotation vector in rad).
 
-Exit code 0 when every row succeeded, 1 when any row failed, 2 on bad input.
+Exit code 0 when every row succeeded, 1 when any row failed (the summary line gives each
+failed row's reason), 2 on bad input.
 """
 
 from __future__ import annotations
@@ -210,6 +211,41 @@ def _atomic_write_all(writers: dict[str, object]) -> None:
                 os.remove(tmp)
 
 
+def failure_reasons(model, q: np.ndarray, out: dict) -> dict[int, str]:
+    """Row index -> why it failed (ok False): non-finite joint values, joint values outside a
+    CTR's limits (``jaxcr.kinematics.ctr_mechanics.telescoping_ok``), no converged solution
+    (residual above the robot's tolerance), or a non-finite result."""
+    reasons = {}
+    tol = getattr(model, "tol", None)
+    for i in np.flatnonzero(~out["ok"]):
+        if not np.all(np.isfinite(q[i])):
+            reasons[int(i)] = "non-finite joint values"
+            continue
+        if model.kind == "ctr":
+            import types
+
+            import jax.numpy as jnp
+
+            from jaxcr.kinematics.ctr_mechanics import telescoping_ok
+
+            n = len(np.atleast_1d(model.length))
+            tubes = types.SimpleNamespace(length=jnp.asarray(model.length, jnp.float32))
+            if not bool(telescoping_ok(tubes, jnp.asarray(q[i, :n], jnp.float32))):
+                reasons[int(i)] = (
+                    "outside the joint limits (beta_1 <= ... <= beta_n <= 0, every tube "
+                    "out of the actuation unit, inner tubes ending beyond outer ones)"
+                )
+                continue
+        r = float(out["residual"][i])
+        if tol is not None and not r <= float(tol):
+            reasons[int(i)] = f"no converged solution (residual {r:.3g} > tolerance {float(tol):g})"
+        elif not np.all(np.isfinite(out["p"][i])):
+            reasons[int(i)] = "non-finite centreline"
+        else:
+            reasons[int(i)] = "kinematics reported failure"
+    return reasons
+
+
 def _fmt(x: float) -> str:
     return "nan" if not math.isfinite(x) else f"{float(x):.9g}"
 
@@ -262,9 +298,16 @@ def run(args) -> int:
     failed = np.flatnonzero(~out["ok"])
     B = q.shape[0]
     if failed.size:
-        shown = ", ".join(str(i) for i in failed[:10]) + (" ..." if failed.size > 10 else "")
+        by_reason: dict[str, list[int]] = {}
+        for i, why in failure_reasons(model, q, out).items():
+            by_reason.setdefault(why, []).append(i)
+        parts = []
+        for why, rows in by_reason.items():
+            shown = ", ".join(str(i) for i in rows[:10]) + (" ..." if len(rows) > 10 else "")
+            parts.append(f"row{'s' if len(rows) > 1 else ''} {shown}: {why}")
         print(
-            f"jaxcr fk: {B - failed.size}/{B} rows ok, {failed.size} failed (rows {shown}); wrote {args.out}"
+            f"jaxcr fk: {B - failed.size}/{B} rows ok, {failed.size} failed ({'; '.join(parts)}; "
+            f"ok = 0 in tips.csv); wrote {args.out}"
         )
         return 1
     print(f"jaxcr fk: {B}/{B} rows ok; wrote {args.out}")
