@@ -150,7 +150,7 @@ def main(argv=None) -> int:
     ]
     text = "\n".join(lines)
     print(text)
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)  # "-o x.md": dirname is ""
     with open(args.out, "w") as fh:
         fh.write(text)
     return 0

@@ -484,3 +484,34 @@ def test_fk_says_why_rows_failed(tmp_path, capsys):
     assert main(["fk", str(robot), str(tmp_path / "q.csv"), "-o", str(tmp_path / "o")]) == 1
     assert ("1/2 rows ok, 1 failed (row 1: non-finite joint values; ok = 0 in tips.csv)"
             in capsys.readouterr().out)  # fmt: skip
+
+
+def test_bench_report_path_is_checked_before_benchmarking(tmp_path, monkeypatch, capsys):
+    """'jaxcr bench fk -o bfk.md' ran the whole benchmark (2 min) and then failed with
+    'jaxcr bench: error: : No such file or directory' (the script's makedirs of dirname('bfk.md')
+    = ''). Now scripts get an absolute path, and an unusable report folder is refused before
+    anything runs."""
+    import os
+
+    from jaxcr.cli import main
+    from jaxcr.commands import bench
+
+    calls = []
+
+    def script_main(argv):  # writes its report as experiments/bench_fk.py does
+        out = argv[argv.index("-o") + 1]
+        calls.append(out)
+        os.makedirs(os.path.dirname(out), exist_ok=True)
+        with open(out, "w") as fh:
+            fh.write("# report\n")
+        return 0
+
+    monkeypatch.setattr(bench, "find_provider",
+                        lambda what: (bench._ScriptProvider(script_main), "fake:main"))  # fmt: skip
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", "fk", "-o", "bfk.md"]) == 0
+    assert (tmp_path / "bfk.md").read_text() == "# report\n" and calls == [str(tmp_path / "bfk.md")]
+    (tmp_path / "afile").write_text("x")
+    capsys.readouterr()
+    assert main(["bench", "fk", "-o", "afile/r.md"]) == 2
+    assert "afile" in _one_line_error(capsys) and len(calls) == 1  # nothing was run

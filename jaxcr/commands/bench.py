@@ -24,6 +24,7 @@ import importlib.util
 import inspect
 import json
 import math
+import os
 import platform
 import sys
 from pathlib import Path
@@ -253,8 +254,13 @@ def _check_counts(args) -> None:
 def run(args) -> int:
     _check_counts(args)
     fn, provider = find_provider(args.what)
+    # the report's folder is made (or refused, exit 2) before minutes of benchmarking, and
+    # scripts get an absolute path (bench_fk.py's makedirs(dirname("x.md")) failed on "")
+    out = Path(args.out or f"bench_{args.what}.md").absolute()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not os.access(out.parent, os.W_OK):
+        raise InputError("cannot write the report here (folder not writable)", file=str(out))
     if isinstance(fn, _ScriptProvider):
-        out = Path(args.out or f"bench_{args.what}.md")
         code = fn(args, out)
         print(f"report: {out} (written by {provider})")
         return code
@@ -275,7 +281,6 @@ def run(args) -> int:
     if result.get("ratio") is not None:
         t.add_row("speed-up vs reference", f"{_fmt(float(result['ratio']))}x")
     Console().print(t)
-    out = Path(args.out or f"bench_{args.what}.md")
     R.atomic_write_text(out, to_markdown(result, meta, provider))
     R.atomic_write_text(out.with_suffix(".json"), json.dumps(
         R.to_jsonable({"result": result, "meta": meta, "provider": provider}), indent=2))  # fmt: skip
