@@ -19,9 +19,13 @@ and ``cv2.utils.logging`` silences only part of it. :class:`VideoReader` therefo
 * reports a RIFF/AVI file shorter than its header declares (a truncated copy) in the reasons
   of the frames missing from it.
 
-OpenCV's FFmpeg wrapper logs errors only by default (``OPENCV_FFMPEG_LOGLEVEL`` changes
-that); with a more verbose level set by the user, informational lines would mark frames as
-damaged.
+Limits: OpenCV's FFmpeg wrapper logs errors only by default (``OPENCV_FFMPEG_LOGLEVEL``
+changes that); with a more verbose level set by the user, informational lines would mark
+frames as damaged. A decoder that decodes several frames in parallel (frame threading, e.g.
+H.264) may report a damaged frame one or a few reads late, so the frame failed can be a
+neighbour of the damaged one (MJPEG, as written by ``jaxcr motion synth --video``, decodes
+each frame on its own read). Anything another thread writes to stderr during a read is
+swallowed with the decoder's output.
 """
 
 from __future__ import annotations
