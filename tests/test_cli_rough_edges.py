@@ -269,7 +269,7 @@ def test_video_extension_that_lies(motion_video, tmp_path):
 # ------------------------------------------------------------------ distortion plausibility
 
 
-def _first_fold_dense(k1, k2, k3, r_max=20.0, n=2_000_001):
+def _first_fold_dense(k1, k2, k3, r_max=20.0, n=400_001):
     """Reference for radial_fold: r_d sampled densely, the first sample where it decreases."""
     import numpy as np
 
@@ -298,7 +298,7 @@ def test_radial_fold_against_dense_sampling():
             assert got is None or got[0] > 19.99, (k1, k2, k3, got)
             continue
         n_fold += 1
-        assert got is not None and got[0] == pytest.approx(ref[0], abs=2e-5), (k1, k2, k3)
+        assert got is not None and got[0] == pytest.approx(ref[0], abs=1e-4), (k1, k2, k3)
         assert got[1] == pytest.approx(ref[1], abs=1e-4)
     assert n_fold >= 5
 
@@ -515,3 +515,36 @@ def test_bench_report_path_is_checked_before_benchmarking(tmp_path, monkeypatch,
     capsys.readouterr()
     assert main(["bench", "fk", "-o", "afile/r.md"]) == 2
     assert "afile" in _one_line_error(capsys) and len(calls) == 1  # nothing was run
+
+
+def test_manifold_query_says_which_frames_failed(tmp_path, capsys):
+    """'manifold query: 11/12 frames estimated' (exit 1) named neither the failed frame nor
+    where the reasons are; the loader's message also said 'frame X' twice in stereo/manifold."""
+    from jaxcr.cli import main
+
+    d = tmp_path / "tr"
+    assert main(["manifold", "synth", "-o", str(d), "--frames", "12", "--size", "160x120"]) == 0
+    model = tmp_path / "m.npz"
+    assert main(["manifold", "train", str(d), "-o", str(model), "--bins", "24", "--step",
+                 "0.05"]) == 0  # fmt: skip
+    (d / "images" / "left" / "000003.png").unlink()
+    capsys.readouterr()
+    assert main(["manifold", "query", str(model), str(d), "-o", str(tmp_path / "q")]) == 1
+    out, err = capsys.readouterr()
+    assert "11/12 frames estimated" in out
+    (line,) = [ln for ln in err.splitlines() if ln.startswith("jaxcr")]  # besides progress
+    assert line.startswith(f"jaxcr manifold: 1 frame(s) failed: {d / 'dataset.json'}: frame "
+                           "000003: field 'images.left': file not found")  # fmt: skip
+    assert line.count("frame 000003") == 1
+    assert line.endswith(f"; all listed in {tmp_path / 'q' / 'estimates.jsonl'}")
+
+
+def test_stereo_failure_line_names_the_frame_once():
+    """'frame 000: ST2/images/cam1/000.png: frame 000: field ...' named the frame twice."""
+    from jaxcr.commands.stereo import failure_line
+
+    img = {"id": "000", "message": "S/images/cam1/000.png: frame 000: field 'images.cam1': x"}
+    assert failure_line(img) == img["message"]
+    assert failure_line({"id": "007", "message": "4 of 4 markers not found in cam2"}) == (
+        "frame 007: 4 of 4 markers not found in cam2"
+    )

@@ -335,6 +335,15 @@ def run_query(args) -> int:
             f"{k} {v:.3f} {unit}" for k, v in summary["median_error_" + unit].items()
         )
     print(msg + f" -> {out}")
+    if n_fail:
+        failed = [json.loads(x) for x in lines]
+        failed = [r for r in failed if not r["ok"]]
+        first = failed[0]
+        more = f" (and {len(failed) - 1} more)" if len(failed) > 1 else ""
+        why = first["error"]  # a loader message names the frame already
+        why = why if f"frame {first['id']}:" in why else f"frame {first['id']}: {why}"
+        print(f"jaxcr manifold: {n_fail} frame(s) failed: {why}{more}; all listed in "
+              f"{out / 'estimates.jsonl'}", file=sys.stderr)  # fmt: skip
     return 1 if n_fail else 0
 
 

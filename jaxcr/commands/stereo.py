@@ -412,6 +412,13 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def failure_line(rec: dict) -> str:
+    """One failed frame's line: ``frame ID: message`` (an image error's message, which names
+    the frame already, as it is)."""
+    msg = rec["message"]
+    return msg if f"frame {rec['id']}:" in msg else f"frame {rec['id']}: {msg}"
+
+
 def run(args) -> int:
     if args.dataset == "synth":
         from jaxcr.synth.stereo_ctr import generate_stereo_set
@@ -441,5 +448,5 @@ def run(args) -> int:
              if n_ok < len(recs) else ""))  # fmt: skip
     for r in recs:
         if not r["ok"]:
-            print(f"  frame {r['id']}: {r['message']}")
+            print(f"  {failure_line(r)}")
     return 0 if n_ok == len(recs) else 1
