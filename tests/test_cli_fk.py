@@ -112,7 +112,7 @@ def test_nan_row_fails_that_row_only(files, capsys):
     (files / "qn.csv").write_text("0.3,-2.0\nnan,0.0\n1.0,0.5\n")
     out = files / "out"
     assert main(["fk", str(files / "ss.json"), str(files / "qn.csv"), "-o", str(out)]) == 1
-    assert "2/3 rows ok, 1 failed (rows 1)" in capsys.readouterr().out
+    assert "2/3 rows ok, 1 failed (row 1: non-finite joint values;" in capsys.readouterr().out
     z = np.load(out / "centrelines.npz")
     np.testing.assert_array_equal(z["ok"], [True, False, True])
     _, rows = _tips(out / "tips.csv")
