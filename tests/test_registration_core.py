@@ -16,6 +16,7 @@ from jaxcr.registration.arm import (
     ArmLimit,
     ArmSpec,
     arc_points,
+    arc_points_np,
     conform_sections,
     look_at_angles,
     tip_camera_pose,
@@ -54,6 +55,23 @@ def test_arc_points_closed_form_and_straight():
     assert np.isfinite(g)
     jit = np.asarray(jax.jit(arc_points)(start, k, s))
     np.testing.assert_allclose(jit, got, atol=1e-6)
+
+
+def test_arc_points_np_matches_jax():
+    # The planner's numpy closed form against the JAX one (float64 closed form vs float32:
+    # 1e-6 m / rad), curved, tiny and zero curvature, and the circle formula at kappa = 2.5.
+    rng = np.random.default_rng(3)
+    start = np.array([0.1, -0.2, 0.3])
+    kap = np.array([2.5, -7.0, 1e-9, 0.0])
+    s = np.sort(rng.uniform(0, 0.5, (4, 6)), axis=1)
+    got = arc_points_np(start, kap, s)
+    assert got.shape == (4, 6, 3)
+    for b in range(4):
+        ref = np.asarray(arc_points(jnp.asarray(start), kap[b], jnp.asarray(s[b])))
+        np.testing.assert_allclose(got[b], ref, atol=1e-6)
+    c = start[:2] + np.array([-np.sin(0.3), np.cos(0.3)]) / 2.5
+    np.testing.assert_allclose(np.linalg.norm(got[0, :, :2] - c, axis=1), 1 / 2.5, atol=1e-12)
+    np.testing.assert_allclose(Arc(tuple(start), 2.5, 0.4).state_at(s[0, 2]), got[0, 2])
 
 
 def test_conform_sections_fk_lies_on_planned_arcs():

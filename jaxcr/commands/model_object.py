@@ -272,9 +272,9 @@ def plot_plan(path: Path, sim, result) -> None:
             ax.arrow(p[0], p[1], 0.04 * z[0], 0.04 * z[1], width=0.002, color=colours[k])
         for j, a in enumerate(r.arcs):
             s = np.linspace(0, a.length, 50)
-            from jaxcr.registration.planning import _arc_np
+            from jaxcr.registration.arm import arc_points_np
 
-            xy = _arc_np(np.asarray(a.start), np.array([a.kappa]), s[None, :])[0]
+            xy = arc_points_np(np.asarray(a.start), np.array([a.kappa]), s[None, :])[0]
             ax.plot(xy[:, 0], xy[:, 1], "--", c=colours[(k + j + 2) % 10], lw=1.5)
         ax.plot([], [], c=colours[k], label=f"run {r.name} ({len(r.captures)} views, {r.status})")
     th = np.linspace(0, 2 * np.pi, 200)

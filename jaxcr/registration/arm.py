@@ -53,6 +53,21 @@ def arc_points(
     return jnp.stack([x0 + dx, y0 + dy, th0 + a], axis=-1)
 
 
+def arc_points_np(start: np.ndarray, kappa: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """numpy :func:`arc_points` for a batch of curvatures ``kappa`` (b,) and arclengths
+    ``s`` (b, n): states (b, n, 3). For the planner's per-step geometry, where dispatching
+    (and on first use compiling) JAX operations would cost more than the arithmetic."""
+    a = kappa[:, None] * s
+    small = np.abs(a) < 1e-6
+    a_s = np.where(small, 1.0, a)
+    sa = np.where(small, 1.0, np.sin(a_s) / a_s)
+    ca = np.where(small, a / 2.0, (1.0 - np.cos(a_s)) / a_s)
+    x0, y0, th = start
+    x = x0 + s * (np.cos(th) * sa - np.sin(th) * ca)
+    y = y0 + s * (np.sin(th) * sa + np.cos(th) * ca)
+    return np.stack([x, y, th + a], axis=-1)
+
+
 @dataclass(frozen=True)
 class Arc:
     """A planned planar arc: start state ``(x, y, heading)`` (m, rad), curvature (1/m),
@@ -63,7 +78,8 @@ class Arc:
     length: float
 
     def state_at(self, s: float) -> np.ndarray:
-        return np.asarray(arc_points(jnp.asarray(self.start), self.kappa, jnp.asarray([s])))[0]
+        start = np.asarray(self.start, np.float64)
+        return arc_points_np(start, np.array([self.kappa]), np.array([[float(s)]]))[0, 0]
 
     @property
     def end(self) -> np.ndarray:

@@ -25,10 +25,9 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import jax.numpy as jnp
 import numpy as np
 
-from jaxcr.registration.arm import Arc, ArmLimit, ArmSpec, conform_sections
+from jaxcr.registration.arm import Arc, ArmLimit, ArmSpec, arc_points_np, conform_sections
 from jaxcr.registration.collision import batch_clearance, collision_free
 
 
@@ -82,12 +81,12 @@ class ArcPlanner:
         # Compile the batched check once, outside the timed planning (Table I's T_mp).
         b = cfg.n_kappa * cfg.n_length
         batch_clearance(
-            jnp.zeros((b, 3)),
-            jnp.zeros(b),
-            jnp.ones(b),
-            jnp.zeros((cfg.cloud_size, 3)),
-            jnp.zeros(cfg.cloud_size, bool),
-            jnp.float32(0.0),
+            np.zeros((b, 3), np.float32),
+            np.zeros(b, np.float32),
+            np.ones(b, np.float32),
+            np.zeros((cfg.cloud_size, 3), np.float32),
+            np.zeros(cfg.cloud_size, bool),
+            np.float32(0.0),
         ).block_until_ready()
 
     # ----------------------------------------------------------------- candidate search
@@ -109,20 +108,22 @@ class ArcPlanner:
             _, first = np.unique(np.floor(near / 0.005).astype(np.int64), axis=0, return_index=True)
             near = near[first]
         pts, mask = _pad(near, cfg.cloud_size)
+        # numpy float32 arguments straight into the jitted check (converting with
+        # jnp.asarray(x, jnp.float32) compiles a cast on first use, inside the timed T_mp).
         clear = np.asarray(
             batch_clearance(
-                jnp.asarray(starts),
-                jnp.asarray(K, jnp.float32),
-                jnp.asarray(L, jnp.float32),
-                jnp.asarray(pts),
-                jnp.asarray(mask),
-                jnp.float32(spec.height),
+                np.ascontiguousarray(starts),
+                K.astype(np.float32),
+                L.astype(np.float32),
+                pts,
+                mask,
+                np.float32(spec.height),
             )
         )
         free = np.asarray(collision_free(clear, spec.radius, cfg.clearance))
         # Geometry of the candidates (planar, numpy-sized: b x 16 samples).
         s = np.linspace(0.0, 1.0, 16)[None, :] * L[:, None]
-        st = _arc_np(np.asarray(start, np.float64), K, s)
+        st = arc_points_np(np.asarray(start, np.float64), K, s)
         r = np.hypot(st[..., 0] - centre[0], st[..., 1] - centre[1])
         end = st[:, -1]
         r_end = r[:, -1]
@@ -231,16 +232,3 @@ class ArcPlanner:
         if not st.arcs:
             return np.asarray(self.spec.base, np.float64)
         return st.arcs[-1].state_at(st.travelled[-1])
-
-
-def _arc_np(start: np.ndarray, kappa: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """numpy :func:`arc_points` for a batch of curvatures (b,) and arclengths (b, n)."""
-    a = kappa[:, None] * s
-    small = np.abs(a) < 1e-6
-    a_s = np.where(small, 1.0, a)
-    sa = np.where(small, 1.0, np.sin(a_s) / a_s)
-    ca = np.where(small, a / 2.0, (1.0 - np.cos(a_s)) / a_s)
-    x0, y0, th = start
-    x = x0 + s * (np.cos(th) * sa - np.sin(th) * ca)
-    y = y0 + s * (np.sin(th) * sa + np.cos(th) * ca)
-    return np.stack([x, y, th + a], axis=-1)
