@@ -104,12 +104,15 @@ def _assert_grad_matches_fd(J, eps=1e-5):
     """jax.grad of J at a random (2, 3) point vs central differences (rtol 1e-4, x64), and
     not trivially flat."""
     c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
-    g = np.asarray(jax.grad(J)(c0))
+    # jitted: one compilation each instead of op-by-op eager dispatch (eager tracing of the
+    # gradient alone took ~30 s); jit == eager is checked in test_jit_equals_eager_...
+    g = np.asarray(jax.jit(jax.grad(J))(c0))
+    Jj = jax.jit(J)
     fd = np.zeros_like(g)
     for i in range(2):
         for j in range(3):
             e = jnp.zeros((2, 3)).at[i, j].set(eps)
-            fd[i, j] = (J(c0 + e) - J(c0 - e)) / (2 * eps)
+            fd[i, j] = (Jj(c0 + e) - Jj(c0 - e)) / (2 * eps)
     np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-7)
     assert np.abs(g).max() > 1e-4
 
