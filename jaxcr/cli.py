@@ -96,6 +96,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        from jaxcr.progress import mode as progress_mode
+
+        progress_mode()  # a bad JAXCR_PROGRESS is bad input before any work (exit 2)
         code = args.func(args)
     except InputError as err:
         print(f"jaxcr {args.command}: error: {err}", file=sys.stderr)
