@@ -145,14 +145,13 @@ class Segmenter:
 
     def run(self, frame_ids: list[str], progress: bool = True) -> list[dict]:
         """Process ``frame_ids`` (in order), appending one record per frame; returns them."""
-        from tqdm import tqdm
+        from jaxcr.progress import progress as progress_bar
 
         records: list[dict] = []
-        bar = tqdm(
+        bar = progress_bar(
             total=len(frame_ids),
             unit="frame",
-            disable=not progress,
-            dynamic_ncols=True,
+            enabled=progress,
             desc="segment",
             # always frames/s (tqdm would switch to s/frame below 1 frame/s)
             bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, "

@@ -130,12 +130,12 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
     def m(x):
         return float(x) if x is not None else math.nan
 
-    from tqdm import tqdm
+    from jaxcr.progress import progress
 
     rows = []
     eval_failed: dict[str, str] = {}
-    # progress on a terminal only (disable=None); reading masks of long runs takes a while
-    for rec in tqdm(records, desc=f"evaluate {out.name}", unit="frame", disable=None, leave=False):
+    # reading masks of long runs takes a while: a bar on a terminal, plain lines in a log
+    for rec in progress(records, desc=f"evaluate {out.name}", unit="frame", leave=False):
         fid = str(rec["frame"])
         frame = frames.get(fid)
         tags = rec.get("tags") or (list(frame.tags) if frame is not None else [])

@@ -26,7 +26,6 @@ import functools
 import io
 import math
 import os
-import sys
 
 import numpy as np
 
@@ -160,9 +159,9 @@ def batch_forward(
     starts = range(0, B, chunk)
     bar = None
     if progress and len(starts) > 1:
-        from tqdm import tqdm
+        from jaxcr.progress import progress as progress_bar
 
-        bar = tqdm(total=B, desc="fk", unit="row", file=sys.stderr)
+        bar = progress_bar(total=B, desc="fk", unit="row")
     for start in starts:
         part = q[start : start + chunk]
         n = part.shape[0]

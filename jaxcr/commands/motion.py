@@ -143,13 +143,12 @@ def run(args) -> int:
     if args.dataset == "synth":
         return _synth(args)
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
-    from tqdm import tqdm
-
     from jaxcr.motion import metrics as mt
     from jaxcr.motion.dataset import load_motion_dataset
     from jaxcr.motion.flow import FlowConfig
     from jaxcr.motion.pipeline import MODELS, MotionConfig, resolve_steps
     from jaxcr.motion.run import first_touch, run_baseline, run_motion
+    from jaxcr.progress import progress
 
     if args.prior_frames < 0:
         raise InputError("--prior-frames must be >= 0", field="--prior-frames")
@@ -196,7 +195,7 @@ def run(args) -> int:
             f.unlink()
     t0 = time.time()
     log = open(out / "frames.jsonl", "w")
-    bar = tqdm(total=len(ds), desc="motion", unit="frame", disable=None)
+    bar = progress(total=len(ds), desc="motion", unit="frame")
 
     def on_step(rec):
         log.write(

@@ -370,9 +370,9 @@ def run_batch(
     ]
     it = todo
     if progress and todo:
-        from tqdm import tqdm
+        from jaxcr.progress import progress as progress_bar
 
-        it = tqdm(todo, desc="stereo", unit="pair")
+        it = progress_bar(todo, desc="stereo", unit="pair")
     names = dataset["names"]
     cams = (dataset["cam1"], dataset["cam2"])
     with R.ResultsLog(log_path) as log:  # cuts a line left half-written by a killed run

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
 from jaxcr.io.dataset import check_dataset
 
@@ -44,12 +43,10 @@ def add_parser(subparsers) -> None:
 
 
 def _progress_bar(enabled: bool):
-    if not enabled:
-        return None, None
-    from tqdm import tqdm
+    from jaxcr.progress import progress
 
-    bar = tqdm(
-        total=0, unit="frame", desc="validate", file=sys.stderr, leave=False, mininterval=0.5
+    bar = progress(
+        total=0, unit="frame", desc="validate", enabled=enabled, leave=False, mininterval=0.5
     )
 
     def update(done: int, total: int) -> None:
@@ -60,12 +57,11 @@ def _progress_bar(enabled: bool):
 
 
 def run(args) -> int:
-    bar, update = _progress_bar(sys.stderr.isatty())
+    bar, update = _progress_bar(not args.quiet)
     try:
         check = check_dataset(args.dataset, decode_images=not args.fast, progress=update)
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
     problems = check.report_errors  # one line per broken camera, not per frame using it
     n_ok = check.n_frames - check.n_bad_frames
     if not args.quiet:

@@ -60,9 +60,9 @@ def dataset_contours(
     parts: dict[str, list[Contours]] = {c: [] for c in cameras}
     rng = range(0, len(frames), batch)
     if progress:
-        from tqdm import tqdm
+        from jaxcr.progress import progress as progress_bar
 
-        rng = tqdm(rng, desc=f"contours {dataset.name}", unit="batch", leave=False)
+        rng = progress_bar(rng, desc=f"contours {dataset.name}", unit="batch", leave=False)
     for i in rng:
         chunk = frames[i : i + batch]
         for cam in cameras:

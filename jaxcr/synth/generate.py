@@ -242,9 +242,9 @@ def generate(
     names = list(scene_data.cameras_nominal)
     it = range(frames)
     if progress:
-        from tqdm import tqdm
+        from jaxcr.progress import progress as progress_bar
 
-        it = tqdm(it, desc=f"synth {cfg.name}", unit="frame", leave=False)
+        it = progress_bar(it, desc=f"synth {cfg.name}", unit="frame", leave=False)
     statics = {
         name: render_static(scene_data.cameras_true[name], scene_data.scene(None, []))
         for name in names

@@ -402,9 +402,9 @@ def generate_irep(
     )
     it = range(n_frames)
     if progress:
-        from tqdm import tqdm
+        from jaxcr.progress import progress as progress_bar
 
-        it = tqdm(it, desc=f"irep {name}", unit="frame", leave=False)
+        it = progress_bar(it, desc=f"irep {name}", unit="frame", leave=False)
     t_render = 0.0
     for i in it:
         t0 = time.perf_counter()

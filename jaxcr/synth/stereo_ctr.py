@@ -543,9 +543,9 @@ def generate_stereo_set(
     frames = []
     it = range(n_frames)
     if progress:
-        from tqdm import tqdm
+        from jaxcr.progress import progress as progress_bar
 
-        it = tqdm(it, desc="stereo synth", unit="frame")
+        it = progress_bar(it, desc="stereo synth", unit="frame")
     for f in it:
         kind = kinds[f % len(kinds)]
         frng = np.random.default_rng([seed, f])
