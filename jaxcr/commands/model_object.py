@@ -109,12 +109,24 @@ def run(args) -> int:
         global_method=args.global_opt,
         edge_weights=args.edge_weights,
     )
-    from tqdm import tqdm
+    from jaxcr.progress import progress as progress_bar
 
-    bar = tqdm(desc="views", unit="view")
+    # No total: a route ends at loop closure or when the planner stops, known only then;
+    # cfg.max_steps per route is a bound, shown beside the count of views done.
+    routes = [str(r["name"]) for r in sim.cfg["runs"]]
+    bar = progress_bar(
+        desc="model-object",
+        unit="view",
+        every=1,
+        bar_format="{desc}: {n} views [{elapsed}]{postfix}",
+    )
 
     def progress(log, cap):
-        bar.set_postfix_str(f"run {log.name} status {log.status or 'moving'}")
+        k = routes.index(log.name) + 1 if log.name in routes else 0
+        bar.set_postfix_str(
+            f"route {log.name} ({k}/{len(routes)}): view {len(log.captures)} registered "
+            f"(at most {cfg.max_steps} per route)"
+        )
         bar.update(1)
 
     t0 = time.perf_counter()
