@@ -75,8 +75,9 @@ def _elapsed(seconds: float) -> str:
 
 class PlainProgress:
     """The ``"lines"`` mode: the subset of tqdm's interface the commands use (``update``,
-    ``set_postfix_str``, ``set_description``, ``close``, ``n``, ``total``, iteration, context
-    manager), printing whole lines (no carriage returns) instead of redrawing a bar.
+    ``set_postfix_str``, ``set_description``, ``refresh``, ``close``, ``n``, ``total``,
+    iteration, context manager), printing whole lines (no carriage returns) instead of
+    redrawing a bar.
 
     With a known ``total``, a line is printed when ``n`` enters a new tenth of it; without,
     every ``every`` items; and in both cases when ``MAX_SILENCE_S`` seconds have passed since
@@ -111,6 +112,7 @@ class PlainProgress:
         self._t0 = clock()
         self._last_t = self._t0
         self._last_n = 0
+        self._last_postfix = ""
         self._closed = False
 
     # tqdm-compatible surface -------------------------------------------------------------
@@ -138,7 +140,10 @@ class PlainProgress:
         self.desc = desc or ""
 
     def refresh(self) -> None:
-        pass
+        """Print the current line now (e.g. after a new stage in ``set_postfix_str``), unless
+        it is the same count and postfix as the last line printed."""
+        if (self.n, self.postfix) != (self._last_n, self._last_postfix):
+            self._emit()
 
     def update(self, n: int = 1) -> None:
         if n <= 0:
@@ -176,7 +181,7 @@ class PlainProgress:
         return f"{head}{count}, {_elapsed(now - self._t0)}{tail}"
 
     def _emit(self) -> None:
-        self._last_n = self.n
+        self._last_n, self._last_postfix = self.n, self.postfix
         self._last_t = self._clock()
         if self.silent:
             return

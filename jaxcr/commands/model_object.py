@@ -117,7 +117,7 @@ def run(args) -> int:
     bar = progress_bar(
         desc="model-object",
         unit="view",
-        every=1,
+        every=5,  # plain lines (redirected stderr): one per 5 views, and at least one a minute
         bar_format="{desc}: {n} views [{elapsed}]{postfix}",
     )
 
@@ -125,7 +125,8 @@ def run(args) -> int:
         k = routes.index(log.name) + 1 if log.name in routes else 0
         bar.set_postfix_str(
             f"route {log.name} ({k}/{len(routes)}): view {len(log.captures)} registered "
-            f"(at most {cfg.max_steps} per route)"
+            f"(at most {cfg.max_steps} per route)",
+            refresh=False,  # drawn by update, with the new count
         )
         bar.update(1)
 
@@ -137,6 +138,10 @@ def run(args) -> int:
         print(f"jaxcr model-object: registration failed: {e}")
         (out / "report.md").write_text(f"# model-object\n\nregistration failed: {e}\n")
         return 1
+    # the callback is per view: the loop closure and global optimisation that follow the last
+    # view are reported once they are done
+    bar.set_postfix_str("registration done; evaluating")
+    bar.refresh()
     bar.close()
     wall = time.perf_counter() - t0
     from jaxcr.registration.evaluation import evaluate_result
