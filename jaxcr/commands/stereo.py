@@ -407,9 +407,9 @@ def _parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise InputError(f"bad size {text!r}, expected WxH", field="--size") from None
-    if w < 64 or h < 48:
-        raise InputError("size must be at least 64x48", field="--size")
-    return w, h
+    from jaxcr.synth.stereo_ctr import check_size
+
+    return check_size((w, h), field="--size")
 
 
 def failure_line(rec: dict) -> str:

@@ -51,6 +51,7 @@ import cv2
 import numpy as np
 
 from jaxcr.camera import camera_from_arrays
+from jaxcr.errors import InputError
 from jaxcr.io.calibration import save_stereo
 from jaxcr.io.results import atomic_write_text
 from jaxcr.stereo.aruco import MarkerLayout
@@ -62,6 +63,7 @@ from jaxcr.synth.scene import RenderCamera, look_at_pose
 __all__ = [
     "StereoRobot",
     "sample_robot",
+    "check_size",
     "cc_backbone",
     "stereo_cameras",
     "render_view",
@@ -71,6 +73,15 @@ __all__ = [
 TUBE_OD = (2.4e-3, 1.8e-3, 1.2e-3)
 WALL_OFFSET = 0.075  # walls this far behind the base centre (metres)
 _LIGHT = np.array([0.55, 0.35, 0.76])  # towards the light, base frame
+# The backbone keeps this angle (rad) from the image border in both views: 15 px at the
+# default focal length of 800 px (640 px wide; the focal length scales with the width).
+BORDER_MARGIN_RAD = 15.0 / 800.0
+# Smallest image the scene is rendered at (the tube is then under a pixel wide; the truth is
+# metric, so the set is still exact) and the smallest height/width ratio: the focal length
+# follows the width, so a wider image narrows the vertical field, and below 9/16 the robot no
+# longer fits in both views (640x300: about half the frames could not be placed).
+MIN_SIZE = (64, 48)
+MIN_ASPECT = (9, 16)
 
 
 @dataclass
@@ -178,6 +189,28 @@ def stereo_cameras(
     return cams[0], cams[1]
 
 
+def check_size(size: tuple[int, int], field: str = "size") -> tuple[int, int]:
+    """``size`` (width, height) as ints if the scene can be rendered at it, else
+    :class:`InputError` naming ``field``: at least :data:`MIN_SIZE`, and a height at least
+    9/16 of the width (:data:`MIN_ASPECT`; the focal length scales with the width, so the
+    vertical field of view shrinks with the aspect ratio)."""
+    w, h = (int(v) for v in size)
+    if w < MIN_SIZE[0] or h < MIN_SIZE[1]:
+        raise InputError(
+            f"image size {w}x{h} is too small, the minimum is {MIN_SIZE[0]}x{MIN_SIZE[1]}",
+            field=field,
+        )
+    num, den = MIN_ASPECT
+    if h * den < w * num:
+        need = -(-w * num // den)
+        raise InputError(
+            f"image size {w}x{h} is too wide for the scene: the height must be at least "
+            f"{num}/{den} of the width (at least {need} for width {w})",
+            field=field,
+        )
+    return w, h
+
+
 def sample_robot(
     rng: np.random.Generator,
     kind: str,
@@ -240,10 +273,14 @@ def sample_robot(
         for cam in cams:
             P = p @ cam.T_cam_robot[:3, :3].T + cam.T_cam_robot[:3, 3]
             uv = P[:, :2] / P[:, 2:] * cam.K[[0, 1], [0, 1]] + cam.K[:2, 2]
+            # Border margin as a view angle (15 px at f = 800 px, i.e. 640 px wide), so the
+            # test accepts the same robots at every image width (was a fixed 15 px, which
+            # left no room at 96x72).
+            m = BORDER_MARGIN_RAD * cam.K[0, 0]
             if (
-                np.any(uv < 15)
-                or np.any(uv[:, 0] > cam.width - 15)
-                or np.any(uv[:, 1] > cam.height - 15)
+                np.any(uv < m)
+                or np.any(uv[:, 0] > cam.width - m)
+                or np.any(uv[:, 1] > cam.height - m)
             ):
                 ok = False
             # Keep the tube off the marker squares in the images (the pipeline masks them).
@@ -520,9 +557,12 @@ def generate_stereo_set(
     progress: bool = False,
 ) -> Path:
     """Write a synthetic stereo dataset (see module docstring) to ``out`` and return its
-    path. Frames cycle through ``kinds``; ``background`` is ``"green"`` or ``"blue"``."""
+    path. Frames cycle through ``kinds``; ``background`` is ``"green"`` or ``"blue"``.
+    ``size`` (width, height) is checked by :func:`check_size` (InputError, field ``size``)
+    before anything is written."""
     if background not in KEY_COLOURS:
         raise ValueError(f"background must be one of {sorted(KEY_COLOURS)}")
+    size = check_size(size)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
