@@ -119,7 +119,7 @@ def test_single_tube_is_closed_form_arc(use_x64):
         dtype = jnp.float64 if use_x64 else jnp.float32
         model = ConcentricTubeRobot.from_dict(d, dtype=dtype, n_points=21)
         q = jnp.asarray([-0.05, 0.7], dtype)
-        res = model.forward(q)
+        res = FWD(model, q)  # compiled (eager solves took ~30 s); jit == eager: its own test
         c = res.centreline
         arc = _planar_arcs(_rows(d), np.array([-0.05]), 0.7)
         want = np.stack([arc(s) for s in np.asarray(c.s, float)])
