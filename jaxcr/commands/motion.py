@@ -115,8 +115,10 @@ def _synth(args) -> int:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise InputError("--size must be WIDTHxHEIGHT", field="--size") from None
-    if w < 64 or h < 48 or args.frames < 6:
-        raise InputError("need --size >= 64x48 and --frames >= 6", field="--size")
+    if w < 64 or h < 48:
+        raise InputError(f"image size {w}x{h} is too small, the minimum is 64x48", field="--size")
+    if args.frames < 6:
+        raise InputError(f"need at least 6 frames, got {args.frames}", field="--frames")
     out = generate_motion_video(
         args.out, args.preset, seed=args.seed, size=(w, h), n_frames=args.frames, video=args.video
     )

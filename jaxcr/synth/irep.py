@@ -366,7 +366,7 @@ def generate_irep(
         raise InputError(f"need at least one frame, got {n_frames}", field="frames")
     w, h = int(size[0]), int(size[1])
     if w < 32 or h < 24:
-        raise InputError(f"image size too small: {w}x{h}", field="size")
+        raise InputError(f"image size {w}x{h} is too small, the minimum is 32x24", field="size")
     t_start = time.perf_counter()
     cams = stereo_rig((w, h))
     tex_rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7_000, _STREAM_TEXTURE]))
