@@ -74,7 +74,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs")
     p.add_argument("--frames", type=int, default=8, help="synth: number of frames")
     p.add_argument("--seed", type=_seed, default=0, help="synth: random seed")
-    p.add_argument("--size", default="640x480", help="synth: image size WxH")
+    p.add_argument("--size", default="640x480",
+                   help="synth: image size WxH (at least 64x48, height >= 9/16 width)")  # fmt: skip
     p.add_argument("--background", choices=["green", "blue"], default="green",
                    help="synth: chroma cloth colour")  # fmt: skip
     p.set_defaults(func=run)
