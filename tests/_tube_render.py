@@ -36,8 +36,7 @@ def arc_base(radius: float, n: int = 41):
     """Nominal test centreline: a 12 cm planar arc (curvature 6 /m) leaving (-0.06, 0.01, 0)
     along +x, body x towards -z (towards the camera of :func:`front_camera`)."""
     import jax.numpy as jnp
-
-    from jaxcr.kinematics.cosserat import integrate_centreline
+    from _jitted import integrate_centreline  # compiled: input construction only
 
     s = jnp.linspace(0.0, 0.12, n)
     u = jnp.tile(jnp.array([6.0, 0.0, 0.0]), (n - 1, 1))
@@ -57,9 +56,9 @@ def tube_frames(base, cam, coeffs, size: tuple[int, int]) -> list[dict]:
     background-subtracted image ``img``, background ``bg``, truth ``mask`` and centreline
     ``truth``."""
     import jax.numpy as jnp
+    from _jitted import perturbed_centreline  # compiled: input construction only
 
     from jaxcr.background import colour_mask
-    from jaxcr.shape import perturbed_centreline
 
     frames = []
     for k, c in enumerate(coeffs):

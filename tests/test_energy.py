@@ -5,10 +5,10 @@ import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _jitted import integrate_centreline  # compiled: input construction only
 
 from jaxcr.camera import Camera
 from jaxcr.energy import Weights, chan_vese_energy, downsample, prepare_region_data, region_terms
-from jaxcr.kinematics.cosserat import integrate_centreline
 from jaxcr.shape import perturbed_centreline
 from jaxcr.silhouette import band_margin, project_tube, rasterise_dense, scale_tube, select_band
 

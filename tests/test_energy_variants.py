@@ -4,11 +4,11 @@ term's envelope gradient, vs dense numpy definitions on a hard mask; RefineConfi
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _jitted import integrate_centreline  # compiled: input construction only
 
 from jaxcr.camera import Camera
 from jaxcr.energy import Weights, chan_vese_energy, prepare_region_data, residual_variance
 from jaxcr.errors import InputError
-from jaxcr.kinematics.cosserat import integrate_centreline
 from jaxcr.refine import RefineConfig
 from jaxcr.silhouette import project_tube, rasterise_dense, select_band
 

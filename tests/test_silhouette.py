@@ -6,10 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _jitted import integrate_centreline  # compiled: input construction only
 from skimage.draw import polygon
 
 from jaxcr.camera import Camera, project_points, surface_points
-from jaxcr.kinematics.cosserat import integrate_centreline
 from jaxcr.silhouette import (
     TileGrid,
     TubeImage,

@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _jitted import integrate_centreline  # compiled: input construction only
 
-from jaxcr.kinematics.cosserat import integrate_centreline
 from jaxcr.synth.generate import build_scene_data, generate, robot_shapes, tube_body
 from jaxcr.synth.model_error import apply_tip_force, tip_force_curvature
 from jaxcr.synth.presets import PRESETS
