@@ -48,6 +48,7 @@ class Centreline(eqx.Module):
         return self.R[-1]
 
 
+@jax.jit
 def integrate_steps(
     u_steps: Float[Array, "m 3"],
     ds: Float[Array, " m"],
@@ -58,6 +59,8 @@ def integrate_steps(
 
     Returns positions (m+1, 3) and frames (m+1, 3, 3), starting with ``(p0, R0)`` (default
     origin and identity). Differentiable, NaN-free at zero curvature and zero step length.
+    Compiled (once per shape): called eagerly, its scan and SO(3) maps dispatched one
+    primitive at a time and a first call took ~4.5 s (0.65 s compiled).
     """
     dtype = u_steps.dtype
     p0 = jnp.zeros(3, dtype) if p0 is None else p0
