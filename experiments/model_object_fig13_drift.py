@@ -48,9 +48,9 @@ from jaxcr.registration.evaluation import model_statistics, statistics_points, t
 from jaxcr.registration.global_opt import chain_poses, global_optimize
 from jaxcr.registration.pipeline import (
     PipelineConfig,
-    _capture,
     build_model,
     graph_edges,
+    ring_clouds,
 )
 from jaxcr.registration.pose_graph import optimize_pose_graph
 from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task
@@ -76,13 +76,7 @@ def optimise(result, ring_T: list[np.ndarray], extra_T: list[np.ndarray], seed: 
     """Chained, Algorithm 2 and pose-graph poses from the given edge transforms (the
     pipeline's own global optimisation, fed with other registrations)."""
     m = len(result.ring)
-    clouds = [
-        (
-            np.asarray(_capture(result.runs, k).frame.arrays.points),
-            np.asarray(_capture(result.runs, k).frame.arrays.mask),
-        )
-        for k in result.ring
-    ]
+    clouds = ring_clouds(result.runs, result.ring)
     a2 = global_optimize(clouds, ring_T, seed=seed)
     ring = [
         (k, (k + 1) % m, replace(e, T=T))

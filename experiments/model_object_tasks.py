@@ -40,6 +40,7 @@ from jaxcr.registration.pipeline import (
     _graph_weights,
     build_model,
     graph_edges,
+    ring_clouds,
 )
 from jaxcr.registration.pose_graph import (
     calibrate_edges,
@@ -253,13 +254,7 @@ def _open3d_version():
 
 
 def bench_global(result, reps=3):
-    clouds = [
-        (
-            np.asarray(_capture(result.runs, k).frame.arrays.points),
-            np.asarray(_capture(result.runs, k).frame.arrays.mask),
-        )
-        for k in result.ring
-    ]
+    clouds = ring_clouds(result.runs, result.ring)
     rel = [e.T for e in result.edges]
     ts = []
     for _ in range(reps):
@@ -358,13 +353,7 @@ def signed_bias(sim, result):
             rows["keypoints (RANSAC + Kabsch)"].append(ev(T_kp))
     # Algorithm 2 on the same ring with each variant's edges (pose errors as in the report:
     # relative to the last ring view).
-    clouds = [
-        (
-            np.asarray(_capture(result.runs, k).frame.arrays.points),
-            np.asarray(_capture(result.runs, k).frame.arrays.mask),
-        )
-        for k in ring
-    ]
+    clouds = ring_clouds(result.runs, ring)
     alg2 = [
         "",
         "Algorithm 2 on the same ring with each variant's pairwise registrations "

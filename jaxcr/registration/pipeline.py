@@ -403,13 +403,7 @@ def build_model(
             f"{1000 * cfg.nominal_gate_m:.0f} mm); Algorithm 2 not run, partial models only"
         )
         return ModelResult(runs, ring, edges, None, 0.0, merge, notes)
-    clouds = [
-        (
-            np.asarray(_capture(runs, k).frame.arrays.points),
-            np.asarray(_capture(runs, k).frame.arrays.mask),
-        )
-        for k in ring
-    ]
+    clouds = ring_clouds(runs, ring)
     if cfg.global_method not in ("pose_graph", "alg2"):
         raise ValueError(f"global_method must be 'pose_graph' or 'alg2', got {cfg.global_method!r}")
     t0 = time.perf_counter()
@@ -536,6 +530,18 @@ def extra_edges(
             r_err, t_err = pose_error(pair.T, prior)
             if r_err <= gate[0] and t_err <= gate[1]:
                 out.append((i, j, pair))
+    return out
+
+
+def ring_clouds(
+    runs: list[RunLog], ring: list[tuple[int, int]]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The padded clouds (points (n, 3), mask (n,)) of the ring views, in ring order: the
+    input of :func:`jaxcr.registration.global_opt.global_optimize`."""
+    out = []
+    for k in ring:
+        arrays = _capture(runs, k).frame.arrays
+        out.append((np.asarray(arrays.points), np.asarray(arrays.mask)))
     return out
 
 
