@@ -30,6 +30,7 @@ import os
 import numpy as np
 
 from jaxcr.errors import InputError
+from jaxcr.io.jsonfile import read_text
 
 FORMAT = "jaxcr.fk/1"
 CHUNK = 1024
@@ -68,17 +69,7 @@ def _is_number(text: str) -> bool:
 
 def read_q_csv(path: str, n_joints: int) -> np.ndarray:
     """Rows of ``n_joints`` floats from ``path`` (see module docstring). NaN allowed."""
-    try:
-        with open(path, encoding="utf-8", newline="") as fh:
-            text = fh.read()
-    except FileNotFoundError:
-        raise InputError("file not found", file=path) from None
-    except IsADirectoryError:
-        raise InputError("is a directory, expected a CSV file", file=path) from None
-    except UnicodeDecodeError:
-        raise InputError("not a text CSV file", file=path) from None
-    except OSError as err:
-        raise InputError(f"cannot read ({err.strerror})", file=path) from None
+    text = read_text(path, "a CSV file", "not a text CSV file", newline="")
     rows: list[list[float]] = []
     seen_data = False
     header_allowed = True
