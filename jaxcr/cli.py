@@ -4,6 +4,16 @@ and ``run(args) -> int``.
 
 Exit codes: 0 success, 1 a run that failed (e.g. some frames failed), 2 bad usage or input
 (including an output that cannot be written, e.g. a read-only folder), 130 interrupted.
+
+Interruption (Ctrl-C, SIGINT): the handler installed by :func:`main` releases the output
+folder's lock (:mod:`jaxcr.io.outdir`), prints one line and ends the process at once with
+:func:`os._exit` (exit 130). It does not raise ``KeyboardInterrupt``: raised at an arbitrary
+bytecode it can land in a garbage-collector callback (JAX's ``_xla_gc_callback``), where Python
+prints and swallows it and the run goes on, and unwinding lets the interpreter finalise while
+XLA's and OpenCV's native threads still run, which crashed with SIGSEGV (exit 139). Ending at
+once is as safe as ``kill -9``, which every command survives: outputs are written atomically
+(temporary name + rename) and per-item logs line by line, so ``--resume`` (or a rerun)
+continues; the temporary files a killed run leaves are deleted when OUT is next claimed.
 """
 
 from __future__ import annotations
@@ -13,7 +23,10 @@ import importlib
 import importlib.util
 import os
 import re
+import signal
 import sys
+import threading
+import warnings
 
 from jaxcr.errors import InputError
 
@@ -70,8 +83,17 @@ def _plain_help(parser: argparse.ArgumentParser) -> None:
                 _plain_help(sub)
 
 
+class _Parser(argparse.ArgumentParser):
+    """Bad usage is one line on stderr, ``PROG: error: MESSAGE (see PROG --help)``, exit 2,
+    instead of argparse's multi-line usage block (subcommand parsers inherit the class)."""
+
+    def error(self, message: str):
+        line = " ".join(str(message).split())
+        self.exit(2, f"{self.prog}: error: {line} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="jaxcr",
         description="jaxcr: JAX batch estimation for the vision of continuum robots.",
     )
@@ -88,13 +110,70 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _on_sigint(state: dict):
+    """The SIGINT handler of :func:`main`; ``state`` holds the command name (known once the
+    arguments are parsed) and the number of locks held before this run."""
+
+    def handler(signum, frame):
+        from jaxcr.io import outdir
+
+        outdir.release_all(state["lock_base"])
+        name = f"jaxcr {state['command']}" if state["command"] else "jaxcr"
+        # os.write, not print: the handler may run in the middle of a write to sys.stderr
+        msg = f"\n{name}: interrupted\n" if _tty(2) else f"{name}: interrupted\n"
+        try:
+            os.write(2, msg.encode())
+        except OSError:
+            pass
+        os._exit(130)  # see the module docstring: no unwinding, no interpreter finalisation
+
+    return handler
+
+
+def _tty(fd: int) -> bool:
+    try:
+        return os.isatty(fd)
+    except OSError:
+        return False
+
+
+def _quiet_warnings() -> None:
+    """Warnings are not part of the one-line contract: numpy's RuntimeWarnings (overflow, an
+    empty mean) and library deprecations are not shown, unless the user asked for them with
+    ``python -W`` or ``PYTHONWARNINGS``."""
+    if sys.warnoptions:
+        return
+    for category in (RuntimeWarning, DeprecationWarning, FutureWarning, UserWarning):
+        warnings.simplefilter("ignore", category)
+
+
 def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+    from jaxcr.io import outdir
+
+    # installed first: importing the commands (JAX, OpenCV) takes seconds, and a Ctrl-C then
+    # must end the process too
+    state = {"command": None, "lock_base": len(outdir.held())}
+    old_handler = None
+    if threading.current_thread() is threading.main_thread():
+        old_handler = signal.signal(signal.SIGINT, _on_sigint(state))
+    try:
+        with warnings.catch_warnings():
+            _quiet_warnings()
+            parser = build_parser()
+            args = parser.parse_args(argv)
+            if not getattr(args, "func", None):
+                parser.print_help()
+                return 2
+            state["command"] = args.command
+            return _run(args)
+    finally:
+        outdir.release_all(state["lock_base"])
+        if old_handler is not None:
+            signal.signal(signal.SIGINT, old_handler)
+
+
+def _run(args) -> int:
     try:
         from jaxcr.progress import mode as progress_mode
 
@@ -109,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         where = err.filename if err.filename is not None else "file system"
         print(f"jaxcr {args.command}: error: {where}: {err.strerror or err}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # SIGINT while our handler is not installed (not main thread)
         print(f"jaxcr {args.command}: interrupted", file=sys.stderr)
         return 130
     return int(code or 0)

@@ -14,6 +14,7 @@ Unreadable or corrupt files raise :class:`jaxcr.errors.InputError` naming the fi
 from __future__ import annotations
 
 import os
+import threading
 from pathlib import Path
 
 import cv2
@@ -22,18 +23,36 @@ import numpy as np
 from jaxcr.errors import InputError
 
 
-def _quiet_decode(data: np.ndarray, flags: int) -> np.ndarray | None:
-    # OpenCV logs its own WARN/ERROR lines for corrupt files; we report one InputError instead.
+_DECODE_LOCK = threading.Lock()  # fd 2 is process-wide: one redirected decode at a time
+# libjpeg's messages for a damaged file (the decoder then fills the rest with grey): the file
+# is refused rather than used. Other native output (libpng warnings such as "iCCP: known
+# incorrect sRGB profile", about metadata, not pixels) is dropped.
+_JPEG_DAMAGED = ("Corrupt JPEG data", "Premature end of JPEG file")
+
+
+def _quiet_decode(data: np.ndarray, flags: int, path: str = "") -> np.ndarray | None:
+    # OpenCV logs its own WARN/ERROR lines for corrupt files, and libpng/libjpeg write warnings
+    # straight to file descriptor 2: we report one InputError instead (or nothing).
     from cv2.utils import logging as cvlog
 
-    level = cvlog.getLogLevel()
-    cvlog.setLogLevel(cvlog.LOG_LEVEL_SILENT)
-    try:
-        return cv2.imdecode(data, flags)
-    except cv2.error:
-        return None
-    finally:
-        cvlog.setLogLevel(level)
+    from jaxcr.io.video import captured_native_stderr
+
+    with _DECODE_LOCK:
+        level = cvlog.getLogLevel()
+        cvlog.setLogLevel(cvlog.LOG_LEVEL_SILENT)
+        try:
+            with captured_native_stderr() as text:
+                try:
+                    img = cv2.imdecode(data, flags)
+                except cv2.error:
+                    img = None
+        finally:
+            cvlog.setLogLevel(level)
+    native = "".join(text)
+    for line in native.splitlines():
+        if line.startswith(_JPEG_DAMAGED):
+            raise InputError(f"damaged JPEG ({line.strip()})", file=path)
+    return img
 
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -111,7 +130,7 @@ def _imread(path: str | os.PathLike, flags: int) -> np.ndarray:
             f"image of {size[0]}x{size[1]} pixels exceeds the {MAX_PIXELS} pixel limit",
             file=path,
         )
-    img = _quiet_decode(data, flags)
+    img = _quiet_decode(data, flags, path)
     if img is None:
         raise InputError("not a readable image (corrupt or unsupported format)", file=path)
     return img
