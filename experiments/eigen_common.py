@@ -39,7 +39,7 @@ def _save(sc: StereoContours, path: Path) -> None:
 
 
 def _load(path: Path) -> StereoContours:
-    z = np.load(path)
+    z = np.load(path, allow_pickle=False)
     views = []
     for v in ("l", "r"):
         off = np.concatenate([[0], np.cumsum(z[f"{v}_len"])])

@@ -36,7 +36,7 @@ def load_frames(path, max_frames=None):
     full = {n: np.stack([read_mask(f.full_masks[n]) for f in frames]) for n in names}
     vis = {n: np.stack([read_mask(f.masks[n]) for f in frames]) for n in names}
     occ = {n: np.stack([read_mask(f.occluders[n]) for f in frames]) for n in names}
-    truth = [np.load(ds.root / f.truth["centreline"]) for f in frames]
+    truth = [np.load(ds.root / f.truth["centreline"], allow_pickle=False) for f in frames]
     return ds, names, frames, fk, imgs, full, vis, occ, truth
 
 

@@ -87,7 +87,7 @@ def baseline_video(d: Path, cache: Path) -> dict:
     """Baseline masks over BL_THS on the first touch frame and that frame's RGB (cached)."""
     f = cache / f"{d.name}__baseline.npz"
     if f.exists():
-        z = np.load(f)
+        z = np.load(f, allow_pickle=False)
         return {k: z[k] for k in z.files}
     ds = load_motion_dataset(d)
     bl = run_baseline(ds, BL_THS)

@@ -53,11 +53,11 @@ def decompose(out: Path, ds: Path) -> dict[str, float]:
         if not r.get("ok"):
             continue
         f = r["frame"]
-        truth = np.load(ds / "truth" / f"{f}.npy")[:, :3]
+        truth = np.load(ds / "truth" / f"{f}.npy", allow_pickle=False)[:, :3]
         tang = truth[-1] - truth[-2]
         tang /= np.linalg.norm(tang)
         for tag, sub in (("nominal", "centrelines_nominal"), ("refined", "centrelines")):
-            p = np.load(out / sub / f"{f}.npy")
+            p = np.load(out / sub / f"{f}.npy", allow_pickle=False)
             d = p[-1] - truth[-1]
             acc.setdefault(f"tip_{tag}", []).append(np.linalg.norm(d))
             acc.setdefault(f"along_{tag}", []).append(abs(float(d @ tang)))

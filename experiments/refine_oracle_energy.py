@@ -139,7 +139,7 @@ def main(argv=None) -> int:
         bg, im = colour_mask(jnp.asarray(f.load_image(cname)))
         vis = read_mask(f.masks[cname])
         occ = read_mask(f.occluders[cname]) if f.occluders else np.zeros((h, w), bool)
-        truth = np.load(root / f.truth["centreline"])[:, :3]
+        truth = np.load(root / f.truth["centreline"], allow_pickle=False)[:, :3]
         z_ref = jnp.mean(cl0.p @ cam.R[2] + cam.t[2])
         r = fn(cl0, im, bg)
         p_cold = {"c": r.coeffs, "cam": R._phys_to_params(r.camera_correction, z_ref)}

@@ -44,7 +44,7 @@ def run_set(folder: Path) -> list[dict]:
     recs = []
     for fr in ds["frames"]:
         ims = [_read_rgb(ds["root"] / fr["images"][n]) for n in ds["names"]]
-        truth = dict(np.load(ds["root"] / fr["truth"]))
+        truth = dict(np.load(ds["root"] / fr["truth"], allow_pickle=False))
         rec = {"id": fr["id"], "tags": fr.get("tags", []), "set": folder.name}
         try:
             r = reconstruct_pair(ims[0], ims[1], ds["cam1"], ds["cam2"], ds["config"], ds["plates"])

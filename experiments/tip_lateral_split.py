@@ -27,11 +27,11 @@ def split(ds: Path, out: Path) -> dict[str, float]:
         if not rec.get("ok"):
             continue
         fid = rec["frame"]
-        tr = np.load(ds / "truth" / f"{fid}.npy")[:, :3]
+        tr = np.load(ds / "truth" / f"{fid}.npy", allow_pickle=False)[:, :3]
         t = tr[-1] - tr[-2]
         tc = R @ (t / np.linalg.norm(t))
         for tag, sub in (("nominal", "centrelines_nominal"), ("refined", "centrelines")):
-            p = np.load(out / sub / f"{fid}.npy")[:, :3]
+            p = np.load(out / sub / f"{fid}.npy", allow_pickle=False)[:, :3]
             dd = R @ (p[-1] - tr[-1])
             along = (dd @ tc) * tc
             acc.setdefault(f"lateral_{tag}", []).append(np.linalg.norm(dd[:2]))

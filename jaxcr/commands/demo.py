@@ -61,6 +61,10 @@ def run(args) -> int:
 
     _enable_compile_cache()  # persistent XLA cache: a second demo skips compilation
     root = Path(args.out)
+    from jaxcr.io import outdir
+
+    # new, empty or an earlier demo (replaced); locked until exit
+    outdir.claim(root, "demo", recognise=lambda o: (o / "segment" / "run.json").exists())
     ds_dir, seg_dir = root / "dataset", root / "segment"
     t0 = time.perf_counter()
     print(f"jaxcr demo: generating {args.frames} frames of '{args.preset}' at "

@@ -249,7 +249,10 @@ def run(args) -> int:
     if args.chunk < 1:
         raise InputError(f"--chunk must be >= 1, got {args.chunk}", field="--chunk")
     q = read_q_csv(args.q_csv, model.n_joints)
-    os.makedirs(args.out, exist_ok=True)  # an unwritable OUT fails now, not after the compile
+    from jaxcr.io import outdir
+
+    # new, empty or an earlier fk output; an unwritable OUT fails now, not after the compile
+    outdir.claim(args.out, "fk", recognise=lambda o: (o / "tips.csv").exists())
     out = batch_forward(model, q, chunk=args.chunk)
 
     npz_path = os.path.join(args.out, "centrelines.npz")

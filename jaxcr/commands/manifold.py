@@ -254,6 +254,10 @@ def run_query(args) -> int:
     cfg = model.config
     ds = _load(args.dataset)
     check_cameras(ds, cfg.cameras)
+    from jaxcr.io import outdir
+
+    # new, empty or an earlier query's folder, never another command's; locked until exit
+    outdir.claim(args.out, "manifold query", recognise=lambda o: (o / "estimates.csv").exists())
     t0 = time.perf_counter()
     sc = dataset_contours(ds, model.colour, cfg.cameras, cfg.spacing)
     H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise, model.view_centres)
@@ -347,11 +351,23 @@ def run_query(args) -> int:
     return 1 if n_fail else 0
 
 
+def _is_irep_dataset(out) -> bool:
+    try:
+        meta = json.loads((Path(out) / "dataset.json").read_text(encoding="utf-8")).get("meta")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return isinstance(meta, dict) and meta.get("generator") == "jaxcr.synth.irep"
+
+
 def run_synth(args) -> int:
     from jaxcr.synth.generate import parse_size
     from jaxcr.synth.irep import generate_irep
 
     size = parse_size(args.size)
+    from jaxcr.io import outdir
+
+    # new, empty or a dataset this command wrote (never a user's dataset, even with --overwrite)
+    outdir.claim(args.out, "manifold synth", recognise=_is_irep_dataset)
     if (Path(args.out) / "dataset.json").exists() and not args.overwrite:
         raise InputError("a dataset exists there (use --overwrite)", file=args.out)
     info = generate_irep(

@@ -89,7 +89,11 @@ def run(args) -> int:
     if args.scene == "synth":
         from jaxcr.synth.rgbd_tasks import generate_task
 
-        out = generate_task(args.out, args.task, args.seed, _parse_size(args.size))
+        from jaxcr.io import outdir
+
+        size = _parse_size(args.size)
+        outdir.claim(args.out, "model-object synth")  # new, empty or an earlier scene; locked
+        out = generate_task(args.out, args.task, args.seed, size)
         print(f"wrote task {args.task} scene to {out}")
         return 0
     from jaxcr.registration.pairwise import RegistrationFailed
@@ -98,7 +102,10 @@ def run(args) -> int:
 
     sim = RgbdSimulator(args.scene, seed=args.seed)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    from jaxcr.io import outdir
+
+    # new, empty or an earlier model-object run, never another command's folder; locked
+    outdir.claim(out, "model-object", recognise=lambda o: (o / "report.json").exists())
     # an earlier run's model and report must not outlive a rerun that fails or is stopped
     for stale in ("report.md", "report.json", "model.ply", "model_before.ply", "poses.csv",
                   "fig13.png", "plan.png", *(p.name for p in out.glob("partial_*.ply"))):  # fmt: skip

@@ -119,6 +119,9 @@ def _synth(args) -> int:
         raise InputError(f"image size {w}x{h} is too small, the minimum is 64x48", field="--size")
     if args.frames < 6:
         raise InputError(f"need at least 6 frames, got {args.frames}", field="--frames")
+    from jaxcr.io import outdir
+
+    outdir.claim(args.out, "motion synth")  # new, empty or an earlier motion synth; locked
     out = generate_motion_video(
         args.out, args.preset, seed=args.seed, size=(w, h), n_frames=args.frames, video=args.video
     )
@@ -187,7 +190,11 @@ def run(args) -> int:
         prior_frames=args.prior_frames,
     )
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    from jaxcr.io import outdir
+
+    # new, empty or an earlier motion run (whose results are replaced), never another command's
+    # folder; locked until exit
+    outdir.claim(out, "motion", recognise=lambda o: (o / "frames.jsonl").exists())
     # An earlier run's results must not sit beside this run's partial log if it stops early:
     # remove them now; summary.json and report.md (last) are written only when it completes.
     for stale in ("summary.json", "report.md", "baseline_pr.csv"):

@@ -283,28 +283,95 @@ def versions() -> dict:
             out[pkg] = md.version(pkg)
         except md.PackageNotFoundError:
             pass
-    out["git_commit"] = (_git("rev-parse", "HEAD") or "").strip() or None
-    dirty = _git("status", "--porcelain", "--untracked-files=no", "--", "jaxcr")
-    # modified tracked files under jaxcr/ (the code that ran differs from the commit)
+    root = _source_root()
+    out["git_commit"] = None if root is None else _head_commit(root)
+    # modified tracked files under jaxcr/ (the code that ran differs from the commit), asked
+    # with --no-optional-locks: a plain `git status` refreshes the index under .git/index.lock,
+    # a write into the user's checkout
+    dirty = None if root is None else _git(root, "status", "--porcelain", "--untracked-files=no",
+                                           "--", "jaxcr")  # fmt: skip
     out["git_dirty"] = (
         None if dirty is None else sorted(line[3:] for line in dirty.splitlines() if line.strip())
     )
     return out
 
 
-def _git(*args: str) -> str | None:
+def _source_root() -> Path | None:
+    """The git checkout jaxcr runs from (an editable install), or None (a wheel installed in
+    site-packages: its version is the package version alone)."""
+    root = Path(__file__).resolve().parents[2]
+    if "site-packages" in root.parts or "dist-packages" in root.parts:
+        return None
+    if not (root / ".git").exists() or not (root / "pyproject.toml").is_file():
+        return None
+    return root
+
+
+def _git_dir(root: Path) -> tuple[Path, Path] | None:
+    """(git dir, common dir) of the checkout at ``root``; a worktree's ``.git`` is a file
+    ``gitdir: PATH`` and its shared refs live in the ``commondir``."""
+    dot = root / ".git"
+    try:
+        if dot.is_file():
+            text = dot.read_text(encoding="utf-8").strip()
+            if not text.startswith("gitdir:"):
+                return None
+            gdir = Path(text[7:].strip())
+            gdir = gdir if gdir.is_absolute() else (root / gdir)
+        else:
+            gdir = dot
+        common = gdir
+        if (gdir / "commondir").is_file():
+            c = Path((gdir / "commondir").read_text(encoding="utf-8").strip())
+            common = c if c.is_absolute() else (gdir / c)
+        return gdir, common
+    except (OSError, UnicodeDecodeError):
+        return None
+
+
+def _head_commit(root: Path) -> str | None:
+    """The commit checked out at ``root``, read from ``.git/HEAD`` and the refs files (loose
+    or packed) without running git: nothing in the checkout is locked or written."""
+    dirs = _git_dir(root)
+    if dirs is None:
+        return None
+    gdir, common = dirs
+    try:
+        head = (gdir / "HEAD").read_text(encoding="utf-8").strip()
+        if not head.startswith("ref:"):
+            return head if _is_sha(head) else None  # detached HEAD
+        ref = head[4:].strip()
+        for base in (gdir, common):
+            if (base / ref).is_file():
+                sha = (base / ref).read_text(encoding="utf-8").strip()
+                return sha if _is_sha(sha) else None
+        packed = common / "packed-refs"
+        if packed.is_file():
+            for line in packed.read_text(encoding="utf-8").splitlines():
+                parts = line.split()
+                if len(parts) == 2 and parts[1] == ref and _is_sha(parts[0]):
+                    return parts[0]
+    except (OSError, UnicodeDecodeError):
+        return None
+    return None
+
+
+def _is_sha(text: str) -> bool:
+    return len(text) in (40, 64) and all(c in "0123456789abcdef" for c in text)
+
+
+def _git(root: Path, *args: str) -> str | None:
+    import os
     import subprocess
 
     try:
-        root = Path(__file__).resolve().parents[2]
-        if not (root / ".git").exists():
-            return None
         r = subprocess.run(
-            ["git", "-C", str(root), *args],
+            ["git", "--no-optional-locks", "-C", str(root), *args],
             capture_output=True,
             text=True,
             timeout=5,
             check=False,
+            env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"},
         )
         return r.stdout.rstrip("\n") if r.returncode == 0 else None
     except (OSError, subprocess.SubprocessError):
@@ -345,21 +412,16 @@ PRODUCTS = ("masks", "nominal", "background", "overlays", "centrelines", "centre
 
 def prepare_output(out: Path, resume: bool, overwrite: bool, run_info: dict) -> list[dict]:
     """Check/prepare OUT; return the records already there (for ``--resume``)."""
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", file=str(out))
+    from jaxcr.io import outdir
+
     layout = R.OutputLayout(out)
-    has_results = layout.results.exists() and layout.results.stat().st_size > 0
     if resume and overwrite:
         raise InputError("--resume and --overwrite exclude each other")
     # Never write into (or --overwrite) a folder that holds something else, e.g. the dataset
-    # itself: its masks/<cam>/<id>.png ground truth would be replaced by our predictions.
-    if out.is_dir() and not layout.run.exists() and any(out.iterdir()):
-        what = "a dataset" if (out / "dataset.json").exists() else "other files"
-        raise InputError(
-            f"output folder is not empty and holds {what}, not a jaxcr segment run "
-            "(no run.json); choose a new or empty folder",
-            file=str(out),
-        )
+    # itself: its masks/<cam>/<id>.png ground truth would be replaced by our predictions; and
+    # never beside another process writing the same OUT (the lock, held until exit).
+    outdir.claim(out, "segment", recognise=lambda o: (o / R.RUN_FILE).exists())
+    has_results = layout.results.exists() and layout.results.stat().st_size > 0
     if has_results and not (resume or overwrite):
         raise InputError(
             "output folder already has results; use --resume to continue or --overwrite",

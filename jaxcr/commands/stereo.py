@@ -413,6 +413,13 @@ def _parse_size(text: str) -> tuple[int, int]:
     return check_size((w, h), field="--size")
 
 
+def _claim(out: str, command: str, recognise=None) -> None:
+    """OUT must be new, empty or an earlier run of ``command``; held (locked) until exit."""
+    from jaxcr.io import outdir
+
+    outdir.claim(out, command, recognise=recognise)
+
+
 def failure_line(rec: dict) -> str:
     """One failed frame's line: ``frame ID: message`` (an image error's message, which names
     the frame already, as it is)."""
@@ -426,7 +433,9 @@ def run(args) -> int:
 
         if args.frames < 1:
             raise InputError("--frames must be >= 1", field="--frames")
-        path = generate_stereo_set(args.out, args.frames, args.seed, _parse_size(args.size),
+        size = _parse_size(args.size)
+        _claim(args.out, "stereo synth")
+        path = generate_stereo_set(args.out, args.frames, args.seed, size,
                                    args.background, progress=True)  # fmt: skip
         print(f"wrote {path / 'stereo.json'}")
         return 0
@@ -442,6 +451,7 @@ def run(args) -> int:
         raise InputError(
             f"--segmentation {args.segmentation} needs background_plates in stereo.json"
         )
+    _claim(args.out, "stereo", recognise=lambda o: (o / "run.json").exists())
     recs = run_batch(ds, args.out, overlays=not args.no_overlays)
     n_ok = sum(r["ok"] for r in recs)
     print(f"{n_ok}/{len(recs)} frames reconstructed; results in {args.out}"

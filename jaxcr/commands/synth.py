@@ -97,30 +97,42 @@ def _enable_compile_cache() -> None:
         pass
 
 
-def _check_out(out: str) -> None:
-    """OUT may be new, empty, or a dataset this command wrote (it is then replaced); never a
-    dataset from elsewhere or a run's output folder, whose files would be overwritten."""
+def _is_synth_dataset(out) -> bool:
+    """True when OUT holds a dataset this command wrote (a rerun replaces it); written before
+    output folders carried an owner file (:mod:`jaxcr.io.outdir`)."""
     import json
 
-    if not os.path.isdir(out):
-        if os.path.exists(out):
-            raise InputError("output path exists and is not a folder", file=out)
-        return
     ds = os.path.join(out, "dataset.json")
-    if os.path.exists(ds):
-        try:
-            with open(ds, encoding="utf-8-sig") as fh:
-                gen = (json.load(fh).get("meta") or {}).get("generator")
-        except (OSError, ValueError, AttributeError):
-            gen = None
-        if gen != "jaxcr synth":
-            raise InputError(
-                "holds a dataset not written by jaxcr synth (its images would be "
-                "overwritten); choose a new or empty folder",
-                file=out,
-            )
-    elif any(os.path.exists(os.path.join(out, f)) for f in ("run.json", "results.jsonl")):
-        raise InputError("holds a jaxcr run's output; choose a new or empty folder", file=out)
+    try:
+        with open(ds, encoding="utf-8-sig") as fh:
+            gen = (json.load(fh).get("meta") or {}).get("generator")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return gen == "jaxcr synth"
+
+
+def _check_out(out: str) -> None:
+    """OUT may be new, empty, or a dataset this command wrote (it is then replaced); never a
+    user's folder, a dataset from elsewhere or a run's output folder, whose files would be
+    overwritten. Takes OUT's lock (:func:`jaxcr.io.outdir.claim`) until the command ends."""
+    from jaxcr.io import outdir
+
+    outdir.claim(out, "synth", recognise=_is_synth_dataset)
+
+
+def _check_writable_folder(path: str, what: str) -> None:
+    """Create folder ``path`` if needed and check a file can be written there, before any
+    long work (an InputError naming it otherwise)."""
+    import tempfile
+
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise InputError(f"{what} exists and is not a folder", file=path)
+    try:
+        os.makedirs(path, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as err:
+        raise InputError(f"{what} is not writable ({err.strerror or err})", file=path) from None
 
 
 def run(args) -> int:
@@ -151,6 +163,8 @@ def run(args) -> int:
 
         robot = robot_to_dict(load_robot(args.robot))
     several = len(names) > 1 or args.all
+    if args.preview:
+        _check_writable_folder(args.preview, "preview folder")
     for name in names:
         _check_out(os.path.join(args.out, name) if several else args.out)
     _enable_compile_cache()

@@ -98,7 +98,12 @@ class Frame:
         metres); inline values are returned as stored. None if absent."""
         v = self.truth.get(name)
         if isinstance(v, Path):
-            return np.load(v)
+            try:
+                return np.load(v, allow_pickle=False)  # a pickle could run code: never
+            except (ValueError, OSError) as err:
+                msg = " ".join(str(err).split())
+                raise InputError(f"not a readable .npy file ({msg})", file=str(v),
+                                 field=f"truth.{name}") from None  # fmt: skip
         return v
 
 
@@ -435,7 +440,7 @@ class _Scan:
                         continue
                     if path.suffix == ".npy":
                         try:
-                            arr = np.load(path, mmap_mode="r")
+                            arr = np.load(path, mmap_mode="r", allow_pickle=False)
                         except (ValueError, OSError) as e:
                             ferr(f"not a readable .npy file ({e})", f"truth.{k}", file=str(path))
                             continue

@@ -57,13 +57,25 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(err, OSError) and err.filename is None and err.errno is not None:
+            # a write/fsync error (e.g. ENOSPC, a full disk) carries no file name: name the
+            # file that could not be written, so the CLI's one line says which
+            raise _named(err, path) from None
         raise
     return path
+
+
+def _named(err: OSError, path: str | os.PathLike) -> OSError:
+    """``err`` (an OSError without a file name) as the same OSError type naming ``path``."""
+    try:
+        return type(err)(err.errno, err.strerror or os.strerror(err.errno), str(path))
+    except TypeError:
+        return OSError(err.errno, err.strerror or os.strerror(err.errno), str(path))
 
 
 def _umask() -> int:
@@ -277,9 +289,14 @@ class ResultsLog:
 
     def append(self, record: dict) -> None:
         line = json.dumps(to_jsonable(record), separators=(",", ":"), allow_nan=False)
-        self._f.write(line.encode("utf-8") + b"\n")
-        self._f.flush()
-        os.fsync(self._f.fileno())
+        try:
+            self._f.write(line.encode("utf-8") + b"\n")
+            self._f.flush()
+            os.fsync(self._f.fileno())
+        except OSError as err:
+            if err.filename is None and err.errno is not None:
+                raise _named(err, self.path) from None
+            raise
 
     def close(self) -> None:
         if not self._f.closed:

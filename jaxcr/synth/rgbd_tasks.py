@@ -385,7 +385,7 @@ class RgbdSimulator:
         if not obs.is_file():
             raise InputError("missing obstacle cloud", file=str(obs))
         try:
-            self.obstacles = np.load(obs).astype(np.float64)
+            self.obstacles = np.load(obs, allow_pickle=False).astype(np.float64)
         except (ValueError, OSError, TypeError) as err:
             raise InputError(f"not a readable .npy point cloud ({err})", file=str(obs)) from None
         if self.obstacles.ndim != 2 or self.obstacles.shape[1] != 3:
