@@ -489,6 +489,7 @@ def test_motion_rerun_stopped_early_leaves_no_earlier_report(tmp_path, monkeypat
     assert main(["motion", "synth", "-o", str(src), "--size", "64x48", "--frames", "6"]) == 0
     out = tmp_path / "out"
     out.mkdir()
+    (out / "frames.jsonl").write_text("")  # an earlier motion run (OUT must be one)
     stale = ["summary.json", "report.md", "prob_translation.npy", "mask_homography.png"]
     for name in stale:
         (out / name).write_text("earlier run")

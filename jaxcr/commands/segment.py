@@ -296,10 +296,10 @@ def versions() -> dict:
     return out
 
 
-def _source_root() -> Path | None:
+def _source_root(module_file: str | None = None) -> Path | None:
     """The git checkout jaxcr runs from (an editable install), or None (a wheel installed in
     site-packages: its version is the package version alone)."""
-    root = Path(__file__).resolve().parents[2]
+    root = Path(module_file or __file__).resolve().parents[2]
     if "site-packages" in root.parts or "dist-packages" in root.parts:
         return None
     if not (root / ".git").exists() or not (root / "pyproject.toml").is_file():
@@ -420,7 +420,15 @@ def prepare_output(out: Path, resume: bool, overwrite: bool, run_info: dict) -> 
     # Never write into (or --overwrite) a folder that holds something else, e.g. the dataset
     # itself: its masks/<cam>/<id>.png ground truth would be replaced by our predictions; and
     # never beside another process writing the same OUT (the lock, held until exit).
-    outdir.claim(out, "segment", recognise=lambda o: (o / R.RUN_FILE).exists())
+    lock = outdir.claim(out, "segment", recognise=lambda o: (o / R.RUN_FILE).exists())
+    try:
+        return _prepare_claimed(out, layout, resume, overwrite, run_info)
+    except BaseException:
+        outdir.release(lock)  # refused: the folder is free again (library callers)
+        raise
+
+
+def _prepare_claimed(out, layout, resume, overwrite, run_info) -> list[dict]:
     has_results = layout.results.exists() and layout.results.stat().st_size > 0
     if has_results and not (resume or overwrite):
         raise InputError(

@@ -38,6 +38,7 @@ exit, also after Ctrl-C (:mod:`jaxcr.cli`).
 
 from __future__ import annotations
 
+import atexit
 import datetime as _dt
 import json
 import os
@@ -55,6 +56,7 @@ OWNER_FORMAT = "jaxcr.out/1"
 BOOKKEEPING = (LOCK_FILE, OWNER_FILE)
 
 _HELD: list[Path] = []  # lock files held by this process, in order of acquisition
+atexit.register(lambda: release_all())  # library callers outside the CLI: released at exit
 
 
 # --------------------------------------------------------------------------- process identity
@@ -153,8 +155,8 @@ def acquire(out: str | os.PathLike, command: str) -> Path:
             info = read_lock(path)
             if info is None:
                 continue  # released meanwhile
-            if info.get("pid") == os.getpid() and info.get("host") == socket.gethostname():
-                raise InputError(f"already held by this process ({describe(info)})", file=str(path))
+            if path in _HELD and info.get("pid") == os.getpid():
+                return path  # re-entrant: this process holds it already (library callers)
             if not is_stale(info):
                 raise InputError(
                     f"output folder is in use by {describe(info)}; wait for it to finish, or "
@@ -178,8 +180,11 @@ def acquire(out: str | os.PathLike, command: str) -> Path:
         try:
             os.write(fd, data)
             os.fsync(fd)
-        finally:
+        except OSError as err:  # e.g. a full disk: no half-written lock is left behind
             os.close(fd)
+            os.unlink(path)
+            raise OSError(err.errno, err.strerror or os.strerror(err.errno), str(path)) from None
+        os.close(fd)
         _HELD.append(path)
         return path
     raise InputError("could not take the output folder's lock (contended)", file=str(path))
@@ -279,8 +284,8 @@ def claim(out: str | os.PathLike, command: str, recognise=None) -> Path:
             entries = _user_entries(out)
             if entries and not (recognise is not None and recognise(out)):
                 raise InputError(
-                    f"output folder is not empty and holds {_what(out, entries)}, not the output "
-                    f"of jaxcr {command}; choose a new or empty folder",
+                    f"output folder is not empty and holds {_what(out, entries)}, not written by "
+                    f"jaxcr {command}; choose a new or empty folder",
                     file=str(out),
                 )
             from jaxcr.io.results import atomic_write_json
@@ -295,7 +300,7 @@ def claim(out: str | os.PathLike, command: str, recognise=None) -> Path:
             )
         elif prev != command:
             raise InputError(
-                f"output folder holds the output of jaxcr {prev}, not of jaxcr {command}; "
+                f"output folder holds the output of jaxcr {prev}, not written by jaxcr {command}; "
                 "choose a new or empty folder",
                 file=str(out),
             )
