@@ -184,6 +184,20 @@ def test_stale_lock_is_reported_and_taken_over(tmp_path, capsys):
     assert not lock.exists()
 
 
+def test_empty_lock_is_in_use_while_fresh_and_stale_once_old(tmp_path, capsys):
+    """A holder killed between creating the lock and writing it leaves an empty file."""
+    out = tmp_path / "out"
+    out.mkdir()
+    lock = out / outdir.LOCK_FILE
+    lock.write_bytes(b"")
+    with pytest.raises(InputError, match="unknown process"):
+        outdir.claim(out, "segment")
+    old = time.time() - 2 * outdir.UNREADABLE_STALE_S
+    os.utime(lock, (old, old))
+    outdir.release(outdir.claim(out, "segment"))
+    assert "taking over a stale lock of an unknown process" in capsys.readouterr().err
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="needs /proc")
 def test_reused_pid_is_stale_but_a_lock_from_another_host_is_not(tmp_path):
     out = tmp_path / "out"

@@ -13,7 +13,8 @@ One rule for every command that writes a folder (``segment``, ``synth``, ``stere
   A second run into the same OUT is refused (exit 2) with one line naming the holder; this
   includes ``--overwrite``, which therefore cannot wipe a run while another process holds it.
 - **Stale locks.** A lock whose process is gone (same host, and the pid no longer runs, or
-  now belongs to a process started at another time) is stale: the next run reports it on
+  now belongs to a process started at another time) is stale, and so is an unreadable
+  (empty, cut) lock older than :data:`UNREADABLE_STALE_S`: the next run reports it on
   stderr and takes it over. A lock from another host cannot be checked and is never taken
   over; the refusal says so and which file to delete.
 - **Leftovers.** Once the lock is held, temporary files left by a killed run (``.NAME.*.tmp``
@@ -44,6 +45,7 @@ import json
 import os
 import socket
 import sys
+import time
 from pathlib import Path
 
 from jaxcr.errors import InputError
@@ -129,6 +131,20 @@ def is_stale(info: dict) -> bool:
     return isinstance(start, int) and now is not None and now != start
 
 
+#: an unreadable lock older than this (seconds) was abandoned between its creation and its
+#: content being written (a holder writes it at once): it is stale
+UNREADABLE_STALE_S = 10.0
+
+
+def _abandoned(path: Path, info: dict) -> bool:
+    if info:
+        return False
+    try:
+        return time.time() - path.stat().st_mtime > UNREADABLE_STALE_S
+    except OSError:
+        return False
+
+
 def describe(info: dict) -> str:
     """``jaxcr segment (pid 12345 on node7, started 2026-...)`` for a lock's content."""
     if not info:
@@ -157,7 +173,7 @@ def acquire(out: str | os.PathLike, command: str) -> Path:
                 continue  # released meanwhile
             if path in _HELD and info.get("pid") == os.getpid():
                 return path  # re-entrant: this process holds it already (library callers)
-            if not is_stale(info):
+            if not (is_stale(info) or _abandoned(path, info)):
                 raise InputError(
                     f"output folder is in use by {describe(info)}; wait for it to finish, or "
                     f"if it is gone delete {path}",
