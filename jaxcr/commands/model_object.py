@@ -87,9 +87,8 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 def run(args) -> int:
     if args.scene == "synth":
-        from jaxcr.synth.rgbd_tasks import generate_task
-
         from jaxcr.io import outdir
+        from jaxcr.synth.rgbd_tasks import generate_task
 
         size = _parse_size(args.size)
         outdir.claim(args.out, "model-object synth")  # new, empty or an earlier scene; locked

@@ -22,7 +22,6 @@ import numpy as np
 
 from jaxcr.errors import InputError
 
-
 _DECODE_LOCK = threading.Lock()  # fd 2 is process-wide: one redirected decode at a time
 # libjpeg's messages for a damaged file (the decoder then fills the rest with grey): the file
 # is refused rather than used. Other native output (libpng warnings such as "iCCP: known

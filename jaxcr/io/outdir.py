@@ -178,7 +178,7 @@ def acquire(out: str | os.PathLike, command: str) -> Path:
                     f"output folder is in use by {describe(info)}; wait for it to finish, or "
                     f"if it is gone delete {path}",
                     file=str(out),
-                )
+                ) from None
             # Move the stale lock aside under a unique name: of two processes taking it over,
             # only one rename succeeds; the other finds the new lock on its next round.
             aside = path.with_name(f"{LOCK_FILE}.stale.{os.getpid()}")
