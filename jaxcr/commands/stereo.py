@@ -218,9 +218,9 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    from jaxcr.io.results import atomic_write_bytes
+
+    atomic_write_bytes(path, data)  # temporary name + rename; a failed write names the file
 
 
 def _frame_json(fid: str, r: dict) -> dict:
