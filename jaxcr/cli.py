@@ -188,7 +188,7 @@ def _run(args) -> int:
         where = err.filename if err.filename is not None else "file system"
         print(f"jaxcr {args.command}: error: {where}: {err.strerror or err}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # SIGINT while our handler is not installed (not main thread)
+    except KeyboardInterrupt:  # raised by code (tests), or SIGINT outside the main thread
         print(f"jaxcr {args.command}: interrupted", file=sys.stderr)
         return 130
     return int(code or 0)
