@@ -137,14 +137,22 @@ def _tty(fd: int) -> bool:
         return False
 
 
-def _quiet_warnings() -> None:
+def _quiet_warnings(state: dict) -> None:
     """Warnings are not part of the one-line contract: numpy's RuntimeWarnings (overflow, an
     empty mean) and library deprecations are not shown, unless the user asked for them with
-    ``python -W`` or ``PYTHONWARNINGS``."""
+    ``python -W`` or ``PYTHONWARNINGS``; the others (e.g. synth's "true-robot kinematics did
+    not converge") are one line each, ``jaxcr CMD: warning: MESSAGE``."""
     if sys.warnoptions:
         return
-    for category in (RuntimeWarning, DeprecationWarning, FutureWarning, UserWarning):
+    for category in (RuntimeWarning, DeprecationWarning, PendingDeprecationWarning, FutureWarning):
         warnings.simplefilter("ignore", category)
+
+    def one_line(message, category, filename, lineno, file=None, line=None):
+        name = f"jaxcr {state['command']}" if state["command"] else "jaxcr"
+        text = " ".join(str(message).split())
+        print(f"{name}: warning: {text}", file=sys.stderr if file is None else file)
+
+    warnings.showwarning = one_line  # restored by the caller's catch_warnings
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -159,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         old_handler = signal.signal(signal.SIGINT, _on_sigint(state))
     try:
         with warnings.catch_warnings():
-            _quiet_warnings()
+            _quiet_warnings(state)
             parser = build_parser()
             args = parser.parse_args(argv)
             if not getattr(args, "func", None):

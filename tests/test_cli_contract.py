@@ -301,6 +301,8 @@ _NOISY = textwrap.dedent(
         np.float32(3e38) * np.float32(10)  # overflow RuntimeWarning
         np.mean(np.zeros(0))  # "Mean of empty slice"
         warnings.warn("a library deprecation", DeprecationWarning, stacklevel=1)
+        if len(sys.argv) > 1:
+            warnings.warn("frames [3] did not\\nconverge", UserWarning, stacklevel=1)
         return 0
 
     validate.run = noisy
@@ -319,6 +321,10 @@ def test_numpy_warnings_do_not_reach_stderr():
     r = subprocess.run([sys.executable, "-W", "default", "-c", _NOISY], capture_output=True,
                        text=True, env=env)  # fmt: skip
     assert r.returncode == 0 and "RuntimeWarning" in r.stderr
+    # a warning of ours: one line
+    r = subprocess.run([sys.executable, "-c", _NOISY, "user"], capture_output=True, text=True,
+                       env=env)  # fmt: skip
+    assert (r.returncode, r.stderr) == (0, "jaxcr validate: warning: frames [3] did not converge\n")
 
 
 def _png_with_bad_iccp(path: Path) -> None:
