@@ -29,7 +29,7 @@ _DECODE_LOCK = threading.Lock()  # fd 2 is process-wide: one redirected decode a
 _JPEG_DAMAGED = ("Corrupt JPEG data", "Premature end of JPEG file")
 
 
-def _quiet_decode(data: np.ndarray, flags: int, path: str = "") -> np.ndarray | None:
+def _quiet_decode(data: np.ndarray, flags: int) -> np.ndarray | None:
     # OpenCV logs its own WARN/ERROR lines for corrupt files, and libpng/libjpeg write warnings
     # straight to file descriptor 2: we report one InputError instead (or nothing).
     from cv2.utils import logging as cvlog
@@ -50,7 +50,7 @@ def _quiet_decode(data: np.ndarray, flags: int, path: str = "") -> np.ndarray | 
     native = "".join(text)
     for line in native.splitlines():
         if line.startswith(_JPEG_DAMAGED):
-            raise InputError(f"damaged JPEG ({line.strip()})", file=path)
+            raise InputError(f"damaged JPEG ({line.strip()})")  # the caller names the file
     return img
 
 
@@ -129,7 +129,10 @@ def _imread(path: str | os.PathLike, flags: int) -> np.ndarray:
             f"image of {size[0]}x{size[1]} pixels exceeds the {MAX_PIXELS} pixel limit",
             file=path,
         )
-    img = _quiet_decode(data, flags, path)
+    try:
+        img = _quiet_decode(data, flags)
+    except InputError as err:
+        raise InputError(err.message, file=path) from None
     if img is None:
         raise InputError("not a readable image (corrupt or unsupported format)", file=path)
     return img
