@@ -383,7 +383,7 @@ def write_report(rows, infos, report_dir: Path, title: str | None = None, plot: 
     for info in infos:
         missing, n_ds = info.get("evaluate_missing") or [], info.get("evaluate_expected")
         if missing:
-            lines.append(f"**INCOMPLETE RUN**: {len(missing)} of the dataset's {n_ds} frames "
+            lines.append(f"**MISSING FRAMES**: {len(missing)} of the dataset's {n_ds} frames "
                          f"are missing from `{info.get('dataset')}`'s run (no record).")  # fmt: skip
             lines.append("")
     frames = {(r.get("out"), r["frame"]): bool(r.get("ok")) for r in rows}
