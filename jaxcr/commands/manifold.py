@@ -385,7 +385,10 @@ def run_synth(args) -> int:
     from jaxcr.synth.generate import parse_size
     from jaxcr.synth.irep import generate_irep
 
-    size = parse_size(args.size)
+    size = parse_size(args.size, kind="manifold synth")
+    from jaxcr.limits import check_frames
+
+    check_frames(args.frames, "frames")
     if (Path(args.out) / "dataset.json").exists() and not args.overwrite:
         raise InputError("a dataset exists there (use --overwrite)", file=args.out)
     info = generate_irep(

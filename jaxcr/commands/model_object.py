@@ -78,11 +78,10 @@ def add_parser(subparsers) -> None:
 
 
 def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise InputError(f"expected WIDTHxHEIGHT, got {text!r}", field="size") from None
-    return w, h
+    from jaxcr.limits import parse_size
+
+    # 32x24: the scene generator's minimum (rgbd_tasks.generate_task)
+    return parse_size(text, "size", "model-object", min_size=(32, 24))
 
 
 def run(args) -> int:

@@ -115,10 +115,10 @@ def _synth(args) -> int:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise InputError("--size must be WIDTHxHEIGHT", field="--size") from None
-    if w < 64 or h < 48:
-        raise InputError(f"image size {w}x{h} is too small, the minimum is 64x48", field="--size")
-    if args.frames < 6:
-        raise InputError(f"need at least 6 frames, got {args.frames}", field="--frames")
+    from jaxcr.limits import check_frames, check_size
+
+    w, h = check_size(w, h, "--size", "motion synth", min_size=(64, 48))
+    check_frames(args.frames, "--frames", lo=6)
     out = generate_motion_video(
         args.out, args.preset, seed=args.seed, size=(w, h), n_frames=args.frames, video=args.video
     )
@@ -152,8 +152,10 @@ def run(args) -> int:
     from jaxcr.motion.run import first_touch, run_baseline, run_motion
     from jaxcr.progress import progress
 
-    if args.prior_frames < 0:
-        raise InputError("--prior-frames must be >= 0", field="--prior-frames")
+    from jaxcr.limits import check_number
+
+    check_number(args.prior_frames, "--prior-frames", 0.0)  # NaN/inf were accepted
+    check_number(args.lam, "--lambda", 0.0, lo_open=True)
     if args.lam <= 0 or not (0 < args.threshold <= 1):
         raise InputError("--lambda must be > 0 and --threshold in (0, 1]", field="--lambda")
     if not (args.superpixel_step == 0 or args.superpixel_step >= 4) or args.flow_step < 0:
