@@ -52,6 +52,15 @@ SEGMENT_BYTES_PER_PIXEL = 32
 #: along its shorter side: levels L of an image whose shorter side is s need s >> (L-1) >= 8
 MIN_LEVEL_SIDE = 8
 
+#: bench --repeats: the median's standard error is about 1.25 sigma / sqrt(n), 4 % of the
+#: spread at 1000 repeats; more only take longer (a typo of 10^9 ran for days, silently)
+MAX_REPEATS = 1000
+
+#: manifold train --step: resampled grid points; 100x the default angle grid (0.5 deg over the
+#: 70 x 180 deg of the synthetic set, ~50k points): 5M points of ~10 components in float64
+#: are 0.4 GB, and the query's k-d index over them as much again
+MAX_MANIFOLD_POINTS = 5_000_000
+
 #: stereo --segments: the tube split (stereo.segments.piecewise_constant) is a dynamic program
 #: of O(k n^2) in the backbone samples n, and a tube shorter than its 5-sample median filter
 #: is not resolved; 16 tubes is twice the most any concentric-tube robot in the literature has

@@ -227,3 +227,41 @@ def test_seed_ceiling(argv, tmp_path, capsys):
         main(["synth", "--preset", "orthogonal", "-o", str(tmp_path / "o"), *argv])
     assert exc.value.code == 2
     assert "--seed: expected a non-negative integer <= 4294967295" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("kw", "field"),
+    [({"smoothing": float("nan")}, "smoothing"), ({"smoothing": float("inf")}, "smoothing"),
+     ({"step": float("nan")}, "step"), ({"step": 0.0}, "step"), ({"step": -1.0}, "step")],
+)  # fmt: skip
+def test_manifold_train_options_refuse_nan(kw, field):
+    """manifold train --smoothing nan trained a model and exited 0."""
+    from jaxcr.eigen.model import TrainConfig
+
+    with pytest.raises(InputError) as exc:
+        TrainConfig(**kw).check()
+    assert exc.value.field == field
+
+
+def test_manifold_step_grid_ceiling(monkeypatch):
+    """A tiny --step resampled a grid of billions of points; refused before the spline fit."""
+    from jaxcr.eigen import manifold as M
+    from jaxcr.limits import MAX_MANIFOLD_POINTS
+
+    _forbid(monkeypatch, "jaxcr.eigen.manifold", "fit_tps")
+    psi = np.array([[0.0, 0.0], [1.0, 3.0], [0.5, 1.0]])
+    # grid (floor(1 / s) + 1) * (floor(3 / s) + 1) points: s = 1e-3 gives 1001 * 3001 = 3.0e6
+    # (under the ceiling, so the forbidden fit is reached), s = 1e-4 gives 3.0e8 (refused)
+    assert 1001 * 3001 < MAX_MANIFOLD_POINTS < 10001 * 30001
+    with pytest.raises(AssertionError, match="work started"):
+        M.build_manifold(psi, np.zeros((3, 2)), 1e-3)
+    with pytest.raises(InputError) as exc:
+        M.build_manifold(psi, np.zeros((3, 2)), 1e-4)
+    assert exc.value.field == "step" and f"over the limit of {MAX_MANIFOLD_POINTS}" in str(exc.value)
+
+
+def test_bench_repeats_ceiling(tmp_path, monkeypatch, capsys):
+    """bench fk --repeats 1000000000 ran silently for days."""
+    _forbid(monkeypatch, "jaxcr.commands.bench", "find_provider")
+    assert main(["bench", "fk", "--repeats", "1000000000", "-o", str(tmp_path / "b.md")]) == 2
+    assert "field 'repeats': must be between 1 and 1000" in _one_line(capsys)
