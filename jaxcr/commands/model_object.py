@@ -80,8 +80,8 @@ def add_parser(subparsers) -> None:
 def _parse_size(text: str) -> tuple[int, int]:
     from jaxcr.limits import parse_size
 
-    # 32x24: the scene generator's minimum (rgbd_tasks.generate_task)
-    return parse_size(text, "size", "model-object", min_size=(32, 24))
+    # the ceiling here; the floor (32x24) is the scene generator's (rgbd_tasks.generate_task)
+    return parse_size(text, "size", "model-object", min_size=(1, 1))
 
 
 def run(args) -> int:

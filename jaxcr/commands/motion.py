@@ -118,6 +118,8 @@ def _synth(args) -> int:
     from jaxcr.limits import check_frames, check_size
 
     w, h = check_size(w, h, "--size", "motion synth", min_size=(64, 48))
+    if args.frames < 6:
+        raise InputError(f"need at least 6 frames, got {args.frames}", field="--frames")
     check_frames(args.frames, "--frames", lo=6)
     out = generate_motion_video(
         args.out, args.preset, seed=args.seed, size=(w, h), n_frames=args.frames, video=args.video
