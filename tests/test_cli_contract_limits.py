@@ -257,7 +257,9 @@ def test_manifold_step_grid_ceiling(monkeypatch):
         M.build_manifold(psi, np.zeros((3, 2)), 1e-3)
     with pytest.raises(InputError) as exc:
         M.build_manifold(psi, np.zeros((3, 2)), 1e-4)
-    assert exc.value.field == "step" and f"over the limit of {MAX_MANIFOLD_POINTS}" in str(exc.value)
+    assert exc.value.field == "step" and f"over the limit of {MAX_MANIFOLD_POINTS}" in str(
+        exc.value
+    )
 
 
 def test_bench_repeats_ceiling(tmp_path, monkeypatch, capsys):
@@ -265,3 +267,21 @@ def test_bench_repeats_ceiling(tmp_path, monkeypatch, capsys):
     _forbid(monkeypatch, "jaxcr.commands.bench", "find_provider")
     assert main(["bench", "fk", "--repeats", "1000000000", "-o", str(tmp_path / "b.md")]) == 2
     assert "field 'repeats': must be between 1 and 1000" in _one_line(capsys)
+
+
+@pytest.mark.parametrize("rgb", ["nan,0,0", "5,0,0", "0,-1,0"])
+def test_manifold_marker_rgb_must_be_a_colour(tmp_path, monkeypatch, capsys, rgb):
+    """--marker-rgb nan,0,0 trained a model on a colour no pixel has and exited 0."""
+    root = make_dataset(tmp_path / "d", n_frames=1)
+    _forbid(monkeypatch, "jaxcr.eigen.colour", "fit_colour_model")
+    argv = ["manifold", "train", str(root), "-o", str(tmp_path / "m.npz"), "--cameras"]
+    assert main([*argv, "main,main", "--marker-rgb", rgb]) == 2
+    assert "field 'marker-rgb': marker colour must be r,g,b in [0, 1]" in _one_line(capsys)
+
+
+@pytest.mark.parametrize("flag", ["--superpixel-step", "--flow-step"])
+def test_motion_grid_steps_at_most_the_frame(motion_set, tmp_path, monkeypatch, capsys, flag):
+    """A grid step over the frame's shorter side (48 px here) leaves one cell."""
+    _forbid(monkeypatch, "jaxcr.motion.run", "run_motion")
+    assert main(["motion", str(motion_set), "-o", str(tmp_path / "o"), flag, "1000000000"]) == 2
+    assert f"field '{flag}': must be between 0 and 48" in _one_line(capsys)

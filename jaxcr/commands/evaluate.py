@@ -428,7 +428,9 @@ def run(args) -> int:
     incomplete = [o for o in outs if not R.output_is_complete(o)]
     table = write_report(rows, infos, report_dir, args.title, plot=not args.no_plot,
                          incomplete=incomplete)  # fmt: skip
-    missing = {str(o): info.get("evaluate_missing") or [] for o, info in zip(outs, infos, strict=True)}
+    missing = {
+        str(o): info.get("evaluate_missing") or [] for o, info in zip(outs, infos, strict=True)
+    }
     for o in incomplete:
         print(f"jaxcr evaluate: warning: {o} is incomplete (no DONE marker)", file=sys.stderr)
     from rich.console import Console

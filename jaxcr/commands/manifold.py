@@ -180,10 +180,11 @@ def run_train(args) -> int:
     if args.marker_index is None:
         try:
             marker_rgb = tuple(float(x) for x in args.marker_rgb.split(","))
-            assert len(marker_rgb) == 3
+            assert len(marker_rgb) == 3 and all(0 <= v <= 1 for v in marker_rgb)  # not NaN
         except (ValueError, AssertionError):
             raise InputError(
-                f"marker colour must be r,g,b, got {args.marker_rgb!r}", field="marker-rgb"
+                f"marker colour must be r,g,b in [0, 1], got {args.marker_rgb!r}",
+                field="marker-rgb",
             ) from None
     t0 = time.perf_counter()
     colour = fit_colour_model(

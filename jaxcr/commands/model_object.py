@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 
 from jaxcr.commands import seed as _seed
-from jaxcr.errors import InputError
 
 
 def add_parser(subparsers) -> None:

@@ -147,14 +147,13 @@ def run(args) -> int:
     if args.dataset == "synth":
         return _synth(args)
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    from jaxcr.limits import check_number
     from jaxcr.motion import metrics as mt
     from jaxcr.motion.dataset import load_motion_dataset
     from jaxcr.motion.flow import FlowConfig
     from jaxcr.motion.pipeline import MODELS, MotionConfig, resolve_steps
     from jaxcr.motion.run import first_touch, run_baseline, run_motion
     from jaxcr.progress import progress
-
-    from jaxcr.limits import check_number
 
     check_number(args.prior_frames, "--prior-frames", 0.0)  # NaN/inf were accepted
     check_number(args.lam, "--lambda", 0.0, lo_open=True)
@@ -166,6 +165,15 @@ def run(args) -> int:
             field="--superpixel-step",
         )
     ds = load_motion_dataset(args.dataset)
+    # a grid step over the frame's shorter side leaves one superpixel / one flow vector
+    short = min(ds.width, ds.height)
+    from jaxcr.limits import check_count
+
+    for flag, step in (
+        ("--superpixel-step", args.superpixel_step),
+        ("--flow-step", args.flow_step),
+    ):
+        check_count(step, flag, 0, short, "the frames' shorter side; 0 = auto")
     # Frames the reader could not use (unreadable, corrupt, wrong size) are failed frames: the
     # run goes on without them but exits 1 (README exit codes). Pairs the method itself does not
     # use (first frame, end-effector still or out of view, no valid flow) are not failures.

@@ -423,9 +423,8 @@ def failure_line(rec: dict) -> str:
 
 def run(args) -> int:
     if args.dataset == "synth":
-        from jaxcr.synth.stereo_ctr import generate_stereo_set
-
         from jaxcr.limits import check_frames
+        from jaxcr.synth.stereo_ctr import generate_stereo_set
 
         check_frames(args.frames, "--frames")
         path = generate_stereo_set(args.out, args.frames, args.seed, _parse_size(args.size),

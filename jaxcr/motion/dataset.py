@@ -142,6 +142,7 @@ def _matrix(v, shape, file, field, max_abs: float | None = None, frame=None) -> 
 def load_motion_dataset(path: str | os.PathLike) -> MotionDataset:
     """Load ``path`` (the folder or its motion.json)."""
     from jaxcr.limits import MAX_ANGLE
+
     path = Path(path)
     meta_path = path / "motion.json" if path.is_dir() else path
     root = meta_path.parent
