@@ -156,7 +156,7 @@ def test_motion_values_beyond_float32_are_refused(motion_set, tmp_path, monkeypa
     assert "motion.json" in line and expect in line, line
 
 
-@pytest.mark.parametrize("flag", ["--lambda", "--prior-frames"])
+@pytest.mark.parametrize("flag", ["--lambda", "--prior-frames", "--threshold"])
 @pytest.mark.parametrize("value", ["nan", "inf"])
 def test_motion_float_flags_refuse_nan_and_inf(motion_set, tmp_path, monkeypatch, capsys,
                                                flag, value):  # fmt: skip

@@ -157,6 +157,7 @@ def run(args) -> int:
 
     check_number(args.prior_frames, "--prior-frames", 0.0)  # NaN/inf were accepted
     check_number(args.lam, "--lambda", 0.0, lo_open=True)
+    check_number(args.threshold, "--threshold", 0.0, 1.0, lo_open=True)  # was named --lambda
     if args.lam <= 0 or not (0 < args.threshold <= 1):
         raise InputError("--lambda must be > 0 and --threshold in (0, 1]", field="--lambda")
     if not (args.superpixel_step == 0 or args.superpixel_step >= 4) or args.flow_step < 0:
