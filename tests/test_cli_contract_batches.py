@@ -177,3 +177,13 @@ def test_manifold_corrupt_image_fails_that_frame_only(irep, tmp_path, capsys):
     assert main([*args, "--colour-frame", "0"]) == 2
     err = _stderr_lines(capsys)
     assert len(err) == 1 and "000000.png" in err[0] and "colour-frame" in err[0]
+
+
+def test_manifold_neighbours_over_the_manifold_writes_no_model(irep, tmp_path, capsys):
+    """--neighbours 1000000000 wrote a model (exit 0) that every query then refused."""
+    model = tmp_path / "m.npz"
+    args = ["manifold", "train", str(irep / "train"), "-o", str(model), "--bins", "24"]
+    assert main([*args, "--step", "0.05", "--neighbours", "1000000000"]) == 2
+    err = _stderr_lines(capsys)
+    assert "field 'neighbours': must be at most the manifold's" in err[-1]
+    assert not model.exists()

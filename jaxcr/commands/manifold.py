@@ -207,6 +207,11 @@ def run_train(args) -> int:
     H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise, centres)
     t1 = time.perf_counter()
     model = train(H[ok], P[ok], colour, cfg, view_centres=centres)
+    n_points = int(model.manifold.psi.shape[0])
+    if cfg.b > n_points:  # query would refuse the model: never write it
+        raise InputError(
+            f"must be at most the manifold's {n_points} points, got {cfg.b}", field="neighbours"
+        )
     t2 = time.perf_counter()
     meta = {
         "dataset": str(Path(args.dataset).resolve()),
