@@ -10,6 +10,12 @@ def seed(text: str) -> int:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
+    from jaxcr.limits import MAX_SEED
+
     if value < 0:
         raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {value}")
+    if value > MAX_SEED:
+        raise argparse.ArgumentTypeError(
+            f"expected a non-negative integer <= {MAX_SEED}, got {value}"
+        )
     return value

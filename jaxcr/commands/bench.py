@@ -245,6 +245,12 @@ def _check_counts(args) -> None:
             raise InputError(f"--{opt} must be >= 1, got {v}", field=opt)
     if args.batch is not None and args.batch > MAX_BATCH:
         raise InputError(f"--batch must be <= {MAX_BATCH}, got {args.batch}", field="batch")
+    from jaxcr.limits import MAX_REPEATS, check_count, check_frames
+
+    if args.frames is not None:
+        check_frames(args.frames, "frames")
+    if args.repeats is not None:
+        check_count(args.repeats, "repeats", 1, MAX_REPEATS)
     if args.size is not None:
         from jaxcr.synth.generate import parse_size
 

@@ -56,6 +56,9 @@ def run(args) -> int:
 
     if args.frames < 1:
         raise InputError("--frames must be >= 1", field="frames")
+    from jaxcr.limits import check_frames
+
+    check_frames(args.frames, "frames")
     size = parse_size(args.size)
     from jaxcr.commands.synth import _enable_compile_cache
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import json
 import math
 import sys
 from pathlib import Path
@@ -71,6 +72,56 @@ def _occluded_region(frame, camera: str, visible):
     return None
 
 
+#: kinds of ``files`` in a results.jsonl record: per camera ({camera: path}) or one path
+_PER_CAMERA_FILES = ("masks", "nominal", "background", "overlays")
+_SINGLE_FILES = ("centreline", "centreline_nominal")
+
+
+def _check_files(files, results: Path, line: int | None, fid: str) -> dict:
+    """A record's ``files`` field as written by segment (``{kind: {camera: path}}`` for masks,
+    ``{kind: path}`` for centrelines; relative paths inside OUT), else an InputError naming
+    results.jsonl, the line, the frame and the field (that frame then fails, the rest go on)."""
+    where = f" (line {line})" if line is not None else ""
+
+    def bad(field: str, what: str):
+        return InputError(f"{what}{where}", file=str(results), frame=fid, field=field)
+
+    def check_path(field: str, rel) -> None:
+        if not isinstance(rel, str) or not rel:
+            raise bad(field, f"expected a relative path string, got {rel!r}")
+        if Path(rel).is_absolute() or ".." in Path(rel).parts:
+            raise bad(field, f"path {rel!r} is outside the output folder")
+
+    if not isinstance(files, dict):
+        raise bad("files", f"expected an object {{kind: paths}}, got {type(files).__name__}")
+    for kind, v in files.items():
+        if kind in _PER_CAMERA_FILES:
+            if not isinstance(v, dict):
+                raise bad(f"files.{kind}", f"expected {{camera: path}}, got {v!r}")
+            for cam, rel in v.items():
+                check_path(f"files.{kind}.{cam}", rel)
+        elif kind in _SINGLE_FILES:
+            check_path(f"files.{kind}", v)
+    return files
+
+
+def _record_lines(path: Path) -> dict[str, int]:
+    """Line number (1-based) of each frame's last record in results.jsonl, for messages."""
+    lines: dict[str, int] = {}
+    try:
+        data = path.read_bytes().split(b"\n")
+    except OSError:
+        return lines
+    for k, raw in enumerate(data, start=1):
+        try:
+            rec = json.loads(raw)
+        except ValueError:
+            continue
+        if isinstance(rec, dict) and "frame" in rec:
+            lines[str(rec["frame"])] = k
+    return lines
+
+
 def _load_pred(out: Path, files: dict, kind: str, camera: str):
     rel = files.get(kind, {}).get(camera)
     if rel is None:
@@ -91,6 +142,12 @@ def _load_centreline(out: Path, rel: str) -> np.ndarray:
         raise InputError(f"not a readable .npy file ({err})", file=str(out / rel)) from None
     if arr.ndim != 2 or arr.shape[1] != 3 or not np.issubdtype(arr.dtype, np.number):
         raise InputError(f"expected an (N, 3) array, got {arr.dtype} {arr.shape}",
+                         file=str(out / rel))  # fmt: skip
+    if not np.all(np.isfinite(arr)):
+        # a NaN/inf centreline has no error to average: the frame fails (never a NaN that the
+        # means would silently skip)
+        n = int((~np.isfinite(arr)).any(axis=1).sum())
+        raise InputError(f"{n} of {len(arr)} centreline points are not finite (NaN or inf)",
                          file=str(out / rel))  # fmt: skip
     return arr
 
@@ -134,6 +191,7 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
 
     rows = []
     eval_failed: dict[str, str] = {}
+    record_lines = _record_lines(layout.results)
     # reading masks of long runs takes a while: a bar on a terminal, plain lines in a log
     for rec in progress(records, desc=f"evaluate {out.name}", unit="frame", leave=False):
         fid = str(rec["frame"])
@@ -146,6 +204,16 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
         bad = None  # set when this frame's outputs cannot be compared with its ground truth
         first = len(rows)
         try:  # a damaged output file of this frame fails this frame only
+            line = record_lines.get(fid)
+            if rec.get("ok") and frame is None:
+                where = f" (line {line})" if line is not None else ""
+                raise InputError(f"an ok record of a frame the dataset does not have{where}",
+                                 file=str(layout.results), frame=fid, field="frame")  # fmt: skip
+            if rec.get("ok") and "files" not in rec:
+                where = f" (line {line})" if line is not None else ""
+                raise InputError(f"an ok record without its output files{where}",
+                                 file=str(layout.results), frame=fid, field="files")  # fmt: skip
+            files = _check_files(files, layout.results, line, fid)
             if rec.get("ok") and truth_cl is not None and "centreline" in files:
                 t = jnp.asarray(np.asarray(truth_cl, np.float64), jnp.float32)
                 for tag, key in (("refined", "centreline"), ("nominal", "centreline_nominal")):
@@ -206,6 +274,12 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
                     "time_s": rec.get("time_s"), **{k: math.nan for k in _METRIC_FIELDS},
                 })  # fmt: skip
             eval_failed[fid] = bad
+    # frames of the dataset without a record (an interrupted or --limit run, or a dataset
+    # that grew since): the report covers fewer frames than the dataset has
+    expected = list(ds.bad_frames) + [f.id for f in ds.frames]
+    have = {str(r["frame"]) for r in records}
+    run_info = {**run_info, "evaluate_expected": len(expected),
+                "evaluate_missing": [f for f in expected if f not in have]}  # fmt: skip
     if eval_failed:
         fid, why = next(iter(eval_failed.items()))
         more = f" (and {len(eval_failed) - 1} more)" if len(eval_failed) > 1 else ""
@@ -306,7 +380,19 @@ def write_report(rows, infos, report_dir: Path, title: str | None = None, plot: 
         lines.append(f"**INCOMPLETE RUN**: `{o}` has no DONE marker (interrupted or --limit); "
                      f"only its {n} processed frames are in this report.")  # fmt: skip
         lines.append("")
-    lines.append("IoU mean ± std over frames (raw | adjusted where occlusion masks exist).")
+    for info in infos:
+        missing, n_ds = info.get("evaluate_missing") or [], info.get("evaluate_expected")
+        if missing:
+            lines.append(f"**MISSING FRAMES**: {len(missing)} of the dataset's {n_ds} frames "
+                         f"are missing from `{info.get('dataset')}`'s run (no record).")  # fmt: skip
+            lines.append("")
+    frames = {(r.get("out"), r["frame"]): bool(r.get("ok")) for r in rows}
+    n_ok = sum(frames.values())
+    n_failed = len(frames) - n_ok
+    lines.append("IoU mean ± std over frames (raw | adjusted where occlusion masks exist); the "
+                 f"averages are over {n_ok} of {len(frames)} frames"
+                 + (f" ({n_failed} failed)" if n_failed else "")
+                 + " (a cell over fewer has its count in table2.csv, column n).")  # fmt: skip
     lines.append("")
     lines.append(rep.table2_markdown(table))
     lines.append("Published (Watson et al. Table II, real images, 20 frames per set):")
@@ -342,6 +428,9 @@ def run(args) -> int:
     incomplete = [o for o in outs if not R.output_is_complete(o)]
     table = write_report(rows, infos, report_dir, args.title, plot=not args.no_plot,
                          incomplete=incomplete)  # fmt: skip
+    missing = {
+        str(o): info.get("evaluate_missing") or [] for o, info in zip(outs, infos, strict=True)
+    }
     for o in incomplete:
         print(f"jaxcr evaluate: warning: {o} is incomplete (no DONE marker)", file=sys.stderr)
     from rich.console import Console
@@ -352,10 +441,19 @@ def run(args) -> int:
     # could not be evaluated): the numbers are over fewer frames than the run was given
     frames = {(r["out"], r["frame"]): r for r in rows}
     failed = [r for r in frames.values() if not r["ok"]]
+    code = 0
+    for o, info in zip(outs, infos, strict=True):
+        ids = missing[str(o)]
+        if ids:
+            done = "no DONE marker" if o in incomplete else "DONE marker present"
+            print(f"jaxcr evaluate: {o}: {len(ids)} of {info['evaluate_expected']} frame(s) "
+                  f"missing (no record in results.jsonl; {done}), first {ids[0]}; "
+                  "continue the run with jaxcr segment --resume", file=sys.stderr)  # fmt: skip
+            code = 1
     if failed:
         n_eval = sum(1 for r in failed if str(r.get("reason") or "").startswith("evaluate: "))
         print(f"jaxcr evaluate: {len(failed)} of {len(frames)} frame(s) failed ("
               f"{len(failed) - n_eval} in the segment run, {n_eval} in evaluation); reasons in "
               f"{report_dir / 'per_frame.csv'} (rows with ok False)", file=sys.stderr)  # fmt: skip
         return 1
-    return 0
+    return code

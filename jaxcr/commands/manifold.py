@@ -74,7 +74,11 @@ def add_parser(subparsers) -> None:
     )
     t.add_argument("--clusters", type=int, default=5, help="k-means colour clusters (default 5)")
     t.add_argument(
-        "--colour-frame", type=int, default=0, help="index of the frame clustered for colours"
+        "--colour-frame",
+        type=int,
+        default=None,
+        help="index of the frame clustered for colours (default: the first frame whose image "
+        "can be read)",
     )
     g = t.add_mutually_exclusive_group()
     g.add_argument(
@@ -170,27 +174,29 @@ def run_train(args) -> int:
     check_cameras(ds, cams)
     if not ds.frames:
         raise InputError("dataset has no usable frames", file=args.dataset)
-    if not 0 <= args.colour_frame < len(ds.frames):
+    if args.colour_frame is not None and not 0 <= args.colour_frame < len(ds.frames):
         raise InputError(f"colour frame must be in 0..{len(ds.frames) - 1}", field="colour-frame")
     marker_rgb = None
     if args.marker_index is None:
         try:
             marker_rgb = tuple(float(x) for x in args.marker_rgb.split(","))
-            assert len(marker_rgb) == 3
+            assert len(marker_rgb) == 3 and all(0 <= v <= 1 for v in marker_rgb)  # not NaN
         except (ValueError, AssertionError):
             raise InputError(
-                f"marker colour must be r,g,b, got {args.marker_rgb!r}", field="marker-rgb"
+                f"marker colour must be r,g,b in [0, 1], got {args.marker_rgb!r}",
+                field="marker-rgb",
             ) from None
     t0 = time.perf_counter()
     colour = fit_colour_model(
-        ds.frames[args.colour_frame].load_image(cams[0]),
+        _colour_image(ds, args.colour_frame, cams[0]),
         k=args.clusters,
         marker_rgb=marker_rgb,
         marker_index=args.marker_index,
         seed=args.seed,
     )
-    P = _params(ds, cfg.params, ds.frames)
     sc = dataset_contours(ds, colour, cams, cfg.spacing)
+    by_id = {f.id: f for f in ds.frames}
+    P = _params(ds, cfg.params, [by_id[i] for i in sc.ids])
     ok = sc.ok
     if ok.sum() < 10:
         raise InputError(
@@ -201,12 +207,18 @@ def run_train(args) -> int:
     H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise, centres)
     t1 = time.perf_counter()
     model = train(H[ok], P[ok], colour, cfg, view_centres=centres)
+    n_points = int(model.manifold.psi.shape[0])
+    if cfg.b > n_points:  # query would refuse the model: never write it
+        raise InputError(
+            f"must be at most the manifold's {n_points} points, got {cfg.b}", field="neighbours"
+        )
     t2 = time.perf_counter()
     meta = {
         "dataset": str(Path(args.dataset).resolve()),
         "frames_used": int(ok.sum()),
         "frames_failed": [i for i, o in zip(sc.ids, ok, strict=True) if not o],
         "frames_bad": dict(ds.bad_frames),  # rejected by the dataset loader
+        "frames_unreadable": dict(sc.unreadable),  # an image could not be read
         "descriptor_s": t1 - t0,
         "train_s": t2 - t1,
     }
@@ -216,6 +228,14 @@ def run_train(args) -> int:
         more = f" (and {len(ds.bad_frames) - 3} more)" if len(ds.bad_frames) > 3 else ""
         print(
             f"jaxcr manifold: warning: {len(ds.bad_frames)} bad frame(s) not used: {shown}{more}",
+            file=sys.stderr,
+        )
+    if sc.unreadable:
+        fid, why = next(iter(sc.unreadable.items()))
+        more = f" (and {len(sc.unreadable) - 1} more)" if len(sc.unreadable) > 1 else ""
+        print(
+            f"jaxcr manifold: warning: {len(sc.unreadable)} frame(s) not used, an image could "
+            f"not be read: {why}{more}; all listed in the model's metadata (frames_unreadable)",
             file=sys.stderr,
         )
     if meta["frames_failed"]:
@@ -229,14 +249,33 @@ def run_train(args) -> int:
             file=sys.stderr,
         )
     print(
-        f"manifold: {int(ok.sum())}/{len(ok) + len(ds.bad_frames)} frames, {cfg.n_bins} bins, "
+        f"manifold: {int(ok.sum())}/{len(ok) + len(ds.bad_frames) + len(sc.unreadable)} frames, "
+        f"{cfg.n_bins} bins, "
         f"{model.n_components} components "
         f"({cfg.variance:.0%} variance), {model.manifold.psi.shape[0]} manifold points; "
         f"descriptors {t1 - t0:.1f} s, training {t2 - t1:.2f} s -> {args.out}"
     )
     # the model is written, but frames of the training set failed (listed above and in the
     # model's metadata): exit 1, as every batch command with failed frames
-    return 1 if ds.bad_frames or meta["frames_failed"] else 0
+    return 1 if ds.bad_frames or meta["frames_failed"] or sc.unreadable else 0
+
+
+def _colour_image(ds, index: int | None, camera: str) -> np.ndarray:
+    """The image clustered for the colour model: frame ``index`` (--colour-frame; bad input
+    when it cannot be read), else the first frame whose ``camera`` image reads."""
+    if index is not None:
+        try:
+            return ds.frames[index].load_image(camera)
+        except InputError as err:
+            raise InputError(f"the colour frame cannot be read ({err.format()})",
+                             field="colour-frame") from None  # fmt: skip
+    first = None
+    for f in ds.frames:
+        try:
+            return f.load_image(camera)
+        except InputError as err:
+            first = first or err.format()
+    raise InputError(f"no frame's image can be read ({first})", file=str(ds.root))
 
 
 def _atomic_text(path: Path, text: str) -> None:
@@ -268,8 +307,9 @@ def run_query(args) -> int:
         est[ok] = estimate(model, H[ok])
     t2 = time.perf_counter()
     truth = None
+    by_id = {f.id: f for f in ds.frames}
     try:
-        truth = _params(ds, cfg.params, ds.frames)
+        truth = _params(ds, cfg.params, [by_id[i] for i in sc.ids])
     except InputError:
         truth = None
     out = Path(args.out)
@@ -297,7 +337,7 @@ def run_query(args) -> int:
             row += [f"{v:.6g}" if ok[i] else "" for v in e]
         rows.append(",".join(str(x) for x in row))
         lines.append(json.dumps(rec))
-    bad = {k: v for k, v in ds.bad_frames.items()}
+    bad = {**ds.bad_frames, **sc.unreadable}
     for fid, msg in bad.items():
         lines.append(json.dumps({"id": fid, "ok": False, "error": msg}))
         rows.append(",".join([fid, "0"] + [""] * (len(header) - 2)))
@@ -363,7 +403,10 @@ def run_synth(args) -> int:
     from jaxcr.synth.generate import parse_size
     from jaxcr.synth.irep import generate_irep
 
-    size = parse_size(args.size)
+    size = parse_size(args.size, kind="manifold synth")
+    from jaxcr.limits import check_frames
+
+    check_frames(args.frames, "frames")
     from jaxcr.io import outdir
 
     # new, empty or a dataset this command wrote (never a user's dataset, even with --overwrite)

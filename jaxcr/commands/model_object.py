@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 
 from jaxcr.commands import seed as _seed
-from jaxcr.errors import InputError
 
 
 def add_parser(subparsers) -> None:
@@ -78,11 +77,10 @@ def add_parser(subparsers) -> None:
 
 
 def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise InputError(f"expected WIDTHxHEIGHT, got {text!r}", field="size") from None
-    return w, h
+    from jaxcr.limits import parse_size
+
+    # the ceiling here; the floor (32x24) is the scene generator's (rgbd_tasks.generate_task)
+    return parse_size(text, "size", "model-object", min_size=(1, 1))
 
 
 def run(args) -> int:

@@ -115,10 +115,12 @@ def _synth(args) -> int:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise InputError("--size must be WIDTHxHEIGHT", field="--size") from None
-    if w < 64 or h < 48:
-        raise InputError(f"image size {w}x{h} is too small, the minimum is 64x48", field="--size")
+    from jaxcr.limits import check_frames, check_size
+
+    w, h = check_size(w, h, "--size", "motion synth", min_size=(64, 48))
     if args.frames < 6:
         raise InputError(f"need at least 6 frames, got {args.frames}", field="--frames")
+    check_frames(args.frames, "--frames", lo=6)
     from jaxcr.io import outdir
 
     outdir.claim(args.out, "motion synth")  # new, empty or an earlier motion synth; locked
@@ -148,6 +150,7 @@ def run(args) -> int:
     if args.dataset == "synth":
         return _synth(args)
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    from jaxcr.limits import check_number
     from jaxcr.motion import metrics as mt
     from jaxcr.motion.dataset import load_motion_dataset
     from jaxcr.motion.flow import FlowConfig
@@ -155,8 +158,9 @@ def run(args) -> int:
     from jaxcr.motion.run import first_touch, run_baseline, run_motion
     from jaxcr.progress import progress
 
-    if args.prior_frames < 0:
-        raise InputError("--prior-frames must be >= 0", field="--prior-frames")
+    check_number(args.prior_frames, "--prior-frames", 0.0)  # NaN/inf were accepted
+    check_number(args.lam, "--lambda", 0.0, lo_open=True)
+    check_number(args.threshold, "--threshold", 0.0, 1.0, lo_open=True)  # was named --lambda
     if args.lam <= 0 or not (0 < args.threshold <= 1):
         raise InputError("--lambda must be > 0 and --threshold in (0, 1]", field="--lambda")
     if not (args.superpixel_step == 0 or args.superpixel_step >= 4) or args.flow_step < 0:
@@ -165,6 +169,15 @@ def run(args) -> int:
             field="--superpixel-step",
         )
     ds = load_motion_dataset(args.dataset)
+    # a grid step over the frame's shorter side leaves one superpixel / one flow vector
+    short = min(ds.width, ds.height)
+    from jaxcr.limits import check_count
+
+    for flag, step in (
+        ("--superpixel-step", args.superpixel_step),
+        ("--flow-step", args.flow_step),
+    ):
+        check_count(step, flag, 0, short, "the frames' shorter side; 0 = auto")
     # Frames the reader could not use (unreadable, corrupt, wrong size) are failed frames: the
     # run goes on without them but exits 1 (README exit codes). Pairs the method itself does not
     # use (first frame, end-effector still or out of view, no valid flow) are not failures.

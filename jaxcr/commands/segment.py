@@ -206,8 +206,9 @@ def refine_config(args):
             sched = {k: (v[0],) * extra + v for k, v in sched.items()}
             sched["levels"] = tuple(range(top + extra, top, -1)) + tuple(base.levels)
     if args.max_steps is not None:
-        if args.max_steps < 1:
-            raise InputError("--max-steps must be >= 1", field="max-steps")
+        from jaxcr.limits import MAX_STEPS, check_count
+
+        check_count(args.max_steps, "max-steps", 1, MAX_STEPS)
         steps = sched["steps"]
         scale = args.max_steps / steps[-1]
         sched["steps"] = tuple(max(1, round(s * scale)) for s in steps)
@@ -217,7 +218,9 @@ def refine_config(args):
     if getattr(args, "camera_correction_mode", None) is not None:
         kw["camera_correction_mode"] = args.camera_correction_mode
     if getattr(args, "g_cam_rel", None) is not None:
-        kw["g_cam_rel"] = args.g_cam_rel
+        from jaxcr.limits import check_number
+
+        kw["g_cam_rel"] = check_number(args.g_cam_rel, "g-cam-rel", 0.0)  # NaN was accepted
     if getattr(args, "mu_out", None) is not None:
         kw["local"] = args.mu_out == "local"
     if getattr(args, "prior_weight", None) is not None:
@@ -473,6 +476,33 @@ def _prepare_claimed(out, layout, resume, overwrite, run_info) -> list[dict]:
 # --------------------------------------------------------------------------- the run
 
 
+def _check_limits(args, ds, cams) -> None:
+    """--levels, --basis and --batch-size against this dataset (jaxcr.limits), before any
+    work: a --levels 30 run compiled for minutes and then hung on a 1-pixel pyramid level."""
+    from jaxcr.limits import (
+        MEMORY_BUDGET,
+        MIN_LEVEL_SIDE,
+        SEGMENT_BYTES_PER_PIXEL,
+        check_count,
+        max_levels,
+    )
+
+    short = min(min(ds.cameras[c].width, ds.cameras[c].height) for c in cams)
+    if args.levels is not None:
+        most = max_levels(short)
+        check_count(args.levels, "levels", 1, most, f"the coarsest level of a {short}-px side "
+                    f"must keep {MIN_LEVEL_SIDE} px")  # fmt: skip
+    n_points = getattr(ds.robot, "n_points", None)
+    if args.basis is not None and n_points:
+        # more Chebyshev coefficients than centreline samples are not determined by them
+        check_count(args.basis, "basis", 1, int(n_points), f"the robot has {n_points} "
+                    "centreline samples")  # fmt: skip
+    pixels = sum(ds.cameras[c].width * ds.cameras[c].height for c in cams)
+    most = max(1, MEMORY_BUDGET // (SEGMENT_BYTES_PER_PIXEL * pixels))
+    check_count(args.batch_size, "batch-size", 1, most, f"{SEGMENT_BYTES_PER_PIXEL} bytes per "
+                f"pixel of {len(cams)} view(s) within {MEMORY_BUDGET >> 30} GiB")  # fmt: skip
+
+
 def run(args) -> int:
     ds = load(args.dataset)
     if not ds.frames and not ds.bad_frames:  # else a DONE run of 0/0 frames, exit 0
@@ -482,8 +512,7 @@ def run(args) -> int:
             field="frames",
         )
     cams = select_cameras(ds, args.camera)
-    if args.batch_size < 1:
-        raise InputError("--batch-size must be >= 1", field="batch-size")
+    _check_limits(args, ds, cams)
     if args.limit is not None and args.limit < 0:
         raise InputError("--limit must be >= 0", field="limit")
     if args.retry_failed:

@@ -408,9 +408,10 @@ def _parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise InputError(f"bad size {text!r}, expected WxH", field="--size") from None
+    from jaxcr.limits import check_size as check_limits
     from jaxcr.synth.stereo_ctr import check_size
 
-    return check_size((w, h), field="--size")
+    return check_limits(*check_size((w, h), field="--size"), "--size", "stereo synth")
 
 
 def _claim(out: str, command: str, recognise=None) -> None:
@@ -429,10 +430,10 @@ def failure_line(rec: dict) -> str:
 
 def run(args) -> int:
     if args.dataset == "synth":
+        from jaxcr.limits import check_frames
         from jaxcr.synth.stereo_ctr import generate_stereo_set
 
-        if args.frames < 1:
-            raise InputError("--frames must be >= 1", field="--frames")
+        check_frames(args.frames, "--frames")
         size = _parse_size(args.size)
         _claim(args.out, "stereo synth")
         path = generate_stereo_set(args.out, args.frames, args.seed, size,
@@ -442,10 +443,16 @@ def run(args) -> int:
     ds = load_stereo_dataset(args.dataset)
     ds["config"].segmentation = args.segmentation
     if args.tolerance is not None:
+        from jaxcr.limits import check_number
+
+        lo, hi = (check_number(v, "--tolerance", 0.0, 1.0) for v in args.tolerance)
+        if not lo < hi:
+            raise InputError(f"needs LO < HI, got {lo:g} {hi:g}", field="--tolerance")
         ds["config"].tol_lo, ds["config"].tol_hi = args.tolerance
     if args.segments is not None:
-        if args.segments < 1:
-            raise InputError("--segments must be >= 1", field="--segments")
+        from jaxcr.limits import MAX_SEGMENTS, check_count
+
+        check_count(args.segments, "--segments", 1, MAX_SEGMENTS)
         ds["config"].n_segments = args.segments
     if args.segmentation != "chroma" and ds["plates"] is None:
         raise InputError(

@@ -143,8 +143,10 @@ def run(args) -> int:
     if not names:
         raise InputError("give --preset NAME (repeatable) or --all", field="preset")
     size = None if args.size is None else parse_size(args.size)
-    if args.frames is not None and args.frames < 1:
-        raise InputError(f"need at least one frame, got {args.frames}", field="frames")
+    from jaxcr.limits import MAX_PIXELS, check_count, check_frames
+
+    if args.frames is not None:
+        check_frames(args.frames, "frames")
     if args.model_error is not None and not 0 <= args.model_error < math.inf:
         raise InputError(
             f"model-error scale must be finite and >= 0, got {args.model_error}",
@@ -157,6 +159,13 @@ def run(args) -> int:
         n_cameras = n_cameras or 2
     if n_cameras is not None and n_cameras < 1:
         raise InputError(f"need at least one camera, got {n_cameras}", field="cameras")
+    if n_cameras is not None:
+        # the views of one frame are rendered, stored and segmented together: together they
+        # count against the renderer's pixel ceiling (jaxcr.limits)
+        w, h = size or (640, 480)
+        most = max(1, MAX_PIXELS["synth"] // (w * h))
+        check_count(n_cameras, "cameras", 1, most, f"{most} views of {w}x{h} fit the "
+                    f"{MAX_PIXELS['synth']}-pixel ceiling of one frame")  # fmt: skip
     robot = None
     if args.robot is not None:
         from jaxcr.kinematics.robots import load_robot, robot_to_dict

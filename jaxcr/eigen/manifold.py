@@ -96,8 +96,18 @@ def build_manifold(
     psi = np.asarray(psi, np.float64)
     d = psi.shape[1]
     step = np.broadcast_to(np.asarray(step, np.float64), (d,))
-    if np.any(step <= 0):
-        raise InputError("resampling step must be > 0", field="step")
+    if not np.all(np.isfinite(step) & (step > 0)):
+        raise InputError(f"resampling step must be a finite number > 0, got {step}", field="step")
+    from jaxcr.limits import MAX_MANIFOLD_POINTS
+
+    # the grid over the training parameters' box, before any spline work (jaxcr.limits)
+    n_grid = float(np.prod(np.floor(np.ptp(psi, axis=0) / step) + 1))
+    if n_grid > MAX_MANIFOLD_POINTS:
+        raise InputError(
+            f"step {step.tolist()} makes a grid of {n_grid:.3g} points over the training "
+            f"parameters, over the limit of {MAX_MANIFOLD_POINTS}",
+            field="step",
+        )
     spline = fit_tps(jnp.asarray(psi, jnp.float32), jnp.asarray(features, jnp.float32), smoothing)
     if max_gap is None:
         nn = _nearest_other(psi)

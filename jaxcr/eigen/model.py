@@ -61,8 +61,11 @@ class TrainConfig:
             raise InputError(f"params must be one of {sorted(PARAM_KINDS)}", field="params")
         if self.b < 1:
             raise InputError(f"b must be >= 1, got {self.b}", field="b")
-        if self.smoothing < 0:
-            raise InputError("smoothing must be >= 0", field="smoothing")
+        if not 0 <= self.smoothing < float("inf"):  # NaN was accepted
+            raise InputError(f"smoothing must be finite and >= 0, got {self.smoothing}",
+                             field="smoothing")  # fmt: skip
+        if self.step is not None and not 0 < self.step < float("inf"):
+            raise InputError(f"step must be finite and > 0, got {self.step}", field="step")
         if self.centre not in CENTRES:
             raise InputError(
                 f"centre must be one of {CENTRES}, got {self.centre!r}", field="centre"

@@ -8,7 +8,7 @@ Contours do not depend on the bin count, so they are extracted once
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import jax.numpy as jnp
 import numpy as np
@@ -24,6 +24,8 @@ class StereoContours:
 
     ids: list[str]
     views: tuple[Contours, Contours]
+    #: frames left out because an image could not be read: {frame id: one-line reason}
+    unreadable: dict[str, str] = field(default_factory=dict)
 
     @property
     def ok(self) -> np.ndarray:
@@ -54,22 +56,53 @@ def dataset_contours(
     progress: bool = True,
     frames=None,
 ) -> StereoContours:
-    """Contours of every frame (or the given ``frames``) of a loaded dataset, both views."""
+    """Contours of every frame (or the given ``frames``) of a loaded dataset, both views.
+
+    A frame whose image cannot be read (missing, corrupt, wrong size) is left out and listed
+    in ``unreadable`` with the one-line reason naming the file: one bad frame never fails the
+    batch."""
     check_cameras(dataset, cameras)
     frames = list(dataset.frames if frames is None else frames)
     parts: dict[str, list[Contours]] = {c: [] for c in cameras}
+    ids: list[str] = []
+    unreadable: dict[str, str] = {}
+    shapes: dict[str, tuple] = {}  # per camera, of the first frame read
     rng = range(0, len(frames), batch)
     if progress:
         from jaxcr.progress import progress as progress_bar
 
         rng = progress_bar(rng, desc=f"contours {dataset.name}", unit="batch", leave=False)
     for i in rng:
-        chunk = frames[i : i + batch]
+        imgs: dict[str, list[np.ndarray]] = {c: [] for c in cameras}
+        for f in frames[i : i + batch]:
+            try:
+                views = {c: f.load_image(c) for c in cameras}
+                for c, v in views.items():
+                    first = shapes.setdefault(c, v.shape)
+                    if v.shape != first:
+                        raise InputError(
+                            f"image is {v.shape[1]}x{v.shape[0]}, the dataset's first frame "
+                            f"{first[1]}x{first[0]}",
+                            file=str(f.images.get(c)),
+                            frame=f.id,
+                            field=f"images.{c}",
+                        )
+            except InputError as err:
+                unreadable[f.id] = err.format()
+                continue
+            ids.append(f.id)
+            for c in cameras:
+                imgs[c].append(views[c])
+        if not imgs[cameras[0]]:
+            continue
         for cam in cameras:
-            imgs = np.stack([f.load_image(cam) for f in chunk])
-            parts[cam].append(mask_contours(label_images(colour, imgs), spacing))
+            parts[cam].append(mask_contours(label_images(colour, np.stack(imgs[cam])), spacing))
+    if not ids and unreadable:
+        first = next(iter(unreadable.values()))
+        raise InputError(f"no frame of the dataset could be read ({first})",
+                         file=str(dataset.root))  # fmt: skip
     views = tuple(Contours.concat(parts[c]) for c in cameras)
-    return StereoContours([f.id for f in frames], views)  # type: ignore[arg-type]
+    return StereoContours(ids, views, unreadable)  # type: ignore[arg-type]
 
 
 def view_centres(sc: StereoContours) -> np.ndarray:

@@ -49,8 +49,12 @@ def arm_from_dict(d: dict, file: str | None = None) -> ArmModel:
         raise InputError(
             f"arm needs base_height and 3 links ({err})", file=file, field="arm"
         ) from None
-    if len(links) != 3 or min(links) <= 0 or not np.all(np.isfinite(links + [h])):
+    # lengths beyond float32's range would be inf in the core
+    big = float(np.finfo(np.float32).max)
+    if len(links) != 3 or min(links) <= 0 or not np.all(np.abs(links) <= big):
         raise InputError("arm.links must be 3 positive lengths", file=file, field="arm.links")
+    if not abs(h) <= big:
+        raise InputError(f"must be a finite length, got {h}", file=file, field="arm.base_height")
     return ArmModel(h, *links)
 
 

@@ -121,7 +121,11 @@ def _read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
 
 
-def _matrix(v, shape, file, field) -> np.ndarray:
+def _matrix(v, shape, file, field, max_abs: float | None = None, frame=None) -> np.ndarray:
+    """A finite float64 array of ``shape`` whose values fit float32 (the core's precision), at
+    most ``max_abs`` in magnitude when given (jaxcr.limits)."""
+    from jaxcr.limits import FLOAT32_MAX, check_finite_float32
+
     try:
         a = np.asarray(v, np.float64)
     except (TypeError, ValueError):
@@ -132,11 +136,13 @@ def _matrix(v, shape, file, field) -> np.ndarray:
         raise InputError(
             f"must be a finite {'x'.join(map(str, shape))} array", file=file, field=field
         )
-    return a
+    return check_finite_float32(a, file, field, frame=frame, max_abs=max_abs or FLOAT32_MAX)
 
 
 def load_motion_dataset(path: str | os.PathLike) -> MotionDataset:
     """Load ``path`` (the folder or its motion.json)."""
+    from jaxcr.limits import MAX_ANGLE
+
     path = Path(path)
     meta_path = path / "motion.json" if path.is_dir() else path
     root = meta_path.parent
@@ -159,7 +165,7 @@ def load_motion_dataset(path: str | os.PathLike) -> MotionDataset:
     for i, fr in enumerate(frames):
         if not isinstance(fr, dict):
             raise InputError("frame entry must be an object", file=f, frame=i, field="frames")
-        xs.append(_matrix(fr.get("x"), (5,), f, f"frames[{i}].x"))
+        xs.append(_matrix(fr.get("x"), (5,), f, f"frames[{i}].x", max_abs=MAX_ANGLE, frame=i))
         t = fr.get("touch", False)
         if not isinstance(t, bool):
             raise InputError("touch must be true or false", file=f, frame=i, field="touch")

@@ -183,19 +183,12 @@ def instrument_for_frame(
     )
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    """``"640x480"`` -> (640, 480); raises :class:`InputError` on anything else."""
-    try:
-        w, h = (int(x) for x in str(text).lower().split("x"))
-    except ValueError:
-        raise InputError(
-            f"expected WIDTHxHEIGHT, e.g. 640x480, got {text!r}", field="size"
-        ) from None
-    if w < 16 or h < 16 or w > 8192 or h > 8192:
-        raise InputError(
-            f"image size must be between 16 and 8192 pixels, got {w}x{h}", field="size"
-        )
-    return w, h
+def parse_size(text: str, kind: str = "synth") -> tuple[int, int]:
+    """``"640x480"`` -> (640, 480) within the limits of renderer ``kind`` (a key of
+    :data:`jaxcr.limits.MAX_PIXELS`); raises :class:`InputError` on anything else."""
+    from jaxcr.limits import parse_size as parse_limited
+
+    return parse_limited(text, "size", kind)
 
 
 def generate(

@@ -335,6 +335,12 @@ def _check_scene(cfg: dict, file: str) -> None:
         )
     for key in ("width", "height"):
         _num(cam, key, file, f"camera.{key}", positive=True, integer=True)
+    from jaxcr.limits import check_size
+
+    try:  # the simulator renders every view at this size
+        check_size(cam["width"], cam["height"], "camera.width", "model-object", (32, 24))
+    except InputError as err:
+        raise InputError(err.message, file=file, field="camera.width") from None
     arm = obj("arm")
     _num(arm, "n_sections", file, "arm.n_sections", positive=True, integer=True)
     for key in ("max_length", "radius", "max_kappa"):
@@ -392,6 +398,11 @@ class RgbdSimulator:
             raise InputError(
                 f"expected an (n, 3) point cloud, got shape {self.obstacles.shape}", file=str(obs)
             )
+        from jaxcr.limits import check_finite_float32
+
+        # a NaN/inf point is no obstacle the planner can avoid (an all-NaN cloud planned
+        # through everything): refused, with the count
+        check_finite_float32(self.obstacles, str(obs), "points")
         self.rng = np.random.default_rng(seed)
         yaw = float(self.cfg["object"].get("yaw", 0.0))
         c, s = np.cos(yaw), np.sin(yaw)
