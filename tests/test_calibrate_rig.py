@@ -233,7 +233,10 @@ def test_cli_refuses_one_board_pose_and_accepts_the_constrained_fit(tmp_path, ca
         # over 3 sigma
         assert K[0, 0] == pytest.approx(300.0, rel=0.03)
     fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
-    assert fs.getNode("calibrate_flags").string() == "fix_principal_point,fix_aspect_ratio,no_distortion"
+    assert (
+        fs.getNode("calibrate_flags").string()
+        == "fix_principal_point,fix_aspect_ratio,no_distortion"
+    )
     assert fs.getNode("per_view_rms_1").mat().shape == (1, 3)
     fs.release()
 

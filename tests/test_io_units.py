@@ -145,8 +145,15 @@ def _stereo_json(root, calib_unit, json_unit, **extra):
     meta = {
         "format": "jaxcr.stereo/1",
         "calibration": "stereo.yaml",
-        "markers": {"centres": {"2": [0, 0], "3": [0.06 * s, 0], "0": [0, 0.06 * s],
-                                "1": [0.06 * s, 0.06 * s]}, "size": 0.024 * s},  # fmt: skip
+        "markers": {
+            "centres": {
+                "2": [0, 0],
+                "3": [0.06 * s, 0],
+                "0": [0, 0.06 * s],
+                "1": [0.06 * s, 0.06 * s],
+            },
+            "size": 0.024 * s,
+        },  # fmt: skip
         "robot_base": [0.03 * s, 0.01 * s, 0.0],
         "frames": [{"id": "000", "images": {"cam1": "a.png", "cam2": "b.png"}}],
         "unit": json_unit,
@@ -200,8 +207,12 @@ def test_unrelated_key_lists_the_known_keys_and_informational_keys_pass(tmp_path
 def test_dataset_and_stereo_json_misspellings(tmp_path):
     entry = {"K": K_SMALL, "size": [32, 24]}
     errs = check_dataset(
-        _tiny_dataset(tmp_path / "a", {**entry, "units": "mm"}, extra_top={"camras": {}},
-                      frame_extra={"mask": {}})  # fmt: skip
+        _tiny_dataset(
+            tmp_path / "a",
+            {**entry, "units": "mm"},
+            extra_top={"camras": {}},
+            frame_extra={"mask": {}},
+        )  # fmt: skip
     ).all_errors
     text = [e.format() for e in errs]
     assert any("field 'camras': unknown key (did you mean 'cameras'?)" in t for t in text), text

@@ -33,13 +33,16 @@ cv2.calibrateCamera; the stereo step keeps the intrinsics fixed):
 On a rig with one or two board poses, --fix-principal-point --fix-aspect-ratio
 --no-distortion (one focal length per camera) is the fit the views can carry.
 
-Are the intrinsics determined? After each camera's fit, the predicted 1-sigma of every
-fitted intrinsic is computed from the fit's Jacobian (cv2.projectPoints), marginalised over
-the board poses, at the detection noise the fit shows (never below 0.1 px). The calibration
-is refused (exit 1, nothing written, with the reason and what to do) when a focal length's
-1-sigma exceeds --max-std of itself, or the principal point's exceeds --max-std of the
-image's larger side (a single board pose with free fx, fy, cx, cy; boards all facing the
-camera, which leave the focal length free). It warns (WARNING lines, exit 0) above a fifth
+Are the intrinsics determined? Each board orientation gives two constraints on the
+pinhole intrinsics (Zhang 2000), so free fx, fy, cx, cy (or f, cx, cy) need the board in at
+least 2 distinct orientations (normals > 5 deg apart), fx, fy or f alone 1. And after each
+camera's fit, the predicted 1-sigma of every fitted intrinsic is computed from the fit's
+Jacobian (cv2.projectPoints), marginalised over the board poses, at the detection noise the
+fit shows (never below 0.1 px). The calibration is refused (exit 1, nothing written, with
+the reason and what to do) when the orientations are too few, a focal length's 1-sigma
+exceeds --max-std of itself, or the principal point's exceeds --max-std of the image's
+larger side (a single board pose with free fx, fy, cx, cy; boards all facing the camera,
+which leave the focal length free). It warns (WARNING lines, exit 0) above a fifth
 of those limits, and when a ray's pixel at the image corners is uncertain by more than a
 fifth of --max-std of the half-diagonal (distortion extrapolated outside the board's
 coverage). The output lists per pair the RMS reprojection error of each camera and of the
@@ -83,40 +86,77 @@ def add_parser(subparsers) -> None:
     p.add_argument("right", help="folder or glob of camera-2 images")
     p.add_argument("-o", "--out", required=True, help="output .yaml/.yml/.xml/.json")
     p.add_argument("--pattern", choices=["chessboard", "circles", "acircles"], default="chessboard")
-    p.add_argument("--cols", type=int, required=True,
-                   help="inner corners per row (chessboard), circles per row (circle grids)")
-    p.add_argument("--rows", type=int, required=True,
-                   help="inner corners per column (chessboard), rows of circles (circle grids)")
+    p.add_argument(
+        "--cols",
+        type=int,
+        required=True,
+        help="inner corners per row (chessboard), circles per row (circle grids)",
+    )
+    p.add_argument(
+        "--rows",
+        type=int,
+        required=True,
+        help="inner corners per column (chessboard), rows of circles (circle grids)",
+    )
     sp = p.add_mutually_exclusive_group(required=True)
-    sp.add_argument("--pitch", type=float, default=None,
-                    help="metres between neighbouring corners / circle centres; for acircles "
-                         "between neighbours in one row (see Spacing below)")
-    sp.add_argument("--square", type=float, default=None,
-                    help="OpenCV's spacing in metres: the pitch, but HALF the row pitch for "
-                         "acircles")
-    p.add_argument("--fix-principal-point", action="store_true",
-                   help="CALIB_FIX_PRINCIPAL_POINT: keep cx, cy at the image centre")
-    p.add_argument("--fix-aspect-ratio", action="store_true",
-                   help="CALIB_FIX_ASPECT_RATIO: fit one focal length (fx = fy)")
-    p.add_argument("--zero-tangent-dist", action="store_true",
-                   help="CALIB_ZERO_TANGENT_DIST: p1 = p2 = 0")
+    sp.add_argument(
+        "--pitch",
+        type=float,
+        default=None,
+        help="metres between neighbouring corners / circle centres; for acircles "
+        "between neighbours in one row (see Spacing below)",
+    )
+    sp.add_argument(
+        "--square",
+        type=float,
+        default=None,
+        help="OpenCV's spacing in metres: the pitch, but HALF the row pitch for acircles",
+    )
+    p.add_argument(
+        "--fix-principal-point",
+        action="store_true",
+        help="CALIB_FIX_PRINCIPAL_POINT: keep cx, cy at the image centre",
+    )
+    p.add_argument(
+        "--fix-aspect-ratio",
+        action="store_true",
+        help="CALIB_FIX_ASPECT_RATIO: fit one focal length (fx = fy)",
+    )
+    p.add_argument(
+        "--zero-tangent-dist", action="store_true", help="CALIB_ZERO_TANGENT_DIST: p1 = p2 = 0"
+    )
     for k in (1, 2, 3):
-        p.add_argument(f"--fix-k{k}", action="store_true",
-                       help=f"CALIB_FIX_K{k}: k{k} = 0")
-    p.add_argument("--no-distortion", action="store_true",
-                   help="no lens distortion: all five coefficients 0")
-    p.add_argument("--max-std", type=float, default=MAX_STD,
-                   help="refuse (exit 1) when a fitted focal length's predicted 1-sigma exceeds "
-                        "this fraction of itself, or the principal point's this fraction of "
-                        "the image's larger side (default %(default)s); warn above a fifth")
-    p.add_argument("--max-rms", type=float, default=2.0,
-                   help="fail (exit 1) when the stereo RMS exceeds this (px, default %(default)s)")
-    p.add_argument("--plate-left", default=None,
-                   help="camera-1 background plate (scene without the robot), see below")
+        p.add_argument(f"--fix-k{k}", action="store_true", help=f"CALIB_FIX_K{k}: k{k} = 0")
+    p.add_argument(
+        "--no-distortion", action="store_true", help="no lens distortion: all five coefficients 0"
+    )
+    p.add_argument(
+        "--max-std",
+        type=float,
+        default=MAX_STD,
+        help="refuse (exit 1) when a fitted focal length's predicted 1-sigma exceeds "
+        "this fraction of itself, or the principal point's this fraction of "
+        "the image's larger side (default %(default)s); warn above a fifth",
+    )
+    p.add_argument(
+        "--max-rms",
+        type=float,
+        default=2.0,
+        help="fail (exit 1) when the stereo RMS exceeds this (px, default %(default)s)",
+    )
+    p.add_argument(
+        "--plate-left",
+        default=None,
+        help="camera-1 background plate (scene without the robot), see below",
+    )
     p.add_argument("--plate-right", default=None, help="camera-2 background plate")
-    p.add_argument("--plate-threshold", type=float, default=40.0,
-                   help="grey levels (0-255) by which a robot pixel differs from the plate "
-                        "(default %(default)s)")
+    p.add_argument(
+        "--plate-threshold",
+        type=float,
+        default=40.0,
+        help="grey levels (0-255) by which a robot pixel differs from the plate "
+        "(default %(default)s)",
+    )
     p.set_defaults(func=run)
 
 
@@ -330,7 +370,10 @@ def calibrate_camera(
         rows.append(Jrow)
     J = np.concatenate(rows)
     dof = J.shape[0] - J.shape[1]
-    sigma = max(float(rms) * np.sqrt(J.shape[0] / dof) if dof > 0 else 0.0, SIGMA_FLOOR_PX)
+    # OpenCV's rms is per point (2-D residual norm), so per coordinate it is rms / sqrt(2);
+    # sqrt(rows / dof) undoes the fit's absorption of the noise (unbiased variance)
+    rms_coord = float(rms) / np.sqrt(2.0)
+    sigma = max(rms_coord * np.sqrt(J.shape[0] / dof) if dof > 0 else 0.0, SIGMA_FLOOR_PX)
     cov, free = _marginal_std(J, p, sigma)
     std = {name: (np.inf if free[j] else float(np.sqrt(max(cov[j, j], 0.0))))
            for j, name in enumerate(constraints.fitted())}  # fmt: skip
@@ -405,9 +448,11 @@ WEAK_FRACTION = 0.2  # warn when an uncertainty exceeds this fraction of its ref
 def identifiability_problems(
     cal: CameraCalibration, max_std: float = MAX_STD
 ) -> tuple[list[str], list[str]]:
-    """``(refusals, warnings)``, each a list of short sentences. Refused: a focal length whose
-    predicted 1-sigma exceeds ``max_std`` of itself, or a principal point whose 1-sigma
-    exceeds ``max_std`` of the image's larger side. Warned: those above ``WEAK_FRACTION``
+    """``(refusals, warnings)``, each a list of short sentences. Refused: fewer distinct
+    board orientations than the fitted pinhole intrinsics need (two constraints each: two
+    for fx, fy, cx, cy or f, cx, cy; one for fx, fy or f), a focal length whose predicted
+    1-sigma exceeds ``max_std`` of itself, or a principal point whose 1-sigma exceeds
+    ``max_std`` of the image's larger side. Warned: those above ``WEAK_FRACTION``
     of their limit, and a fixed ray's pixel at the image corners uncertain by more than
     ``WEAK_FRACTION * max_std`` of the half-diagonal (distortion extrapolated beyond the
     board's coverage: a warning, since the fitted region itself may be fine)."""
@@ -422,6 +467,22 @@ def identifiability_problems(
             val = cal.K[0, 2] if name == "cx" else cal.K[1, 2]
             checks.append((sd / max(w, h), f"{name} = {val:.1f} +- {sd:.3g} px"))
     refuse = [t for r, t in checks if not r <= max_std]
+    # Linear identifiability (Zhang 2000, sec. 3.3): each board orientation gives two
+    # constraints on the pinhole intrinsics, so fx, fy, cx, cy need two distinct orientations
+    # (one f with a free principal point too). Views short of that are refused even when the
+    # fit's curvature looks sharp: what then pins the intrinsics is the perspective within one
+    # board, a weak and noise-dependent constraint (one tilted pose seen 3 times gave fy 10 %
+    # off with a 3.5 % sigma).
+    c = cal.constraints
+    pinhole = (1 if c.fix_aspect_ratio else 2) + (0 if c.fix_principal_point else 2)
+    need = -(-pinhole // 2)
+    if cal.orientations < need:
+        names = ("f" if c.fix_aspect_ratio else "fx, fy") + (
+            "" if c.fix_principal_point else ", cx, cy"
+        )
+        refuse.insert(0, f"{names} need the board in at least {need} distinct orientations "
+                      f"(normals > {SAME_ORIENTATION_DEG:g} deg apart), these views have "
+                      f"{cal.orientations}")  # fmt: skip
     warn = [t for r, t in checks if r <= max_std and not r <= WEAK_FRACTION * max_std]
     if not cal.ray_std_px / (0.5 * np.hypot(w, h)) <= WEAK_FRACTION * max_std:
         warn.append(f"a ray's pixel is uncertain by +- {cal.ray_std_px:.3g} px at the image "
@@ -634,8 +695,7 @@ def run(args) -> int:
     lf, rf = _list_images(args.left), _list_images(args.right)
     if [os.path.realpath(f) for f in lf] == [os.path.realpath(f) for f in rf]:
         raise InputError(
-            "LEFT and RIGHT are the same images; a stereo calibration needs one folder per "
-            "camera",
+            "LEFT and RIGHT are the same images; a stereo calibration needs one folder per camera",
             file=args.right,
         )
     if len(lf) != len(rf):

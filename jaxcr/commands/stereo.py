@@ -179,8 +179,9 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
             layout.size * scale,
             layout.dictionary,
         )
-        check_length(layout.size, "marker size", scale, file, "markers.size", lo=1e-3, hi=1.0,
-                     typical=0.02)
+        check_length(
+            layout.size, "marker size", scale, file, "markers.size", lo=1e-3, hi=1.0, typical=0.02
+        )
         for k, c in layout.centres.items():
             check_length(float(np.hypot(*c)), "marker centre distance", scale, file,
                          f"markers.centres.{k}")  # fmt: skip

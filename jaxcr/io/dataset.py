@@ -44,7 +44,7 @@ def _unknown_key_message(key: str, known) -> str:
     if key in ("unit", "units"):
         return (
             "unknown key: dataset.json has no file-wide unit (robot, q and truth are SI); "
-            "give \"unit\" inside each camera entry (cameras.<name>.unit)"
+            'give "unit" inside each camera entry (cameras.<name>.unit)'
         )
     near = nearest_key(key, sorted(known))
     return f"unknown key (did you mean {near!r}?)" if near else "unknown key (typo?)"
