@@ -730,9 +730,13 @@ def run(args) -> int:
     except ValueError as err:
         print(f"jaxcr calibrate: {err}")
         return 1
-    _print_report(res, lf, rf)
+    # (a result dict without the per-camera fits, e.g. from a caller's own calibrate_stereo,
+    # is written after the remaining checks)
+    has_fits = "cal1" in res and "cal2" in res
+    if has_fits:
+        _print_report(res, lf, rf)
     refused = False
-    for i in (1, 2):
+    for i in (1, 2) if has_fits else ():
         cal = res[f"cal{i}"]
         bad, weak = identifiability_problems(cal, args.max_std)
         for w in weak:
