@@ -315,3 +315,50 @@ def test_same_images_for_both_cameras_are_refused(tmp_path, capsys):
     shutil.copytree(tmp_path / "L", tmp_path / "L2")
     assert main(["calibrate", L, str(tmp_path / "L2"), *opts]) == 1 and not out.exists()
     assert "LEFT and RIGHT look like one camera" in capsys.readouterr().out
+
+
+def _acircles_image(cols, rows, px):
+    """An asymmetric circle grid, OpenCV layout, ``px`` board pixels per half-pitch; circle
+    (c, r) at ((2c + r % 2), r) half-pitches from the first circle, 2 half-pitches margin."""
+    w, h = (2 * (cols - 1) + 1 + 4) * px, (rows - 1 + 4) * px
+    img = np.full((h, w), 255, np.uint8)
+    for x, y, _ in board_points("acircles", cols, rows, 1.0):
+        centre = (round((x + 2) * px * 16), round((y + 2) * px * 16))  # 4 fractional bits
+        cv2.circle(img, centre, round(0.35 * px * 16), 0, -1, lineType=cv2.LINE_AA, shift=4)
+    return img
+
+
+def test_acircles_worked_example_pitch_vs_square(tmp_path, capsys):
+    """The --help example at a small scale: circles 16 mm apart along a row (half-pitch 8 mm)
+    are --pitch 0.016 or --square 0.008, and both give the true baseline; the row pitch
+    passed as --square doubles it."""
+    cols, rows, half, px = 4, 11, 0.008, 10
+    board = _acircles_image(cols, rows, px)
+    S = np.array([[half / px, 0, -2 * half], [0, half / px, -2 * half], [0, 0, 1]])
+    (tmp_path / "L").mkdir()
+    (tmp_path / "R").mkdir()
+    for k, (r, t) in enumerate(_poses(6, seed=3, tilt_sd=0.3)):
+        t = t * np.array([0.5, 1.0, 0.75])  # the grid is smaller than the chessboard
+        Rb = cv2.Rodrigues(r)[0]
+        for side, (R, tt) in (("L", (Rb, t)), ("R", (R21 @ Rb, R21 @ t + T21))):
+            H = K_R @ np.c_[R[:, :2], tt] @ S
+            img = cv2.warpPerspective(board, H, SIZE, flags=cv2.INTER_AREA, borderValue=160)
+            cv2.imwrite(str(tmp_path / side / f"{k:02d}.png"), img)
+    base = ["calibrate", str(tmp_path / "L"), str(tmp_path / "R"), "--pattern", "acircles",
+            "--cols", str(cols), "--rows", str(rows), "--fix-principal-point",
+            "--fix-aspect-ratio", "--no-distortion"]  # fmt: skip
+    baselines = {}
+    for name, spacing in (("pitch", ["--pitch", "0.016"]), ("square", ["--square", "0.008"]),
+                          ("wrong", ["--square", "0.016"])):  # fmt: skip
+        out = tmp_path / f"{name}.yaml"
+        assert main([*base, "-o", str(out), *spacing]) == 0, capsys.readouterr().out
+        c1, c2 = load_stereo(out)
+        T = np.asarray(c2.T_cam_robot, np.float64) @ np.linalg.inv(np.asarray(c1.T_cam_robot))
+        baselines[name] = np.linalg.norm(T[:3, 3])
+    # identical inputs: identical fits (float32 storage of the cameras: 1e-6 relative)
+    assert baselines["pitch"] == pytest.approx(baselines["square"], rel=1e-6)
+    # the truth to 2 %: f is fitted from ~4 orientations at ~0.1 px (sigma ~0.5 %), and |T|
+    # scales with the fitted depths
+    assert baselines["pitch"] == pytest.approx(np.linalg.norm(T21), rel=0.02)
+    # scaling every board point by 2 scales the whole rig by 2 (same LM path, to 1e-4)
+    assert baselines["wrong"] == pytest.approx(2 * baselines["pitch"], rel=1e-4)
