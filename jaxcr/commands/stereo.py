@@ -12,7 +12,13 @@ DATASET is a folder with ``stereo.json`` (format ``jaxcr.stereo/1``)::
      "robot_base": [x, y, z],                       # optional, base frame (m)
      "background": {"key": "green"} | {"key_rgb": [r, g, b]},
      "background_plates": {"cam1": "background/cam1.png", ...},   # optional
-     "frames": [{"id": "000", "images": {"cam1": "...png", "cam2": "...png"}}, ...]}
+     "frames": [{"id": "000", "images": {"cam1": "...png", "cam2": "...png"}}, ...],
+     "unit": "m"}                                   # optional: "m", "cm" or "mm"
+
+``unit`` (default ``"m"``) is the unit of the lengths in stereo.json (marker centres and size,
+``robot_base``); they are converted to metres. The calibration file has its own ``unit``. An
+unknown top-level key is refused with the nearest known key, and implausible lengths (marker
+size outside 1 mm..1 m, positions over 5 m) are refused with a suggested unit.
 
 The calibration is an OpenCV FileStorage stereo file as ``cv2.stereoCalibrate`` users
 save it (``K1 D1 K2 D2 R T [E F]``, image sizes; read by :mod:`jaxcr.io.calibration`).
@@ -48,6 +54,9 @@ from jaxcr.errors import InputError
 from jaxcr.io.jsonfile import read_json
 
 FORMAT = "jaxcr.stereo/1"
+# "base" is the marker-free base of issue 16 item 1 (read by its own code where present)
+STEREO_JSON_KEYS = ("format", "calibration", "cameras", "markers", "robot_base", "base",
+                    "background", "background_plates", "frames", "meta", "unit")  # fmt: skip
 TABLE_FIELDS = [
     "frame", "segment", "s_start_mm", "s_end_mm", "length_mm", "diameter_mm",
     "phi_xy_deg", "phi_zx_deg", "phi_yz_deg", "curvature_1pm", "arc_length_fit_mm",
@@ -139,6 +148,10 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
         )
     if not isinstance(meta.get("calibration"), str):
         raise InputError("missing required key (a path string)", file=file, field="calibration")
+    from jaxcr.io.units import check_known_keys, check_length, unit_scale
+
+    check_known_keys(meta, STEREO_JSON_KEYS, file)
+    scale = unit_scale(meta, file)
     cam1, cam2 = load_stereo(root / meta["calibration"])
     names = meta.get("cameras", ["cam1", "cam2"])
     if (
@@ -156,6 +169,22 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
             file=file,
             field="markers",
         ) from None
+    if "markers" in meta:
+        if not all(np.isfinite(v) for c in layout.centres.values() for v in c) or not np.isfinite(
+            layout.size
+        ):
+            raise InputError("marker layout has NaN or infinite values", file=file, field="markers")
+        layout = MarkerLayout(
+            {k: (c[0] * scale, c[1] * scale) for k, c in layout.centres.items()},
+            layout.size * scale,
+            layout.dictionary,
+        )
+        check_length(
+            layout.size, "marker size", scale, file, "markers.size", lo=1e-3, hi=1.0, typical=0.02
+        )
+        for k, c in layout.centres.items():
+            check_length(float(np.hypot(*c)), "marker centre distance", scale, file,
+                         f"markers.centres.{k}")  # fmt: skip
     bg = meta.get("background", {})
     if not isinstance(bg, dict):
         raise InputError("expected an object", file=file, field="background")
@@ -168,7 +197,9 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
         key = KEY_COLOURS[name]
     cfg = StereoConfig(layout=layout, key_rgb=key)
     if meta.get("robot_base") is not None:
-        cfg.robot_base = _finite_tuple(meta["robot_base"], 3, file, "robot_base")
+        base = tuple(v * scale for v in _finite_tuple(meta["robot_base"], 3, file, "robot_base"))
+        check_length(float(np.linalg.norm(base)), "robot_base distance", scale, file, "robot_base")
+        cfg.robot_base = base
     sizes = {names[0]: (cam1.width, cam1.height), names[1]: (cam2.width, cam2.height)}
     plates = None
     if meta.get("background_plates"):

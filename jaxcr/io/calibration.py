@@ -13,9 +13,15 @@ key                        meaning
 ``image_height``
 ``T_cam_robot``            optional 4x4, maps robot-frame points (metres) to the camera
                            frame; identity if absent
-``unit``                   optional, ``"m"`` (default) or ``"mm"``: unit of the
-                           translations in this file (converted to metres)
+``unit``                   optional, ``"m"`` (default), ``"cm"`` or ``"mm"``: unit of
+                           the translations in this file (converted to metres)
 =========================  ===============================================================
+
+Any other key is an error naming it and the nearest known key (``units: mm`` is refused with
+"did you mean 'unit'?", never ignored), except the informational keys OpenCV's calibration
+samples and ``jaxcr calibrate`` write, which are accepted and ignored (:data:`INFO_KEYS`).
+Translations must be plausible (:mod:`jaxcr.io.units`): ``T_cam_robot`` within 5 m, a stereo
+baseline ``|T|`` between 1 mm and 5 m; otherwise the error suggests the unit.
 
 Distortion length rule: N must be 4, 5, 8, 12 or 14. N = 4 means ``k3 = 0``. Only the
 five-parameter model ``(k1, k2, p1, p2, k3)`` is implemented, so for N > 5 every entry after
@@ -30,7 +36,8 @@ size ``image_width``/``image_height`` (shared) or ``image_width_1``... per camer
 ``R`` (3x3) and ``T`` (3x1) mapping camera-1 points to camera 2 (``X2 = R X1 + T``, the
 ``cv2.stereoCalibrate`` convention), optional ``E``/``F`` (checked for shape and
 finiteness only), optional ``T_cam_robot`` for camera 1 and ``unit``. Camera 2's extrinsic is
-composed: ``T_cam2_robot = [R | T] @ T_cam1_robot``.
+composed: ``T_cam2_robot = [R | T] @ T_cam1_robot``. ``unit`` applies to ``T`` and
+``T_cam_robot``.
 
 Every problem raises :class:`jaxcr.errors.InputError` naming the file and the field.
 """
@@ -49,10 +56,27 @@ from jaxcr.camera import Camera, camera_from_arrays
 from jaxcr.errors import InputError
 from jaxcr.io.jsonfile import read_json
 from jaxcr.io.results import atomic_write_text
+from jaxcr.io.units import MIN_BASELINE_M, check_known_keys, check_length, unit_scale
 
 _FS_EXT = (".yaml", ".yml", ".xml")
 _DIST_LENGTHS = (4, 5, 8, 12, 14)
-_UNITS = {"m": 1.0, "mm": 1e-3}
+SINGLE_KEYS = ("camera_matrix", "K", "distortion_coefficients", "dist", "image_width",
+               "image_height", "size", "T_cam_robot", "unit")  # fmt: skip
+STEREO_KEYS = ("K1", "D1", "K2", "D2", "M1", "M2", "camera_matrix_1", "camera_matrix_2",
+               "distortion_coefficients_1", "distortion_coefficients_2", "image_width",
+               "image_height", "image_width_1", "image_height_1", "image_width_2",
+               "image_height_2", "R", "T", "E", "F", "T_cam_robot", "unit")  # fmt: skip
+# Written by OpenCV's calibration / stereo_calib samples, cv2.stereoRectify users and
+# jaxcr calibrate; accepted and ignored (they never change the cameras).
+INFO_KEYS = ("calibration_time", "calibration_date", "nframes", "nr_of_frames", "board_width",
+             "board_height", "square_size", "aspect_ratio", "aspectRatio", "flags",
+             "fix_aspect_ratio", "avg_reprojection_error", "per_view_reprojection_errors",
+             "extrinsic_parameters", "image_points", "grid_points", "camera_name",
+             "R1", "R2", "P1", "P2", "Q", "roi1", "roi2", "validRoi1", "validRoi2",
+             "rms", "rms_1", "rms_2", "rms_stereo", "per_view_rms_1", "per_view_rms_2",
+             "per_view_rms_stereo", "calibrate_flags", "tilt_deg_1", "tilt_deg_2",
+             "distance_1", "distance_2", "coverage_1", "coverage_2", "jaxcr_version",
+             "format", "meta")  # fmt: skip
 
 
 # ---------------------------------------------------------------------------- raw reading
@@ -269,7 +293,8 @@ def check_distortion_range(dist, K, width: int, height: int, file=None,
 
 def check_transform(T, file=None, field="T_cam_robot", scale: float = 1.0) -> np.ndarray:
     """Validated 4x4 rigid transform (rotation orthonormal to 1e-4, det +1, last row 0 0 0 1);
-    the translation is multiplied by ``scale`` (unit conversion to metres)."""
+    the translation is multiplied by ``scale`` (unit conversion to metres) and must then be
+    within 5 m (:func:`jaxcr.io.units.check_length`)."""
     T = _matrix(T, lambda s: s == (4, 4), "4x4", file, field)
     R = T[:3, :3]
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
@@ -278,6 +303,7 @@ def check_transform(T, file=None, field="T_cam_robot", scale: float = 1.0) -> np
         raise InputError("rotation part is not a proper rotation matrix", file=file, field=field)
     T = T.copy()
     T[:3, 3] *= scale
+    check_length(float(np.linalg.norm(T[:3, 3])), "translation", scale, file, field)
     return T
 
 
@@ -308,12 +334,7 @@ def _image_size(d, file, prefix: str, suffix: str = "") -> tuple[int, int]:
 
 
 def _unit_scale(d, file, prefix) -> float:
-    unit = d.get("unit", "m")
-    if unit not in _UNITS:
-        raise InputError(
-            f"expected one of {list(_UNITS)}, got {unit!r}", file=file, field=prefix + "unit"
-        )
-    return _UNITS[unit]
+    return unit_scale(d, file, prefix)
 
 
 def camera_from_dict(d: Mapping[str, Any], file: str | None = None, prefix: str = "") -> Camera:
@@ -325,6 +346,13 @@ def camera_from_dict(d: Mapping[str, Any], file: str | None = None, prefix: str 
         raise InputError(
             "expected a mapping of camera fields", file=file, field=prefix.rstrip(".") or None
         )
+    if "K1" in d or "M1" in d:
+        raise InputError(
+            "a stereo calibration (K1/M1 ...), expected a single-camera one (camera_matrix)",
+            file=file,
+            field=prefix.rstrip(".") or None,
+        )
+    check_known_keys(d, SINGLE_KEYS, file, prefix, informational=INFO_KEYS)
     scale = _unit_scale(d, file, prefix)
     kK, K = _get(d, ("camera_matrix", "K"), file, prefix)
     K = check_intrinsics(K, file, prefix + kK)
@@ -349,6 +377,13 @@ def load_stereo(path: str | os.PathLike) -> tuple[Camera, Camera]:
     docstring)."""
     path = os.fspath(path)
     d = read_raw(path)
+    if ("camera_matrix" in d or "K" in d) and not any(k in d for k in ("K1", "M1")):
+        raise InputError(
+            "a single-camera calibration (camera_matrix), expected a stereo one "
+            "(K1 D1 K2 D2 R T, as saved after cv2.stereoCalibrate)",
+            file=path,
+        )
+    check_known_keys(d, STEREO_KEYS, path, informational=INFO_KEYS)
     scale = _unit_scale(d, path, "")
     cams_intr = []
     for i in (1, 2):
@@ -380,6 +415,8 @@ def load_stereo(path: str | os.PathLike) -> tuple[Camera, Camera]:
     T21 = np.eye(4)
     T21[:3, :3] = R
     T21[:3, 3] = t * scale
+    check_length(float(np.linalg.norm(T21[:3, 3])), "stereo baseline |T|", scale, path, "T",
+                 lo=MIN_BASELINE_M)  # fmt: skip
     T2 = T21 @ T1
     (K1, D1, s1), (K2, D2, s2) = cams_intr
     return (camera_from_arrays(K1, D1, T1, *s1), camera_from_arrays(K2, D2, T2, *s2))
@@ -433,6 +470,7 @@ def save_camera(camera: Camera, path: str | os.PathLike) -> None:
         "image_width": int(camera.width),
         "image_height": int(camera.height),
         "T_cam_robot": np.asarray(camera.T_cam_robot, np.float64),
+        "unit": "m",
     }
     if path.lower().endswith(_FS_EXT):
         _write_fs(path, entries)
@@ -472,6 +510,7 @@ def save_stereo(cam1: Camera, cam2: Camera, path: str | os.PathLike) -> None:
         "E": E,
         "F": F,
         "T_cam_robot": T1,
+        "unit": "m",
     }
     if path.lower().endswith(_FS_EXT):
         _write_fs(path, entries)

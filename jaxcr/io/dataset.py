@@ -29,6 +29,7 @@ from jaxcr.camera import Camera
 from jaxcr.errors import InputError, InputErrors
 from jaxcr.io.calibration import camera_from_dict, camera_to_dict, load_camera
 from jaxcr.io.images import file_header_size, image_size, read_image, read_mask, write_png
+from jaxcr.io.units import MAX_LENGTH_M, nearest_key
 
 FORMAT = "jaxcr.dataset/1"
 DATASET_FILE = "dataset.json"
@@ -36,6 +37,17 @@ IMAGE_KINDS = ("images", "masks", "full_masks", "occluders")
 _FRAME_KEYS = {"id", "q", *IMAGE_KINDS, "tags", "truth", "meta"}
 _TOP_KEYS = {"format", "name", "robot", "cameras", "frames", "background_images", "meta"}
 _ROBOT_KINDS = ("constant_curvature", "single_segment", "ctr")
+
+
+def _unknown_key_message(key: str, known) -> str:
+    """``unknown key (did you mean 'x'?)`` with the nearest known key (difflib)."""
+    if key in ("unit", "units"):
+        return (
+            "unknown key: dataset.json has no file-wide unit (robot, q and truth are SI); "
+            'give "unit" inside each camera entry (cameras.<name>.unit)'
+        )
+    near = nearest_key(key, sorted(known))
+    return f"unknown key (did you mean {near!r}?)" if near else "unknown key (typo?)"
 
 
 # ------------------------------------------------------------------------------ data types
@@ -234,7 +246,7 @@ class _Scan:
         elif fmt != FORMAT:
             self.err(f"unsupported format {fmt!r}; this jaxcr reads {FORMAT!r}", field="format")
         for k in sorted(set(d) - _TOP_KEYS):
-            self.err("unknown key (typo?)", field=k)
+            self.err(_unknown_key_message(k, _TOP_KEYS), field=k)
         name = d.get("name", self.root.name)
         if not isinstance(name, str):
             self.err("expected a string", field="name")
@@ -359,7 +371,7 @@ class _Scan:
                 label = fid
                 seen.add(fid)
         for k in sorted(set(fr) - _FRAME_KEYS):
-            ferr("unknown key (typo?)", k)
+            ferr(_unknown_key_message(k, _FRAME_KEYS), k)
 
         q = None
         if "q" not in fr:
@@ -462,6 +474,22 @@ class _Scan:
                                 file=str(path),
                             )
                             continue
+                        if k == "centreline":
+                            reach = float(np.max(np.linalg.norm(arr, axis=1)))
+                            if reach > MAX_LENGTH_M:
+                                hint = (
+                                    f" (millimetres? {reach:.4g} mm = {reach * 1e-3:.4g} m)"
+                                    if reach * 1e-3 <= MAX_LENGTH_M
+                                    else ""
+                                )
+                                ferr(
+                                    f"centreline reaches {reach:.4g} m from the robot base, "
+                                    f"implausible (over {MAX_LENGTH_M:g} m); truth is in "
+                                    f"metres{hint}",
+                                    f"truth.{k}",
+                                    file=str(path),
+                                )
+                                continue
                     truth[k] = path.resolve()
                 else:
                     truth[k] = v
