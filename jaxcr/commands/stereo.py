@@ -26,7 +26,7 @@ The base frame ("base"; docs/stereo.md):
 - ``{"entry_px": {cam: [u, v]}}``: the pixel where the robot enters each view (OpenCV
   pixels: the centre of pixel (0, 0) is (0, 0); distorted image). Origin: that point
   triangulated (the two pixels must reproject within 10 px); z: the tube's initial
-  direction, per frame, from the triangulated backbone's first 8 mm (a quadratic through
+  direction, per frame, from the refined backbone's first 12 mm (a quadratic through
   the origin); x: camera 1's x axis (image right) made perpendicular to z (camera 1's y
   axis when z is within 18 deg of it); y = z x x. ``robot_base`` is not allowed.
 
@@ -173,7 +173,7 @@ def parse_base(base, file: str, names: list[str], cam1, cam2):
             file=file,
             field="base",
         )
-    (kind, value), = base.items()
+    ((kind, value),) = base.items()
     if kind == "markers":
         if len(names) == 1:
             raise InputError(
@@ -255,9 +255,7 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
         or not all(isinstance(n, str) and n for n in names)
         or len(set(names)) != len(names)
     ):
-        raise InputError(
-            "expected one or two distinct camera names", file=file, field="cameras"
-        )
+        raise InputError("expected one or two distinct camera names", file=file, field="cameras")
     if len(names) == 2:
         cam1, cam2 = load_stereo(root / meta["calibration"])
     else:

@@ -43,7 +43,7 @@ class BaseSpec:
     mode: str = "markers"
     T_cam1_base: np.ndarray | None = None
     entry_px: tuple[tuple[float, float], ...] | None = None
-    direction_length: float = 8e-3
+    direction_length: float = 12e-3
 
 
 def relative_pose(cam1: Camera, cam2: Camera) -> np.ndarray:

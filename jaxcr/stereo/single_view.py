@@ -11,10 +11,9 @@ pixel, or the projection of the base point through a given ``T_cam_base``.
 
 from __future__ import annotations
 
+import cv2
 import jax.numpy as jnp
 import numpy as np
-
-import cv2
 
 from jaxcr.camera import Camera
 from jaxcr.stereo.base_locate import flood_component, locate_base
