@@ -104,6 +104,9 @@ def main() -> int:
             generate_stereo_set(folder, args.frames, seed=seed, kinds=KINDS)
         recs += run_seed(folder)
     ok = [r for r in recs if r["ok"]]
+    per_seed = ", ".join(
+        f"{sd}: {sum(r['set'] == f'seed{sd}' for r in recs)}" for sd in seeds
+    )
     with_tail = [r for r in ok if r["tail_mm"] > 0]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()  # fmt: skip
@@ -115,7 +118,8 @@ def main() -> int:
         f"{platform.python_version()}).",
         "",
         f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} seeds, never looked at while developing; "
-        f"development: seed 1), {args.frames} frames each, kinds {', '.join(KINDS)}, 640x480. "
+        f"development: seed 1), frames per seed: {per_seed} (kinds cycle {', '.join(KINDS)}; "
+        "a set generated earlier with more frames is used whole), 640x480. "
         f"{len(ok)}/{len(recs)} frames reconstructed; {len(with_tail)} have a single-view "
         "tail. Values mean / median / max over frames (mm, coverage a fraction).",
         "",

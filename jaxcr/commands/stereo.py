@@ -16,7 +16,7 @@ DATASET is a folder with ``stereo.json`` (format ``jaxcr.stereo/1``)::
      "background_plates": {"cam1": "background/cam1.png", ...},   # optional
      "frames": [{"id": "000", "images": {"cam1": "...png", "cam2": "...png"}}, ...]}
 
-The base frame ("base"; docs/stereo.md):
+The base frame ("base"; docs/stereo-format.md):
 
 - ``{"markers": layout}`` or no "base": four ArUco markers on the base plate (origin at
   marker 2's centre, z out of the plate); the robot leaves the plate at ``robot_base``
