@@ -191,3 +191,26 @@ def test_stereo_json_base_errors_via_cli(tmp_path, capsys):
     assert main(["stereo", str(tmp_path), "-o", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "stereo.json" in err[0] and "base.entry_px" in err[0]
+
+
+def test_single_view_tail_follows_the_fitted_arc():
+    """The tail appended beyond the last stereo sample lies on the chain's last arc
+    (closed-form circle), attached at the last stereo point."""
+    from jaxcr.stereo.pipeline import _single_view_tail
+
+    kappa = 20.0  # 1/m, bending about the base x axis: circle in the y-z plane
+    s = np.arange(0.0, 0.05 + 1e-12, 5e-4)
+
+    def arc(t):
+        return np.stack([0 * t, (1 - np.cos(kappa * t)) / kappa, np.sin(kappa * t) / kappa], 1)
+
+    joint = {
+        "fit": {"base": np.zeros(3), "R0": np.eye(3), "curvatures": np.array([[-kappa, 0.0]])},
+        "seg_start": np.array([0.0]),
+        "arc_length": np.array([0.062]),
+    }
+    st, pt = _single_view_tail(s, arc(s), joint, 5e-4)
+    np.testing.assert_allclose(st, 0.05 + 5e-4 * np.arange(1, len(st) + 1), atol=1e-12)
+    assert len(st) == 24  # 12 mm at 0.5 mm
+    # float32 chain evaluation (~1e-7 x 0.06 m) and the 0.3 um arclength search: 2 um.
+    np.testing.assert_allclose(pt, arc(st), atol=2e-6)

@@ -554,8 +554,9 @@ def run_batch(
                     )
                 else:
                     r = reconstruct_view(
-                        images[0], cams[0], dataset["config"], plates[0] if plates else None
-                    )
+                        images[0], cams[0], config=dataset["config"],
+                        plate=plates[0] if plates else None,
+                    )  # fmt: skip
                 _write_frame(out, fid, r, names)
                 if overlays:
                     _write_overlays(out, fid, names, images, cams, r)

@@ -91,7 +91,7 @@ def triangulate_entry(
 
 
 def initial_direction(
-    s: np.ndarray, p: np.ndarray, length: float, origin: np.ndarray | None = None
+    s: np.ndarray, p: np.ndarray, length: float, *, origin: np.ndarray | None = None
 ) -> np.ndarray | None:
     """Unit tangent (3,) at the start of an ordered backbone ``p`` (n, 3) with arclengths
     ``s`` (n,): the slope of a least-squares quadratic ``p(s)`` over the first ``length``

@@ -473,9 +473,12 @@ def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float):
     end = float(seg_start[-1] + joint["arc_length"][-1])
     args = [np.asarray(fit[k], np.float32) for k in ("base", "R0", "curvatures")]
     args.append(seg_start.astype(np.float32))
-    grid = np.linspace(float(s[-1]) - 5e-3, float(s[-1]) + 5e-3, _TAIL_GRID)
-    X = np.asarray(_chain_points(*(jnp.asarray(a) for a in args), _f32(grid))[0], np.float64)
-    c0 = float(grid[np.argmin(np.linalg.norm(X - p[-1], axis=1))])
+    c0, half = float(s[-1]), 5e-3
+    for _ in range(2):  # coarse (39 um steps), then fine (0.3 um) search
+        grid = np.linspace(c0 - half, c0 + half, _TAIL_GRID)
+        X = np.asarray(_chain_points(*(jnp.asarray(a) for a in args), _f32(grid))[0], np.float64)
+        c0 = float(grid[np.argmin(np.linalg.norm(X - p[-1], axis=1))])
+        half = 2.0 * half / (_TAIL_GRID - 1)
     k = int(np.floor((end - c0) / step + 1e-9))
     if k < 1:
         return np.zeros(0), np.zeros((0, 3))
@@ -887,6 +890,6 @@ def reconstruct_pair(
         "s_stereo_end": float(s[~single_view][-1]),
         "base_mode": bspec.mode,
         "entry_residual_px": pose.get("entry_residual_px"),
-        "views_px": [view_record(v["uv"], v["robot"], cfg.tip_search_px) for v in views],
+        "views_px": [view_record(v["uv"], v["robot"], search_px=cfg.tip_search_px) for v in views],
         "timings": timings,
     }

@@ -55,6 +55,7 @@ def base_pixel(cam: Camera, config: StereoConfig) -> tuple[float, float]:
 def reconstruct_view(
     image: np.ndarray,
     cam: Camera,
+    *,
     config: StereoConfig | None = None,
     plate: np.ndarray | None = None,
 ) -> dict:
@@ -111,7 +112,7 @@ def reconstruct_view(
     uv = _smooth_path(rc)
     _tick(timings, "ordering", t0)
     return {
-        "views_px": [view_record(uv, robot, cfg.tip_search_px)],
+        "views_px": [view_record(uv, robot, search_px=cfg.tip_search_px)],
         "skeleton_rc": rc,
         "robot_mask": robot,
         "base_px": list(buv),

@@ -15,7 +15,7 @@ import numpy as np
 __all__ = ["tip_pixel", "polyline_px", "view_record"]
 
 
-def tip_pixel(uv: np.ndarray, mask: np.ndarray, search_px: int = 40, step: float = 0.25):
+def tip_pixel(uv: np.ndarray, mask: np.ndarray, *, search_px: int = 40, step: float = 0.25):
     """The tube's end (u, v) in one view: from the last point of the ordered skeleton ``uv``
     (n, 2) along the direction of its last 5 px, the last position (``step`` px apart, at
     most ``search_px`` px) whose nearest pixel is still in ``mask`` (H, W) bool, plus half a
@@ -45,7 +45,7 @@ def tip_pixel(uv: np.ndarray, mask: np.ndarray, search_px: int = 40, step: float
     return end + (t[k - 1] + 0.5 * step) * d
 
 
-def polyline_px(uv: np.ndarray, spacing: float = 2.0) -> np.ndarray:
+def polyline_px(uv: np.ndarray, *, spacing: float = 2.0) -> np.ndarray:
     """The ordered path ``uv`` (n, 2) decimated to samples at least ``spacing`` px apart
     along it (the first and last kept)."""
     uv = np.asarray(uv, np.float64)
@@ -57,10 +57,10 @@ def polyline_px(uv: np.ndarray, spacing: float = 2.0) -> np.ndarray:
     return uv[idx]
 
 
-def view_record(uv: np.ndarray, mask: np.ndarray, search_px: int = 40) -> dict:
+def view_record(uv: np.ndarray, mask: np.ndarray, *, search_px: int = 40) -> dict:
     """``{"tip_px": [u, v], "backbone_px": [[u, v], ...]}`` of one view (rounded to 0.01
     px; the polyline every 2 px, ending at the tip pixel)."""
-    tip = tip_pixel(uv, mask, search_px)
+    tip = tip_pixel(uv, mask, search_px=search_px)
     line = polyline_px(uv)
     if np.linalg.norm(tip - line[-1]) > 1e-9:
         line = np.concatenate([line, tip[None]])
