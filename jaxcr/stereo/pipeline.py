@@ -82,7 +82,7 @@ from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
 from jaxcr.stereo.triangulation import triangulate_points
-from jaxcr.stereo.view2d import view_record
+from jaxcr.stereo.view2d import tip_pixel, view_record
 
 __all__ = ["StereoConfig", "StereoFailure", "reconstruct_pair"]
 
@@ -852,6 +852,15 @@ def reconstruct_pair(
         t0 = _tick(timings, "joint_fit", t0)
         if cfg.single_view_tail and int(np.sum(joint["n_tail"])) > 0:
             s_t, p_t = _single_view_tail(s, p, joint, cfg.step)
+            # The tail ends where its projection in the view that sees it reaches that
+            # view's tip pixel: the chain's last arc extrapolates past the tube's end
+            # (dev seed 302, a curled frame: 44 mm appended where 22 mm were missing).
+            v_see = int(np.argmax(joint["n_tail"]))
+            tip = tip_pixel(views[v_see]["uv"], views[v_see]["robot"],
+                            search_px=cfg.tip_search_px)  # fmt: skip
+            uv_t = _project_np(cams[v_see], np.concatenate([p[-1:], p_t]))
+            keep = int(np.argmin(np.linalg.norm(uv_t - tip[None], axis=1)))
+            s_t, p_t = s_t[:keep], p_t[:keep]
             if len(s_t):
                 # The stored backbone goes on where one view alone sees the tube (flagged);
                 # per-view diameters/weights are NaN/0 there, the diameter the last one.
