@@ -116,7 +116,8 @@ class StereoConfig:
     squares are masked and ``robot_base`` defaults to the base origin (with ``entry_px``
     it is ignored: the entry point is the origin).
     ``single_view_tail``: extend the stored backbone beyond the last stereo match with the
-    joint chain fit over the part one view alone sees (flagged ``single_view``).
+    joint chain fit over the part one view alone sees, up to that view's tip pixel
+    (flagged ``single_view``).
     ``tip_search_px``: how far each view's tip pixel is searched beyond the skeleton's end
     (:func:`tip_pixel`).
     ``shadow_tolerance_deg``: tolerance of the slope-angle segmentation that cuts a shadow
