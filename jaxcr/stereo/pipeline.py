@@ -2,7 +2,9 @@
 
 ``reconstruct_pair(image1, image2, cam1, cam2, config)`` runs, per view and then jointly:
 
-1. base frame from the ArUco markers (:mod:`jaxcr.stereo.aruco`), both views combined;
+1. base frame from the ArUco markers (:mod:`jaxcr.stereo.aruco`), both views combined, or
+   without markers from a given ``T_cam_base`` or the entry pixels
+   (:mod:`jaxcr.stereo.base_frame`; with entry pixels the z axis is set after step 6);
 2. foreground alpha from the chroma key and/or the background plate
    (:mod:`jaxcr.stereo.chroma`); marker squares (projected from the base pose) removed;
 3. base localisation (Hough in a ROI at the projected robot base) and flood fill of the
@@ -16,7 +18,10 @@
    re-triangulated;
 7. diameters along the backbone (:mod:`jaxcr.stereo.diameter`), segments from diameter
    steps (:mod:`jaxcr.stereo.segments`), and per segment a plane fit (angles with the X-Y,
-   Z-X, Y-Z planes) and a circular-arc fit (curvature, arc length) (:mod:`jaxcr.stereo.fits`).
+   Z-X, Y-Z planes) and a circular-arc fit (curvature, arc length) (:mod:`jaxcr.stereo.fits`);
+   the joint chain fit's continuation over the part one view alone sees extends the stored
+   backbone (flagged ``single_view``); each view's tip pixel and 2-D backbone
+   (:mod:`jaxcr.stereo.view2d`).
 
 Speed (``experiments/stereo_bench.py``): both views go through each JAX stage in one jitted
 call (alpha/key projection/mask from the uint8 images; thinning of the robots' bounding-box
@@ -27,7 +32,7 @@ threads (OpenCV releases the GIL); ordering, DTW and the arclength smoothing are
 numpy/scipy without per-pixel Python loops.
 
 Per-frame problems raise :class:`StereoFailure` with a short ``reason`` code
-(``calibration_size``, ``markers``, ``robot_not_found``, ``correspondence``) for the batch
+(``calibration_size``, ``markers``, ``base``, ``robot_not_found``, ``correspondence``) for the batch
 driver to record; nothing else is expected to raise. Stage timings (seconds, wall clock,
 JAX results blocked) are returned in ``result["timings"]``, the process CPU time of each
 stage (all threads) in ``result["timings"]["cpu"]``.
