@@ -30,7 +30,7 @@ def test_stereo_cli_outputs_and_accuracy(synth_set, tmp_path):
     rec = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
     assert len(rec) == 1 and rec[0]["ok"]
     fj = json.loads((out / "frames" / "000.json").read_text())
-    assert fj["format"] == "jaxcr.stereo/1" and len(fj["segments"]) >= 1
+    assert fj["format"] == "jaxcr.stereo-frame/2" and len(fj["segments"]) >= 1
     npz = np.load(out / "frames" / "000.npz")
     assert npz["p"].shape[1] == 3
     for cam in ("cam1", "cam2"):

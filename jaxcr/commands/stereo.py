@@ -1,14 +1,16 @@
 """``jaxcr stereo DATASET -o OUT``: 3-D backbone shape sensing from calibrated stereo pairs
-(ArUco base frame, chroma key, thinning, triangulation, diameters, segments, plane and arc
-fits; see :mod:`jaxcr.stereo.pipeline`). ``jaxcr stereo synth -o OUT`` writes a synthetic
-stereo set (:mod:`jaxcr.synth.stereo_ctr`).
+(base frame, chroma key, thinning, triangulation, diameters, segments, plane and arc fits;
+see :mod:`jaxcr.stereo.pipeline`), or the 2-D results of one camera. ``jaxcr stereo synth
+-o OUT`` writes a synthetic stereo set (:mod:`jaxcr.synth.stereo_ctr`).
 
 DATASET is a folder with ``stereo.json`` (format ``jaxcr.stereo/1``)::
 
     {"format": "jaxcr.stereo/1", "calibration": "calib/stereo.yaml",
-     "cameras": ["cam1", "cam2"],
+     "cameras": ["cam1", "cam2"],                   # or one camera: ["cam1"]
+     "base": {"T_cam_base": 4x4} | {"entry_px": {"cam1": [u, v], "cam2": [u, v]}}
+             | {"markers": {...}},                  # optional, default: the markers
      "markers": {"centres": {"2": [0, 0], "3": [0.06, 0], ...}, "size": 0.024,
-                 "dictionary": "DICT_4X4_50"},
+                 "dictionary": "DICT_4X4_50"},      # the ArUco layout (or in base.markers)
      "robot_base": [x, y, z],                       # optional, base frame (m)
      "background": {"key": "green"} | {"key_rgb": [r, g, b]},
      "background_plates": {"cam1": "background/cam1.png", ...},   # optional
@@ -20,19 +22,44 @@ DATASET is a folder with ``stereo.json`` (format ``jaxcr.stereo/1``)::
 unknown top-level key is refused with the nearest known key, and implausible lengths (marker
 size outside 1 mm..1 m, positions over 5 m) are refused with a suggested unit.
 
+The base frame ("base"; docs/stereo-format.md):
+
+- ``{"markers": layout}`` or no "base": four ArUco markers on the base plate (origin at
+  marker 2's centre, z out of the plate); the robot leaves the plate at ``robot_base``
+  (default: the layout's base centre).
+- ``{"T_cam_base": 4x4}``: the base frame in camera 1's frame (base -> camera 1, metres),
+  fixed; the robot enters at ``robot_base`` (default: the base origin).
+- ``{"entry_px": {cam: [u, v]}}``: the pixel where the robot enters each view (OpenCV
+  pixels: the centre of pixel (0, 0) is (0, 0); distorted image). Origin: that point
+  triangulated (the two pixels must reproject within 10 px); z: the tube's initial
+  direction, per frame, from the refined backbone's first 12 mm (a quadratic through
+  the origin); x: camera 1's x axis (image right) made perpendicular to z (camera 1's y
+  axis when z is within 18 deg of it); y = z x x. ``robot_base`` is not allowed.
+
 The calibration is an OpenCV FileStorage stereo file as ``cv2.stereoCalibrate`` users
-save it (``K1 D1 K2 D2 R T [E F]``, image sizes; read by :mod:`jaxcr.io.calibration`).
+save it (``K1 D1 K2 D2 R T [E F]``, image sizes; read by :mod:`jaxcr.io.calibration`); with
+one camera, a single-camera file (``camera_matrix``, ``distortion_coefficients``, size).
+One camera gives the 2-D results alone (tip pixel and backbone polyline, no triangulation,
+no segments); its base must be ``entry_px`` or ``T_cam_base`` (projected).
 
 Outputs in OUT (written as frames complete; a rerun into the same OUT skips frames already
 done, and is refused if the dataset or options differ from ``OUT/run.json``):
 
-- ``results.jsonl``: one line per frame: ``id``, ``ok``, ``reason`` and ``message`` on
-  failure (``calibration_size``, ``markers``, ``robot_not_found``, ``correspondence``,
-  ``image``), marker RMS, number of segments, stage timings;
-- ``frames/<id>.json`` and ``frames/<id>.npz``: the 3-D backbone (base frame, metres:
-  ``s``, ``p``, ``diameter``), boundaries, the per-segment table, the base pose;
-- ``overlays/<id>_<cam>.png``: backbone coloured by segment on both views;
-- ``segments.csv`` and ``segments.md``: the per-segment parameter table of all frames.
+- ``results.jsonl`` (records ``jaxcr.stereo-results/2``): one line per frame: ``format``,
+  ``id``, ``ok``, ``reason`` and ``message`` on failure (``calibration_size``, ``markers``,
+  ``base``, ``robot_not_found``, ``correspondence``, ``image``); on success ``views``:
+  per camera ``{"tip_px": [u, v], "backbone_px": [[u, v], ...]}`` (OpenCV pixels, the
+  view's ordered skeleton from the base every 2 px, ending at the tip pixel, where the
+  skeleton continued straight leaves the robot's mask), and for two cameras ``base_mode``,
+  marker RMS, ``entry_residual_px``, number of segments, ``single_view_mm`` (the tail
+  seen by one view only), stage timings;
+- ``frames/<id>.json`` (``jaxcr.stereo-frame/2``) and ``frames/<id>.npz``: the 3-D
+  backbone (base frame, metres: ``s``, ``p``, ``diameter``, ``single_view`` flags: True
+  where one view alone saw the tube and the joint chain fit gave the point), boundaries,
+  the per-segment table, the base pose, ``views``; one camera: ``views`` and ``base_px``;
+- ``overlays/<id>_<cam>.png``: backbone coloured by segment on the views;
+- ``segments.csv`` and ``segments.md``: the per-segment parameter table of all frames
+  (``single_view_mm``: the part of the segment from the single-view tail).
 
 Exit code 0 when every frame succeeded, 1 when any frame failed, 2 on bad input.
 """
@@ -41,6 +68,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import io
 import json
 import os
@@ -54,13 +82,16 @@ from jaxcr.errors import InputError
 from jaxcr.io.jsonfile import read_json
 
 FORMAT = "jaxcr.stereo/1"
-# "base" is the marker-free base of issue 16 item 1 (read by its own code where present)
+# Output record formats (v2: per-camera 2-D results, base mode, the single-view tail).
+RESULTS_FORMAT = "jaxcr.stereo-results/2"
+FRAME_FORMAT = "jaxcr.stereo-frame/2"
+# stereo.json's keys ("base": the marker-free base of issue 16 item 1, parsed by parse_base)
 STEREO_JSON_KEYS = ("format", "calibration", "cameras", "markers", "robot_base", "base",
                     "background", "background_plates", "frames", "meta", "unit")  # fmt: skip
 TABLE_FIELDS = [
     "frame", "segment", "s_start_mm", "s_end_mm", "length_mm", "diameter_mm",
     "phi_xy_deg", "phi_zx_deg", "phi_yz_deg", "curvature_1pm", "arc_length_fit_mm",
-    "arc_rms_mm",
+    "arc_rms_mm", "single_view_mm",
 ]  # fmt: skip
 
 
@@ -124,6 +155,85 @@ def _finite_tuple(v, n: int, file: str, field: str) -> tuple[float, ...]:
     return tuple(float(x) for x in v)
 
 
+BASE_FORMS = ("T_cam_base", "entry_px", "markers")
+# The two entry pixels must be images of one point: their rays pass within this many pixels
+# (reprojection error of the triangulated point) -- a few pixels of clicking error pass,
+# a swapped camera order or a wrong point does not.
+ENTRY_MAX_RESIDUAL_PX = 10.0
+
+
+def parse_base(base, file: str, names: list[str], cam1, cam2):
+    """``stereo.json``'s ``"base"`` (None: the markers) as a
+    :class:`jaxcr.stereo.base_frame.BaseSpec`; InputError naming ``base.<field>``."""
+    from jaxcr.stereo.base_frame import BaseSpec, triangulate_entry
+
+    if base is None:
+        if len(names) == 1:
+            raise InputError(
+                "a one-camera dataset needs base.entry_px or base.T_cam_base (no stereo "
+                "marker pose from one view)",
+                file=file,
+                field="base",
+            )
+        return BaseSpec()
+    if not isinstance(base, dict) or len(base) != 1 or next(iter(base)) not in BASE_FORMS:
+        keys = list(base) if isinstance(base, dict) else base
+        raise InputError(
+            f"expected an object with exactly one of {list(BASE_FORMS)}, got {keys!r}",
+            file=file,
+            field="base",
+        )
+    ((kind, value),) = base.items()
+    if kind == "markers":
+        if len(names) == 1:
+            raise InputError(
+                "one camera cannot give the base from markers; use entry_px or T_cam_base",
+                file=file,
+                field="base.markers",
+            )
+        return BaseSpec()
+    if kind == "T_cam_base":
+        from jaxcr.io.calibration import check_transform
+
+        T = check_transform(value, file, "base.T_cam_base")
+        if np.linalg.norm(T[:3, 3]) > 5.0:
+            raise InputError(
+                f"the base is {np.linalg.norm(T[:3, 3]):.3g} m from camera 1: T_cam_base is "
+                "in metres (was it written in mm?)",
+                file=file,
+                field="base.T_cam_base",
+            )
+        return BaseSpec("T_cam_base", T_cam1_base=T)
+    if not isinstance(value, dict) or set(value) != set(names):
+        got = sorted(value) if isinstance(value, dict) else value
+        raise InputError(
+            f"expected {{camera: [u, v]}} for the cameras {names}, got {got!r}",
+            file=file,
+            field="base.entry_px",
+        )
+    px = []
+    for n, cam in zip(names, (cam1, cam2), strict=False):
+        uv = _finite_tuple(value[n], 2, file, f"base.entry_px.{n}")
+        if not (-0.5 <= uv[0] <= cam.width - 0.5 and -0.5 <= uv[1] <= cam.height - 0.5):
+            raise InputError(
+                f"pixel {list(uv)} is outside the {cam.width}x{cam.height} image",
+                file=file,
+                field=f"base.entry_px.{n}",
+            )
+        px.append(uv)
+    if len(names) == 2:
+        _, residual, depths = triangulate_entry(cam1, cam2, px[0], px[1])
+        if min(depths) <= 0 or residual > ENTRY_MAX_RESIDUAL_PX:
+            raise InputError(
+                "the entry pixels are not images of one point in front of both cameras "
+                f"(reprojection {residual:.1f} px, limit {ENTRY_MAX_RESIDUAL_PX:g}); check "
+                "the pixels and the camera order",
+                file=file,
+                field="base.entry_px",
+            )
+    return BaseSpec("entry_px", entry_px=tuple(px))
+
+
 def load_stereo_dataset(folder: str | os.PathLike) -> dict:
     """Parse ``stereo.json`` (see module docstring): returns ``{"root", "meta", "cam1",
     "cam2", "config", "plates", "frames"}``. Bad input raises :class:`InputError`."""
@@ -152,39 +262,63 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
 
     check_known_keys(meta, STEREO_JSON_KEYS, file)
     scale = unit_scale(meta, file)
-    cam1, cam2 = load_stereo(root / meta["calibration"])
     names = meta.get("cameras", ["cam1", "cam2"])
     if (
         not isinstance(names, list)
-        or len(names) != 2
-        or not all(isinstance(n, str) for n in names)
-        or names[0] == names[1]
+        or len(names) not in (1, 2)
+        or not all(isinstance(n, str) and n for n in names)
+        or len(set(names)) != len(names)
     ):
-        raise InputError("expected two distinct camera names", file=file, field="cameras")
+        raise InputError("expected one or two distinct camera names", file=file, field="cameras")
+    if len(names) == 2:
+        cam1, cam2 = load_stereo(root / meta["calibration"])
+    else:
+        from jaxcr.io.calibration import load_camera
+
+        cam1, cam2 = load_camera(root / meta["calibration"]), None
+    markers = meta.get("markers")
+    base = meta.get("base")
+    if isinstance(base, dict) and "markers" in base:
+        if markers is not None:
+            raise InputError(
+                "the marker layout is given twice (top-level 'markers' and base.markers)",
+                file=file,
+                field="base.markers",
+            )
+        markers = base["markers"]
+    field_m = "base.markers" if isinstance(base, dict) and "markers" in base else "markers"
     try:
-        layout = MarkerLayout.from_dict(meta["markers"]) if "markers" in meta else MarkerLayout()
+        layout = MarkerLayout.from_dict(markers) if markers is not None else MarkerLayout()
     except (AttributeError, KeyError, TypeError, ValueError, IndexError):
         raise InputError(
             "bad marker layout (expected {'centres': {id: [x, y]}, 'size': metres})",
             file=file,
-            field="markers",
+            field=field_m,
         ) from None
-    if "markers" in meta:
+    if markers is not None:
         if not all(np.isfinite(v) for c in layout.centres.values() for v in c) or not np.isfinite(
             layout.size
         ):
-            raise InputError("marker layout has NaN or infinite values", file=file, field="markers")
+            raise InputError("marker layout has NaN or infinite values", file=file, field=field_m)
         layout = MarkerLayout(
             {k: (c[0] * scale, c[1] * scale) for k, c in layout.centres.items()},
             layout.size * scale,
             layout.dictionary,
         )
         check_length(
-            layout.size, "marker size", scale, file, "markers.size", lo=1e-3, hi=1.0, typical=0.02
+            layout.size, "marker size", scale, file, f"{field_m}.size", lo=1e-3, hi=1.0, typical=0.02
         )
         for k, c in layout.centres.items():
             check_length(float(np.hypot(*c)), "marker centre distance", scale, file,
-                         f"markers.centres.{k}")  # fmt: skip
+                         f"{field_m}.centres.{k}")  # fmt: skip
+    spec = parse_base(base, file, names, cam1, cam2)
+    if spec.mode == "T_cam_base" and scale != 1.0:
+        T = np.array(spec.T_cam1_base, np.float64)
+        T[:3, 3] *= scale  # the translation is a length in the file's unit
+        spec = dataclasses.replace(spec, T_cam1_base=T)
+    if spec.mode == "T_cam_base":
+        check_length(float(np.linalg.norm(spec.T_cam1_base[:3, 3])), "base translation", scale,
+                     file, "base.T_cam_base")  # fmt: skip
     bg = meta.get("background", {})
     if not isinstance(bg, dict):
         raise InputError("expected an object", file=file, field="background")
@@ -195,12 +329,23 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
         if not isinstance(name, str) or name not in KEY_COLOURS:
             raise InputError(f"unknown key colour {name!r}", file=file, field="background.key")
         key = KEY_COLOURS[name]
-    cfg = StereoConfig(layout=layout, key_rgb=key)
+    cfg = StereoConfig(layout=layout, key_rgb=key, base=spec)
     if meta.get("robot_base") is not None:
-        base = tuple(v * scale for v in _finite_tuple(meta["robot_base"], 3, file, "robot_base"))
-        check_length(float(np.linalg.norm(base)), "robot_base distance", scale, file, "robot_base")
-        cfg.robot_base = base
-    sizes = {names[0]: (cam1.width, cam1.height), names[1]: (cam2.width, cam2.height)}
+        base_xyz = tuple(
+            v * scale for v in _finite_tuple(meta["robot_base"], 3, file, "robot_base")
+        )
+        check_length(
+            float(np.linalg.norm(base_xyz)), "robot_base distance", scale, file, "robot_base"
+        )
+        cfg.robot_base = base_xyz
+        if spec.mode == "entry_px":
+            raise InputError(
+                "robot_base has no meaning with base.entry_px (the base origin is the "
+                "triangulated entry point); remove it",
+                file=file,
+                field="robot_base",
+            )
+    sizes = {n: (c.width, c.height) for n, c in zip(names, (cam1, cam2), strict=False)}
     plates = None
     if meta.get("background_plates"):
         bp = meta["background_plates"]
@@ -254,13 +399,28 @@ def _atomic_write(path: Path, data: bytes) -> None:
     atomic_write_bytes(path, data)  # temporary name + rename; a failed write names the file
 
 
-def _frame_json(fid: str, r: dict) -> dict:
+FRAME_DESCRIPTIONS = {
+    "markers": "base (origin: centre of ArUco marker 2; metres)",
+    "T_cam_base": "base (the given T_cam_base; metres)",
+    "entry_px": "base (origin: the triangulated entry point; z: the tube's initial direction; "
+    "x: camera 1's x axis made perpendicular to z; metres)",
+}
+
+
+def _frame_json(fid: str, r: dict, names) -> dict:
+    views = {n: v for n, v in zip(names, r["views_px"], strict=True)}
+    if "p" not in r:  # one camera: the 2-D results alone
+        return {"format": FRAME_FORMAT, "id": fid, "cameras": list(names),
+                "base_px": r["base_px"], "views": views}  # fmt: skip
     return {
-        "format": FORMAT,
+        "format": FRAME_FORMAT,
         "id": fid,
-        "frame": "base (origin: centre of ArUco marker 2; metres)",
+        "frame": FRAME_DESCRIPTIONS[r["base_mode"]],
+        "base_mode": r["base_mode"],
         "s": r["s"].tolist(),
         "p": r["p"].tolist(),
+        "single_view": r["single_view"].tolist(),
+        "s_stereo_end": r["s_stereo_end"],
         "diameter": r["diameter"].tolist(),
         "boundary_s": r["boundary_s"].tolist(),
         "boundary_p": r["boundary_p"].tolist(),
@@ -268,25 +428,37 @@ def _frame_json(fid: str, r: dict) -> dict:
         "T_cam1_base": np.asarray(r["T_cam1_base"]).tolist(),
         "T_cam2_base": np.asarray(r["T_cam2_base"]).tolist(),
         "marker_rms_px": r["marker_rms_px"],
+        "entry_residual_px": r["entry_residual_px"],
+        "views": views,
     }
 
 
-def _write_frame(out: Path, fid: str, r: dict) -> None:
+def _write_frame(out: Path, fid: str, r: dict, names) -> None:
     (out / "frames").mkdir(exist_ok=True)
-    buf = io.BytesIO()
-    np.savez(buf, s=r["s"], p=r["p"], diameter=r["diameter"], diameter_views=r["diameter_views"],
-             diameter_report=r["diameter_report"], boundary_s=r["boundary_s"],
-             boundary_p=r["boundary_p"], T_cam1_base=r["T_cam1_base"], T_cam2_base=r["T_cam2_base"])  # fmt: skip
-    _atomic_write(out / "frames" / f"{fid}.npz", buf.getvalue())
-    _atomic_write(out / "frames" / f"{fid}.json", (json.dumps(_frame_json(fid, r)) + "\n").encode())
+    if "p" in r:
+        buf = io.BytesIO()
+        np.savez(buf, s=r["s"], p=r["p"], single_view=r["single_view"], diameter=r["diameter"],
+                 diameter_views=r["diameter_views"], diameter_report=r["diameter_report"],
+                 boundary_s=r["boundary_s"], boundary_p=r["boundary_p"],
+                 T_cam1_base=r["T_cam1_base"], T_cam2_base=r["T_cam2_base"])  # fmt: skip
+        _atomic_write(out / "frames" / f"{fid}.npz", buf.getvalue())
+    data = json.dumps(_frame_json(fid, r, names)) + "\n"
+    _atomic_write(out / "frames" / f"{fid}.json", data.encode())
 
 
 def _write_overlays(out: Path, fid: str, names, images, cams, r) -> None:
     from jaxcr.stereo.overlay import draw_overlay
 
     (out / "overlays").mkdir(exist_ok=True)
-    for k, (n, im, cam) in enumerate(zip(names, images, cams, strict=True)):
-        ov = draw_overlay(im, cam, r, k, scale=1)
+    for k, (n, im, cam) in enumerate(zip(names, images, cams, strict=False)):
+        if "p" in r:
+            ov = draw_overlay(im, cam, r, k, scale=1)
+        else:  # one camera: the 2-D backbone and the tip
+            ov = np.ascontiguousarray(im).copy()
+            line = np.round(np.asarray(r["views_px"][k]["backbone_px"]) * 16).astype(np.int32)
+            cv2.polylines(ov, [line], False, (255, 0, 255), 2, cv2.LINE_AA, 4)
+            tip = np.round(np.asarray(r["views_px"][k]["tip_px"])).astype(int)
+            cv2.drawMarker(ov, (int(tip[0]), int(tip[1])), (255, 255, 0), cv2.MARKER_CROSS, 14, 1)
         ok, png = cv2.imencode(".png", cv2.cvtColor(ov, cv2.COLOR_RGB2BGR))
         _atomic_write(out / "overlays" / f"{fid}_{n}.png", png.tobytes())
 
@@ -309,7 +481,7 @@ def write_tables(out: Path, frame_ids: list[str]) -> int:
     for fid in frame_ids:
         f = out / "frames" / f"{fid}.json"
         if f.exists():
-            for seg in json.loads(f.read_text())["segments"]:
+            for seg in json.loads(f.read_text()).get("segments", []):
                 rows.append({"frame": fid, **{k: seg[k] for k in TABLE_FIELDS if k != "frame"}})
     sio = io.StringIO()
     w = csv.DictWriter(sio, fieldnames=TABLE_FIELDS, lineterminator="\n")
@@ -333,7 +505,7 @@ def write_tables(out: Path, frame_ids: list[str]) -> int:
 # ------------------------------------------------------------------------------ running
 
 
-RUN_FORMAT = "jaxcr.stereo-run/1"
+RUN_FORMAT = "jaxcr.stereo-run/2"
 
 
 def _check_run(out: Path, dataset: dict) -> None:
@@ -405,25 +577,41 @@ def run_batch(
         from jaxcr.progress import progress as progress_bar
 
         it = progress_bar(todo, desc="stereo", unit="pair")
+    from jaxcr.stereo.single_view import reconstruct_view
+
     names = dataset["names"]
-    cams = (dataset["cam1"], dataset["cam2"])
+    cams = (dataset["cam1"], dataset["cam2"])[: len(names)]
     with R.ResultsLog(log_path) as log:  # cuts a line left half-written by a killed run
         for fr in it:
             fid = str(fr["id"])
-            rec: dict = {"id": fid}
+            rec: dict = {"format": RESULTS_FORMAT, "id": fid}
             try:
                 images = [
                     _read_rgb(dataset["root"] / fr["images"][n], fid, field=f"images.{n}")
                     for n in names
                 ]
-                r = reconstruct_pair(
-                    images[0], images[1], cams[0], cams[1], dataset["config"], dataset["plates"]
-                )
-                _write_frame(out, fid, r)
+                plates = dataset["plates"]
+                if len(names) == 2:
+                    r = reconstruct_pair(
+                        images[0], images[1], cams[0], cams[1], dataset["config"], plates
+                    )
+                else:
+                    r = reconstruct_view(
+                        images[0], cams[0], config=dataset["config"],
+                        plate=plates[0] if plates else None,
+                    )  # fmt: skip
+                _write_frame(out, fid, r, names)
                 if overlays:
                     _write_overlays(out, fid, names, images, cams, r)
-                rec.update(ok=True, marker_rms_px=r["marker_rms_px"], n_segments=len(r["segments"]),
-                           n_markers=list(r["n_markers"]), timings=r["timings"])  # fmt: skip
+                rec["ok"] = True
+                rec["views"] = {n: v for n, v in zip(names, r["views_px"], strict=True)}
+                if "p" in r:
+                    rec.update(base_mode=r["base_mode"], marker_rms_px=r["marker_rms_px"],
+                               n_markers=list(r["n_markers"]),
+                               entry_residual_px=r["entry_residual_px"],
+                               n_segments=len(r["segments"]),
+                               single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]))  # fmt: skip
+                rec["timings"] = r["timings"]
             except StereoFailure as err:
                 rec.update(ok=False, reason=err.reason, message=str(err))
             except InputError as err:

@@ -2,7 +2,9 @@
 
 ``reconstruct_pair(image1, image2, cam1, cam2, config)`` runs, per view and then jointly:
 
-1. base frame from the ArUco markers (:mod:`jaxcr.stereo.aruco`), both views combined;
+1. base frame from the ArUco markers (:mod:`jaxcr.stereo.aruco`), both views combined, or
+   without markers from a given ``T_cam_base`` or the entry pixels
+   (:mod:`jaxcr.stereo.base_frame`; with entry pixels the z axis is set after step 6);
 2. foreground alpha from the chroma key and/or the background plate
    (:mod:`jaxcr.stereo.chroma`); marker squares (projected from the base pose) removed;
 3. base localisation (Hough in a ROI at the projected robot base) and flood fill of the
@@ -16,7 +18,10 @@
    re-triangulated;
 7. diameters along the backbone (:mod:`jaxcr.stereo.diameter`), segments from diameter
    steps (:mod:`jaxcr.stereo.segments`), and per segment a plane fit (angles with the X-Y,
-   Z-X, Y-Z planes) and a circular-arc fit (curvature, arc length) (:mod:`jaxcr.stereo.fits`).
+   Z-X, Y-Z planes) and a circular-arc fit (curvature, arc length) (:mod:`jaxcr.stereo.fits`);
+   the joint chain fit's continuation over the part one view alone sees extends the stored
+   backbone (flagged ``single_view``); each view's tip pixel and 2-D backbone
+   (:mod:`jaxcr.stereo.view2d`).
 
 Speed (``experiments/stereo_bench.py``): both views go through each JAX stage in one jitted
 call (alpha/key projection/mask from the uint8 images; thinning of the robots' bounding-box
@@ -27,7 +32,7 @@ threads (OpenCV releases the GIL); ordering, DTW and the arclength smoothing are
 numpy/scipy without per-pixel Python loops.
 
 Per-frame problems raise :class:`StereoFailure` with a short ``reason`` code
-(``calibration_size``, ``markers``, ``robot_not_found``, ``correspondence``) for the batch
+(``calibration_size``, ``markers``, ``base``, ``robot_not_found``, ``correspondence``) for the batch
 driver to record; nothing else is expected to raise. Stage timings (seconds, wall clock,
 JAX results blocked) are returned in ``result["timings"]``, the process CPU time of each
 stage (all threads) in ``result["timings"]["cpu"]``.
@@ -49,8 +54,19 @@ from scipy.ndimage import gaussian_filter1d
 
 from jaxcr.camera import Camera, project_points
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
+from jaxcr.stereo.base_frame import (
+    BaseSpec,
+    frame_from_direction,
+    initial_direction,
+    relative_pose,
+    triangulate_entry,
+)
 from jaxcr.stereo.base_locate import flood_component, locate_base
-from jaxcr.stereo.chain_fit import fit_segments_jointly, observations_from_profiles
+from jaxcr.stereo.chain_fit import (
+    chain_points,
+    fit_segments_jointly,
+    observations_from_profiles,
+)
 from jaxcr.stereo.chroma import (
     KEY_COLOURS,
     chroma_alpha_and_projection,
@@ -71,6 +87,7 @@ from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
 from jaxcr.stereo.triangulation import triangulate_points
+from jaxcr.stereo.view2d import tip_pixel, view_record
 
 __all__ = ["StereoConfig", "StereoFailure", "reconstruct_pair"]
 
@@ -99,6 +116,15 @@ class StereoConfig:
     (recovers tips foreshortened in one view; see :func:`match_backbones`).
     ``joint_fit``: curvatures and bending planes from the joint chain fit to both views
     (:mod:`jaxcr.stereo.chain_fit`) instead of separate per-segment fits to the points.
+    ``base``: how the base frame is given (:class:`jaxcr.stereo.base_frame.BaseSpec`:
+    ArUco markers, a fixed ``T_cam_base`` or the entry pixels); without markers no marker
+    squares are masked and ``robot_base`` defaults to the base origin (with ``entry_px``
+    it is ignored: the entry point is the origin).
+    ``single_view_tail``: extend the stored backbone beyond the last stereo match with the
+    joint chain fit over the part one view alone sees, up to that view's tip pixel
+    (flagged ``single_view``).
+    ``tip_search_px``: how far each view's tip pixel is searched beyond the skeleton's end
+    (:func:`tip_pixel`).
     ``shadow_tolerance_deg``: tolerance of the slope-angle segmentation that cuts a shadow
     branch off the start of each view's ordered skeleton (:func:`shadow_cut`; report
     sec. 5.3, Fig. 18 uses 10-30 deg); ``None`` disables it.
@@ -126,6 +152,29 @@ class StereoConfig:
     tip_extension_px: int = 12
     joint_fit: bool = True
     shadow_tolerance_deg: float | None = 20.0
+    base: BaseSpec = field(default_factory=BaseSpec)
+    single_view_tail: bool = True
+    tip_search_px: int = 40
+
+
+def _given_base_pose(cam1: Camera, cam2: Camera, spec: BaseSpec) -> dict:
+    """The stereo base pose without markers (same keys as
+    :func:`jaxcr.stereo.aruco.stereo_base_pose`; no marker RMS): ``spec.T_cam1_base`` as
+    given, or for ``entry_px`` the provisional frame at the triangulated entry point with
+    camera 1's axes (rotated once the backbone's initial direction is known)."""
+    if spec.mode == "T_cam_base":
+        T1 = np.asarray(spec.T_cam1_base, np.float64)
+        residual = None
+    elif spec.mode == "entry_px":
+        X, residual, depths = triangulate_entry(cam1, cam2, *spec.entry_px[:2])
+        if min(depths) <= 0:
+            raise StereoFailure("base", "the entry pixels triangulate behind a camera")
+        T1 = np.eye(4)
+        T1[:3, 3] = X
+    else:
+        raise ValueError(f"unknown base mode {spec.mode!r}")
+    return {"T_cam1_base": T1, "T_cam2_base": relative_pose(cam1, cam2) @ T1,
+            "rms_px": None, "n_markers": (0, 0), "entry_residual_px": residual}  # fmt: skip
 
 
 def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
@@ -414,6 +463,40 @@ def _skeleton_tail(uv: np.ndarray, uv_end: np.ndarray, tol_px: float = 3.0) -> n
     return uv[near[-1] + 1 :] if len(near) else None
 
 
+_chain_points = jax.jit(chain_points)
+_TAIL_GRID = 257
+
+
+def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float):
+    """Backbone samples (arclengths (t,), points (t, 3)) beyond the last stereo sample
+    ``p[-1]``, every ``step`` m, over the part of the tube one view alone sees: the joint
+    chain fit (:func:`jaxcr.stereo.chain_fit.fit_segments_jointly` with ``tails``) extends
+    its last arc over that view's skeleton pixels, constrained across the tube by that view
+    and in depth by the arc's continuation. The chain's points from its arclength nearest
+    ``p[-1]`` to its end, translated to start at ``p[-1]`` (the stored backbone stays
+    continuous; the chain is a smooth model of the same curve, within its RMS)."""
+    fit, seg_start = joint["fit"], np.asarray(joint["seg_start"], np.float64)
+    end = float(seg_start[-1] + joint["arc_length"][-1])
+    args = [np.asarray(fit[k], np.float32) for k in ("base", "R0", "curvatures")]
+    args.append(seg_start.astype(np.float32))
+    c0, half = float(s[-1]), 5e-3
+    for _ in range(2):  # coarse (39 um steps), then fine (0.3 um) search
+        grid = np.linspace(c0 - half, c0 + half, _TAIL_GRID)
+        X = np.asarray(_chain_points(*(jnp.asarray(a) for a in args), _f32(grid))[0], np.float64)
+        c0 = float(grid[np.argmin(np.linalg.norm(X - p[-1], axis=1))])
+        half = 2.0 * half / (_TAIL_GRID - 1)
+    k = int(np.floor((end - c0) / step + 1e-9))
+    if k < 1:
+        return np.zeros(0), np.zeros((0, 3))
+    sc = c0 + step * np.arange(0, k + 1)
+    nb = _bucket(len(sc), 128)
+    Xt = np.asarray(
+        _chain_points(*(jnp.asarray(a) for a in args), _f32(_pad_rows(sc[:, None], nb)[:, 0]))[0],
+        np.float64,
+    )[: len(sc)]
+    return float(s[-1]) + step * np.arange(1, k + 1), Xt[1:] - Xt[0] + p[-1]
+
+
 def _resample(p: np.ndarray, step: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Smooth ordered 3-D points along their arclength (Gaussian kernel, local linear) and
     resample at ``step``. Returns ``(s (k,), p (k, 3))``, s from the first point.
@@ -476,18 +559,28 @@ def reconstruct_pair(
             )
     if cfg.segmentation in ("plate", "plate_shadow", "both") and plates is None:
         raise StereoFailure("plate", "segmentation needs background plates, none given")
-    # 1. Base frame (the two views' detections in two threads: OpenCV releases the GIL).
-    dets = list(_pool().map(lambda im: detect_markers(im, cfg.layout), imgs))
-    t0 = _tick(timings, "markers_detect", t0)
-    try:
-        pose = stereo_base_pose(cam1, cam2, dets[0], dets[1], cfg.layout)
-    except ValueError as err:
-        raise StereoFailure("markers", str(err)) from None
+    # 1. Base frame: from the markers (the two views' detections in two threads: OpenCV
+    # releases the GIL), a given T_cam_base, or the entry pixels (a provisional frame at the
+    # triangulated entry point, axes of camera 1, rotated in step 6; jaxcr.stereo.base_frame).
+    bspec = cfg.base
+    use_markers = bspec.mode == "markers"
+    if use_markers:
+        dets = list(_pool().map(lambda im: detect_markers(im, cfg.layout), imgs))
+        t0 = _tick(timings, "markers_detect", t0)
+        try:
+            pose = stereo_base_pose(cam1, cam2, dets[0], dets[1], cfg.layout)
+        except ValueError as err:
+            raise StereoFailure("markers", str(err)) from None
+        t0 = _tick(timings, "markers_pose", t0)
+    else:
+        pose = _given_base_pose(cam1, cam2, bspec)
     cams = [_with_pose(cam1, pose["T_cam1_base"]), _with_pose(cam2, pose["T_cam2_base"])]
-    t0 = _tick(timings, "markers_pose", t0)
-    base = np.asarray(
-        cfg.robot_base if cfg.robot_base is not None else cfg.layout.base_centre, float
-    )
+    if bspec.mode == "entry_px":
+        base = np.zeros(3)  # the entry point is the origin
+    elif cfg.robot_base is not None:
+        base = np.asarray(cfg.robot_base, float)
+    else:
+        base = cfg.layout.base_centre if use_markers else np.zeros(3)
     # 2. Alpha, key projection and the thresholded mask of both views in one jitted call.
     stack = _image_stack(imgs)
     plate_stack = _image_stack(plates) if cfg.segmentation != "chroma" else stack
@@ -512,7 +605,8 @@ def reconstruct_pair(
             np.ascontiguousarray(masks[k][:hk, :wk]), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)
         )
         mask = mask > 0
-        mask &= ~_marker_mask(cam, cfg.layout, mask.shape)
+        if use_markers:
+            mask &= ~_marker_mask(cam, cfg.layout, mask.shape)
         buv = _project_np(cam, base[None])[0]
         loc = locate_base(mask, (buv[0], buv[1]), cfg.roi_half_px)
         if not loc.found:
@@ -626,6 +720,23 @@ def reconstruct_pair(
         s, p = _resample(Pr, cfg.step, cfg.smooth_sigma)
         s = s + float(np.linalg.norm(p[0] - base))
     t0 = _tick(timings, "refinement", t0)
+    if bspec.mode == "entry_px":
+        # z along the tube's initial direction (the refined backbone near the entry; the first
+        # triangulation is too rough there: 9-10 deg off on a 320x240 set vs 1-2 deg): the
+        # provisional frame (origin at the entry point, camera 1's axes) is rotated about
+        # its origin, so the base point (the origin) stays where it is.
+        z = initial_direction(s, p, bspec.direction_length, origin=np.zeros(3))
+        if z is None:
+            raise StereoFailure(
+                "correspondence", "too little backbone near the entry for its direction"
+            )
+        R = frame_from_direction(np.zeros(3), z)[:3, :3]  # provisional axes = camera 1's
+        p = p @ R
+        T1 = pose["T_cam1_base"].copy()
+        T1[:3, :3] = R
+        T2 = relative_pose(cam1, cam2) @ T1
+        pose.update(T_cam1_base=T1, T_cam2_base=T2)
+        cams = [_with_pose(cam1, T1), _with_pose(cam2, T2)]
     # 7. Diameters.
     pj, tj = _padded_with_tangents(p)
     d_all, w_all, r_all, *chain_obs = (
@@ -715,6 +826,9 @@ def reconstruct_pair(
         [[np.interp(b, s, p[:, i]) for i in range(3)] for b in seg["boundaries_s"]]
     ).reshape(-1, 3)
     t0 = _tick(timings, "segments_fits", t0)
+    single_view = np.zeros(len(s), bool)
+    for row in table:
+        row["single_view_mm"] = 0.0
     if cfg.joint_fit and len(s) >= 10:
         # Curvatures and bending planes of all segments from one fit of the tangent-
         # continuous constant-curvature chain to both views' silhouettes
@@ -741,7 +855,34 @@ def reconstruct_pair(
             row["curvature_1pm"] = float(joint["kappa"][k])
             row["normal"] = joint["normal"][k].tolist()
             row["chain_rms_px"] = float(joint["rms_px"])
-        _tick(timings, "joint_fit", t0)
+        t0 = _tick(timings, "joint_fit", t0)
+        if cfg.single_view_tail and int(np.sum(joint["n_tail"])) > 0:
+            s_t, p_t = _single_view_tail(s, p, joint, cfg.step)
+            # The tail ends where its projection in the view that sees it reaches that
+            # view's tip pixel: the chain's last arc extrapolates past the tube's end
+            # (dev seed 302, a curled frame: 44 mm appended where 22 mm were missing).
+            v_see = int(np.argmax(joint["n_tail"]))
+            tip = tip_pixel(views[v_see]["uv"], views[v_see]["robot"],
+                            search_px=cfg.tip_search_px)  # fmt: skip
+            uv_t = _project_np(cams[v_see], np.concatenate([p[-1:], p_t]))
+            keep = int(np.argmin(np.linalg.norm(uv_t - tip[None], axis=1)))
+            s_t, p_t = s_t[:keep], p_t[:keep]
+            if len(s_t):
+                # The stored backbone goes on where one view alone sees the tube (flagged);
+                # per-view diameters/weights are NaN/0 there, the diameter the last one.
+                n0 = len(s)
+                s, p = np.concatenate([s, s_t]), np.concatenate([p, p_t])
+                diam = np.concatenate([diam, np.full(len(s_t), diam[-1])])
+                nan2 = np.full((2, len(s_t)), np.nan)
+                diam_views = list(np.concatenate([np.stack(diam_views), nan2], axis=1))
+                wts = list(np.concatenate([np.stack(wts), np.zeros((2, len(s_t)))], axis=1))
+                diam_report = np.concatenate([diam_report, nan2[0]])
+                single_view = np.r_[single_view[:n0], np.ones(len(s_t), bool)]
+                last = table[-1]
+                last["s_end_mm"] = 1e3 * float(s[-1])
+                last["length_mm"] = last["s_end_mm"] - last["s_start_mm"]
+                last["single_view_mm"] = 1e3 * float(s[-1] - s[n0 - 1])
+        _tick(timings, "single_view_tail", t0)
     return {
         "s": s,
         "p": p,
@@ -760,5 +901,10 @@ def reconstruct_pair(
         "robot_masks": [v["robot"] for v in views],
         "seed_rc": [v["loc"].seed for v in views],
         "n_matches": int(good.sum()),
+        "single_view": single_view,
+        "s_stereo_end": float(s[~single_view][-1]),
+        "base_mode": bspec.mode,
+        "entry_residual_px": pose.get("entry_residual_px"),
+        "views_px": [view_record(v["uv"], v["robot"], search_px=cfg.tip_search_px) for v in views],
         "timings": timings,
     }
