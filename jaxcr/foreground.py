@@ -350,17 +350,28 @@ def _initial_direction(mask: np.ndarray, entry: np.ndarray, radius: float = 25.0
     return d / np.linalg.norm(d)
 
 
-def _heading_rate(path: list, step: float) -> float:
-    """Heading change per pixel (rad/px) over the last ~6 steps of the path (0 if short),
-    clipped to +-0.1 (a radius of 10 px)."""
-    if len(path) < 7:
-        return 0.0
-    a, b, c = path[-7], path[-4], path[-1]
-    h0 = np.arctan2(b[1] - a[1], b[0] - a[0])
-    h1 = np.arctan2(c[1] - b[1], c[0] - b[0])
-    dh = (h1 - h0 + np.pi) % (2 * np.pi) - np.pi
-    arc = 0.5 * (np.linalg.norm(b - a) + np.linalg.norm(c - b))
-    return float(np.clip(dh / max(arc, 1e-9), -0.1, 0.1))
+def _local_arc(path: list, window_px: float = 24.0) -> tuple[float, float] | None:
+    """Heading (rad) and curvature (rad/px, clipped to +-0.1) at the end of the path from a
+    quadratic least-squares fit of u(s), v(s) over its last ``window_px`` of arclength
+    (the per-step headings jitter with the re-centring); None if the path is shorter."""
+    pts = np.asarray(path[-64:], np.float64)
+    if len(pts) < 5:
+        return None
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s = s - s[-1]
+    keep = s >= -window_px
+    if keep.sum() < 5 or -s[keep][0] < 0.5 * window_px:
+        return None
+    cu = np.polyfit(s[keep], pts[keep, 0], 2)
+    cv = np.polyfit(s[keep], pts[keep, 1], 2)
+    du, dv = cu[1], cv[1]  # first derivatives at s = 0
+    ddu, ddv = 2 * cu[0], 2 * cv[0]
+    n = np.hypot(du, dv)
+    if n < 1e-9:
+        return None
+    kappa = (du * ddv - dv * ddu) / n**3
+    return float(np.arctan2(dv, du)), float(np.clip(kappa, -0.1, 0.1))
 
 
 def trace_tube(
@@ -416,6 +427,7 @@ def trace_tube(
         old = np.asarray(path[: max(len(path) - 2, 1)])
         rad = (np.median(widths) / 2 + 3.0) if widths else 5.0
         return bool(np.min(np.sum((old - c[None]) ** 2, 1)) <= rad * rad)
+
     for _ in range(max_steps):
         cands = theta + np.linspace(-turn, turn, len(cands))
         dirs = np.stack([np.cos(cands), np.sin(cands)], 1)
@@ -434,11 +446,12 @@ def trace_tube(
             # Gap: look on along the current arc (heading and curvature of the last few
             # steps) for the mask to resume in a big enough component, within
             # +-max(gap_turn_deg, 4 px lateral) of the predicted chord.
-            kappa = _heading_rate(path, cfg.step_px)
+            arc = _local_arc(path)
+            head0, kappa = (theta, 0.0) if arc is None else arc
             found = None
             for dist in np.arange(cfg.step_px, cfg.max_gap_px + 0.5, 1.0):
                 tol = max(np.radians(cfg.gap_turn_deg), np.arctan(4.0 / dist))
-                pred = theta + np.clip(kappa * dist / 2.0, -np.pi / 2, np.pi / 2)
+                pred = head0 + np.clip(kappa * dist / 2.0, -np.pi / 2, np.pi / 2)
                 n_ang = 2 * int(np.ceil(tol * dist / 0.7)) + 1
                 gc = pred + np.linspace(-tol, tol, n_ang)
                 gd = np.stack([np.cos(gc), np.sin(gc)], 1)

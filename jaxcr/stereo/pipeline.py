@@ -48,6 +48,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from jaxcr.camera import Camera, project_points
+from jaxcr.foreground import PlateForegroundConfig, plate_foreground
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_locate import flood_component, locate_base
 from jaxcr.stereo.chain_fit import fit_segments_jointly, observations_from_profiles
@@ -91,7 +92,10 @@ class StereoConfig:
     ``"plate"`` (background plate difference; shadows are segmented with the tube),
     ``"plate_shadow"`` (plate difference after the best shadow gain, which ignores
     shadows) or ``"both"`` (the product of chroma and plate alphas: foreground must differ
-    from the plate and not be the key colour).
+    from the plate and not be the key colour), or ``"trace"`` (the plate foreground of
+    :mod:`jaxcr.foreground`, settings ``plate_foreground``: the plate aligned to the frame,
+    cues beyond the key colour with hysteresis, the tube traced from the projected robot
+    base with gaps bridged; for real backgrounds).
     ``robot_base``: where the robot leaves the plate, base frame (default: base centre).
     ``n_segments``: number of tubes if known (else chosen from the diameter profile).
     ``refine_iterations``: sub-pixel refinement passes (silhouette centres, re-triangulate).
@@ -126,6 +130,7 @@ class StereoConfig:
     tip_extension_px: int = 12
     joint_fit: bool = True
     shadow_tolerance_deg: float | None = 20.0
+    plate_foreground: PlateForegroundConfig = field(default_factory=PlateForegroundConfig)
 
 
 def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
@@ -461,7 +466,7 @@ def reconstruct_pair(
     ``segmentation="plate"``/``"both"``). Returns a dict (numpy arrays, base frame, metres).
     """
     cfg = config or StereoConfig()
-    if cfg.segmentation not in ("chroma", "plate", "plate_shadow", "both"):
+    if cfg.segmentation not in ("chroma", "plate", "plate_shadow", "both", "trace"):
         raise ValueError(f"unknown segmentation {cfg.segmentation!r}")
     timings: dict[str, float] = {}
     t0 = _now()
@@ -474,7 +479,7 @@ def reconstruct_pair(
                 f"view {k + 1} image is {im.shape[1]}x{im.shape[0]} but its calibration is "
                 f"{cam.width}x{cam.height}",
             )
-    if cfg.segmentation in ("plate", "plate_shadow", "both") and plates is None:
+    if cfg.segmentation in ("plate", "plate_shadow", "both", "trace") and plates is None:
         raise StereoFailure("plate", "segmentation needs background plates, none given")
     # 1. Base frame (the two views' detections in two threads: OpenCV releases the GIL).
     dets = list(_pool().map(lambda im: detect_markers(im, cfg.layout), imgs))
@@ -499,9 +504,19 @@ def reconstruct_pair(
         cfg.tol_hi,
         cfg.plate_lo,
         cfg.plate_hi,
-        mode=cfg.segmentation,
+        mode="chroma" if cfg.segmentation == "trace" else cfg.segmentation,
     )
     masks = np.asarray(mask_j)
+    if cfg.segmentation == "trace":
+        # The traced robot of each view (jaxcr.foreground), entered at the projected base.
+        tr = [
+            plate_foreground(
+                imgs[k], plates[k], _project_np(cams[k], base[None])[0], cfg=cfg.plate_foreground
+            )
+            for k in range(2)
+        ]
+        masks = _image_stack([t.mask.astype(np.uint8) for t in tr])
+        alpha_j = jnp.asarray(masks.astype(np.float32))
     t0 = _tick(timings, "segmentation", t0)
     # 3. Per view: closing, marker squares, base (Hough), flood fill.
     views = []

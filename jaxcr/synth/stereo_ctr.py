@@ -407,7 +407,9 @@ def robot_hits(scene, C: np.ndarray, o: np.ndarray, d: np.ndarray):
         a_all, b_all = scene.p[:-1], scene.p[1:]
         r_all = np.asarray(scene.r)[:, None]
         cens = (np.minimum(a_all, b_all) + np.maximum(a_all, b_all)) / 2
-        rads = np.linalg.norm(np.maximum(a_all, b_all) - np.minimum(a_all, b_all) + 2 * r_all, axis=1)
+        rads = np.linalg.norm(
+            np.maximum(a_all, b_all) - np.minimum(a_all, b_all) + 2 * r_all, axis=1
+        )
         rads = rads / 2
         group = 8
         cand = None
@@ -420,7 +422,10 @@ def robot_hits(scene, C: np.ndarray, o: np.ndarray, d: np.ndarray):
                 # by the triangle inequality): the per-capsule test runs on these only.
                 g = slice(k, min(k + group, len(scene.r)))
                 gc = cens[g].mean(0)
-                gr = float(np.max(np.linalg.norm(cens[g] - gc, axis=1) + rads[g])) * (1 + 1e-6) + 1e-9
+                gr = (
+                    float(np.max(np.linalg.norm(cens[g] - gc, axis=1) + rads[g])) * (1 + 1e-6)
+                    + 1e-9
+                )
                 oc = gc - C
                 proj = d @ oc
                 cand = np.nonzero(oc @ oc - proj**2 < gr * gr)[0]
