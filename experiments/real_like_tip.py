@@ -7,7 +7,8 @@ white circle-grid board with black tape crossed by the tube in view 1, drifted p
 webcam noise, lens distortion, entry pixel with model error). Methods per view:
 
 * ``trace`` -- :func:`jaxcr.foreground.plate_foreground` (aligned plate, cues, hysteresis,
-  tracing with gap bridging) from the entry pixel; tip = its ``tip``;
+  tracing with gap bridging) from the entry pixel and the projected base axis (both with
+  model error); tip = its ``tip``;
 * ``plate`` -- the stereo pipeline's old plate mode: ``plate_alpha > 0.5`` (unaligned plate,
   lo/hi 0.06/0.15), 3x3 closing, the component at the entry;
 * ``gmm`` -- ``--background gmm``: :func:`jaxcr.background.fit_background_model` on the
@@ -83,7 +84,7 @@ def run_view(view, cfg: PlateForegroundConfig) -> dict:
     plate = view.plate.astype(np.float32) / 255.0
     out = {}
     t = time.perf_counter()
-    tr = plate_foreground(view.image, view.plate, view.entry_px, cfg=cfg)
+    tr = plate_foreground(view.image, view.plate, view.entry_px, view.entry_dir_px, cfg=cfg)
     out["trace"] = {"tip": tr.tip.tolist(), "time_s": time.perf_counter() - t,
                     "gaps": len(tr.gaps), "shift": tr.shift.tolist()}  # fmt: skip
     a = np.asarray(plate_alpha(img, plate))

@@ -381,8 +381,8 @@ def trace_tube(
     cfg: PlateForegroundConfig = PlateForegroundConfig(),
 ) -> TubeTrace:
     """Follow the tube on ``mask`` (H, W) bool from ``entry_uv`` (u, v) (see module
-    docstring, step 4). ``direction_uv``: the initial direction (default: towards the mask
-    pixels near the entry). Returns a :class:`TubeTrace` (``score``/``shift`` unset)."""
+    docstring, step 4). ``direction_uv``: the initial direction (default: the axis of the
+    mask pixels near the entry, traced both ways, the longer trace kept). Returns a :class:`TubeTrace` (``score``/``shift`` unset)."""
     mask = np.asarray(mask, bool)
     h, w = mask.shape
     entry = np.asarray(entry_uv, np.float64)
@@ -399,14 +399,18 @@ def trace_tube(
     cc = cc + max(int(entry[0]) - 20, 0)
     k = int(np.argmin((cc - entry[0]) ** 2 + (rr - entry[1]) ** 2))
     p = np.array([cc[k], rr[k]], np.float64)
-    d = (
-        np.asarray(direction_uv, np.float64) / np.linalg.norm(direction_uv)
-        if direction_uv is not None
-        else _initial_direction(mask, p)
-    )
-    if d is None:
-        empty.reason = "no foreground at the entry"
-        return empty
+    if direction_uv is None:
+        # The axis of the mask near the entry, both ways (a shadow may leave the base on
+        # the other side): the longer trace wins.
+        d = _initial_direction(mask, p)
+        if d is None:
+            empty.reason = "no foreground at the entry"
+            return empty
+        both = [trace_tube(mask, entry_uv, s * d, cfg) for s in (1.0, -1.0)]
+        return max(
+            both, key=lambda t: float(np.sum(np.linalg.norm(np.diff(t.backbone, axis=0), axis=1)))
+        )
+    d = np.asarray(direction_uv, np.float64) / np.linalg.norm(direction_uv)
     theta = float(np.arctan2(d[1], d[0]))
     radii = np.arange(1.0, cfg.look_px + 0.5, 1.0)
     turn = np.radians(cfg.max_turn_deg)
