@@ -57,12 +57,14 @@ class PlateForegroundConfig:
     """Thresholds of the plate foreground (every one is a CLI flag ``--plate-...``).
 
     Cue thresholds (each cue is 1 at its threshold):
-        dark: relative darkening ``1 - Y/Y_plate`` of a pixel (0.45: a static shadow or
-            crease is in the plate; the tube's cast shadows on the cloth stay below ~0.4).
+        dark: relative darkening ``1 - Y/Y_plate`` of a pixel where the plate is
+            achromatic (chroma < ``min_chroma``: a white board, black tape) (0.45); on
+            coloured cloth a cast shadow is the plate darkened, so darkness is no cue there.
         desat: drop of saturation ``(max - min)/max`` from plate to frame (0.25).
         hue_deg: hue change in degrees, counted where both chromas exceed ``min_chroma``
             (30).
-        diff: Euclidean RGB distance to the plate (0.25; the old plate mode's cue).
+        diff: RGB distance to the plate scaled by the best gain in [``min_gain``, 1]
+            (0.25; ``min_gain`` 0.35): the old plate mode's cue made shadow-invariant.
         min_chroma: chroma ``max - min`` below which a pixel has no reliable hue (0.08).
     Hysteresis on the score (the maximum of the cues): ``high`` seeds (1.0), ``low``
     extends (0.55).
@@ -74,7 +76,8 @@ class PlateForegroundConfig:
     tube may match the background (tape, shadow, crease) that is bridged; ``gap_turn_deg``
     (12) the cone searched across a gap; ``max_width_px`` (40) the widest tube searched
     across when re-centring; ``min_seed_px`` (20) smallest mask component the walker
-    accepts after a gap (noise specks are smaller).
+    accepts after a gap (noise specks are smaller); ``start_spread_deg`` (20) a given
+    entry direction is also tried turned by this much either way, the longest trace kept.
     """
 
     dark: float = 0.45
@@ -82,6 +85,7 @@ class PlateForegroundConfig:
     hue_deg: float = 30.0
     diff: float = 0.25
     min_chroma: float = 0.08
+    min_gain: float = 0.35
     high: float = 1.0
     low: float = 0.55
     blur_px: float = 1.0
@@ -95,6 +99,7 @@ class PlateForegroundConfig:
     gap_turn_deg: float = 12.0
     max_width_px: float = 40.0
     min_seed_px: int = 20
+    start_spread_deg: float = 20.0
 
 
 @dataclass
@@ -234,9 +239,14 @@ def foreground_cues(
         p = ndi.gaussian_filter(p, (cfg.blur_px, cfg.blur_px, 0))
     eps = 1e-3
     yf, yp = _grey(f), _grey(p)
-    dark = np.clip(1.0 - (yf + eps) / (yp + eps), 0.0, None) / cfg.dark
     mxf, mnf = f.max(-1), f.min(-1)
     mxp, mnp = p.max(-1), p.min(-1)
+    # Darkness counts on achromatic background only (white board, black tape, grey): on
+    # coloured cloth a cast shadow is the plate darkened, and the tube differs from the
+    # cloth by saturation, hue or shadow-invariant colour distance instead.
+    achromatic = (mxp - mnp) < cfg.min_chroma
+    dark = np.where(achromatic, np.clip(1.0 - (yf + eps) / (yp + eps), 0.0, None), 0.0)
+    dark = dark / cfg.dark
     sat_f = (mxf - mnf) / (mxf + eps)
     sat_p = (mxp - mnp) / (mxp + eps)
     desat = np.clip(sat_p - sat_f, 0.0, None) / cfg.desat
@@ -248,7 +258,11 @@ def foreground_cues(
     ang = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     coloured = ((mxf - mnf) > cfg.min_chroma) & ((mxp - mnp) > cfg.min_chroma)
     hue = np.where(coloured, ang, 0.0) / cfg.hue_deg
-    diff = np.linalg.norm(f - p, axis=-1) / cfg.diff
+    # Colour distance to the best-scaled plate g P, g in [min_gain, 1]: a cast shadow
+    # (the plate darkened, same chromaticity) is no foreground by this cue.
+    g = np.sum(f * p, -1) / np.maximum(np.sum(p * p, -1), 1e-9)
+    g = np.clip(g, cfg.min_gain, 1.0)[..., None]
+    diff = np.linalg.norm(f - g * p, axis=-1) / cfg.diff
     score = np.maximum(np.maximum(dark, desat), np.maximum(hue, diff))
     return {"dark": dark, "desat": desat, "hue": hue, "diff": diff, "score": score}
 
@@ -374,11 +388,17 @@ def _local_arc(path: list, window_px: float = 24.0) -> tuple[float, float] | Non
     return float(np.arctan2(dv, du)), float(np.clip(kappa, -0.1, 0.1))
 
 
+def _trace_length(t: TubeTrace) -> float:
+    return float(np.sum(np.linalg.norm(np.diff(t.backbone, axis=0), axis=1)))
+
+
 def trace_tube(
     mask: np.ndarray,
     entry_uv,
     direction_uv=None,
     cfg: PlateForegroundConfig = PlateForegroundConfig(),
+    *,
+    _single: bool = False,
 ) -> TubeTrace:
     """Follow the tube on ``mask`` (H, W) bool from ``entry_uv`` (u, v) (see module
     docstring, step 4). ``direction_uv``: the initial direction (default: the axis of the
@@ -411,6 +431,15 @@ def trace_tube(
             both, key=lambda t: float(np.sum(np.linalg.norm(np.diff(t.backbone, axis=0), axis=1)))
         )
     d = np.asarray(direction_uv, np.float64) / np.linalg.norm(direction_uv)
+    if cfg.start_spread_deg > 0 and not _single:
+        # The given direction is a model's: also start turned by +-start_spread_deg, and
+        # keep the longest trace (a shadow or crease at the base can divert one start).
+        out = []
+        for a in (0.0, -cfg.start_spread_deg, cfg.start_spread_deg):
+            c, s_ = np.cos(np.radians(a)), np.sin(np.radians(a))
+            dr = np.array([c * d[0] - s_ * d[1], s_ * d[0] + c * d[1]])
+            out.append(trace_tube(mask, entry_uv, dr, cfg, _single=True))
+        return max(out, key=_trace_length)
     theta = float(np.arctan2(d[1], d[0]))
     radii = np.arange(1.0, cfg.look_px + 0.5, 1.0)
     turn = np.radians(cfg.max_turn_deg)
@@ -424,12 +453,16 @@ def trace_tube(
     max_steps = int(4 * (h + w) / cfg.step_px)
 
     def _visited(c):
-        """Whether pixel c (u, v) lies on the tube already traced (not the last stretch):
-        a gap must not land back on the shaft (a curled tip ending near it)."""
-        if len(path) < 3:
+        """Whether pixel c (u, v) lies on the tube already traced, except its last 30 px
+        (the stretch the gap starts from): a gap must not land back on the shaft (a curled
+        tip ending near it)."""
+        pts = np.asarray(path)
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        back = np.concatenate([np.cumsum(seg[::-1])[::-1], [0.0]])  # arclength to the end
+        old = pts[back > 30.0]
+        if not len(old):
             return False
-        old = np.asarray(path[: max(len(path) - 2, 1)])
-        rad = (np.median(widths) / 2 + 3.0) if widths else 5.0
+        rad = min(np.median(widths) / 2, 8.0) + 3.0 if widths else 5.0
         return bool(np.min(np.sum((old - c[None]) ** 2, 1)) <= rad * rad)
 
     for _ in range(max_steps):
@@ -442,9 +475,15 @@ def trace_tube(
         j = int(np.argmax(pref))
         if sup[j] >= cfg.support:
             dvec = dirs[j]
-            q = p + cfg.step_px * dvec
-            q, wid = _recentre(mask, q, dvec, cfg.max_width_px)
-            if wid > 0:
+            q0 = p + cfg.step_px * dvec
+            q, wid = _recentre(mask, q0, dvec, cfg.max_width_px)
+            # Re-centre only on a run no wider than 1.6 x the tube so far, and not in the
+            # first 5 steps (the entry direction is given; a shadow or crease leaving the
+            # base widens the run there and would pull the walker onto it).
+            ref = float(np.median(widths)) if len(widths) >= 3 else None
+            if len(path) < 5 or wid == 0 or (ref is not None and wid > 1.6 * ref):
+                q = q0
+            if wid > 0 and (ref is None or wid <= 1.6 * ref):
                 widths.append(wid)
         else:
             # Gap: look on along the current arc (heading and curvature of the last few
@@ -467,6 +506,12 @@ def trace_tube(
                     c = np.floor(pts[i] + 0.5).astype(int)
                     if sizes[labels[c[1], c[0]]] < cfg.min_seed_px or _visited(c):
                         continue
+                    if widths:
+                        # As wide as the tube (not a thin edge residue or a broad blob).
+                        _, wl = _recentre(mask, pts[i], gd[i], cfg.max_width_px)
+                        ref = float(np.median(widths))
+                        if not 0.5 * ref <= wl <= 2.0 * ref:
+                            continue
                     # The tube goes on from there (any direction within max_turn of the
                     # predicted heading at the landing point).
                     head = pred + np.clip(kappa * dist / 2.0, -np.pi / 2, np.pi / 2)

@@ -78,15 +78,21 @@ def test_hysteresis_matches_skimage():
 def test_cues_closed_form():
     cfg = PlateForegroundConfig(blur_px=0.0)
     plate = np.full((3, 3, 3), [0.2, 0.6, 0.2])
+    plate[0, 2] = [0.7, 0.7, 0.7]
     frame = plate.copy()
-    frame[0, 0] = [0.1, 0.3, 0.1]  # a shadow: darker, same chromaticity
+    frame[0, 0] = [0.1, 0.3, 0.1]  # a shadow on the cloth: darker, same chromaticity
+    frame[0, 2] = [0.2, 0.2, 0.2]  # on the grey board (below): a grey tube, darker
     frame[1, 1] = [0.4, 0.45, 0.4]  # a grey tube: desaturated
     frame[2, 2] = [0.6, 0.2, 0.2]  # a red object: other hue
     c = foreground_cues(frame, plate, cfg)
     y = lambda rgb: 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]  # noqa: E731
     eps = 1e-3
-    dark00 = (1 - (y([0.1, 0.3, 0.1]) + eps) / (y([0.2, 0.6, 0.2]) + eps)) / cfg.dark
-    np.testing.assert_allclose(c["dark"][0, 0], dark00, rtol=1e-12)
+    # Darkness counts on the achromatic board only; the shadow is half the plate, so the
+    # shadow-invariant colour distance (best gain 0.5) is zero there too.
+    dark02 = (1 - (y([0.2, 0.2, 0.2]) + eps) / (y([0.7, 0.7, 0.7]) + eps)) / cfg.dark
+    np.testing.assert_allclose(c["dark"][0, 2], dark02, rtol=1e-12)
+    assert c["dark"][0, 0] == 0.0
+    assert c["diff"][0, 0] < 1e-12
     # Same chromaticity: (max - min)/max is equal, up to eps in the denominator.
     assert c["desat"][0, 0] < 1e-2
     sat_p, sat_f = 0.4 / (0.6 + eps), 0.05 / (0.45 + eps)
