@@ -178,3 +178,22 @@ def test_plate_config_rejects_bad_values():
                 ["--plate-support", "1.5"], ["--plate-diff", "nan"]):  # fmt: skip
         with pytest.raises(InputError, match="--plate-"):
             plate_config(p.parse_args(bad))
+
+
+def test_real_like_preset_small():
+    """The real_like preset at 320x180 (same scene, focal length scaled): plates drifted by
+    a known amount (0.2-3 px, the preset's range; measured at the image centre) that the
+    alignment recovers."""
+    from jaxcr.foreground import plate_foreground
+    from jaxcr.synth.real_like import render_real_like_frame
+
+    fr = render_real_like_frame(3, (320, 180))
+    for v in fr.views:
+        assert v.image.shape == (180, 320, 3) and v.plate.shape == (180, 320, 3)
+        assert v.mask.any() and 0 <= v.tip_px[0] < 320 and 0 <= v.tip_px[1] < 180
+        assert 0.15 < np.linalg.norm(v.drift_px) < 3.3
+        tr = plate_foreground(v.image, v.plate, v.entry_px, v.entry_dir_px)
+        # The plate drift is a small camera rotation: the image shift varies over the
+        # frame by the distortion and the perspective, up to ~20 % of the shift at the
+        # corners (f = 400 px, half-diagonal 184 px: (184/400)^2 = 0.21), plus 0.1 px.
+        assert np.all(np.abs(tr.shift + v.drift_px) <= 0.21 * np.abs(v.drift_px).max() + 0.1)
