@@ -9,7 +9,6 @@ import json
 import cv2
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from scipy import ndimage as ndi
 
 from jaxcr.camera import Camera
