@@ -67,7 +67,7 @@ class PlateForegroundConfig:
             (0.25; ``min_gain`` 0.35): the old plate mode's cue made shadow-invariant.
         min_chroma: chroma ``max - min`` below which a pixel has no reliable hue (0.08).
     Hysteresis on the score (the maximum of the cues): ``high`` seeds (1.0), ``low``
-    extends (0.55).
+    extends (0.4).
     Noise: frame and plate are smoothed with a Gaussian of ``blur_px`` (1.0) pixels.
     Alignment: ``align`` (True) registers the plate; ``max_shift_px`` (8) bounds the shift.
     Tracing: ``step_px`` (2) walker step; ``look_px`` (10) length of the ray that scores a
@@ -87,7 +87,7 @@ class PlateForegroundConfig:
     min_chroma: float = 0.08
     min_gain: float = 0.35
     high: float = 1.0
-    low: float = 0.55
+    low: float = 0.4
     blur_px: float = 1.0
     align: bool = True
     max_shift_px: float = 8.0
