@@ -57,6 +57,53 @@ def _background_fn(kind: str, ds, camera: str, colour_ranges=None) -> Callable:
     raise InputError(f"unknown background subtraction {kind!r}", field="background")
 
 
+def _plate_image(ds, camera: str) -> np.ndarray:
+    """The first background image of ``camera`` (the plate of ``--background plate``)."""
+    from jaxcr.io.images import read_image
+
+    paths = ds.background_images.get(camera, [])
+    if not paths:
+        raise InputError(
+            f"--background plate needs a background image (plate) for camera '{camera}' "
+            "(dataset.json 'background_images')",
+            file=str(ds.root),
+            field="background_images",
+        )
+    return np.asarray(read_image(paths[0]))
+
+
+def _entry_from_projection(uv, ok, width, height):
+    """Entry pixel and direction for the plate foreground from the projected nominal
+    centreline (n, 2): its first point inside the image, heading towards the point ~10 px
+    further along. (None, None) if no point is inside (then the entry is searched at the
+    image border)."""
+    inside = ok & np.all(np.isfinite(uv), 1)
+    inside &= (uv[:, 0] >= 0) & (uv[:, 0] <= width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= height - 1)
+    idx = np.flatnonzero(inside)
+    if not len(idx):
+        return None, None
+    j = idx[0]
+    seg = np.linalg.norm(np.diff(uv[j:], axis=0), axis=1)
+    far = np.flatnonzero(np.cumsum(seg) >= 10.0)
+    if not len(far):
+        return uv[j], None
+    return uv[j], uv[j + far[0] + 1] - uv[j]
+
+
+def _trace_record(tr) -> dict:
+    """The ``foreground`` entry of a results record for one camera (pixels, OpenCV
+    convention)."""
+    return {
+        "tip_px": [float(x) for x in tr.tip],
+        "entry_px": [float(x) for x in tr.entry],
+        "backbone_px": np.round(np.asarray(tr.backbone, float), 2).tolist(),
+        "gaps": [list(map(int, g)) for g in tr.gaps],
+        "plate_shift_px": [float(x) for x in tr.shift],
+        "width_px": float(tr.width_px),
+        "reason": tr.reason,
+    }
+
+
 class Segmenter:
     """Runs the segmentation of selected frames of a dataset into an output folder.
 
@@ -77,6 +124,7 @@ class Segmenter:
         warm_start: bool = False,
         batch_size: int = 4,
         colour_ranges=None,
+        plate_config=None,
     ):
         if ds.robot is None:
             raise InputError(
@@ -93,8 +141,13 @@ class Segmenter:
         self.batch_size = int(batch_size)
         self.frames = {f.id: f for f in ds.frames}
         self.frame_ids = list(ds.bad_frames) + [f.id for f in ds.frames]
-        self.bg_fns = {c: _background_fn(background, ds, c, colour_ranges) for c in self.cams}
         self.cameras = tuple(ds.cameras[c] for c in self.cams)
+        self.plate_config = plate_config
+        if background == "plate":
+            self.plates = {c: _plate_image(ds, c) for c in self.cams}
+            self.bg_fns = {}
+        else:
+            self.bg_fns = {c: _background_fn(background, ds, c, colour_ranges) for c in self.cams}
         self.compile_s = 0.0
         self.run_s = 0.0
         self._coeffs_prev = None  # warm start carried across chunks
@@ -193,7 +246,12 @@ class Segmenter:
         with CompileTimer() as timer:
             fk = _fk_batch(self.ds.robot, qs)
             bgs, subs = [], []
+            traces = None
+            if not self.bg_fns:  # --background plate: per frame, from the nominal base
+                bgs, subs, traces = self._plate_backgrounds(fk, imgs_np)
             for k, cname in enumerate(self.cams):
+                if traces is not None:
+                    break
                 bg, sub = self.bg_fns[cname](jnp.asarray(imgs_np[k]))
                 bgs.append(bg)
                 subs.append(sub)
@@ -267,6 +325,10 @@ class Segmenter:
                     "num_steps": int(fk_steps[i]),
                 },
             }
+            if traces is not None:
+                rec["foreground"] = {
+                    c: _trace_record(traces[k][i]) for k, c in enumerate(self.cams)
+                }
             cc = getattr(host, "camera_correction", None)
             if cc is not None:  # per-camera pose correction (rotation vector, translation)
                 rec["camera_correction"] = {c: cc[i][k].tolist() for k, c in enumerate(self.cams)}
@@ -275,6 +337,37 @@ class Segmenter:
                     fid, frame, images, host, i, bgs_np, nominal_p[i]
                 )
             yield rec
+
+    def _plate_backgrounds(self, fk, imgs_np):
+        """Plate foreground of every frame and camera (:func:`jaxcr.foreground.
+        plate_foreground`), entered where the projected nominal centreline enters the image
+        and heading along it (:func:`_entry_from_projection`). Returns (B per camera (F, h, w), I' per
+        camera, traces[camera][frame])."""
+        from jaxcr.camera import project_points
+        from jaxcr.foreground import plate_foreground
+
+        p_all = np.asarray(fk.centreline.p)
+        bgs, subs, traces = [], [], []
+        for k, cname in enumerate(self.cams):
+            cam = self.cameras[k]
+            uv_all, ok_all = jax.vmap(lambda p, c=cam: project_points(c, p))(
+                jnp.asarray(p_all, jnp.float32)
+            )
+            uv_all, ok_all = np.asarray(uv_all, np.float64), np.asarray(ok_all)
+            bk, tk = [], []
+            for i in range(len(p_all)):
+                entry, d = _entry_from_projection(uv_all[i], ok_all[i], cam.width, cam.height)
+                tr = plate_foreground(
+                    imgs_np[k][i], self.plates[cname], entry, d, self.plate_config
+                )
+                bk.append(~tr.mask)
+                tk.append(tr)
+            bg = np.stack(bk)
+            im = imgs_np[k].astype(np.float32)
+            bgs.append(jnp.asarray(bg))
+            subs.append(jnp.asarray(im * (~bg)[..., None].astype(np.float32)))
+            traces.append(tk)
+        return bgs, subs, traces
 
     def _write_frame_files(self, fid, frame, images, host, i, bgs_np, nominal_p) -> dict:
         L = self.layout

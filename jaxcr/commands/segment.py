@@ -24,11 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from jaxcr.commands import seed as _seed
+from jaxcr.commands._plate import add_plate_arguments, plate_config, plate_flags_given
 from jaxcr.errors import InputError
 from jaxcr.io import results as R
 
 HELP = "segment a dataset with the kinematic prior (Watson et al.)"
-BACKGROUNDS = ("colour", "gmm", "none")
+BACKGROUNDS = ("colour", "gmm", "plate", "none")
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -52,7 +53,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         choices=BACKGROUNDS,
         default="colour",
         help="background subtraction: colour mask (paper's choice, default), per-pixel GMM "
-        "fitted to the dataset's background images, or none",
+        "fitted to the dataset's background images, plate (the first background image of "
+        "each camera, aligned to every frame, cues beyond the key colour, the tube traced "
+        "from the projected nominal base with gap bridging; see the --plate-... flags), or "
+        "none",
     )
     p.add_argument(
         "--robot-hsv",
@@ -167,6 +171,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="random seed (recorded; the refinement itself is deterministic)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_plate_arguments(p, "--background plate")
     p.set_defaults(func=run)
     return p
 
@@ -261,6 +266,12 @@ def robot_hsv_ranges(args):
             )
         out.append(HSVRange(*v))
     return tuple(out)
+
+
+def dataclasses_asdict(cfg) -> dict:
+    import dataclasses
+
+    return dataclasses.asdict(cfg)
 
 
 def config_dict(cfg) -> dict:
@@ -446,7 +457,7 @@ def _prepare_claimed(out, layout, resume, overwrite, run_info) -> list[dict]:
     records: list[dict] = []
     if resume and layout.run.exists():
         prev = R.read_run(layout.run)
-        for key in ("dataset", "cameras", "background", "robot_hsv", "config"):
+        for key in ("dataset", "cameras", "background", "robot_hsv", "plate", "config"):
             a, b = R.to_jsonable(prev.get(key)), R.to_jsonable(run_info.get(key))
             if a != b:
                 if isinstance(a, dict) and isinstance(b, dict):  # name only what differs
@@ -521,6 +532,10 @@ def run(args) -> int:
         args.resume = True
     cfg = refine_config(args)
     ranges = robot_hsv_ranges(args)
+    given = plate_flags_given(args)
+    if given and args.background != "plate":
+        raise InputError(f"{given[0]} needs --background plate", field=given[0][2:])
+    plate_cfg = plate_config(args) if args.background == "plate" else None
     out = Path(args.out)
     run_info = {
         "format": R.RUN_FORMAT,
@@ -530,6 +545,7 @@ def run(args) -> int:
         "cameras": cams,
         "background": args.background,
         "robot_hsv": None if ranges is None else [list(_hsv_tuple(r)) for r in ranges],
+        "plate": None if plate_cfg is None else dataclasses_asdict(plate_cfg),
         "warm_start": bool(args.warm_start),
         "batch_size": args.batch_size,
         "seed": args.seed,
@@ -556,6 +572,7 @@ def run(args) -> int:
         warm_start=args.warm_start,
         batch_size=args.batch_size,
         colour_ranges=ranges,
+        plate_config=plate_cfg,
     )
     done = R.done_frame_ids(previous, retry_failed=args.retry_failed)
     todo = [f for f in seg.frame_ids if f not in done]

@@ -78,6 +78,7 @@ import cv2
 import numpy as np
 
 from jaxcr.commands import seed as _seed
+from jaxcr.commands._plate import add_plate_arguments, plate_config, plate_flags_given
 from jaxcr.errors import InputError
 from jaxcr.io.jsonfile import read_json
 
@@ -106,7 +107,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("dataset", help="stereo dataset folder (stereo.json), or 'synth'")
     p.add_argument("-o", "--out", required=True, help="output folder (created if missing)")
     p.add_argument(
-        "--segmentation", choices=["chroma", "plate", "plate_shadow", "both"], default="chroma"
+        "--segmentation",
+        choices=["chroma", "plate", "plate_shadow", "both", "trace"],
+        default="chroma",
+        help="chroma key (default), plate difference, plate after the best shadow gain, "
+        "both, or trace: the plate foreground for real backgrounds (aligned plate, cues "
+        "beyond the key colour, the tube traced from the robot base with gaps bridged; "
+        "see the --plate-... flags)",
     )
     p.add_argument("--tolerance", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                    help="chroma-key score ramp (default 0.5 0.8)")  # fmt: skip
@@ -118,6 +125,7 @@ def add_parser(subparsers) -> None:
                    help="synth: image size WxH (at least 64x48, height >= 9/16 width)")  # fmt: skip
     p.add_argument("--background", choices=["green", "blue"], default="green",
                    help="synth: chroma cloth colour")  # fmt: skip
+    add_plate_arguments(p, "--segmentation trace")
     p.set_defaults(func=run)
 
 
@@ -524,6 +532,10 @@ def _check_run(out: Path, dataset: dict) -> None:
             "segments": cfg.n_segments,
         },
     }
+    if cfg.segmentation == "trace":
+        import dataclasses
+
+        info["options"]["plate"] = dataclasses.asdict(cfg.plate_foreground)
     path = out / "run.json"
     if path.exists():
         try:
@@ -673,6 +685,11 @@ def run(args) -> int:
 
         check_count(args.segments, "--segments", 1, MAX_SEGMENTS)
         ds["config"].n_segments = args.segments
+    given = plate_flags_given(args)
+    if given and args.segmentation != "trace":
+        raise InputError(f"{given[0]} needs --segmentation trace", field=given[0])
+    if args.segmentation == "trace":
+        ds["config"].plate_foreground = plate_config(args)
     if args.segmentation != "chroma" and ds["plates"] is None:
         raise InputError(
             f"--segmentation {args.segmentation} needs background_plates in stereo.json"

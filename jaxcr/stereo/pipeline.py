@@ -53,6 +53,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from jaxcr.camera import Camera, project_points
+from jaxcr.foreground import PlateForegroundConfig, plate_foreground
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_frame import (
     BaseSpec,
@@ -108,7 +109,10 @@ class StereoConfig:
     ``"plate"`` (background plate difference; shadows are segmented with the tube),
     ``"plate_shadow"`` (plate difference after the best shadow gain, which ignores
     shadows) or ``"both"`` (the product of chroma and plate alphas: foreground must differ
-    from the plate and not be the key colour).
+    from the plate and not be the key colour), or ``"trace"`` (the plate foreground of
+    :mod:`jaxcr.foreground`, settings ``plate_foreground``: the plate aligned to the frame,
+    cues beyond the key colour with hysteresis, the tube traced from the projected robot
+    base with gaps bridged; for real backgrounds).
     ``robot_base``: where the robot leaves the plate, base frame (default: base centre).
     ``n_segments``: number of tubes if known (else chosen from the diameter profile).
     ``refine_iterations``: sub-pixel refinement passes (silhouette centres, re-triangulate).
@@ -155,6 +159,7 @@ class StereoConfig:
     base: BaseSpec = field(default_factory=BaseSpec)
     single_view_tail: bool = True
     tip_search_px: int = 40
+    plate_foreground: PlateForegroundConfig = field(default_factory=PlateForegroundConfig)
 
 
 def _given_base_pose(cam1: Camera, cam2: Camera, spec: BaseSpec) -> dict:
@@ -544,7 +549,7 @@ def reconstruct_pair(
     ``segmentation="plate"``/``"both"``). Returns a dict (numpy arrays, base frame, metres).
     """
     cfg = config or StereoConfig()
-    if cfg.segmentation not in ("chroma", "plate", "plate_shadow", "both"):
+    if cfg.segmentation not in ("chroma", "plate", "plate_shadow", "both", "trace"):
         raise ValueError(f"unknown segmentation {cfg.segmentation!r}")
     timings: dict[str, float] = {}
     t0 = _now()
@@ -557,7 +562,7 @@ def reconstruct_pair(
                 f"view {k + 1} image is {im.shape[1]}x{im.shape[0]} but its calibration is "
                 f"{cam.width}x{cam.height}",
             )
-    if cfg.segmentation in ("plate", "plate_shadow", "both") and plates is None:
+    if cfg.segmentation in ("plate", "plate_shadow", "both", "trace") and plates is None:
         raise StereoFailure("plate", "segmentation needs background plates, none given")
     # 1. Base frame: from the markers (the two views' detections in two threads: OpenCV
     # releases the GIL), a given T_cam_base, or the entry pixels (a provisional frame at the
@@ -592,9 +597,19 @@ def reconstruct_pair(
         cfg.tol_hi,
         cfg.plate_lo,
         cfg.plate_hi,
-        mode=cfg.segmentation,
+        mode="chroma" if cfg.segmentation == "trace" else cfg.segmentation,
     )
     masks = np.asarray(mask_j)
+    if cfg.segmentation == "trace":
+        # The traced robot of each view (jaxcr.foreground), entered at the projected base.
+        tr = [
+            plate_foreground(
+                imgs[k], plates[k], _project_np(cams[k], base[None])[0], cfg=cfg.plate_foreground
+            )
+            for k in range(2)
+        ]
+        masks = _image_stack([t.mask.astype(np.uint8) for t in tr])
+        alpha_j = jnp.asarray(masks.astype(np.float32))
     t0 = _tick(timings, "segmentation", t0)
     # 3. Per view: closing, marker squares, base (Hough), flood fill.
     views = []

@@ -394,35 +394,48 @@ def _shadowed(scene: _Scene, pts: np.ndarray) -> np.ndarray:
     return full_out
 
 
-def _shade(scene: _Scene, cam: RenderCamera, d_cam: np.ndarray) -> np.ndarray:
-    """Trace and shade rays (camera frame unit directions (M, 3)); linear RGB (M, 3)."""
-    T = cam.T_cam_robot
-    R, t = T[:3, :3], T[:3, 3]
-    C = -R.T @ t
-    d = d_cam @ R  # base frame
+def robot_hits(scene, C: np.ndarray, o: np.ndarray, d: np.ndarray):
+    """Exact first hits of rays (origins ``o``, unit directions ``d`` (M, 3), base frame,
+    from the camera centre ``C``) with the robot's capsule chain ``scene.p``/``scene.r``
+    (flat tube ends where ``scene.flat_end``): distance ``t`` (M,) (inf on a miss), unit
+    normal (M, 3) and the capsule index (M,) (-1 on a miss)."""
     m = len(d)
-    o = np.broadcast_to(C, (m, 3)).copy()
-    tb = np.full(m, np.inf)
-    nb = np.zeros((m, 3))
-    pid = np.full(m, -1)
-    for k, (pt, nn) in enumerate(scene.planes):
-        tt, n = ray_plane(o, d, pt, nn)
-        better = tt < tb
-        tb[better], nb[better], pid[better] = tt[better], n[better], k
     t_rob = np.full(m, np.inf)
     n_rob = np.zeros((m, 3))
+    k_rob = np.full(m, -1)
     if scene.p is not None:
+        a_all, b_all = scene.p[:-1], scene.p[1:]
+        r_all = np.asarray(scene.r)[:, None]
+        cens = (np.minimum(a_all, b_all) + np.maximum(a_all, b_all)) / 2
+        rads = np.linalg.norm(
+            np.maximum(a_all, b_all) - np.minimum(a_all, b_all) + 2 * r_all, axis=1
+        )
+        rads = rads / 2
+        group = 8
+        cand = None
         for k in range(len(scene.r)):
             a, b, r = scene.p[k], scene.p[k + 1], scene.r[k]
             lo = np.minimum(a, b) - r
             hi = np.maximum(a, b) + r
+            if k % group == 0:
+                # Rays near a group of capsules (a sphere holding their bounding spheres,
+                # by the triangle inequality): the per-capsule test runs on these only.
+                g = slice(k, min(k + group, len(scene.r)))
+                gc = cens[g].mean(0)
+                gr = (
+                    float(np.max(np.linalg.norm(cens[g] - gc, axis=1) + rads[g])) * (1 + 1e-6)
+                    + 1e-9
+                )
+                oc = gc - C
+                proj = d @ oc
+                cand = np.nonzero(oc @ oc - proj**2 < gr * gr)[0]
             # Cheap angular pre-filter: rays within the capsule's bounding sphere.
             cen = (lo + hi) / 2
             rad = np.linalg.norm(hi - lo) / 2
             oc = cen - C
-            proj = d @ oc
+            proj = d[cand] @ oc
             perp2 = oc @ oc - proj**2
-            sel = np.nonzero(perp2 < rad * rad)[0]
+            sel = cand[np.nonzero(perp2 < rad * rad)[0]]
             if not len(sel):
                 continue
             tt, n = ray_capsule(o[sel], d[sel], a, b, r)
@@ -445,7 +458,27 @@ def _shade(scene: _Scene, cam: RenderCamera, d_cam: np.ndarray) -> np.ndarray:
                 n = np.where(use[:, None], axis[None], n)
             better = tt < t_rob[sel]
             t_rob[sel[better]] = tt[better]
+            k_rob[sel[better]] = k
             n_rob[sel[better]] = n[better]
+    return t_rob, n_rob, k_rob
+
+
+def _shade(scene: _Scene, cam: RenderCamera, d_cam: np.ndarray) -> np.ndarray:
+    """Trace and shade rays (camera frame unit directions (M, 3)); linear RGB (M, 3)."""
+    T = cam.T_cam_robot
+    R, t = T[:3, :3], T[:3, 3]
+    C = -R.T @ t
+    d = d_cam @ R  # base frame
+    m = len(d)
+    o = np.broadcast_to(C, (m, 3)).copy()
+    tb = np.full(m, np.inf)
+    nb = np.zeros((m, 3))
+    pid = np.full(m, -1)
+    for k, (pt, nn) in enumerate(scene.planes):
+        tt, n = ray_plane(o, d, pt, nn)
+        better = tt < tb
+        tb[better], nb[better], pid[better] = tt[better], n[better], k
+    t_rob, n_rob, _ = robot_hits(scene, C, o, d)
     rgb = np.zeros((m, 3))
     robot = t_rob < tb
     cloth = ~robot & np.isfinite(tb)
