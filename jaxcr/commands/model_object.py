@@ -9,7 +9,11 @@ closes the loop and refines all poses (Algorithm 2). OUT receives:
   model.ply         the merged model after global optimisation (frame O = last view)
   model_before.ply  the model from forward pairwise registration only
   fig13.png         the paper's Fig. 13 statistics before/after global optimisation
-  poses.csv         per view: estimated and true pose errors before/after
+  poses.json        every view's estimated camera pose before/after global optimisation
+                    and its true pose (when the scene has one) as 4x4 matrices, frame O
+                    = the last ring view's camera (format jaxcr.model_poses/1,
+                    docs/rgbd-scene-format.md)
+  poses.csv         per view (ring or not): rotation/translation errors before/after
   report.md, report.json
 
 Exit codes: 0 model built with a closed loop, 1 registration failed or no loop closed
@@ -104,7 +108,7 @@ def run(args) -> int:
     # new, empty or an earlier model-object run, never another command's folder; locked
     outdir.claim(out, "model-object", recognise=lambda o: (o / "report.json").exists())
     # an earlier run's model and report must not outlive a rerun that fails or is stopped
-    for stale in ("report.md", "report.json", "model.ply", "model_before.ply", "poses.csv",
+    for stale in ("report.md", "report.json", "model.ply", "model_before.ply", "poses.csv", "poses.json",
                   "fig13.png", "plan.png", *(p.name for p in out.glob("partial_*.ply"))):  # fmt: skip
         (out / stale).unlink(missing_ok=True)
     cfg = PipelineConfig(
@@ -169,14 +173,7 @@ def write_outputs(out: Path, sim, result, ev: dict) -> None:
             c = model_cloud(result, poses, voxel=0.002)
             write_ply(out / name, c.points, c.colours, c.normals)
         plot_fig13(out / "fig13.png", ev)
-        with open(out / "poses.csv", "w") as f:
-            f.write("view,run,index,rot_before_deg,trans_before_mm,rot_after_deg,trans_after_mm\n")
-            for j, key in enumerate(result.ring):
-                b, a = ev["before"]["pose"], ev["after"]["pose"]
-                f.write(
-                    f"{j},{result.runs[key[0]].name},{key[1]},{b['rot_deg'][j]:.4f},"
-                    f"{1000 * b['trans_m'][j]:.3f},{a['rot_deg'][j]:.4f},{1000 * a['trans_m'][j]:.3f}\n"
-                )
+        write_poses(out, sim, result, ev)
     else:
         for r in result.runs:  # partial models from forward registration only
             c = partial_model(r.captures, chain(r.pairs[: len(r.captures) - 1]), 0.002)
@@ -186,6 +183,67 @@ def write_outputs(out: Path, sim, result, ev: dict) -> None:
     tmp.write_text(json.dumps(clean, indent=1))
     os.replace(tmp, out / "report.json")
     (out / "report.md").write_text(report_markdown(sim, ev))
+
+
+POSES_FORMAT = "jaxcr.model_poses/1"
+
+
+def write_poses(out: Path, sim, result, ev: dict) -> None:
+    """poses.json (every view's T_O,i before/after and true, 4x4) and poses.csv (errors per
+    view, ring views and those left out of it); both atomic. See docs/rgbd-scene-format.md."""
+    from jaxcr.registration.pipeline import _capture
+
+    before, after = ev["views"]["before"], ev["views"]["after"]
+    anchor = _capture(result.runs, result.ring[-1]).T_true
+
+    def mat(T):
+        return None if T is None else np.asarray(T, np.float64).round(9).tolist()
+
+    def num(x, scale=1.0):
+        return None if x is None or not np.isfinite(x) else float(scale * x)
+
+    views = []
+    for b, a in zip(before, after, strict=True):
+        views.append(
+            {
+                "run": a["run"],
+                "index": a["index"],
+                "ring_position": a["ring_position"],
+                "T_O_cam": mat(a["T"]),
+                "T_O_cam_before": mat(b["T"]),
+                "T_O_cam_true": mat(a["T_true"]),
+                "rot_err_deg": num(a["rot_deg"]),
+                "trans_err_mm": num(a["trans_m"], 1000.0),
+                "rot_err_before_deg": num(b["rot_deg"]),
+                "trans_err_before_mm": num(b["trans_m"], 1000.0),
+            }
+        )
+    doc = {
+        "format": POSES_FORMAT,
+        "frame": "O = the camera frame (OpenCV: x right, y down, z forward; metres) of the "
+        "last ring view; T_O_cam maps a point from view i's camera frame to frame O",
+        "T_world_O_true": mat(anchor),
+        "views": views,
+    }
+    last = result.ring[-1]
+    doc["anchor"] = {"run": result.runs[last[0]].name, "index": last[1]}  # the view of frame O
+    tmp = out / "poses.json.tmp"
+    tmp.write_text(json.dumps(doc, indent=1))
+    os.replace(tmp, out / "poses.json")
+
+    def f(x, fmt):
+        return "" if x is None else format(x, fmt)
+
+    rows = ["run,index,ring_position,rot_before_deg,trans_before_mm,rot_after_deg,trans_after_mm"]
+    for v in views:
+        rows.append(
+            f"{v['run']},{v['index']},{f(v['ring_position'], 'd')},"
+            f"{f(v['rot_err_before_deg'], '.5f')},{f(v['trans_err_before_mm'], '.4f')},"
+            f"{f(v['rot_err_deg'], '.5f')},{f(v['trans_err_mm'], '.4f')}"
+        )
+    tmp = out / "poses.csv.tmp"
+    tmp.write_text("\n".join(rows) + "\n")
+    os.replace(tmp, out / "poses.csv")
 
 
 def _jsonable(x):
@@ -252,6 +310,15 @@ def report_markdown(sim, ev: dict) -> str:
         for name, *vals, z, fmt in rows:
             ref = "" if z is None else fmt.format(z)
             lines.append(f"| {name} | " + " | ".join(fmt.format(v) for v in vals) + f" | {ref} |")
+        o = ev.get("outside_ring") or {}
+        if o.get("views"):
+            lines += [
+                "",
+                f"{o['views']} view(s) outside the ring (captured before the loop's closing "
+                "view; chained from the nearest ring view by the forward registrations): worst "
+                f"{o['max_rot_deg']:.3f} deg / {1000 * o['max_trans_m']:.2f} mm after global "
+                "optimisation (poses.csv, poses.json).",
+            ]
         gl = ev["global"]
         if gl.get("method") == "pose_graph":
             lines += [

@@ -19,13 +19,17 @@ def difference_image(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (d.max(axis=2) if d.ndim == 3 else d).astype(np.float32)
 
 
-def _grabcut(image: np.ndarray, mask: np.ndarray, iters: int) -> np.ndarray:
+def _grabcut(image: np.ndarray, mask: np.ndarray, iters: int, seed: int = 0) -> np.ndarray:
+    """grabCut from ``mask`` (GC_* labels). Its GMMs start from k-means++ centres drawn from
+    OpenCV's global RNG, so the cut depended on whatever had used that RNG before (a few to
+    hundreds of pixels on the synthetic videos): the RNG is seeded with ``seed`` first."""
     fg = (mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)
     bg = (mask == cv2.GC_BGD) | (mask == cv2.GC_PR_BGD)
     if not fg.any() or not bg.any():  # grabCut needs both models: nothing to cut
         return fg
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     m = mask.copy()
+    cv2.setRNGSeed(int(seed))
     cv2.grabCut(image, m, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK)
     return (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
 
@@ -36,6 +40,7 @@ def fitzpatrick_segment(
     touch: np.ndarray,
     threshold: float = 5.0,
     iters: int = 3,
+    seed: int = 0,
 ) -> np.ndarray:
     """Object mask of the touch frame (bool (H, W)).
 
@@ -43,7 +48,8 @@ def fitzpatrick_segment(
     ``before_touch2`` the one before that (uint8 RGB). Pixels changing between
     ``before_touch`` and ``touch`` by more than ``threshold`` are the moving foreground; the
     arm model is the change between the two frames before the touch (the arm moving alone),
-    classed as definite background; grabCut on the touch frame decides the rest."""
+    classed as definite background; grabCut on the touch frame decides the rest (its RNG
+    seeded with ``seed``: the same frames give the same mask)."""
     change = difference_image(before_touch, touch) > threshold
     arm = difference_image(before_touch2, before_touch) > threshold
     arm = cv2.dilate(arm.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
@@ -51,11 +57,13 @@ def fitzpatrick_segment(
     mask[change] = cv2.GC_PR_FGD
     mask[arm] = cv2.GC_BGD
     bgr = cv2.cvtColor(touch, cv2.COLOR_RGB2BGR)
-    return _grabcut(bgr, mask, iters)
+    return _grabcut(bgr, mask, iters, seed)
 
 
-def ml_graphcut(image: np.ndarray, ml_mask: np.ndarray, iters: int = 3) -> np.ndarray:
+def ml_graphcut(
+    image: np.ndarray, ml_mask: np.ndarray, iters: int = 3, seed: int = 0
+) -> np.ndarray:
     """ "M-L + GraphCuts": grabCut on ``image`` (uint8 RGB) seeded with the M-L object mask as
     probable foreground and everything else as probable background."""
     mask = np.where(ml_mask, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
-    return _grabcut(cv2.cvtColor(image, cv2.COLOR_RGB2BGR), mask, iters)
+    return _grabcut(cv2.cvtColor(image, cv2.COLOR_RGB2BGR), mask, iters, seed)

@@ -85,6 +85,12 @@ class MotionConfig:
     integration: str = "product"  # likelihood.object_probability: "product" | "mixture"
     prior_frames: float = 1.0  # Beta prior per window, pseudo-frames at 1/2
     superpixel_scale: int = 0  # superpixels on the frame shrunk by this factor (0: auto_scale)
+    # A tracked segment whose area falls below this fraction of its area in the previous
+    # frame has been lost by the tracking (overrun by a neighbour, occluded, or left behind
+    # when the object moved): its id stops collecting evidence from then on, so the id's
+    # later pixels (often background it was re-assigned to) cannot dilute or fake the
+    # evidence of the segment it named at the evaluation frame. 0 disables.
+    retire_fraction: float = 0.5
 
 
 def auto_superpixel_step(width: int) -> int:
@@ -232,6 +238,25 @@ def frame_update(
     return _window_update(sums, counts, p, present, touch)
 
 
+@functools.partial(jax.jit, static_argnames=("n_segments",))
+def _label_areas(labels: Int[Array, "h w"], n_segments: int) -> Float[Array, " k"]:
+    return jnp.bincount(labels.reshape(-1), length=n_segments).astype(jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnames=("n_segments",))
+def _retire_lost(
+    alive: Bool[Array, " k"],
+    area: Float[Array, " k"],
+    labels: Int[Array, "h w"],
+    n_segments: int,
+    fraction: float,
+) -> tuple[Bool[Array, " k"], Float[Array, " k"]]:
+    """Ids still tracked after a step (``alive`` and area >= ``fraction`` x the previous
+    area; MotionConfig.retire_fraction) and the new areas (px of ``labels``)."""
+    new = _label_areas(labels, n_segments)
+    return alive & (new >= fraction * area), new
+
+
 @dataclass
 class StepRecord:
     """What happened between frames ``index - 1`` and ``index``."""
@@ -284,6 +309,9 @@ class MotionTracker:
         self.counts = jnp.zeros((m, 2, self.n_segments), jnp.float32)
         self.records: list[StepRecord] = []
         self._pts = None
+        # per id: still the segment it was (MotionConfig.retire_fraction) and its last area
+        self.area = _label_areas(self.work_labels, self.n_segments)
+        self.alive = jnp.ones(self.n_segments, bool)
 
     def in_view(self, uv) -> bool:
         return bool(
@@ -323,7 +351,7 @@ class MotionTracker:
         if not reason:
             if self._pts is None or self._pts.shape != pts.shape:
                 self._pts = jnp.asarray(pts)  # the grid is fixed: transferred once
-            self.sums, self.counts = frame_update(
+            sums, counts = frame_update(
                 self.sums,
                 self.counts,
                 self._pts,
@@ -343,6 +371,9 @@ class MotionTracker:
                 cfg.stabilise,
                 cfg.translation_irls,
             )
+            # lost ids keep the evidence they collected while they were the segment
+            self.sums = jnp.where(self.alive, sums, self.sums)
+            self.counts = jnp.where(self.alive, counts, self.counts)
             self.sums.block_until_ready()
         t2 = time.perf_counter()
         self.work_labels, self.labels = segment_track(
@@ -357,6 +388,10 @@ class MotionTracker:
             self.height,
             self.width,
         )
+        if cfg.retire_fraction > 0:
+            self.alive, self.area = _retire_lost(
+                self.alive, self.area, self.work_labels, self.n_segments, cfg.retire_fraction
+            )
         self.labels.block_until_ready()
         t3 = time.perf_counter()
         self.gray = gray

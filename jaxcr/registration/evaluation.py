@@ -75,6 +75,59 @@ def pose_errors(result: ModelResult, poses: list[np.ndarray]) -> dict:
     }
 
 
+def view_poses(result: ModelResult, ring_poses: list[np.ndarray]) -> list[dict]:
+    """Pose T_O,i (4x4, camera i -> frame O = the last ring view) of every captured view,
+    in run and capture order. Ring views take ``ring_poses`` (in ring order); a view left out
+    of the ring (captured before the loop's closing view) is chained from the nearest ring
+    view of its run through the run's forward registrations (T_{i+1 <- i}), so its error
+    includes that chain's drift. Each entry: ``run`` (name), ``index``, ``ring_position``
+    (None outside the ring), ``T`` and, when the scene records them, ``T_true`` (the true
+    pose in the same frame O)."""
+    pos = {k: j for j, k in enumerate(result.ring)}
+    anchor = _capture(result.runs, result.ring[-1]).T_true
+    out = []
+    for r, log in enumerate(result.runs):
+        members = [i for i in range(len(log.captures)) if (r, i) in pos]
+        for i, cap in enumerate(log.captures):
+            if (r, i) in pos:
+                T = np.asarray(ring_poses[pos[(r, i)]], np.float64)
+            elif members:
+                j = min(members, key=lambda m: abs(m - i))
+                T = np.asarray(ring_poses[pos[(r, j)]], np.float64)
+                lo, hi = min(i, j), max(i, j)
+                T_hi_lo = np.eye(4)  # T_{hi <- lo} from the forward pairs lo..hi-1
+                for k in range(lo, hi):
+                    T_hi_lo = np.asarray(log.pairs[k].T, np.float64) @ T_hi_lo
+                T = T @ (T_hi_lo if i < j else np.linalg.inv(T_hi_lo))
+            else:
+                T = None  # no ring view in this run: nothing to chain from
+            true = None
+            if cap.T_true is not None and anchor is not None:
+                true = np.linalg.inv(anchor) @ cap.T_true
+            out.append(
+                {
+                    "run": log.name,
+                    "index": i,
+                    "ring_position": pos.get((r, i)),
+                    "T": T,
+                    "T_true": true,
+                }
+            )
+    return out
+
+
+def view_errors(result: ModelResult, ring_poses: list[np.ndarray]) -> list[dict]:
+    """:func:`view_poses` with the rotation (deg) and translation (m) error of every view
+    against the truth (NaN where either pose is missing)."""
+    views = view_poses(result, ring_poses)
+    for v in views:
+        if v["T"] is None or v["T_true"] is None:
+            v["rot_deg"], v["trans_m"] = float("nan"), float("nan")
+        else:
+            v["rot_deg"], v["trans_m"] = pose_error(v["T"], v["T_true"])
+    return views
+
+
 def statistics_points(
     result: ModelResult, max_points: int = 20000, seed: int = 0
 ) -> tuple[np.ndarray, tuple[list[Cloud], np.ndarray]]:
@@ -168,6 +221,14 @@ def evaluate_result(
         tags.insert(2, ("alg2", a2.poses))
     for tag, poses in tags:
         out[tag] = model_statistics(sim, result, poses, idx, seam, k, radius)
+    # every captured view, ring or not (views before the loop's closing view are chained)
+    out["views"] = {"before": view_errors(result, g.initial), "after": view_errors(result, g.poses)}
+    left = [v for v in out["views"]["after"] if v["ring_position"] is None]
+    out["outside_ring"] = {
+        "views": len(left),
+        "max_rot_deg": max((v["rot_deg"] for v in left), default=None),
+        "max_trans_m": max((v["trans_m"] for v in left), default=None),
+    }
     edge_err = []
     for j, e in enumerate(result.edges):
         a = _capture(result.runs, result.ring[j])

@@ -319,11 +319,15 @@ def _hat(v: np.ndarray) -> np.ndarray:
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation vector of a rotation matrix (float64; angles below pi)."""
-    c = np.clip(0.5 * (np.trace(R) - 1.0), -1.0, 1.0)
-    th = np.arccos(c)
+    """Rotation vector of a rotation matrix (float64; angles below pi). The angle is
+    atan2(|v| / 2, (tr R - 1) / 2) with v = vee(R - R^T) = 2 sin(th) axis: arccos of the
+    trace would lose angles below sqrt(2 eps)."""
+    R = np.asarray(R, np.float64)
     v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return v * (0.5 if th < 1e-8 else th / (2.0 * np.sin(th)))
+    s2 = np.linalg.norm(v)  # 2 sin(th)
+    th = np.arctan2(0.5 * s2, 0.5 * (np.trace(R) - 1.0))
+    # th / (2 sin th) -> 1/2 (+ th^2 / 12) at the identity
+    return v * (0.5 + th * th / 12.0 if th < 1e-4 else th / s2)
 
 
 def _so3_jac_inv(phi: np.ndarray, left: bool) -> np.ndarray:
