@@ -31,6 +31,7 @@ COMMANDS = [
     "manifold",
     "motion",
     "model_object",
+    "warmup",
 ]
 
 
@@ -78,6 +79,12 @@ def build_parser() -> argparse.ArgumentParser:
     from jaxcr import __version__
 
     parser.add_argument("--version", action="version", version=f"jaxcr {__version__}")
+    parser.add_argument(
+        "--no-compile-cache",
+        action="store_true",
+        help="do not use the persistent compilation cache (default: on, in $JAXCR_CACHE_DIR "
+        "or ~/.cache/jaxcr/jax; JAXCR_COMPILE_CACHE=0 also turns it off)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         modname = f"jaxcr.commands.{name}"
@@ -99,6 +106,11 @@ def main(argv: list[str] | None = None) -> int:
         from jaxcr.progress import mode as progress_mode
 
         progress_mode()  # a bad JAXCR_PROGRESS is bad input before any work (exit 2)
+        from jaxcr.io.compile_cache import enable_compile_cache
+
+        # before any compilation; a bad JAXCR_COMPILE_CACHE is bad input (exit 2), an
+        # unwritable cache folder one warning
+        enable_compile_cache(False if args.no_compile_cache else None)
         code = args.func(args)
     except InputError as err:
         print(f"jaxcr {args.command}: error: {err}", file=sys.stderr)

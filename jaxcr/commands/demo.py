@@ -57,9 +57,6 @@ def run(args) -> int:
     if args.frames < 1:
         raise InputError("--frames must be >= 1", field="frames")
     size = parse_size(args.size)
-    from jaxcr.commands.synth import _enable_compile_cache
-
-    _enable_compile_cache()  # persistent XLA cache: a second demo skips compilation
     root = Path(args.out)
     ds_dir, seg_dir = root / "dataset", root / "segment"
     t0 = time.perf_counter()
