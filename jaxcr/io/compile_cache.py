@@ -101,6 +101,20 @@ def _writable(path: str) -> str | None:
     return None
 
 
+def _disable() -> None:
+    """Turn off a cache an earlier call of this process turned on (JAX's own setting alone
+    is left as it is)."""
+    global _enabled
+    if _enabled is None:
+        return
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache as cc
+
+    jax.config.update("jax_compilation_cache_dir", None)
+    cc.reset_cache()
+    _enabled = None
+
+
 def enable_compile_cache(path: str | os.PathLike | bool | None = None) -> str | None:
     """Turn on JAX's persistent compilation cache; returns the folder, or None when it is off
     (switched off, or the folder is not writable: then one warning on stderr).
@@ -112,6 +126,7 @@ def enable_compile_cache(path: str | os.PathLike | bool | None = None) -> str | 
     global _enabled
     folder = resolve_cache_dir(path)
     if folder is None:
+        _disable()
         return None
     folder = os.path.abspath(folder)
     if folder == _enabled:
@@ -119,6 +134,7 @@ def enable_compile_cache(path: str | os.PathLike | bool | None = None) -> str | 
     why = _writable(folder)
     if why is not None:
         _warn_once(folder, why)
+        _disable()
         return None
     import jax
 
