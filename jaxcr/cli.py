@@ -91,6 +91,13 @@ def build_parser() -> argparse.ArgumentParser:
         if importlib.util.find_spec(modname) is None:
             continue
         importlib.import_module(modname).add_parser(sub)
+    for sp in dict.fromkeys(sub.choices.values()):  # also accepted after the command's name
+        sp.add_argument(
+            "--no-compile-cache",
+            action="store_true",
+            default=argparse.SUPPRESS,  # unset here: the global flag's value stands
+            help="do not use the persistent compilation cache (as jaxcr --no-compile-cache)",
+        )
     _plain_help(parser)
     return parser
 
