@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -46,13 +47,18 @@ def _jaxcr(argv: list[str], cache: str | None) -> dict:
         env["JAXCR_CACHE_DIR"] = cache
         env.pop("JAXCR_COMPILE_CACHE", None)
     load = _load()
+    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "jaxcr", *argv], env=env, capture_output=True,
                        text=True)  # fmt: skip
     wall = time.perf_counter() - t0
+    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    # CPU seconds of the process (user + system): much less sensitive to the machine's load
+    # than wall seconds
+    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
     if p.returncode != 0:
         raise SystemExit(f"jaxcr {' '.join(argv)} failed ({p.returncode}): {p.stderr[-2000:]}")
-    return {"wall_s": wall, "load_before": load}
+    return {"wall_s": wall, "cpu_s": cpu, "load_before": load}
 
 
 def _segment(ds: Path, out: Path, cache: str | None) -> dict:
@@ -61,6 +67,11 @@ def _segment(ds: Path, out: Path, cache: str | None) -> dict:
     summary = json.loads((out / "summary.json").read_text())
     r.update(compile_s=summary["compile_s"], run_s=summary["run_s"])
     return r
+
+
+def _cpu(runs: list[dict]) -> str:
+    """Median process CPU seconds, or n/a for runs recorded before it was measured."""
+    return f"{_median(runs, 'cpu_s'):.1f}" if all("cpu_s" in r for r in runs) else "n/a"
 
 
 def _median(runs: list[dict], key: str) -> float:
@@ -84,8 +95,8 @@ def _write(rows: dict, a) -> None:
         "spans); wall = whole process. Previous (issue 18): 23-87 s first compile, no cache "
         "in most commands.",
         "",
-        "| size | cache | compile s | run s | process wall s | load |",
-        "|---|---|---|---|---|---|",
+        "| size | cache | compile s | run s | process wall s | process CPU s | load |",
+        "|---|---|---|---|---|---|---|",
     ]
     names = {"off": "off", "first": "empty (1st process)", "second": "filled (2nd process)"}
     for size, runs in rows["segment"].items():
@@ -94,7 +105,7 @@ def _write(rows: dict, a) -> None:
                 continue
             lines.append(
                 f"| {size} | {names[k]} | {_median(rs, 'compile_s'):.1f} | "
-                f"{_median(rs, 'run_s'):.1f} | {_median(rs, 'wall_s'):.1f} | "
+                f"{_median(rs, 'run_s'):.1f} | {_median(rs, 'wall_s'):.1f} | {_cpu(rs)} | "
                 f"{statistics.median(r['load_before'][0] for r in rs):.1f} |"
             )
     if rows["demo"]:
