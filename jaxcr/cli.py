@@ -44,6 +44,7 @@ COMMANDS = [
     "manifold",
     "motion",
     "model_object",
+    "warmup",
 ]
 
 
@@ -100,12 +101,25 @@ def build_parser() -> argparse.ArgumentParser:
     from jaxcr import __version__
 
     parser.add_argument("--version", action="version", version=f"jaxcr {__version__}")
+    parser.add_argument(
+        "--no-compile-cache",
+        action="store_true",
+        help="do not use the persistent compilation cache (default: on, in $JAXCR_CACHE_DIR "
+        "or ~/.cache/jaxcr/jax; JAXCR_COMPILE_CACHE=0 also turns it off)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         modname = f"jaxcr.commands.{name}"
         if importlib.util.find_spec(modname) is None:
             continue
         importlib.import_module(modname).add_parser(sub)
+    for sp in dict.fromkeys(sub.choices.values()):  # also accepted after the command's name
+        sp.add_argument(
+            "--no-compile-cache",
+            action="store_true",
+            default=argparse.SUPPRESS,  # unset here: the global flag's value stands
+            help="do not use the persistent compilation cache (as jaxcr --no-compile-cache)",
+        )
     _plain_help(parser)
     return parser
 
@@ -186,6 +200,11 @@ def _run(args) -> int:
         from jaxcr.progress import mode as progress_mode
 
         progress_mode()  # a bad JAXCR_PROGRESS is bad input before any work (exit 2)
+        from jaxcr.io.compile_cache import enable_compile_cache
+
+        # before any compilation; a bad JAXCR_COMPILE_CACHE is bad input (exit 2), an
+        # unwritable cache folder one warning
+        enable_compile_cache(False if args.no_compile_cache else None)
         code = args.func(args)
     except InputError as err:
         print(f"jaxcr {args.command}: error: {err}", file=sys.stderr)

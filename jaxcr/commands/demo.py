@@ -60,9 +60,6 @@ def run(args) -> int:
 
     check_frames(args.frames, "frames")
     size = parse_size(args.size)
-    from jaxcr.commands.synth import _enable_compile_cache
-
-    _enable_compile_cache()  # persistent XLA cache: a second demo skips compilation
     root = Path(args.out)
     from jaxcr.io import outdir
 

@@ -555,11 +555,6 @@ def run(args) -> int:
         "versions": versions(),
     }
     previous = prepare_output(out, args.resume, args.overwrite, run_info)
-    # persistent XLA cache shared with `jaxcr synth` ($JAXCR_JAX_CACHE, empty disables):
-    # a second run on images of the same size skips most of the compilation
-    from jaxcr.commands.synth import _enable_compile_cache
-
-    _enable_compile_cache()
     from jaxcr.commands._segmenter import Segmenter
 
     seg = Segmenter(

@@ -79,24 +79,6 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _enable_compile_cache() -> None:
-    """Persist XLA compilations (the CTR solver takes ~15 s to compile) across runs in
-    ``$JAXCR_JAX_CACHE`` (default ``~/.cache/jaxcr/jax``; set it empty to disable)."""
-    path = os.environ.get(
-        "JAXCR_JAX_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "jaxcr", "jax")
-    )
-    if not path:
-        return
-    import jax
-
-    try:
-        os.makedirs(path, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    except (OSError, AttributeError):  # read-only home or an older JAX: just compile
-        pass
-
-
 def _is_synth_dataset(out) -> bool:
     """True when OUT holds a dataset this command wrote (a rerun replaces it); written before
     output folders carried an owner file (:mod:`jaxcr.io.outdir`)."""
@@ -176,7 +158,6 @@ def run(args) -> int:
         _check_writable_folder(args.preview, "preview folder")
     for name in names:
         _check_out(os.path.join(args.out, name) if several else args.out)
-    _enable_compile_cache()
     t0 = time.perf_counter()
     written = []
     for name in names:
