@@ -23,6 +23,7 @@ COMMANDS = [
     "synth",
     "validate",
     "fk",
+    "fit",
     "segment",
     "evaluate",
     "bench",
