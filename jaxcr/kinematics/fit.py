@@ -26,7 +26,8 @@ works on unconstrained ``z``, see :func:`joints_from_free`):
   way); the result is mapped back to the workspace by :func:`canonical_joints`.
 * ``ctr``: sequential sigmoids for the translations: ``beta_1`` in ``(-L_1, 0)``, then
   ``beta_{i+1}`` in ``(max(beta_i, -L_{i+1}), min(0, beta_i + L_i - L_{i+1}))``, which is exactly
-  the set :func:`jaxcr.kinematics.ctr_mechanics.telescoping_ok` accepts; alphas free. A start
+  the set :func:`jaxcr.kinematics.ctr_mechanics.telescoping_ok` accepts (each interval shrunk
+  by 1 micrometre at both ends, so that float32 rounding stays inside); alphas free. A start
   on a limit is moved 1 % of its interval inside (a sigmoid's derivative vanishes at the
   bound). The CTR is solved cold at every evaluation (its least-energy branch, as ``forward``).
 """
@@ -45,6 +46,9 @@ from jaxcr.geometry import se3_exp
 
 #: A start on a joint limit is moved this fraction of its interval inside.
 _INSIDE = 0.01
+#: CTR translation intervals are shrunk by this (m) at both ends: float32 rounding of
+#: ``beta + L`` (~3e-8 m for 0.4 m tubes) would otherwise cross the limit test's 1e-9 m.
+_CTR_MARGIN = 1e-6
 
 
 class FitResult(eqx.Module):
@@ -119,6 +123,11 @@ def _softplus_inv(y: Array) -> Array:
     return jnp.where(y > 20.0, y, jnp.log(jnp.expm1(jnp.minimum(y, 20.0))))
 
 
+def _shrink(lo: Array, hi: Array) -> tuple[Array, Array]:
+    m = jnp.minimum(_CTR_MARGIN, 0.25 * (hi - lo))
+    return lo + m, hi - m
+
+
 def _ctr_betas(model, z: Array) -> Array:
     L = model.length.astype(z.dtype)
     beta = []
@@ -128,7 +137,8 @@ def _ctr_betas(model, z: Array) -> Array:
             prev = beta[-1]
             lo = jnp.maximum(prev, -L[i])
             hi = jnp.maximum(jnp.minimum(0.0, prev + L[i - 1] - L[i]), lo)
-        beta.append(lo + (hi - lo) * jax.nn.sigmoid(z[i]))
+        lo_in, hi_in = _shrink(lo, hi)
+        beta.append(lo_in + (hi_in - lo_in) * jax.nn.sigmoid(z[i]))
     return jnp.stack(beta)
 
 
@@ -140,6 +150,7 @@ def _ctr_free(model, beta: Array) -> Array:
         if i > 0:
             lo = jnp.maximum(prev, -L[i])
             hi = jnp.maximum(jnp.minimum(0.0, prev + L[i - 1] - L[i]), lo)
+        lo, hi = _shrink(lo, hi)
         width = hi - lo
         frac = jnp.where(width > 0, (beta[i] - lo) / jnp.where(width > 0, width, 1.0), 0.5)
         frac = jnp.clip(frac, _INSIDE, 1.0 - _INSIDE)
