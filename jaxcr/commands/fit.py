@@ -69,7 +69,8 @@ def add_parser(subparsers) -> None:
         "--prior",
         type=float,
         default=0.0,
-        help="weight of (q - q0) in the residual, for under-determined fits (default %(default)s)",
+        help="weight of (q - q0), and of the pose twist with --fit-pose, in the residual, for "
+        "under-determined fits such as tip pixels (default %(default)s)",
     )
     p.add_argument(
         "--max-steps",

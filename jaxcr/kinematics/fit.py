@@ -307,6 +307,8 @@ def _solve(
             r = tip_pixel_residual(model, q, T, cameras, tips_px, guess)
         if prior_weight:
             r = jnp.concatenate([r, prior_weight * (q - q0)])
+            if fit_pose:
+                r = jnp.concatenate([r, prior_weight * y[1]])
         return r
 
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
@@ -379,8 +381,9 @@ def fit_backbone(
         q0: start (default :func:`default_start`). T0: base pose start (default identity:
             the points are in the robot frame).
         tip_weight: weight of the tip-to-tip term (0 disables it).
-        prior_weight: adds ``prior_weight * (q - q0)`` (metres of residual per unit of q) to
-            keep an under-determined fit near q0; 0 by default.
+        prior_weight: adds ``prior_weight * (q - q0)`` (metres of residual per unit of q),
+            and with ``fit_pose`` ``prior_weight * xi`` (the pose twist, m and rad), to keep an
+            under-determined fit near its start; 0 by default.
         max_steps, rtol, atol: Levenberg-Marquardt limits per solve (tolerances default 1e-6
             in float32, 1e-10 in float64).
         rounds: CTR only: warm-started solves, each from the equilibrium at the last q.
