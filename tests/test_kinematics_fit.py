@@ -82,11 +82,12 @@ def _cov_tolerance(model, q_true, points, sigma, k=5.0, solver_rtol=1e-6):
     """k-sigma per joint from the Gauss-Newton covariance sigma^2 (J^T J)^-1 of the residual at
     the truth (J = d residual / d q), plus the float32 solver's resolution (its rtol on
     ~unit-scale parameters, x100 margin)."""
-    with jax.enable_x64(True):
-        J = jax.jacfwd(
-            lambda q: backbone_residual(model, q, jnp.eye(4, dtype=q.dtype), jnp.asarray(points))
-        )(jnp.asarray(q_true, jnp.float32))
-        J = np.asarray(J, np.float64)
+    # float32 J (relative error ~1e-6) is ample for a tolerance; the model stays float32
+    pts = jnp.asarray(points, jnp.float32)
+    J = jax.jacfwd(lambda q: backbone_residual(model, q, jnp.eye(4, dtype=q.dtype), pts))(
+        jnp.asarray(q_true, jnp.float32)
+    )
+    J = np.asarray(J, np.float64)
     cov = sigma**2 * np.linalg.pinv(J.T @ J)
     return k * np.sqrt(np.diag(cov)) + 100 * solver_rtol * (1.0 + np.abs(q_true))
 
