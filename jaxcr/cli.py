@@ -36,6 +36,7 @@ COMMANDS = [
     "synth",
     "validate",
     "fk",
+    "fit",
     "segment",
     "evaluate",
     "bench",

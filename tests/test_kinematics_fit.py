@@ -1,0 +1,228 @@
+"""jaxcr.kinematics.fit: point-to-polyline geometry, the reparametrised joint limits, agreement
+with scipy.optimize.least_squares on the same residual, and recovery of known q from noisy
+synthetic backbones for every robot kind."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+
+from jaxcr.kinematics import ConstantCurvature, SingleSegment
+from jaxcr.kinematics.ctr import TEST_CTR, ConcentricTubeRobot
+from jaxcr.kinematics.ctr_mechanics import telescoping_ok
+from jaxcr.kinematics.fit import (
+    backbone_residual,
+    canonical_joints,
+    closest_points_on_polyline,
+    fit_backbone,
+    free_from_joints,
+    joints_from_free,
+)
+
+
+def _closest_loop(points, poly):
+    """Slow reference: every segment, clamped projection, keep the least distance."""
+    out = []
+    for p in points:
+        best, bd = None, np.inf
+        for a, b in zip(poly[:-1], poly[1:], strict=True):
+            ab = b - a
+            t = 0.0 if ab @ ab == 0 else np.clip((p - a) @ ab / (ab @ ab), 0.0, 1.0)
+            c = a + t * ab
+            d = np.sum((p - c) ** 2)
+            if d < bd:
+                best, bd = c, d
+        out.append(best)
+    return np.asarray(out)
+
+
+def test_closest_points_match_loop():
+    rng = np.random.default_rng(0)
+    poly = np.cumsum(rng.normal(size=(9, 3)), axis=0)
+    poly[4] = poly[3]  # a zero-length segment
+    pts = rng.normal(size=(40, 3)) * 3
+    got = np.asarray(closest_points_on_polyline(jnp.asarray(pts), jnp.asarray(poly)))
+    # float32 arithmetic on coordinates of size ~10: a few eps32 x 10 (1e-5 with margin)
+    np.testing.assert_allclose(got, _closest_loop(pts, poly), atol=1e-4)
+
+
+def test_closest_points_gradient_finite_on_polyline():
+    poly = jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 1.0]])
+    pts = jnp.array([[0.0, 0.0, 0.5], [0.0, 0.0, 1.0]])  # on a segment and on a vertex
+    g = jax.grad(lambda P: jnp.sum((pts - closest_points_on_polyline(pts, P)) ** 2))(poly)
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+def _ctr(**kw):
+    # Small grid and scan for test speed; the fit code does not depend on them.
+    return ConcentricTubeRobot.from_dict(
+        dict(TEST_CTR, n_points=13), scan_points=8, n_starts=2, cold_steps=15, **kw
+    )
+
+
+def test_ctr_reparametrisation_covers_the_joint_limits():
+    model = _ctr()
+    rng = np.random.default_rng(1)
+    z = jnp.asarray(rng.normal(scale=3.0, size=(200, 6)), jnp.float32)
+    q = jax.vmap(lambda zz: joints_from_free(model, zz))(z)
+    tubes = model.mechanics()
+    ok = jax.vmap(lambda qq: telescoping_ok(tubes, qq[:3]))(q)
+    assert bool(jnp.all(ok))
+    # round trip inside the limits: float32 logit/sigmoid, |d beta| <= eps32 x L / (f (1-f))
+    # with f >= 0.05 for |z| <= 3: ~1e-7 x 0.4 / 0.05 -> 1e-5 with margin
+    q_in = q[jnp.all(jnp.abs(z) < 3.0, axis=1)]
+    back = jax.vmap(lambda qq: joints_from_free(model, free_from_joints(model, qq)))(q_in)
+    np.testing.assert_allclose(np.asarray(back), np.asarray(q_in), atol=1e-5)
+
+
+def _cov_tolerance(model, q_true, points, sigma, k=5.0, solver_rtol=1e-6):
+    """k-sigma per joint from the Gauss-Newton covariance sigma^2 (J^T J)^-1 of the residual at
+    the truth (J = d residual / d q), plus the float32 solver's resolution (its rtol on
+    ~unit-scale parameters, x100 margin)."""
+    # float32 J (relative error ~1e-6) is ample for a tolerance; the model stays float32
+    pts = jnp.asarray(points, jnp.float32)
+    J = jax.jacfwd(lambda q: backbone_residual(model, q, jnp.eye(4, dtype=q.dtype), pts))(
+        jnp.asarray(q_true, jnp.float32)
+    )
+    J = np.asarray(J, np.float64)
+    cov = sigma**2 * np.linalg.pinv(J.T @ J)
+    return k * np.sqrt(np.diag(cov)) + 100 * solver_rtol * (1.0 + np.abs(q_true))
+
+
+def _noisy_backbone(model, q, sigma, seed):
+    p = np.asarray(model.forward(jnp.asarray(q, jnp.float32)).centreline.p, np.float64)
+    idx = np.unique(np.r_[np.arange(0, len(p), 2), len(p) - 1])  # every other sample + the tip
+    rng = np.random.default_rng(seed)
+    return p[idx] + rng.normal(scale=sigma, size=(len(idx), 3))
+
+
+def _same_shape_joints(model, q):
+    """Canonical joints with CC's signed kappa made positive ((k, phi) == (-k, phi + pi))."""
+    q = np.array(canonical_joints(model, jnp.asarray(q)), np.float64)
+    if model.kind == "constant_curvature":
+        qs = q.reshape(model.n_sections, len(model.joints))
+        k, f = model.joints.index("kappa"), model.joints.index("phi")
+        neg = qs[:, k] < 0
+        qs[neg, k] *= -1
+        qs[neg, f] = np.arctan2(np.sin(qs[neg, f] + np.pi), np.cos(qs[neg, f] + np.pi))
+        q = qs.reshape(-1)
+    return q
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        ("single_segment", [0.6, 0.7]),
+        ("constant_curvature", [8.0, 0.5, 6.0, -1.0]),
+    ],
+)
+def test_recovers_q_from_noisy_backbone(case):
+    kind, q_true = case
+    if kind == "single_segment":
+        model = SingleSegment.make(0.1, 0.003, n_points=32)
+    else:
+        model = ConstantCurvature.make(
+            [0.05, 0.05], [0.003] * 2, joints=("kappa", "phi"), n_points=33
+        )
+    sigma = 2e-4  # 0.2 mm tracker noise
+    for seed in (11, 12):  # fresh seeds (the configurations were chosen on seed 0)
+        pts = _noisy_backbone(model, q_true, sigma, seed)
+        res = fit_backbone(model, jnp.asarray(pts, jnp.float32))
+        assert bool(res.ok), res.result
+        tol = _cov_tolerance(model, np.asarray(q_true), pts, sigma)
+        err = np.abs(_same_shape_joints(model, res.q) - _same_shape_joints(model, q_true))
+        err = np.minimum(err, 2 * np.pi - err) if kind == "single_segment" else err
+        assert np.all(err <= tol), (err, tol)
+        # point-to-polyline keeps the normal part of the noise: rms ~ sigma sqrt(2); a fit
+        # within 3x of that (chi-square with >= 30 dof stays well inside)
+        assert float(res.rms) < 3 * sigma * np.sqrt(2)
+
+
+@pytest.mark.slow
+def test_recovers_ctr_q_from_noisy_backbone():
+    model = _ctr()
+    q_true = np.array([-0.22, -0.15, -0.06, 0.2, -0.8, 1.2])
+    sigma = 1e-4
+    pts = _noisy_backbone(model, q_true, sigma, seed=21)
+    res = fit_backbone(model, jnp.asarray(pts, jnp.float32), max_steps=60, rounds=2)
+    assert bool(res.ok), res.result
+    tol = _cov_tolerance(model, q_true, pts, sigma, solver_rtol=1e-4)  # the CTR default rtol
+    err = np.abs(np.asarray(res.q) - q_true)
+    err[3:] = np.minimum(err[3:], 2 * np.pi - err[3:])
+    assert np.all(err <= tol), (err, tol)
+
+
+def test_same_optimum_as_scipy_least_squares():
+    """Same residual (float64), minimised by optimistix LM and by scipy's trust-region
+    reflective least squares from the same start: same cost and same q."""
+    with jax.enable_x64(True):
+        model = ConstantCurvature.make(
+            [0.05, 0.05], [0.003] * 2, joints=("kappa", "phi"), n_points=33, dtype=jnp.float64
+        )
+        pts = jnp.asarray(_noisy_backbone(model, [7.0, 0.3, 5.0, -0.8], 3e-4, seed=5))
+        q0 = np.array([1.0, 0.0, 1.0, 0.0])
+        res = fit_backbone(model, pts, q0=q0)
+        eye = jnp.eye(4, dtype=jnp.float64)
+        fun = jax.jit(lambda q: backbone_residual(model, q, eye, pts))
+        jac = jax.jit(jax.jacfwd(lambda q: backbone_residual(model, q, eye, pts)))
+        ref = scipy.optimize.least_squares(
+            lambda q: np.asarray(fun(jnp.asarray(q))),
+            q0,
+            jac=lambda q: np.asarray(jac(jnp.asarray(q))),
+            method="trf",
+            xtol=1e-14,
+            ftol=1e-14,
+            gtol=1e-14,
+        )
+        assert bool(res.ok)
+        # Both stop where the relative cost decrease is ~1e-10: costs agree to that.
+        assert abs(float(res.cost) - ref.cost) <= 1e-8 * ref.cost
+        # q: a cost gap dC bounds |dq| by sqrt(2 dC / lambda_min(J^T J)) near the optimum
+        J = np.asarray(jac(jnp.asarray(ref.x)))
+        lam = np.linalg.eigvalsh(J.T @ J)[0]
+        qtol = np.sqrt(2 * 1e-8 * ref.cost / lam)
+        dq = _same_shape_joints(model, res.q) - _same_shape_joints(model, ref.x)
+        assert np.max(np.abs(dq)) <= qtol, (dq, qtol)
+
+
+def test_fit_pose_recovers_a_shifted_base():
+    """Points measured in a frame shifted by 2 cm and turned about x: the fitted base pose maps
+    the model back onto them (residual at noise level) and its translation is the shift."""
+    model = SingleSegment.make(0.1, 0.003, n_points=32)
+    q_true = jnp.array([0.5, 0.4])
+    p = np.asarray(model.forward(q_true).centreline.p, np.float64)
+    a = 0.1
+    R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    t = np.array([0.02, -0.01, 0.005])
+    pts = p @ R.T + t
+    res = fit_backbone(model, jnp.asarray(pts, jnp.float32), fit_pose=True)
+    assert bool(res.ok)
+    # noiseless: float32 residual resolution ~ eps32 x 0.1 m, x1000 margin for LM stopping
+    assert float(res.max) < 1e-5
+    # the base point p(0) = 0 lands on t
+    np.testing.assert_allclose(np.asarray(res.T_ref_robot)[:3, 3], t, atol=1e-4)
+
+
+def test_tip_pixels_two_views_with_pose_and_prior():
+    """Two views of the tip (4 equations) with q and the base pose free (8 unknowns): the prior
+    makes it well posed; the fit must reproject onto both tip pixels and stay finite."""
+    from jaxcr.camera import Camera, project_points
+    from jaxcr.kinematics.fit import fit_tip_pixels
+
+    model = SingleSegment.make(0.1, 0.003, n_points=16)
+    cams = (
+        Camera.look_at([0.0, -0.3, 0.05], [0.0, 0.0, 0.05], [0.0, 0.0, 1.0], 300.0, (320, 240)),
+        Camera.look_at([0.3, 0.0, 0.05], [0.0, 0.0, 0.05], [0.0, 0.0, 1.0], 300.0, (320, 240)),
+    )
+    tip = model.forward(jnp.array([0.7, 0.3])).centreline.p[-1:]
+    uv = jnp.stack([project_points(c, tip)[0][0] for c in cams])
+    res = fit_tip_pixels(model, cams, uv, fit_pose=True, prior_weight=1.0)
+    assert bool(res.ok), res.result
+    # linearised, the prior leaves r = w^2 (J J^T + w^2)^-1 r0: with w = 1 and J's singular
+    # values ~300 px/rad (f = 300 px at 0.3 m, 0.1 m lever), |r| ~ |r0| / 9e4 ~ 1e-3 px for a
+    # start ~100 px off; 0.05 px leaves room for the nonlinearity
+    assert float(res.max) < 0.05
+    assert np.all(np.isfinite(np.asarray(res.T_ref_robot)))
