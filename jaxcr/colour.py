@@ -56,7 +56,7 @@ def rgb_to_lab(rgb: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
     taken only on the branch that uses it, so the gradient is finite at black. Computed
     channel by channel (three scalar-weighted sums instead of a matmul over the trailing
     colour axis, powers via exp/log): ~4x faster on CPU than ``cbrt`` and ``@``, and within
-    1e-4 Lab units of both (tests/test_colour.py).
+    1e-4 Lab units of both (tests/core/test_colour.py).
     """
     rgb = jnp.clip(rgb, 0.0, 1.0)
     r = _srgb_to_linear(rgb[..., 0])

@@ -6,8 +6,8 @@ structural, stated beside it; README.md ("Limits") lists them.
 
 Memory: the synthetic renderers and the refinement hold per-pixel buffers whose size grows
 with the image. :data:`RENDER_BYTES_PER_PIXEL` is the peak traced (numpy) memory of rendering
-one frame at 640x480 divided by its pixels (``experiments/limits_memory_per_pixel.py``,
-results in ``experiments/results/limits_memory_per_pixel.md``); it includes the fixed part,
+one frame at 640x480 divided by its pixels (``experiments/segmentation/limits_memory_per_pixel.py``,
+results in ``experiments/results/segmentation/limits_memory_per_pixel.md``); it includes the fixed part,
 so it over-estimates at larger sizes. The ceiling is the number of pixels whose buffers fit
 :data:`MEMORY_BUDGET`.
 """

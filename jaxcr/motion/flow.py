@@ -24,8 +24,8 @@ class FlowConfig:
     invalid).
 
     The default (grid step W / 80, window 15 px, 3 levels) is the setting the accuracy
-    experiments validate: 4 px on their 320x240 videos (experiments/results/motion_report.md),
-    8 px at 640x480 (experiments/results/motion_bench.md), i.e. 80 x 60 points per frame."""
+    experiments validate: 4 px on their 320x240 videos (experiments/results/motion/motion_report.md),
+    8 px at 640x480 (experiments/results/motion/motion_bench.md), i.e. 80 x 60 points per frame."""
 
     step: int = 0
     window: int = 15

@@ -60,8 +60,8 @@ class MotionConfig:
     Defaults are the validated setting and scale with the frame: superpixel step W / 16
     (``superpixel_step`` = 0, :func:`auto_superpixel_step`) and LK grid step W / 80
     (``flow.step`` = 0), LK window 15 px and 3 pyramid levels: 20 px and 4 px on the 320x240
-    videos of the accuracy experiments (experiments/results/motion_report.md), 40 px and 8 px
-    at 640x480 (experiments/results/motion_bench.md), i.e. 16 x 12 superpixels with 25 flow
+    videos of the accuracy experiments (experiments/results/motion/motion_report.md), 40 px and 8 px
+    at 640x480 (experiments/results/motion/motion_bench.md), i.e. 16 x 12 superpixels with 25 flow
     points each. The resolved values are :attr:`MotionTracker.sp_step` (working px),
     :attr:`MotionTracker.scale` and :attr:`MotionTracker.flow_cfg`."""
 
@@ -72,7 +72,7 @@ class MotionConfig:
     flow: flowmod.FlowConfig = field(default_factory=flowmod.FlowConfig)
     models: tuple[str, ...] = MODELS
     # lambda and threshold chosen on the static synthetic videos (P-R point closest to (1, 1),
-    # experiments/results/motion_report.md); the paper found 0.75 for the threshold
+    # experiments/results/motion/motion_report.md); the paper found 0.75 for the threshold
     lam: float = 5.0
     kappa: float = 1.0
     min_motion: float = 0.5

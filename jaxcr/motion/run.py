@@ -17,9 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcr.io.motion_dataset import MotionDataset
 from jaxcr.motion.baseline import fitzpatrick_segment
 from jaxcr.motion.calibration import end_effector_image
-from jaxcr.motion.dataset import MotionDataset
 from jaxcr.motion.pipeline import MotionConfig, MotionTracker, StepRecord
 
 

@@ -18,17 +18,17 @@ of the grid step. With the grid-step candidates a pixel could take a label found
 whenever that segment's mean colour was nearer, which on textured surfaces scatters stray
 pixels of a segment far from its body; strays that land on the arm or the pushed object then
 ride along with it, so background ids were carried by the moving object and the object's ids
-left behind (experiments/motion_label_leakage.py on the synthetic videos, this change
+left behind (experiments/motion/motion_label_leakage.py on the synthetic videos, this change
 alone: mean over the touching frames of the object ids' area on the background 0.16 / 0.25
 -> 0.10 / 0.10 on the static / changing pushed videos, of the object's area under background
 ids 0.30 / 0.38 -> 0.17 / 0.16; with the layered splat of :mod:`~jaxcr.motion.propagate`
-see experiments/results/motion_label_leakage.md). With r px per step a label moves at most r px per iteration beyond where the
+see experiments/results/motion/motion_label_leakage.md). With r px per step a label moves at most r px per iteration beyond where the
 flow put it, enough to snap the splatted boundaries to the new image (the flow is smooth
 across boundaries over a few px) without jumping across a gap.
 
 Distance (SLIC eq. 3): D^2 = |lab - lab_c|^2 + (m / S)^2 |xy - xy_c|^2, m = compactness.
 
-Speed (measured in ``experiments/results/motion_bench.md``): the segmentation runs at a
+Speed (measured in ``experiments/results/motion/motion_bench.md``): the segmentation runs at a
 *working resolution*, the frame shrunk by an integer ``scale`` with area averaging
 (:func:`working_rgb`), and the labels are repeated back to full size
 (:func:`upsample_labels`). Superpixels are about 20 px wide, so halving a 640 x 480 frame

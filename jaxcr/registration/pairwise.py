@@ -143,7 +143,7 @@ def geometric_sample(frame: Frame, points: str = "plane") -> CloudArrays:
     fit's own error (a window straddling a crease, a curved surface) is the price: it grows
     with the window's footprint, i.e. with depth and with the object's size in pixels (the
     first view's edges ~1 mm along the viewing axis; a noise-free 2.5k-pixel box corner
-    0.86 mm against 0.12 mm raw, tests/test_registration_pairwise.py). The residuals of
+    0.86 mm against 0.12 mm raw, tests/registration/test_registration_pairwise.py). The residuals of
     denoised points are correlated over the window: the ICP information then overstates
     the precision (the pose graph's calibrated weights rescale it)."""
     if points not in ("plane", "raw"):

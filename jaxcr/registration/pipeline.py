@@ -113,7 +113,7 @@ class PipelineConfig:
     # with the Algorithm 2 poses (closure gate), plus the routes' own forward registrations
     # that are not ring edges. () = ring edges only. Gap 3 was measured too: its edges
     # (3 x the baseline) err ~2x more than gap 2's and, sharing the views' errors, made
-    # the poses worse (experiments/results/model_object_pose_graph.md).
+    # the poses worse (experiments/results/registration/model_object_pose_graph.md).
     extra_gaps: tuple[int, ...] = (2,)
     # Edge weights of the pose graph: "calibrated" (each registration's ICP information,
     # then the covariance model scale * Omega^-1 + isotropic floor estimated from the

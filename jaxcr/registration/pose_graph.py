@@ -26,7 +26,7 @@ it claims to know to a few micrometres err by tenths of a millimetre). ``calibra
 floor`` from the graph's own cycles (variance components, whose fixed point is the REML
 estimate: :func:`variance_components`) and solves again. Errors shared by every edge of a
 view (a biased cloud) move that view's pose consistently in all its edges, so no cycle
-sees them and no weighting can remove them (experiments/results/model_object_calibration.md).
+sees them and no weighting can remove them (experiments/results/registration/model_object_calibration.md).
 """
 
 from __future__ import annotations

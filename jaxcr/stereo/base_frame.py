@@ -1,7 +1,7 @@
 """The robot's base frame without markers: from a given pose or from the entry pixels.
 
 ``stereo.json``'s ``"base"`` gives the base frame in one of three forms (see
-:func:`jaxcr.commands.stereo.load_stereo_dataset` for the file syntax):
+:func:`jaxcr.cli.stereo.load_stereo_dataset` for the file syntax):
 
 * ``markers`` (the default): four ArUco markers on the base plate (:mod:`jaxcr.stereo.aruco`);
 * ``T_cam_base``: the base frame in camera 1's frame (4x4, metres), fixed for the dataset;

@@ -23,7 +23,7 @@
    backbone (flagged ``single_view``); each view's tip pixel and 2-D backbone
    (:mod:`jaxcr.stereo.view2d`).
 
-Speed (``experiments/stereo_bench.py``): both views go through each JAX stage in one jitted
+Speed (``experiments/stereo/stereo_bench.py``): both views go through each JAX stage in one jitted
 call (alpha/key projection/mask from the uint8 images; thinning of the robots' bounding-box
 crops, padded to a common 64-px bucket and vmapped; refinement profiles; diameters); arrays
 whose length varies per frame are padded to buckets (thinning crops 64 px, backbone points
@@ -53,7 +53,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from jaxcr.camera import Camera, project_points
-from jaxcr.foreground import PlateForegroundConfig, plate_foreground
+from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foreground
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_frame import (
     BaseSpec,
@@ -110,7 +110,7 @@ class StereoConfig:
     ``"plate_shadow"`` (plate difference after the best shadow gain, which ignores
     shadows) or ``"both"`` (the product of chroma and plate alphas: foreground must differ
     from the plate and not be the key colour), or ``"trace"`` (the plate foreground of
-    :mod:`jaxcr.foreground`, settings ``plate_foreground``: the plate aligned to the frame,
+    :mod:`jaxcr.segmentation.foreground`, settings ``plate_foreground``: the plate aligned to the frame,
     cues beyond the key colour with hysteresis, the tube traced from the projected robot
     base with gaps bridged; for real backgrounds).
     ``robot_base``: where the robot leaves the plate, base frame (default: base centre).
@@ -601,7 +601,7 @@ def reconstruct_pair(
     )
     masks = np.asarray(mask_j)
     if cfg.segmentation == "trace":
-        # The traced robot of each view (jaxcr.foreground), entered at the projected base.
+        # The traced robot of each view (jaxcr.segmentation.foreground), entered at the projected base.
         tr = [
             plate_foreground(
                 imgs[k], plates[k], _project_np(cams[k], base[None])[0], cfg=cfg.plate_foreground

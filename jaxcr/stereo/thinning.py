@@ -29,7 +29,7 @@ scikit-image's ``skeletonize`` (2-D) is a different Zhang-Suen-based table: it a
 pixels whose neighbours stay 8-connected although the paper's ``A`` is 2 (the inner pixel
 of a staircase corner, e.g. only P2 and P4 set), and it keeps some that the paper deletes;
 its skeletons are one pixel thinner on diagonal runs and differ in ~2 % of the pixels and at
-stroke ends (measured in ``experiments/stereo_bench.py``). scikit-image's ``thin`` is
+stroke ends (measured in ``experiments/stereo/stereo_bench.py``). scikit-image's ``thin`` is
 Guo-Hall A1; :func:`guo_hall_thin` (tables built from the paper's conditions G1-G3 in
 :func:`guo_hall_tables`) equals it exactly (tests).
 

@@ -1,6 +1,6 @@
 """The ``real_like`` preset: a marker-free concentric-tube rig as real labs film it (issue 16
 item 2), rendered by ray casting independently of the foreground estimator
-(:mod:`jaxcr.foreground` draws nothing here, and nothing here calls it).
+(:mod:`jaxcr.segmentation.foreground` draws nothing here, and nothing here calls it).
 
 Scene (base frame, metres; the stereo preset's geometry, :mod:`jaxcr.synth.stereo_ctr`):
 

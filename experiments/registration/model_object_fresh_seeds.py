@@ -1,0 +1,181 @@
+"""Object-modelling pose errors on fresh seeds (issue 17 item 10). Writes
+experiments/results/registration/model_object_fresh_seeds.md (+ .json).
+
+    python experiments/registration/model_object_fresh_seeds.py --seeds 300-304 --tasks 2
+
+The seeds (scene and sensor-noise seed, as experiments/registration/model_object_tasks.py --seed) were
+reserved before development (experiments/results/segmentation/fresh_seeds_reserved.md: 300-305;
+development 5-9) and are run once with the pipeline defaults (pose graph, calibrated edge
+weights). For every run: the worst and median camera pose error after global optimisation
+over all views (ring views and those left out of the ring, the latter chained from the
+nearest ring view), in frame O = the last ring view, with the view that is worst.
+
+Records are appended to --log (JSON lines) as each run completes, so a stopped run resumes;
+the report is written from the completed records and says how many there are.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault(
+    "XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+)
+
+import numpy as np  # noqa: E402
+
+from jaxcr.registration.evaluation import evaluate_result  # noqa: E402
+from jaxcr.registration.pipeline import PipelineConfig, build_model  # noqa: E402
+from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task  # noqa: E402
+
+OUT = Path(__file__).parent.parent / "results" / "registration"
+GOAL_MM, GOAL_DEG = 2.0, 1.0  # issue 6's done-when targets
+
+
+def run_one(task: str, seed: int, scratch: Path) -> dict:
+    scene = generate_task(scratch / f"task{task}_seed{seed}", task, seed)
+    sim = RgbdSimulator(scene, seed=seed)
+    t0 = time.perf_counter()
+    result = build_model(sim, PipelineConfig(), seed=seed)
+    wall = time.perf_counter() - t0
+    rec = {"task": task, "seed": seed, "wall_s": wall, "notes": list(result.notes)}
+    if result.global_result is None:
+        rec["status"] = "no global result"
+        return rec
+    ev = evaluate_result(sim, result, seed=seed)
+    views = []
+    for b, a in zip(ev["views"]["before"], ev["views"]["after"], strict=True):
+        views.append(
+            {
+                "run": a["run"],
+                "index": a["index"],
+                "ring_position": a["ring_position"],
+                "rot_deg": a["rot_deg"],
+                "trans_mm": 1000 * a["trans_m"],
+                "rot_before_deg": b["rot_deg"],
+                "trans_before_mm": 1000 * b["trans_m"],
+            }
+        )
+    # the anchor (frame O) has zero error by construction: statistics over the others
+    others = [v for v in views if v["ring_position"] != len(result.ring) - 1]
+    t = np.array([v["trans_mm"] for v in others])
+    r = np.array([v["rot_deg"] for v in others])
+    w = others[int(np.argmax(t))]
+    rec.update(
+        status="ok",
+        views=views,
+        n_views=len(views),
+        n_outside_ring=sum(v["ring_position"] is None for v in views),
+        worst_trans_mm=float(t.max()),
+        worst_view=f"run {w['run']} capture {w['index']} (ring position {w['ring_position']})",
+        median_trans_mm=float(np.median(t)),
+        worst_rot_deg=float(r.max()),
+        median_rot_deg=float(np.median(r)),
+        worst_trans_before_mm=float(max(v["trans_before_mm"] for v in others)),
+        alg2_worst_trans_mm=1000 * float(ev["alg2"]["pose"]["max_trans_m"])
+        if "alg2" in ev
+        else None,
+    )
+    return rec
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", default="300-304", help="first-last (inclusive)")
+    ap.add_argument("--tasks", nargs="+", default=["2", "1"])
+    ap.add_argument("--scratch", default="/tmp/model_object_fresh")
+    ap.add_argument("--log", default=None, help="JSON lines (default: SCRATCH/records.jsonl)")
+    ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--out", default=str(OUT))
+    a = ap.parse_args()
+    s0, s1 = (int(v) for v in a.seeds.split("-"))
+    scratch = Path(a.scratch)
+    scratch.mkdir(parents=True, exist_ok=True)
+    log = Path(a.log) if a.log else scratch / "records.jsonl"
+    done = {}
+    if log.exists():
+        for line in log.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                done[(r["task"], r["seed"])] = r
+    load0 = os.getloadavg()
+    if not a.report_only:
+        for seed in range(s0, s1 + 1):
+            for task in a.tasks:
+                if (task, seed) in done:
+                    continue
+                r = run_one(task, seed, scratch)
+                with open(log, "a") as fh:
+                    fh.write(json.dumps(r) + "\n")
+                done[(task, seed)] = r
+                print(
+                    f"task {task} seed {seed}: {r['status']} worst "
+                    f"{r.get('worst_trans_mm', float('nan')):.2f} mm ({r['wall_s']:.0f} s)",
+                    flush=True,
+                )
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
+    cmd = "python experiments/registration/model_object_fresh_seeds.py " + " ".join(sys.argv[1:])
+    md = [
+        "# Object modelling on fresh seeds (issue 17 item 10)",
+        "",
+        f"commit {commit}, {platform.machine()}, python {platform.python_version()}; command: "
+        f"`{cmd}`; load average at start {load0[0]:.1f}.",
+        "",
+        f"Seeds {s0}-{s1} reserved before development (fresh_seeds_reserved.md; development "
+        "seeds 5-9, earlier experiments 0-4). Pipeline defaults (pose graph, calibrated edge "
+        "weights). Errors of every view's camera pose after global optimisation against the "
+        "truth, in frame O = the last ring view (the anchor, error 0 by construction, is left "
+        "out of the statistics); views outside the ring are chained from the nearest ring view. "
+        f"Goal (issue 6): <= {GOAL_DEG:g} deg and <= {GOAL_MM:g} mm. Previous audit on fresh "
+        "seeds: worst 2.06 mm (task 2, view 0).",
+        "",
+        "| task | seed | views (outside ring) | worst mm (view) | median mm | worst deg | median deg | chained worst mm | Alg. 2 worst mm | goal met | wall s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    recs = [done[k] for k in sorted(done, key=lambda k: (k[0], k[1])) if s0 <= k[1] <= s1]
+    for r in recs:
+        if r["status"] != "ok":
+            md.append(
+                f"| {r['task']} | {r['seed']} | {r['status']}: {'; '.join(r['notes'])} | | | | | | | no | {r['wall_s']:.0f} |"
+            )
+            continue
+        met = r["worst_trans_mm"] <= GOAL_MM and r["worst_rot_deg"] <= GOAL_DEG
+        a2 = "" if r["alg2_worst_trans_mm"] is None else f"{r['alg2_worst_trans_mm']:.2f}"
+        md.append(
+            f"| {r['task']} | {r['seed']} | {r['n_views']} ({r['n_outside_ring']}) | "
+            f"{r['worst_trans_mm']:.2f} ({r['worst_view']}) | {r['median_trans_mm']:.2f} | "
+            f"{r['worst_rot_deg']:.3f} | {r['median_rot_deg']:.3f} | "
+            f"{r['worst_trans_before_mm']:.2f} | {a2} | {'yes' if met else 'NO'} | {r['wall_s']:.0f} |"
+        )
+    ok = [r for r in recs if r["status"] == "ok"]
+    if ok:
+        worst = max(ok, key=lambda r: r["worst_trans_mm"])
+        md += [
+            "",
+            f"{len(recs)} runs completed ({len(ok)} with a closed loop). Worst view over all: "
+            f"{worst['worst_trans_mm']:.2f} mm (task {worst['task']} seed {worst['seed']}, "
+            f"{worst['worst_view']}); median over runs of the per-run median "
+            f"{np.median([r['median_trans_mm'] for r in ok]):.2f} mm; goal met in "
+            f"{sum(r['worst_trans_mm'] <= GOAL_MM and r['worst_rot_deg'] <= GOAL_DEG for r in ok)}"
+            f" of {len(ok)} runs.",
+        ]
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "model_object_fresh_seeds.md").write_text("\n".join(md) + "\n")
+    (out / "model_object_fresh_seeds.json").write_text(
+        json.dumps({"command": cmd, "commit": commit, "runs": recs}, indent=1)
+    )
+    print("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,279 @@
+"""jaxcr.segmentation.refine: recovery of a known delta-u, nominal projection at delta-u = 0, batch (vmap)
+== per frame, no retracing across frames, bad frames reported and skipped.
+
+Small images (160x120) and a small config keep this file fast; the compiled functions are
+module-level fixtures shared by all tests.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxcr.camera import Camera, project_xy
+from jaxcr.errors import InputError
+from jaxcr.kinematics.cosserat import Centreline
+from jaxcr.segmentation.background import colour_mask
+from jaxcr.segmentation.metrics import iou
+from jaxcr.segmentation.refine import RefineConfig, refine_batch, refine_frame
+from jaxcr.segmentation.shape import perturbed_centreline
+from jaxcr.segmentation.silhouette import project_tube, rasterise_dense
+from tests.helpers.tube_render import arc_base, front_camera, render_tube, tube_frames
+
+W, H = 160, 120
+CFG = RefineConfig(
+    n_coeffs=3,
+    levels=(1, 0),
+    steps=(30, 15),
+    outer=(2, 1),
+    tau=(1.0, 0.8),
+    band_tiles=96,
+    min_tiles=24,
+    g_reg=0.5,
+    # the scenes below have an exact camera and a uniform background: test the shape
+    # refinement of the paper alone (camera correction has its own test)
+    local=False,
+    camera_correction=False,
+)
+# Row 0 bends about the body x axis, which points at the camera: an in-image-plane bend.
+TRUE_COEFFS = [
+    np.array([[0.35, -0.15, 0.05], [0.0, 0.0, 0.0]], np.float32),
+    np.array([[-0.3, 0.1, 0.0], [0.0, 0.0, 0.0]], np.float32),
+]
+
+
+def _base():
+    return arc_base(2.5e-3)
+
+
+def _camera():
+    return front_camera(200.0, (W, H))
+
+
+def _render(cl, cam, seed):
+    return render_tube(cl, cam, seed, (W, H))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    base, cam = _base(), _camera()
+    return base, cam, tube_frames(base, cam, TRUE_COEFFS, (W, H))
+
+
+@pytest.fixture(scope="module")
+def run_frame():
+    """One compiled per-frame function; asserting a single trace across all frames."""
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def run(base, cam, img, bg):
+        return refine_frame(base, cam, img, bg, CFG)
+
+    return run
+
+
+@pytest.fixture(scope="module")
+def per_frame(scene, run_frame):
+    base, cam, frames = scene
+    return [run_frame(base, cam, f["img"], f["bg"]) for f in frames]
+
+
+@pytest.fixture(scope="module")
+def batch(scene):
+    """vmap batch of 5 frames: the two good ones, NaN centreline, all background, out of view."""
+    base, cam, frames = scene
+    nan_base = jax.tree.map(lambda x: x * jnp.nan, base)
+    far = Centreline(base.s, base.p + jnp.array([5.0, 5.0, 0.0]), base.R, base.u, base.rho)
+    bases = jax.tree.map(lambda *x: jnp.stack(x), base, base, nan_base, base, far)
+    imgs = jnp.stack(
+        [
+            frames[0]["img"],
+            frames[1]["img"],
+            frames[0]["img"],
+            jnp.zeros_like(frames[0]["img"]),
+            frames[0]["img"],
+        ]
+    )
+    bgs = jnp.stack(
+        [
+            frames[0]["bg"],
+            frames[1]["bg"],
+            frames[0]["bg"],
+            jnp.ones_like(frames[0]["bg"]),
+            frames[0]["bg"],
+        ]
+    )
+    return bases, cam, imgs, bgs, refine_batch(bases, cam, imgs, bgs, CFG, mode="vmap")
+
+
+def test_zero_perturbation_reproduces_nominal_projection(scene, per_frame):
+    base, cam, _ = scene
+    ref = np.asarray(rasterise_dense(project_tube(cam, base), H, W))
+    np.testing.assert_array_equal(np.asarray(per_frame[0].nominal_masks[0]), ref)
+    np.testing.assert_allclose(perturbed_centreline(base, jnp.zeros((2, 3))).p, base.p, atol=1e-7)
+
+
+def test_recovers_known_delta_u(scene, per_frame):
+    base, cam, frames = scene
+    R = np.asarray(cam.R)
+
+    def lateral_error(p, truth_p):
+        return np.mean(np.linalg.norm(((np.asarray(p) - truth_p) @ R.T)[:, :2], axis=1))
+
+    for f, r in zip(frames, per_frame, strict=True):
+        assert bool(r.ok) and int(r.failure) == 0
+        nominal_iou = float(iou(r.nominal_masks[0], f["mask"]))
+        refined_iou = float(iou(r.masks[0], f["mask"]))
+        assert nominal_iou < 0.5
+        assert refined_iou > 0.85, (nominal_iou, refined_iou)
+        # The in-image-plane shape is recovered: the 3-D centreline error's component in the
+        # image plane (camera x, y) falls to below a third of the nominal's. The coefficients
+        # themselves are not compared: the out-of-plane row is only weakly observable from
+        # one view (perspective) and the Chebyshev rows trade off against each other under the
+        # regulariser (with the image-space BFGS stop, frame 0's row 0 ends 0.85 of its norm
+        # away while IoU, J and the projected centreline all improved).
+        truth_p = np.asarray(f["truth"].p)
+        e_ref, e_nom = lateral_error(r.centreline.p, truth_p), lateral_error(base.p, truth_p)
+        assert e_ref < e_nom / 3, (e_ref, e_nom)
+        # projected centreline within 1.5 px of the truth (tube radius here ~1.7 px)
+        u1, v1, _ = project_xy(cam, r.centreline.p)
+        u2, v2, _ = project_xy(cam, f["truth"].p)
+        assert float(jnp.mean(jnp.hypot(u1 - u2, v1 - v2))) < 1.5
+        assert float(r.energy["total"]) < float(r.energy["total_nominal"])
+        assert int(r.num_steps) == int(jnp.sum(r.steps_per_level)) > 0
+
+
+@pytest.fixture(scope="module")
+def batch_map(scene):
+    """The default batch path (lax.map, what `jaxcr segment` runs) on the two good frames."""
+    base, cam, frames = scene
+    bases = jax.tree.map(lambda *x: jnp.stack(x), base, base)
+    imgs = jnp.stack([f["img"] for f in frames])
+    bgs = jnp.stack([f["bg"] for f in frames])
+    return refine_batch(bases, cam, imgs, bgs, CFG, mode="map")
+
+
+def test_batch_map_equals_per_frame(per_frame, batch_map):
+    for k, r in enumerate(per_frame):
+        np.testing.assert_array_equal(np.asarray(batch_map.masks[0][k]), np.asarray(r.masks[0]))
+        np.testing.assert_allclose(np.asarray(batch_map.coeffs[k]), np.asarray(r.coeffs), atol=1e-6)
+        np.testing.assert_allclose(
+            float(batch_map.energy["total"][k]), float(r.energy["total"]), rtol=1e-6
+        )
+        assert bool(batch_map.ok[k])
+
+
+def test_batch_vmap_matches_per_frame_quality(scene, per_frame, batch):
+    # Known difference (open in issue 2): in lock-step vmap mode BFGS does not follow the
+    # per-frame iterates exactly (float differences in batched reductions change the BFGS
+    # path; on frame 1 it once reached a lower energy, 0.204 vs 0.241, and after the level
+    # coarsening an IoU of 0.844 vs 0.881), so vmap is held to the per-frame result's quality
+    # (IoU within 0.05; its energy was once 35 % higher after the level coarsening, open in
+    # issue 2) rather than to equality. ``mode="map"`` (the
+    # default) equals the per-frame results exactly (test above).
+    _, _, frames = scene
+    *_, out = batch
+    for k, r in enumerate(per_frame):
+        truth = frames[k]["mask"]
+        assert float(iou(out.masks[0][k], truth)) > float(iou(r.masks[0], truth)) - 0.05
+        np.testing.assert_array_equal(
+            np.asarray(out.nominal_masks[0][k]), np.asarray(r.nominal_masks[0])
+        )
+        assert bool(out.ok[k])
+
+
+def test_bad_frames_are_reported_and_batch_goes_on(batch):
+    bases, cam, imgs, bgs, out = batch
+    assert [int(x) for x in out.failure] == [0, 0, 1, 3, 2]
+    assert [bool(x) for x in out.ok] == [True, True, False, False, False]
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(out.coeffs))
+    # a missing image is passed as valid=False: same compiled function, frame skipped
+    out2 = refine_batch(
+        bases, cam, imgs, bgs, CFG, valid=jnp.array([True, False, True, True, True]), mode="vmap"
+    )
+    assert int(out2.failure[1]) == 1 and bool(out2.ok[0])
+
+
+def test_no_retrace_across_frames(scene, run_frame, per_frame):
+    base, cam, frames = scene
+    # a third call with new data must reuse the trace (assert_max_traces raises otherwise)
+    run_frame(base, cam, frames[1]["img"], frames[0]["bg"])
+
+
+def test_bad_arguments_raise_input_error(scene):
+    base, cam, frames = scene
+    with pytest.raises(InputError):
+        RefineConfig(levels=(1, 0), steps=(3,))
+    with pytest.raises(InputError):
+        refine_frame(base, (cam, cam), frames[0]["img"], frames[0]["bg"], CFG)
+    with pytest.raises(InputError):
+        refine_batch(
+            jax.tree.map(lambda x: x[None], base),
+            cam,
+            frames[0]["img"][None],
+            frames[0]["bg"][None],
+            CFG,
+            mode="pmap",
+        )
+
+
+def test_camera_correction_recovers_a_calibration_error(scene):
+    """Nominal shape seen by a camera rotated 1.2 deg about its y axis (a ~4 px image shift
+    for a ~3 px wide tube; the nominal mask misses most of the tube). With the camera
+    correction the refined mask overlaps (IoU > 0.8) and the correction moves the image the
+    right way by at least 0.5 px. Attribution is only partial: measured 0.9 of the 4.2 px went
+    into the camera, the rest into the shape (this config's shape prior is weak, g_reg =
+    0.5; the shape error was not smaller than without the correction, 20 vs 14 mm)."""
+    import dataclasses
+
+    from jaxcr.geometry import so3_exp
+
+    base, cam, _ = scene
+    E = np.asarray(so3_exp(jnp.array([0.0, np.deg2rad(1.2), 0.0])))
+    T = np.asarray(cam.T_cam_robot).copy()
+    T[:3, :3] = E @ T[:3, :3]
+    T[:3, 3] = E @ T[:3, 3]
+    true_cam = eqx.tree_at(lambda c: c.T_cam_robot, cam, jnp.asarray(T, jnp.float32))
+    img, mask = _render(base, true_cam, 7)
+    bg, ip = colour_mask(jnp.asarray(img))
+    cfg = dataclasses.replace(CFG, camera_correction=True)
+    r = eqx.filter_jit(refine_frame)(base, cam, ip, bg, cfg)
+    assert bool(r.ok)
+    nominal = float(iou(r.nominal_masks[0], mask))
+    refined = float(iou(r.masks[0], mask))
+    assert nominal < 0.4 and refined > 0.8, (nominal, refined)
+    # + rotation about y moves camera-frame points towards +x (image +u); the correction
+    # (rotation about y and/or translation along x, depth 0.3 m) must shift the same way
+    w, t = np.asarray(r.camera_correction[0, :3]), np.asarray(r.camera_correction[0, 3:])
+    assert 200.0 * (w[1] + t[0] / 0.3) > 0.5, (w, t)
+
+
+def test_two_cameras_recover_the_out_of_plane_bend(scene, run_frame):
+    """Multi-camera refinement (one delta-u explains both views, energies summed): a bend
+    about the body y axis moves the tube mostly along camera A's viewing direction, which one
+    view barely sees. With a second, perpendicular camera the refined 3-D centreline is much
+    closer to the truth than with camera A alone (mean error < 0.6 x), and both views'
+    masks overlap their truths (IoU > 0.8)."""
+    from jaxcr.segmentation.metrics import mean_centreline_error
+
+    base, cam_a, _ = scene
+    cam_b = Camera.look_at([0, -0.3, 0], [0, 0, 0], [0, 0, 1], fx=200.0, size=(W, H))
+    true_c = jnp.asarray([[0.05, 0.0, 0.0], [0.35, -0.1, 0.0]], jnp.float32)
+    truth = perturbed_centreline(base, true_c)
+    views = []
+    for k, cam in enumerate((cam_a, cam_b)):
+        img, mask = _render(truth, cam, 20 + k)
+        bg, ip = colour_mask(jnp.asarray(img))
+        views.append((ip, bg, mask))
+    two = eqx.filter_jit(refine_frame)(
+        base, (cam_a, cam_b), tuple(v[0] for v in views), tuple(v[1] for v in views), CFG
+    )
+    one = run_frame(base, cam_a, views[0][0], views[0][1])
+    err_two = float(mean_centreline_error(two.centreline.p, truth.p))
+    err_one = float(mean_centreline_error(one.centreline.p, truth.p))
+    err_nom = float(mean_centreline_error(base.p, truth.p))
+    assert bool(two.ok) and len(two.masks) == 2
+    assert err_two < 0.6 * err_one and err_two < 0.5 * err_nom, (err_two, err_one, err_nom)
+    for k in range(2):
+        assert float(iou(two.masks[k], views[k][2])) > 0.8

@@ -1,0 +1,195 @@
+"""Convergence of the refinement solver (jaxcr.segmentation.refine.ImageSpaceBFGS and its use in
+refine_frame): stops on its image-space test, not on max_steps; a warm start from the answer
+takes fewer steps than a cold start; vmap agrees with per-frame results.
+
+Small images (128x96), one small config; the compiled functions are module fixtures.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+from jaxcr.camera import project_xy
+from jaxcr.errors import InputError
+from jaxcr.segmentation.metrics import iou
+from jaxcr.segmentation.refine import (
+    ImageSpaceBFGS,
+    ImageSpaceLBFGS,
+    RefineConfig,
+    refine_batch,
+    refine_frame,
+    refine_frame_jit,
+    refine_sequence,
+)
+from tests.helpers.tube_render import arc_base, front_camera, tube_frames
+
+W, H = 128, 96
+CFG = RefineConfig(
+    n_coeffs=3,
+    levels=(1, 0),
+    steps=(30, 40),
+    outer=(2, 1),
+    tau=(1.0, 0.8),
+    band_tiles=96,
+    min_tiles=24,
+    g_reg=0.5,
+    local=False,
+    camera_correction=False,
+)
+MAX_STEPS = 30 * 2 + 40
+# easy frames: a small in-image-plane bend (row 0) of the nominal shape
+TRUE = [
+    np.array([[0.15, -0.05, 0.0], [0.0, 0.0, 0.0]], np.float32),
+    np.array([[-0.12, 0.06, 0.0], [0.0, 0.0, 0.0]], np.float32),
+]
+
+
+def _base():
+    return arc_base(3e-3)
+
+
+def _camera():
+    return front_camera(160.0, (W, H))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    base, cam = _base(), _camera()
+    return base, cam, tube_frames(base, cam, TRUE, (W, H))
+
+
+@pytest.fixture(scope="module")
+def run():
+    """Per-frame compiled refine (init always given: one trace for cold and warm)."""
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def f(base, cam, img, bg, init):
+        return refine_frame(base, cam, img, bg, CFG, init=init)
+
+    return f
+
+
+@pytest.fixture(scope="module")
+def cold(scene, run):
+    base, cam, frames = scene
+    zero = jnp.zeros(CFG.coeff_shape)
+    return [run(base, cam, f["img"], f["bg"], zero) for f in frames]
+
+
+def test_stops_on_its_criterion_before_max_steps(scene, cold):
+    _, _, frames = scene
+    for f, r in zip(frames, cold, strict=True):
+        assert bool(r.ok)
+        # the last solve ended on the convergence test (status successful), not max_steps
+        assert int(r.status) == int(optx.RESULTS.successful._value)
+        assert int(r.num_steps) < 0.8 * MAX_STEPS, np.asarray(r.steps_per_level)
+        assert float(iou(r.masks[0], f["mask"])) > 0.85
+        assert float(r.energy["total"]) < float(r.energy["total_nominal"])
+
+
+@pytest.fixture(scope="module")
+def sequence(scene):
+    """refine_sequence over the two frames: frame 0 cold (CFG), frame 1 warm (CFG.warm())."""
+    base, cam, frames = scene
+    bases = jax.tree.map(lambda *x: jnp.stack(x), base, base)
+    imgs = jnp.stack([f["img"] for f in frames])
+    bgs = jnp.stack([f["bg"] for f in frames])
+    return refine_sequence(bases, cam, imgs, bgs, CFG)
+
+
+def test_warm_start_from_the_answer_takes_fewer_steps(scene, cold):
+    """From the converged answer, the warm schedule (finest level only) needs fewer steps than
+    the cold coarse-to-fine one, and stays at the answer."""
+    base, cam, frames = scene
+    warm_cfg = CFG.warm()
+    assert warm_cfg.levels == (0,) and warm_cfg.steps == (40,)
+    for f, r in zip(frames, cold, strict=True):
+        w = refine_frame_jit(base, cam, f["img"], f["bg"], warm_cfg, init=r.coeffs)
+        assert int(w.num_steps) < int(r.num_steps), (int(w.num_steps), int(r.num_steps))
+        # and stays near the answer. Not exactly at it: the band of the warm solve is chosen
+        # at the answer, not where the cold level-0 solve started, and on this 2-px-wide tube
+        # the band changes the soft energy enough to move the weakly observed out-of-plane
+        # row by ~0.1-0.2 (measured: mask IoU to the cold answer 0.93-0.96, to the truth
+        # 0.93 -> 0.91 and 0.93 -> 0.87). Stated tolerance: IoU to the cold mask > 0.9 and
+        # to the truth within 0.07 of the cold one.
+        assert float(iou(w.masks[0], r.masks[0])) > 0.9
+        assert float(iou(w.masks[0], f["mask"])) > float(iou(r.masks[0], f["mask"])) - 0.07
+
+
+def test_sequence_equals_per_frame_cold_then_warm(scene, cold, sequence):
+    """refine_sequence: frame 0 is the cold per-frame result, frame 1 the warm per-frame
+    result started from frame 0's answer (slow-loop reference: one refine_frame per frame).
+    Same compiled ops up to the scan, so the tolerance is float32 rounding: mask IoU > 0.98."""
+    base, cam, frames = scene
+    r0 = cold[0]
+    np.testing.assert_allclose(sequence.coeffs[0], r0.coeffs, atol=1e-4)
+    w1 = refine_frame_jit(base, cam, frames[1]["img"], frames[1]["bg"], CFG.warm(), init=r0.coeffs)
+    np.testing.assert_allclose(sequence.coeffs[1], w1.coeffs, atol=1e-3)
+    assert float(iou(sequence.masks[0][1], w1.masks[0])) > 0.98
+    assert np.asarray(sequence.steps_per_level).shape == (2, 2)  # padded to the cold schedule
+
+
+def test_vmap_and_map_agree_with_per_frame(scene, cold):
+    """lax.map (default) equals the per-frame results exactly; vmap equals them up to float32
+    rounding in batched reductions, which moves the converged answer by well under a pixel
+    here: stated tolerance mask IoU > 0.95 and projected centreline within 0.5 px."""
+    base, cam, frames = scene
+    bases = jax.tree.map(lambda *x: jnp.stack(x), base, base)
+    imgs = jnp.stack([f["img"] for f in frames])
+    bgs = jnp.stack([f["bg"] for f in frames])
+    vm = refine_batch(bases, cam, imgs, bgs, CFG, mode="vmap")
+    for k, r in enumerate(cold):
+        assert float(iou(vm.masks[0][k], r.masks[0])) > 0.95
+        u1, v1, _ = project_xy(cam, vm.centreline.p[k])
+        u2, v2, _ = project_xy(cam, r.centreline.p)
+        assert float(jnp.max(jnp.hypot(u1 - u2, v1 - v2))) < 0.5
+        assert int(vm.status[k]) == int(optx.RESULTS.successful._value)
+
+
+# ------------------------------------------------------------ the solver on a closed form
+
+
+def _quadratic_solve(solver, y0, jac, max_steps=100):
+    A = jnp.array([[3.0, 1.0], [1.0, 2.0]])
+    b = jnp.array([1.0, -2.0])
+
+    def f(y, _):
+        return 0.5 * y @ A @ y - b @ y
+
+    sol = optx.minimise(
+        f, solver, y0, options={"motion_jac": jac}, max_steps=max_steps, throw=False
+    )
+    return sol, jnp.linalg.solve(A, b)
+
+
+@pytest.mark.parametrize("cls", [ImageSpaceBFGS, ImageSpaceLBFGS])
+def test_image_space_solver_stops_within_xtol_of_a_quadratic_minimum(cls):
+    # one "point" moving with the parameters, 10 px per unit: xtol = 0.01 px = 1e-3 units
+    jac = 10.0 * jnp.eye(2)[None]
+    sol, y_star = _quadratic_solve(cls(xtol=0.01, ftol=1e-6), jnp.array([2.0, 2.0]), jac)
+    assert sol.result == optx.RESULTS.successful
+    assert int(sol.stats["num_steps"]) < 100
+    np.testing.assert_allclose(np.asarray(sol.value), np.asarray(y_star), atol=2e-3)
+
+
+def test_image_space_solver_tolerance_is_in_pixels():
+    # the same problem seen through a 1000x larger motion Jacobian needs more steps to get
+    # below the same pixel tolerance (in parameter units the tolerance is 1000x smaller)
+    y0 = jnp.array([2.0, 2.0])
+    coarse, _ = _quadratic_solve(ImageSpaceBFGS(xtol=0.5, ftol=1.0), y0, 1.0 * jnp.eye(2)[None])
+    fine, _ = _quadratic_solve(ImageSpaceBFGS(xtol=0.5, ftol=1.0), y0, 1e3 * jnp.eye(2)[None])
+    assert coarse.result == optx.RESULTS.successful
+    assert int(coarse.stats["num_steps"]) < int(fine.stats["num_steps"])
+
+
+def test_bad_solver_settings_raise_input_error():
+    with pytest.raises(InputError):
+        RefineConfig(solver="newton")
+    with pytest.raises(InputError):
+        RefineConfig(xtol=0.0)
+    with pytest.raises(InputError):
+        RefineConfig(ftol=-1.0)
