@@ -224,7 +224,7 @@ def project_xy(
 
 
 def project_points(
-    camera: Camera, points_robot: Points, near: float = DEFAULT_NEAR
+    camera: Camera, points_robot: Points, *, near: float = DEFAULT_NEAR
 ) -> tuple[Float[Array, "n 2"], Bool[Array, " n"]]:
     """Project robot-frame points (n, 3) to pixels (n, 2) ``(u, v)`` and a validity mask (n,).
 

@@ -205,7 +205,7 @@ def _run(args) -> int:
 
         # before any compilation; a bad JAXCR_COMPILE_CACHE is bad input (exit 2), an
         # unwritable cache folder one warning
-        enable_compile_cache(False if args.no_compile_cache else None)
+        enable_compile_cache(path=False if args.no_compile_cache else None)
         code = args.func(args)
     except InputError as err:
         print(f"jaxcr {args.command}: error: {err}", file=sys.stderr)

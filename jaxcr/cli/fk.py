@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import functools
 import io
 import math
 import os
@@ -31,9 +30,11 @@ import numpy as np
 
 from jaxcr.errors import InputError
 from jaxcr.io.jsonfile import read_text
+from jaxcr.kinematics.batch import CHUNK, batch_forward, failure_reasons
+
+__all__ = ["CHUNK", "FORMAT", "batch_forward", "failure_reasons", "read_q_csv", "run"]
 
 FORMAT = "jaxcr.fk/1"
-CHUNK = 1024
 
 
 def add_parser(subparsers) -> None:
@@ -116,73 +117,6 @@ def _with_points(model, n_points: int):
         ) from None
 
 
-@functools.cache
-def _compiled_forward():
-    """The jitted, vmapped forward pass (built once per process; one compile per model/shape)."""
-    import equinox as eqx
-    import jax
-
-    from jaxcr.geometry import so3_log
-
-    @eqx.filter_jit
-    def run_chunk(model, qs):
-        res = jax.vmap(model.forward)(qs)
-        rotvec = jax.vmap(so3_log)(res.centreline.R[:, -1])
-        return res, rotvec
-
-    return run_chunk
-
-
-def batch_forward(
-    model, q: np.ndarray, chunk: int = CHUNK, progress: bool = True
-) -> dict[str, np.ndarray]:
-    """Forward kinematics of every row of ``q`` (B, m) with one jitted ``vmap`` (one compile).
-
-    Rows are processed in chunks of ``chunk`` (the last chunk padded to the same shape, so
-    there is a single trace). Returns numpy arrays keyed as in ``centrelines.npz``.
-    """
-    import jax.numpy as jnp
-
-    run_chunk = _compiled_forward()
-    B = q.shape[0]
-    chunk = max(1, min(chunk, B))
-    outs = []
-    starts = range(0, B, chunk)
-    bar = None
-    if progress and len(starts) > 1:
-        from jaxcr.progress import progress as progress_bar
-
-        bar = progress_bar(total=B, desc="fk", unit="row")
-    for start in starts:
-        part = q[start : start + chunk]
-        n = part.shape[0]
-        if n < chunk:
-            part = np.concatenate([part, np.repeat(part[-1:], chunk - n, axis=0)])
-        res, rotvec = run_chunk(model, jnp.asarray(part, jnp.float32))
-        c = res.centreline
-        outs.append(
-            {
-                "s": np.asarray(c.s)[:n],
-                "p": np.asarray(c.p)[:n],
-                "R": np.asarray(c.R)[:n],
-                "rho": np.asarray(c.rho)[:n],
-                "ok": np.asarray(res.ok)[:n],
-                "residual": np.asarray(res.residual)[:n],
-                "energy": np.asarray(res.energy)[:n],
-                "num_steps": np.asarray(res.num_steps)[:n],
-                "tip_rotvec": np.asarray(rotvec)[:n],
-            }
-        )
-        if bar is not None:
-            bar.update(n)
-    if bar is not None:
-        bar.close()
-    out = {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
-    # A row with non-finite joint values never counts as a success.
-    out["ok"] = out["ok"].astype(bool) & np.all(np.isfinite(q), axis=1)
-    return out
-
-
 def _atomic_write_all(writers: dict[str, object]) -> None:
     """Write every file to a temp name first, then rename them all (tips.csv last), so an
     interrupted run never leaves a new file next to a stale one that looks complete."""
@@ -199,41 +133,6 @@ def _atomic_write_all(writers: dict[str, object]) -> None:
         for tmp in tmps.values():
             if os.path.exists(tmp):
                 os.remove(tmp)
-
-
-def failure_reasons(model, q: np.ndarray, out: dict) -> dict[int, str]:
-    """Row index -> why it failed (ok False): non-finite joint values, joint values outside a
-    CTR's limits (``jaxcr.kinematics.ctr_mechanics.telescoping_ok``), no converged solution
-    (residual above the robot's tolerance), or a non-finite result."""
-    reasons = {}
-    tol = getattr(model, "tol", None)
-    for i in np.flatnonzero(~out["ok"]):
-        if not np.all(np.isfinite(q[i])):
-            reasons[int(i)] = "non-finite joint values"
-            continue
-        if model.kind == "ctr":
-            import types
-
-            import jax.numpy as jnp
-
-            from jaxcr.kinematics.ctr_mechanics import telescoping_ok
-
-            n = len(np.atleast_1d(model.length))
-            tubes = types.SimpleNamespace(length=jnp.asarray(model.length, jnp.float32))
-            if not bool(telescoping_ok(tubes, jnp.asarray(q[i, :n], jnp.float32))):
-                reasons[int(i)] = (
-                    "outside the joint limits (beta_1 <= ... <= beta_n <= 0, every tube "
-                    "out of the actuation unit, inner tubes ending beyond outer ones)"
-                )
-                continue
-        r = float(out["residual"][i])
-        if tol is not None and not r <= float(tol):
-            reasons[int(i)] = f"no converged solution (residual {r:.3g} > tolerance {float(tol):g})"
-        elif not np.all(np.isfinite(out["p"][i])):
-            reasons[int(i)] = "non-finite centreline"
-        else:
-            reasons[int(i)] = "kinematics reported failure"
-    return reasons
 
 
 def _fmt(x: float) -> str:

@@ -147,7 +147,7 @@ def idw_weights(d: Float[Array, " b"]) -> Float[Array, " b"]:
     return jnp.where(any_exact, w_exact.astype(d.dtype), w_far)
 
 
-def query(manifold: Manifold, x: Float[Array, " k"], b: int = 3) -> Float[Array, " d"]:
+def query(manifold: Manifold, x: Float[Array, " k"], *, b: int = 3) -> Float[Array, " d"]:
     """Parameters of one eigen-feature x: IDW mean of the b nearest manifold points
     (Reiter et al. eqs. 7-8)."""
     d, idx = knn(manifold.features, x, b)
@@ -157,4 +157,4 @@ def query(manifold: Manifold, x: Float[Array, " k"], b: int = 3) -> Float[Array,
 @eqx.filter_jit
 def query_batch(manifold: Manifold, X: Float[Array, "B k"], b: int = 3) -> Float[Array, "B d"]:
     """:func:`query` for a batch of eigen-features (one compile per batch shape)."""
-    return jax.vmap(query, in_axes=(None, 0, None))(manifold, X, b)
+    return jax.vmap(lambda m, x: query(m, x, b=b), in_axes=(None, 0))(manifold, X)

@@ -102,6 +102,7 @@ def train(
     params: np.ndarray,
     colour: ColourModel,
     config: TrainConfig,
+    *,
     view_centres: np.ndarray | None = None,
 ) -> EigenModel:
     """PCA of the stereo descriptors (n, 2 n_bins), keep ``config.variance``, fit the

@@ -115,7 +115,7 @@ def _disable() -> None:
     _enabled = None
 
 
-def enable_compile_cache(path: str | os.PathLike | bool | None = None) -> str | None:
+def enable_compile_cache(*, path: str | os.PathLike | bool | None = None) -> str | None:
     """Turn on JAX's persistent compilation cache; returns the folder, or None when it is off
     (switched off, or the folder is not writable: then one warning on stderr).
 

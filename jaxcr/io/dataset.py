@@ -725,7 +725,7 @@ def validate_dataset(path: str | os.PathLike, decode_images: bool = True) -> lis
 
 
 def load_dataset(
-    path: str | os.PathLike, strict: bool = False, decode_images: bool = False
+    path: str | os.PathLike, *, strict: bool = False, decode_images: bool = False
 ) -> Dataset:
     """Load the dataset at ``path`` (folder or its dataset.json).
 

@@ -36,7 +36,7 @@ def _model_class(kind: str):
     raise KeyError(kind)
 
 
-def robot_from_dict(d: Mapping[str, Any], file: str | os.PathLike | None = None) -> RobotModel:
+def robot_from_dict(d: Mapping[str, Any], *, file: str | os.PathLike | None = None) -> RobotModel:
     """Model described by ``d`` (``kind`` in :data:`KINDS`)."""
     file = None if file is None else str(file)
     d = require_mapping(d, file=file, field="robot")

@@ -10,6 +10,7 @@ grabCut), :mod:`metrics` (P-R, L2, Tanimoto, KS), :mod:`dataset` and :mod:`run` 
 per-video driver).
 """
 
+from jaxcr.motion.api import segment
 from jaxcr.motion.arm import ArmModel, end_effector, end_effector_frame, joint_positions
 from jaxcr.motion.calibration import end_effector_image, estimate_projection, projection_dlt
 from jaxcr.motion.likelihood import gaussian_likelihood, remove_arm, running_average, threshold_map
@@ -32,6 +33,7 @@ __all__ = [
     "projection_dlt",
     "remove_arm",
     "running_average",
+    "segment",
     "tanimoto_distance",
     "threshold_map",
 ]

@@ -192,6 +192,7 @@ def register_pair(
     src: Frame,
     tgt: Frame,
     K: np.ndarray,
+    *,
     prior: np.ndarray | None = None,
     cfg: IcpConfig = DEFAULT_ICP,
     asift: bool = False,

@@ -70,7 +70,7 @@ def subtract(image: Float[Array, "h w 3"], background: Bool[Array, "h w"]) -> Fl
 
 
 def colour_mask(
-    image: Float[Array, "h w 3"], ranges: tuple[HSVRange, ...] = ROBOT_HSV
+    image: Float[Array, "h w 3"], *, ranges: tuple[HSVRange, ...] = ROBOT_HSV
 ) -> tuple[Bool[Array, "h w"], Float[Array, "h w 3"]]:
     """Colour mask: pixels whose HSV colour lies in none of the robot ``ranges`` are background.
 

@@ -37,7 +37,7 @@ def _background_fn(kind: str, ds, camera: str, colour_ranges=None) -> Callable:
 
     if kind == "colour":
         ranges = bgm.ROBOT_HSV if colour_ranges is None else tuple(colour_ranges)
-        return jax.jit(jax.vmap(lambda im: bgm.colour_mask(im, ranges)))
+        return jax.jit(jax.vmap(lambda im: bgm.colour_mask(im, ranges=ranges)))
     if kind == "none":
         return jax.jit(jax.vmap(bgm.no_mask))
     if kind == "gmm":

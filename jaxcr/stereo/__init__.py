@@ -14,6 +14,7 @@ pair end to end), :mod:`~jaxcr.stereo.overlay` (drawings), :mod:`~jaxcr.stereo.b
 :mod:`~jaxcr.stereo.single_view` (one camera: the 2-D results alone).
 """
 
+from jaxcr.stereo.api import StereoReconstruction, reconstruct
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_frame import BaseSpec, triangulate_entry
 from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
@@ -29,11 +30,13 @@ __all__ = [
     "MarkerLayout",
     "StereoConfig",
     "StereoFailure",
+    "StereoReconstruction",
     "detect_markers",
     "fit_arc",
     "fit_plane",
     "order_skeleton",
     "plane_angles",
+    "reconstruct",
     "reconstruct_pair",
     "reconstruct_view",
     "stereo_base_pose",

@@ -55,17 +55,17 @@ def test_query_matches_numpy_idw(cloud):
     ref = np.einsum("nb,nbd->nd", w, np.asarray(m.psi)[i])  # eq. 8
     got = np.asarray(query_batch(m, jnp.asarray(X), 3))
     np.testing.assert_allclose(got, ref, atol=1e-5)
-    loop = np.stack([np.asarray(query(m, jnp.asarray(x), 3)) for x in X[:5]])
+    loop = np.stack([np.asarray(query(m, jnp.asarray(x), b=3)) for x in X[:5]])
     np.testing.assert_allclose(got[:5], loop, atol=1e-6)
     f = eqx.filter_jit(eqx.debug.assert_max_traces(query, max_traces=1))
     for x in X[:4]:
-        f(m, jnp.asarray(x), 3)
+        f(m, jnp.asarray(x), b=3)
 
 
 def test_exact_match_and_weight_gradients(cloud):
     m, _ = cloud
     x = m.features[17]
-    np.testing.assert_allclose(np.asarray(query(m, x, 3)), np.asarray(m.psi[17]), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(query(m, x, b=3)), np.asarray(m.psi[17]), atol=1e-6)
     w = idw_weights(jnp.asarray([0.0, 1.0, 2.0]))
     np.testing.assert_array_equal(np.asarray(w), [1.0, 0.0, 0.0])
     w2 = idw_weights(jnp.asarray([0.0, 0.0, 2.0]))

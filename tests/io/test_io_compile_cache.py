@@ -63,8 +63,8 @@ def test_unwritable_folder_warns_once(clean_env, tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("x")  # a folder below a regular file cannot be made, even by root
     bad = blocker / "cache"
-    assert cc.enable_compile_cache(bad) is None
-    assert cc.enable_compile_cache(bad) is None
+    assert cc.enable_compile_cache(path=bad) is None
+    assert cc.enable_compile_cache(path=bad) is None
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(bad) in err[0] and "warning" in err[0]
 

@@ -41,7 +41,7 @@ def test_colour_mask_grey_robot_red_tissue():
     np.testing.assert_allclose(np.asarray(ip)[0, 0], 0.0)
     np.testing.assert_allclose(np.asarray(ip)[1, 1], img[1, 1])
     # custom wrap-around hue range keeps the reds instead
-    bg2, _ = colour_mask(jnp.asarray(img), (HSVRange(h_lo=340, h_hi=20, s_lo=0.5),))
+    bg2, _ = colour_mask(jnp.asarray(img), ranges=(HSVRange(h_lo=340, h_hi=20, s_lo=0.5),))
     assert np.asarray(bg2)[1:3, 1:3].all() and not np.asarray(bg2)[0, 0]
     bl, _ = lab_mask(jnp.asarray(img))
     np.testing.assert_array_equal(np.asarray(bl), np.asarray(bg))
