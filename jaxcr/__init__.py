@@ -44,7 +44,7 @@ __version__ = "0.1.0"
 # public name -> the module defining it (imported on first attribute access, PEP 562)
 _NAMES = {
     "robot_from_dict": "jaxcr.kinematics.robots",
-    "load_robot": "jaxcr.kinematics.robots",
+    "load_robot": "jaxcr.io.robot",
     "TEST_CTR": "jaxcr.kinematics.ctr",
     "forward": "jaxcr.kinematics.batch",
     "BatchFk": "jaxcr.kinematics.batch",
@@ -110,9 +110,10 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from jaxcr.errors import InputError
     from jaxcr.io.compile_cache import enable_compile_cache
     from jaxcr.io.dataset import load_dataset
+    from jaxcr.io.robot import load_robot
     from jaxcr.kinematics.batch import BatchFk, forward
     from jaxcr.kinematics.ctr import TEST_CTR
-    from jaxcr.kinematics.robots import load_robot, robot_from_dict
+    from jaxcr.kinematics.robots import robot_from_dict
     from jaxcr.segmentation.api import refine, refine_batch
     from jaxcr.segmentation.background import colour_mask
     from jaxcr.segmentation.refine import RefineConfig, RefineResult

@@ -140,7 +140,7 @@ def _fmt(x: float) -> str:
 
 
 def run(args) -> int:
-    from jaxcr.kinematics.robots import load_robot
+    from jaxcr.io.robot import load_robot
 
     model = load_robot(args.robot)
     if args.points is not None:

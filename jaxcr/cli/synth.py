@@ -150,7 +150,8 @@ def run(args) -> int:
                     f"{MAX_PIXELS['synth']}-pixel ceiling of one frame")  # fmt: skip
     robot = None
     if args.robot is not None:
-        from jaxcr.kinematics.robots import load_robot, robot_to_dict
+        from jaxcr.io.robot import load_robot
+        from jaxcr.kinematics.robots import robot_to_dict
 
         robot = robot_to_dict(load_robot(args.robot))
     several = len(names) > 1 or args.all

@@ -30,6 +30,7 @@ from jaxcr.errors import InputError, InputErrors
 from jaxcr.io.calibration import camera_from_dict, camera_to_dict, load_camera
 from jaxcr.io.images import file_header_size, image_size, read_image, read_mask, write_png
 from jaxcr.io.units import MAX_LENGTH_M, nearest_key
+from jaxcr.kinematics.robots import robot_to_dict
 
 FORMAT = "jaxcr.dataset/1"
 DATASET_FILE = "dataset.json"
@@ -831,8 +832,6 @@ class DatasetWriter:
         self.root = Path(root)
         self.name = name
         if hasattr(robot_dict, "to_dict") and not isinstance(robot_dict, Mapping):
-            from jaxcr.kinematics.robots import robot_to_dict
-
             robot_dict = robot_to_dict(robot_dict)
         self.robot_dict = dict(robot_dict)
         self.meta = dict(meta or {})

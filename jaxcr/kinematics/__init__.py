@@ -9,7 +9,7 @@ from jaxcr.kinematics.cosserat import (
     perturb_centreline,
 )
 from jaxcr.kinematics.ctr import TEST_CTR, ConcentricTubeRobot
-from jaxcr.kinematics.robots import load_robot, robot_from_dict, robot_to_dict
+from jaxcr.kinematics.robots import robot_from_dict, robot_to_dict
 from jaxcr.kinematics.single_segment import SingleSegment, angles_to_rotation, rotation_to_angles
 
 __all__ = [
@@ -23,7 +23,6 @@ __all__ = [
     "angles_to_rotation",
     "integrate_centreline",
     "integrate_steps",
-    "load_robot",
     "perturb_centreline",
     "robot_from_dict",
     "robot_to_dict",

@@ -1,6 +1,7 @@
 """Robot descriptions (robot.json / the ``robot`` entry of dataset.json) to model objects.
 
-``robot_from_dict`` dispatches on ``kind``; every model class provides ``from_dict(d, file)`` and
+``robot_from_dict`` dispatches on ``kind`` (reading and writing robot.json files is
+:mod:`jaxcr.io.robot`); every model class provides ``from_dict(d, file)`` and
 ``to_dict()``; the schemas are in docs/dataset-format.md. All validation problems raise
 :class:`jaxcr.errors.InputError` naming the file and field.
 """
@@ -8,7 +9,6 @@
 from __future__ import annotations
 
 import inspect
-import json
 import os
 from collections.abc import Mapping
 from typing import Any
@@ -58,43 +58,3 @@ def robot_to_dict(model: RobotModel) -> dict[str, Any]:
     d = model.to_dict()
     d.setdefault("kind", model.kind)
     return d
-
-
-def _read_json(path: str) -> Any:
-    from jaxcr.io.jsonfile import read_json
-
-    return read_json(path)
-
-
-def load_robot(path: str | os.PathLike) -> RobotModel:
-    """Load a robot from a robot.json, a dataset.json, or a dataset folder.
-
-    A dataset's ``robot`` entry is either the description itself or a path (relative to the
-    dataset folder) of a robot.json.
-    """
-    path = os.fspath(path)
-    if os.path.isdir(path):
-        path = os.path.join(path, "dataset.json")
-        if not os.path.exists(path):
-            from jaxcr.io.dataset import other_format_hint
-
-            folder = os.path.dirname(path)
-            raise InputError(f"folder has no dataset.json{other_format_hint(folder)}", file=folder)
-    d = _read_json(path)
-    d = require_mapping(d, file=path, field=None)
-    if "kind" not in d and "robot" in d:  # a dataset.json
-        robot = d["robot"]
-        if isinstance(robot, str):
-            return load_robot(os.path.join(os.path.dirname(path), robot))
-        return robot_from_dict(robot, file=path)
-    return robot_from_dict(d, file=path)
-
-
-def save_robot(model: RobotModel, path: str | os.PathLike) -> None:
-    """Write ``model`` as a robot.json (atomically: temp file, then rename)."""
-    path = os.fspath(path)
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(robot_to_dict(model), fh, indent=2)
-        fh.write("\n")
-    os.replace(tmp, path)

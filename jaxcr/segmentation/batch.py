@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcr.cli._timing import CompileTimer
+from jaxcr._timing import CompileTimer
 from jaxcr.errors import InputError
 from jaxcr.io import results as R
 from jaxcr.io.overlay import fig4_panel

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from jaxcr.errors import InputError
+from jaxcr.io.robot import load_robot, save_robot
 from jaxcr.kinematics.base import RobotModel, piecewise_arclength, steps_per_piece
 from jaxcr.kinematics.constant_curvature import ConstantCurvature
-from jaxcr.kinematics.robots import load_robot, robot_from_dict, robot_to_dict, save_robot
+from jaxcr.kinematics.robots import robot_from_dict, robot_to_dict
 from jaxcr.kinematics.single_segment import SingleSegment
 
 CC = {
