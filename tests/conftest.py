@@ -3,6 +3,23 @@ import os
 
 import pytest
 
+# Modules whose fixtures compile the refinement (145-205 s each on the loaded 2-core machine,
+# issue 15) or run `jaxcr segment`/`demo` end to end: marked slow as a whole, so
+# `pytest -m "not slow"` is the fast subset. Individual tests elsewhere use @pytest.mark.slow.
+SLOW_MODULES = (
+    "tests/segmentation/test_refine.py",
+    "tests/segmentation/test_refine_multicam.py",
+    "tests/segmentation/test_refine_convergence.py",
+    "tests/cli/test_cli_segment.py",
+    "tests/cli/test_cli_demo.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.nodeid.split("::")[0] in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)
+
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 
