@@ -8,10 +8,8 @@ contour cache of eigen_accuracy.py.
 import json
 import sys
 
-import numpy as np
-
-sys.path.insert(0, "/work/main/experiments")
 import jax.numpy as jnp
+import numpy as np
 from eigen_common import _load, angle_errors
 
 from jaxcr.eigen.colour import ColourModel

@@ -19,12 +19,12 @@ from __future__ import annotations
 import argparse
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
+from model_object_edge_noise import render  # noqa: E402  (the frame with or without depth noise)
 from scipy.spatial.transform import Rotation
 
 from jaxcr.registration.icp import DEFAULT_ICP, no_keypoints
@@ -32,9 +32,6 @@ from jaxcr.registration.pairwise import geometric_sample, make_frame
 from jaxcr.registration.pipeline import PipelineConfig, _capture, build_model
 from jaxcr.registration.projective import projective_icp_jit
 from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from model_object_edge_noise import render  # noqa: E402  (the frame with or without depth noise)
 
 OUT = Path(__file__).parent.parent / "results" / "registration"
 

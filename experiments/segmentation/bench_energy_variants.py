@@ -15,13 +15,10 @@ import argparse
 import os
 import sys
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_segment import make_scene  # noqa: E402
 
 from jaxcr.segmentation.background import colour_mask  # noqa: E402

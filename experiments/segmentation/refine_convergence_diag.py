@@ -150,7 +150,6 @@ def load_frames(path, n, camera=None):
 
 
 def bench_frames(n):
-    sys.path.insert(0, str(Path(__file__).parent))
     from bench_segment import make_scene
 
     from jaxcr.segmentation.background import colour_mask

@@ -139,7 +139,6 @@ def depth_floor(csv_path: Path) -> dict[str, dict[str, float]]:
 def prior_sweep(seed_dir: Path, weights: list[float], frames: int, work: Path) -> list[str]:
     """Markdown rows: the first ``frames`` frames of each preset of ``seed_dir`` segmented with
     ``jaxcr segment --prior-weight G`` (everything else default) for each G."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     import table2
 
     from jaxcr.cli import evaluate, segment
