@@ -20,6 +20,7 @@ def pytest_collection_modifyitems(config, items):
         if item.nodeid.split("::")[0] in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
 
+
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 

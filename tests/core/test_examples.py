@@ -1,0 +1,53 @@
+"""The examples/ notebooks (Jupytext percent .py files) run top to bottom, and what they show
+is checked against independent references."""
+
+import runpy
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
+
+@pytest.fixture
+def run_example(tmp_path, monkeypatch):
+    def run(name):
+        monkeypatch.setenv("JAXCR_EXAMPLES_OUT", str(tmp_path))
+        monkeypatch.setenv("MPLBACKEND", "Agg")
+        import matplotlib
+
+        matplotlib.use("Agg")
+        return runpy.run_path(str(EXAMPLES / name)), tmp_path
+
+    return run
+
+
+@pytest.mark.slow  # two CTR solver compiles: ~4 min at load 15
+def test_kinematics_projection(run_example):
+    ns, out = run_example("kinematics_projection.py")
+    fk, uv, cam = ns["fk"], np.asarray(ns["uv"]), ns["camera"]
+    assert np.asarray(fk.ok).all() and all(r == "" for r in ns["batch"].reasons)
+    # jcr.forward == the hand-written jit(vmap(forward)) (same kernels per row; float32
+    # rounding of batched vs unbatched reductions: 1e-6 m on a 0.2 m robot)
+    np.testing.assert_allclose(ns["batch"].p, np.asarray(fk.centreline.p), atol=1e-6)
+    # projection against OpenCV (float64) on the same points: float32 rounding of ~0.7 m
+    # camera-frame coordinates (4e-8 m) times fx / Z <= 120 / 0.5 px/m is < 1e-5 px; 1e-3 px
+    # leaves room for the float32 camera pose
+    p = np.asarray(fk.centreline.p, np.float64).reshape(-1, 3)
+    T = np.asarray(cam.T_cam_robot, np.float64)
+    ref, _ = cv2.projectPoints(
+        p, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], np.asarray(cam.K, np.float64),
+        np.asarray(cam.dist, np.float64),
+    )  # fmt: skip
+    np.testing.assert_allclose(uv.reshape(-1, 2), ref[:, 0], atol=1e-3)
+    # the figure: every centreline inside the 160x120 image, and drawn
+    assert np.asarray(ns["valid"]).all()
+    assert (uv[..., 0] > 0).all() and (uv[..., 0] < 160).all()
+    assert (uv[..., 1] > 0).all() and (uv[..., 1] < 120).all()
+    ax = ns["ax"]
+    assert len(ax.lines) == 4
+    np.testing.assert_allclose(ax.lines[2].get_xydata(), uv[2], atol=1e-6)
+    img = cv2.imread(str(out / "kinematics_projection.png"))
+    assert img is not None and img.shape[0] > 100 and img.std() > 1.0  # a non-blank figure
