@@ -150,8 +150,7 @@ def load_frames(path, n, camera=None):
 
 
 def bench_frames(n):
-    from bench_segment import make_scene
-
+    from jaxcr.benchmarks.segment import make_scene
     from jaxcr.segmentation.background import colour_mask
 
     base, cam, fr = make_scene(n)

@@ -1,16 +1,17 @@
 """``jaxcr bench segment|fk``: run a benchmark and report it (console table + Markdown).
 
-The measurements themselves live with the code they measure: the segmentation benchmark
-(``run_segment_benchmark``) next to the refinement core and the forward-kinematics one
-(``run_fk_benchmark``) next to the robot models; this command finds them (see
-:data:`PROVIDERS`), passes the options they accept, and prints and writes what they return.
+The measurements live in the package, :mod:`jaxcr.benchmarks` (``segment.py``:
+``run_segment_benchmark``, ``fk.py``: ``run_fk_benchmark``), so this command works from an
+installed wheel; it finds them (see :data:`PROVIDERS`), passes the options they accept, and
+prints and writes what they return.
 
 A provider returns a dict. Recognised keys (all optional besides ``name``): ``name``,
 ``median_s``, ``spread_s`` (e.g. IQR), ``compile_s``, ``reference`` (what the reference is),
 ``reference_median_s``, ``ratio`` (reference / ours; computed if both medians are given),
 ``unit`` (what one timed call does, e.g. "frame"), ``rows`` (a list of dicts: one table row
 each, e.g. per batch size) and ``notes``. Every other scalar is listed as a key/value.
-An experiment script without such a function but with ``main(argv)`` is run as a script
+A provider given as a ``.py`` file path (e.g. a script of one's own) without such a function
+but with ``main(argv)`` is run as a script
 (``-o REPORT.md``, plus ``--batch/--repeats/--frames/--size/--seed`` when given); it prints
 and writes its own report.
 """
@@ -35,19 +36,12 @@ from jaxcr.io import results as R
 
 HELP = "benchmark segmentation or forward kinematics (medians, compile time, ratio vs reference)"
 
-#: where each benchmark function may live, searched in order (module, function); a path
-#: ending in .py is relative to the repository root.
+#: where each benchmark function lives, searched in order (module, function); a module name
+#: ending in .py is a file path (absolute, or relative to the current folder), never a path
+#: inside the checkout: ``jaxcr bench`` must work from an installed wheel.
 PROVIDERS = {
-    "segment": [
-        ("jaxcr.bench", "run_segment_benchmark"),
-        ("jaxcr.segmentation.refine", "run_segment_benchmark"),
-        ("experiments/segmentation/bench_segment.py", "run_segment_benchmark"),
-    ],
-    "fk": [
-        ("jaxcr.bench", "run_fk_benchmark"),
-        ("jaxcr.kinematics.bench", "run_fk_benchmark"),
-        ("experiments/kinematics/bench_fk.py", "run_fk_benchmark"),
-    ],
+    "segment": [("jaxcr.benchmarks.segment", "run_segment_benchmark")],
+    "fk": [("jaxcr.benchmarks.fk", "run_fk_benchmark")],
 }
 
 
@@ -72,10 +66,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def find_provider(what: str):
     """The benchmark function for ``what`` (first of :data:`PROVIDERS` that exists)."""
-    root = Path(__file__).resolve().parents[2]
     for mod, fn in PROVIDERS[what]:
         if mod.endswith(".py"):
-            path = root / mod
+            path = Path(mod)
             if not path.exists():
                 continue
             spec = importlib.util.spec_from_file_location(f"_jaxcr_bench_{path.stem}", path)

@@ -1,0 +1,61 @@
+"""``jaxcr bench`` from a wheel installed outside the checkout (issue 15: bench.py used to load
+experiments/*.py by repository path, which an installed package does not have)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _run(cmd, **kw):
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=900, **kw)
+
+
+@pytest.mark.slow  # a wheel build (~20 s) plus one compile of the CTR forward model (~20-60 s)
+def test_bench_runs_from_an_installed_wheel(tmp_path):
+    # build from a copy, so setuptools' build/ and *.egg-info never land in the checkout
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, src / name)
+    shutil.copytree(ROOT / "jaxcr", src / "jaxcr", ignore=shutil.ignore_patterns("__pycache__"))
+    wheels = tmp_path / "wheels"
+    build = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-w", str(wheels), str(src)])
+    if build.returncode != 0:  # no index reachable for the isolated build env: use this venv's
+        build = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                      "-w", str(wheels), str(src)])  # fmt: skip
+    assert build.returncode == 0, build.stderr[-2000:]
+    (wheel,) = wheels.glob("jaxcr-*.whl")
+    site = tmp_path / "site"
+    inst = _run([sys.executable, "-m", "pip", "install", "--no-deps", "--target", str(site),
+                 str(wheel)])  # fmt: skip
+    assert inst.returncode == 0, inst.stderr[-2000:]
+    assert (site / "jaxcr" / "benchmarks" / "fk.py").exists()
+
+    cwd = tmp_path / "elsewhere"  # outside the checkout: neither it nor its parents hold jaxcr
+    cwd.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    where = _run([sys.executable, "-c", "import jaxcr; print(jaxcr.__file__)"], cwd=cwd, env=env)
+    assert where.returncode == 0, where.stderr
+    assert Path(where.stdout.strip()).resolve().is_relative_to(site.resolve())
+
+    h = _run([sys.executable, "-m", "jaxcr", "bench", "--help"], cwd=cwd, env=env)
+    assert h.returncode == 0 and "segment" in h.stdout and "fk" in h.stdout, h.stderr
+
+    out = cwd / "fk.md"
+    code = ("import sys, runpy, jaxcr; print('JAXCR', jaxcr.__file__); "
+            "sys.argv = ['jaxcr', 'bench', 'fk', '--batch', '2', '--repeats', '1', '-o', 'fk.md']; "
+            "runpy.run_module('jaxcr', run_name='__main__')")  # fmt: skip
+    r = _run([sys.executable, "-c", code], cwd=cwd, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    imported = next(ln for ln in r.stdout.splitlines() if ln.startswith("JAXCR "))[6:]
+    assert Path(imported).resolve().is_relative_to(site.resolve())
+    text = out.read_text()
+    assert "jaxcr.benchmarks.fk:run_fk_benchmark" in text and "median per q" in text
