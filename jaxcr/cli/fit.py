@@ -151,8 +151,8 @@ def run(args) -> int:
 
     from jaxcr.io.backbone import read_backbone, read_tips
     from jaxcr.io.results import atomic_write_json, atomic_write_text
+    from jaxcr.io.robot import load_robot
     from jaxcr.kinematics.fit import fit_backbone, fit_tip_pixels
-    from jaxcr.kinematics.robots import load_robot
 
     if args.max_steps < 1:
         raise InputError(f"must be >= 1, got {args.max_steps}", field="--max-steps")

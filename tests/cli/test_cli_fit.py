@@ -12,7 +12,7 @@ import pytest
 from jaxcr.camera import project_points
 from jaxcr.cli import main
 from jaxcr.io.dataset import load_dataset
-from jaxcr.kinematics import load_robot
+from jaxcr.io.robot import load_robot
 from tests.helpers.datasets import make_dataset
 
 SS = {"kind": "single_segment", "length": 0.1, "radius": 0.003, "n_points": 24}

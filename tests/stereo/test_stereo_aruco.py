@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from jaxcr.camera import camera_from_arrays
+from jaxcr.registration.metrics import rotation_angle
 from jaxcr.stereo.aruco import (
     MarkerLayout,
     camera_base_pose,
@@ -13,7 +14,6 @@ from jaxcr.stereo.aruco import (
     marker_object_corners,
     stereo_base_pose,
 )
-from jaxcr.registration.metrics import rotation_angle
 from jaxcr.synth.stereo_ctr import _Scene, render_view, stereo_cameras
 
 
