@@ -9,9 +9,11 @@ import re
 import subprocess
 import sys
 
-from test_cli_segment import FAST, make_dataset  # the tiny 96x72 dataset drawn with OpenCV
-
 from jaxcr.cli import build_parser, main, segment
+from tests.cli.test_cli_segment import (  # the tiny 96x72 dataset drawn with OpenCV
+    FAST,
+    make_dataset,
+)
 
 SHAPE_OPTS = ["--camera", "main", "--levels", "2", "--max-steps", "4", "--basis", "3",
               "--batch-size", "2", "--background", "none", "--mu-out", "global",
