@@ -38,6 +38,8 @@ NOT_CORE = {
     "stereo/base_locate.py": "OpenCV flood fill, Canny and Hough (paper's base detection)",
     "stereo/overlay.py": "drawing on images for the overlays (cv2 drawing primitives)",
     "stereo/pipeline.py": "end-to-end driver of one pair: cv2 morphology/projectPoints/fillPoly",
+    "stereo/base_frame.py": "cv2.undistortPoints/projectPoints for the markerless base (host side)",
+    "stereo/single_view.py": "one-camera driver: cv2 projectPoints/morphology (host side)",
     # a documented exception still to move
     "eigen/model_file.py": (
         "the eigen model's .npz format; to move to jaxcr/io/ once jaxcr.eigen stops "
