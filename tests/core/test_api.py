@@ -48,7 +48,12 @@ def test_all_names_resolve_and_are_documented():
         jcr.no_such_name  # noqa: B018
 
 
-@pytest.mark.parametrize("label,fn", list(_public_callables()), ids=lambda x: str(x)[:40])
+# ids are the public names only: a function's repr carries its address, which differs
+# between pytest-xdist workers and makes them collect different tests
+_CALLABLES = list(_public_callables())
+
+
+@pytest.mark.parametrize("label,fn", _CALLABLES, ids=[label for label, _ in _CALLABLES])
 def test_optional_arguments_are_keyword_only(label, fn):
     for p in inspect.signature(fn).parameters.values():
         if p.default is not inspect.Parameter.empty:
