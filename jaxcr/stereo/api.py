@@ -28,6 +28,11 @@ class StereoReconstruction(eqx.Module):
         skeleton_rc, robot_masks, seed_rc: per view, the ordered skeleton (row, col), the robot
             mask and the flood-fill seed.
         n_matches: matched skeleton points; timings: seconds per stage.
+        views_px: per view, the 2-D results (``tip_px`` and the ``backbone_px`` polyline,
+            OpenCV pixels). single_view: (n,) bool, points of the single-view tail (seen by
+            one camera only); s_stereo_end: arc length where the stereo backbone ends.
+        base_mode: ``"markers"``, ``"T_cam_base"`` or ``"entry_px"``; entry_residual_px: the
+            entry pixels' triangulation residual (``entry_px`` only, else None).
         extra: any further outputs of ``reconstruct_pair`` not listed above (empty today).
     """
 
@@ -49,6 +54,11 @@ class StereoReconstruction(eqx.Module):
     seed_rc: list
     n_matches: int
     timings: dict
+    views_px: Any = None
+    single_view: Any = None
+    s_stereo_end: Any = None
+    base_mode: Any = None
+    entry_residual_px: Any = None
     extra: dict = eqx.field(default_factory=dict)
 
 
