@@ -22,6 +22,11 @@ def pytest_collection_modifyitems(config, items):
 
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# Commands run in-process by the tests would otherwise turn on the per-user persistent
+# compilation cache (on by default in every command) for the rest of the worker, writing
+# thousands of entries to ~/.cache; the cache has its own tests (tests/io/test_io_compile_cache.py,
+# tests/cli/test_cli_warmup.py), which set these variables themselves.
+os.environ.setdefault("JAXCR_COMPILE_CACHE", "0")
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -230,13 +230,12 @@ def test_motion_results_and_calibrate_readers_respect_the_pixel_limit(
     directly: a 140 kB PNG declaring 12000x12000 pixels was decoded (and 30000x30000 would be
     ~11 GB). Now they go through jaxcr.io.images' checked reader; a motion frame whose header
     has another size than motion.json is not decoded at all."""
-    from tests.cli.test_cli_foreign_inputs import _png_bomb
-
     from jaxcr.cli import main
     from jaxcr.errors import InputError
     from jaxcr.io import images
     from jaxcr.io.motion_dataset import load_motion_dataset
     from jaxcr.io.results import read_mask_png
+    from tests.cli.test_cli_foreign_inputs import _png_bomb
 
     bomb = tmp_path / "bomb.png"
     _png_bomb(bomb, 12000, 12000)

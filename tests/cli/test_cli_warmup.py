@@ -9,6 +9,8 @@ import re
 import subprocess
 import sys
 
+import pytest
+
 from jaxcr.cli import build_parser, main, segment
 from tests.cli.test_cli_segment import (  # the tiny 96x72 dataset drawn with OpenCV
     FAST,
@@ -37,6 +39,7 @@ def test_cache_off_exits_2(tmp_path, capsys):
     assert len(err) == 1 and "compilation cache is off" in err[0]
 
 
+@pytest.mark.slow
 def test_segment_after_warmup_compiles_little(tmp_path):
     ds = make_dataset(tmp_path / "ds")
     env = dict(os.environ, JAX_PLATFORMS="cpu", JAXCR_CACHE_DIR=str(tmp_path / "cache"))
