@@ -74,3 +74,26 @@ def test_stereo(run_example):
     np.testing.assert_allclose(ax1.lines[1].get_xydata(), 1e3 * p[:, [0, 2]])
     img = cv2.imread(str(out / "stereo.png"))
     assert img is not None and img.std() > 1.0
+
+
+@pytest.mark.slow  # synth + one refinement compile at 320x240: ~2 min at load 7
+def test_refine_frame(run_example):
+    ns, out = run_example("refine_frame.py")
+    res, truth = ns["result"], np.asarray(ns["truth"], bool)
+    assert bool(res.ok) and int(res.failure) == 0
+
+    def iou(a):  # numpy, against the ray-cast truth (an independent renderer)
+        a = np.asarray(a, bool)
+        return (a & truth).sum() / (a | truth).sum()
+
+    nominal, refined = iou(res.nominal_masks[0]), iou(res.masks[0])
+    assert nominal == pytest.approx(ns["iou_nominal"]) and refined == pytest.approx(
+        ns["iou_refined"]
+    )
+    # measured here: 0.704 -> 0.791 (+0.087; at 160x120 the 2-3 px wide tube gained only
+    # +0.009, hence 320x240). Required: half the measured gain, +0.04: the other half covers
+    # a different solver path on another CPU (float32 rounding of the energy changes BFGS
+    # steps, not the optimum's basin on this seed); a refinement that does nothing fails
+    assert refined > nominal + 0.04
+    img = cv2.imread(str(out / "refine_frame.png"))
+    assert img is not None and img.std() > 1.0
