@@ -31,16 +31,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from jaxcr.stereo.aruco import MarkerLayout
-from jaxcr.synth.raycast import ray_plane
 from jaxcr.synth.render import apply_camera_effects, pixel_rays, subpixel_rays
 from jaxcr.synth.scene import RenderCamera
 from jaxcr.synth.stereo_ctr import (
     WALL_OFFSET,
     _shadowed,
     cc_backbone,
-    robot_hits,
     sample_robot,
     stereo_cameras,
+    trace_rays,
 )
 
 __all__ = ["RealLikeView", "RealLikeFrame", "render_real_like_frame"]
@@ -157,20 +156,8 @@ class _RealScene:
 
 
 def _shade_real(scene: _RealScene, cam: RenderCamera, d_cam: np.ndarray):
-    T = cam.T_cam_robot
-    R, t = T[:3, :3], T[:3, 3]
-    C = -R.T @ t
-    d = d_cam @ R
+    C, d, tb, nb, pid, t_rob, n_rob, k_rob = trace_rays(scene, cam, d_cam)
     m = len(d)
-    o = np.broadcast_to(C, (m, 3)).copy()
-    tb = np.full(m, np.inf)
-    nb = np.zeros((m, 3))
-    pid = np.full(m, -1)
-    for k, (pt, nn) in enumerate(scene.planes):
-        tt, n = ray_plane(o, d, pt, nn)
-        better = tt < tb
-        tb[better], nb[better], pid[better] = tt[better], n[better], k
-    t_rob, n_rob, k_rob = robot_hits(scene, C, o, d)
     rgb = np.zeros((m, 3))
     robot = t_rob < tb
     cloth = ~robot & np.isfinite(tb)

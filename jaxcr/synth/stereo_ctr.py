@@ -463,8 +463,11 @@ def robot_hits(scene, C: np.ndarray, o: np.ndarray, d: np.ndarray):
     return t_rob, n_rob, k_rob
 
 
-def _shade(scene: _Scene, cam: RenderCamera, d_cam: np.ndarray) -> np.ndarray:
-    """Trace and shade rays (camera frame unit directions (M, 3)); linear RGB (M, 3)."""
+def trace_rays(scene, cam: RenderCamera, d_cam: np.ndarray):
+    """The rays of a camera (camera-frame unit directions (M, 3)) traced against the scene's
+    planes and the robot: camera centre C (3,), base-frame directions d (M, 3), nearest plane
+    hit distance tb, its normal nb and plane index pid (-1: none), and the robot's hit distance,
+    normal and capsule index (:func:`robot_hits`). Shared by the stereo and real_like shaders."""
     T = cam.T_cam_robot
     R, t = T[:3, :3], T[:3, 3]
     C = -R.T @ t
@@ -478,7 +481,14 @@ def _shade(scene: _Scene, cam: RenderCamera, d_cam: np.ndarray) -> np.ndarray:
         tt, n = ray_plane(o, d, pt, nn)
         better = tt < tb
         tb[better], nb[better], pid[better] = tt[better], n[better], k
-    t_rob, n_rob, _ = robot_hits(scene, C, o, d)
+    t_rob, n_rob, k_rob = robot_hits(scene, C, o, d)
+    return C, d, tb, nb, pid, t_rob, n_rob, k_rob
+
+
+def _shade(scene: _Scene, cam: RenderCamera, d_cam: np.ndarray) -> np.ndarray:
+    """Trace and shade rays (camera frame unit directions (M, 3)); linear RGB (M, 3)."""
+    C, d, tb, nb, pid, t_rob, n_rob, _ = trace_rays(scene, cam, d_cam)
+    m = len(d)
     rgb = np.zeros((m, 3))
     robot = t_rob < tb
     cloth = ~robot & np.isfinite(tb)
