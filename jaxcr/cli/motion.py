@@ -180,8 +180,6 @@ def run(args) -> int:
         raise InputError(
             "--baseline-threshold must be in [0, 255) grey levels", field="--baseline-threshold"
         )
-    if args.lam <= 0 or not (0 < args.threshold <= 1):
-        raise InputError("--lambda must be > 0 and --threshold in (0, 1]", field="--lambda")
     if not (args.superpixel_step == 0 or args.superpixel_step >= 4) or args.flow_step < 0:
         raise InputError(
             "--superpixel-step must be 0 (auto) or >= 4 and --flow-step >= 0 (0: auto)",
