@@ -122,9 +122,10 @@ def main(argv=None) -> int:
     if mode == "rig" and g_rel != RIG_G_CAM_REL:
         mode_sfx += f"_gcamrel{g_rel:g}"
 
-    from jaxcr.cli import evaluate, segment
+    from jaxcr.cli import segment
     from jaxcr.io import report as rep
     from jaxcr.io import results as R
+    from jaxcr.segmentation import evaluate
     from jaxcr.synth.generate import generate, parse_size
 
     size = parse_size(a.size)

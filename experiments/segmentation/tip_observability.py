@@ -141,7 +141,8 @@ def prior_sweep(seed_dir: Path, weights: list[float], frames: int, work: Path) -
     ``jaxcr segment --prior-weight G`` (everything else default) for each G."""
     import table2
 
-    from jaxcr.cli import evaluate, segment
+    from jaxcr.cli import segment
+    from jaxcr.segmentation import evaluate
 
     rows = []
     for g in weights:

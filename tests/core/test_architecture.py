@@ -25,6 +25,7 @@ CORE_TOP = ("_types.py", "errors.py", "geometry.py", "camera.py", "colour.py", "
 NOT_CORE = {
     # drivers and front doors that call io/ by design
     "segmentation/batch.py": "batch driver: reads frames and writes results through jaxcr.io",
+    "segmentation/evaluate.py": "evaluation driver: reads segment outputs and ground truth",
     "motion/run.py": "per-video driver over a MotionDataset (jaxcr.io.motion_dataset)",
     "motion/api.py": "front door of motion/run.py (type-only import of the dataset)",
     # OpenCV as a numerical library on host numpy arrays, outside jit (not file I/O)
