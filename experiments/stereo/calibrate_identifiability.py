@@ -34,7 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from jaxcr.cli.calibrate import (
+from jaxcr.stereo.calibration import (
     IntrinsicConstraints,
     board_points,
     calibrate_camera,

@@ -46,7 +46,9 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -55,7 +57,7 @@ import numpy as np
 from jaxcr.camera import Camera, camera_from_arrays
 from jaxcr.errors import InputError
 from jaxcr.io.jsonfile import read_json
-from jaxcr.io.results import atomic_write_text
+from jaxcr.io.results import atomic_write_bytes, atomic_write_text
 from jaxcr.io.units import MIN_BASELINE_M, check_known_keys, check_length, unit_scale
 
 _FS_EXT = (".yaml", ".yml", ".xml")
@@ -521,3 +523,52 @@ def save_stereo(cam1: Camera, cam2: Camera, path: str | os.PathLike) -> None:
         raise InputError(
             "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path
         )
+
+
+def save_calibration(res: dict, path: str) -> None:
+    """Write the result of :func:`jaxcr.stereo.calibration.calibrate_stereo` (``K1 D1 K2 D2 R T
+    size1 size2 rms_1 rms_2 rms_stereo``, optionally ``cal1 cal2 per_view_rms_stereo flags``)
+    with :func:`save_stereo`, then append the RMS values and the per-view report.
+
+    Atomic: the file is assembled under a temporary name in the destination folder (same
+    suffix, which selects the format) and renamed over ``path`` only when complete, so an
+    interrupted or failed write never leaves a truncated calibration (or one without RMS)."""
+    dest = Path(path)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=dest.suffix, dir=dest.parent)
+    os.close(fd)
+    try:
+        _write_calibration(res, tmp)
+        atomic_write_bytes(dest, Path(tmp).read_bytes())
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
+def _write_calibration(res: dict, path: str) -> None:
+    T2 = np.eye(4)
+    T2[:3, :3] = res["R"]
+    T2[:3, 3] = res["T"]
+    c1 = camera_from_arrays(res["K1"], res["D1"], np.eye(4), *res["size1"])
+    c2 = camera_from_arrays(res["K2"], res["D2"], T2, *res["size2"])
+    save_stereo(c1, c2, path)
+    extra = {k: res[k] for k in ("rms_1", "rms_2", "rms_stereo")}
+    if "cal1" in res:  # per-view report (absent in hand-made result dicts)
+        pv = np.asarray(res["per_view_rms_stereo"], np.float64)
+        extra["per_view_rms_stereo"] = np.sqrt(np.mean(pv**2, axis=1)).reshape(1, -1)
+        for i in (1, 2):
+            cal = res[f"cal{i}"]
+            extra[f"per_view_rms_{i}"] = cal.per_view_rms.reshape(1, -1)
+            extra[f"tilt_deg_{i}"] = cal.tilt_deg.reshape(1, -1)
+            extra[f"distance_{i}"] = cal.distance.reshape(1, -1)
+            extra[f"coverage_{i}"] = float(cal.coverage)
+    if "flags" in res:
+        extra["calibrate_flags"] = res["flags"]
+    if path.lower().endswith((".yaml", ".yml", ".xml")):
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_APPEND)
+        for k, v in extra.items():
+            fs.write(k, v)
+        fs.release()
+    else:
+        d = json.loads(Path(path).read_text())
+        d.update({k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in extra.items()})
+        Path(path).write_text(json.dumps(d, indent=2) + "\n")

@@ -11,7 +11,10 @@ import numpy as np
 import pytest
 
 from jaxcr.cli import main
-from jaxcr.cli.calibrate import (
+from jaxcr.cli.calibrate import spacing_from_args
+from jaxcr.errors import InputError
+from jaxcr.io.calibration import load_stereo
+from jaxcr.stereo.calibration import (
     IntrinsicConstraints,
     board_points,
     calibrate_camera,
@@ -20,10 +23,7 @@ from jaxcr.cli.calibrate import (
     find_pattern,
     identifiability_problems,
     initial_camera_matrix,
-    spacing_from_args,
 )
-from jaxcr.errors import InputError
-from jaxcr.io.calibration import load_stereo
 
 SIZE = (320, 240)
 COLS, ROWS, SQUARE = 7, 6, 0.02  # 8 x 7 squares: no 180-degree ambiguity

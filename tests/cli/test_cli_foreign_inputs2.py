@@ -178,7 +178,7 @@ def _rms_stereo(path) -> float:
 def test_calibrate_output_is_written_atomically(tmp_path, monkeypatch, suffix):
     """save_stereo wrote the file, then the RMS values were appended in a second write: an
     interruption between (or in) them left a file that reads as a complete calibration."""
-    from jaxcr.cli import calibrate
+    from jaxcr.io import calibration as calibrate
     from jaxcr.io.calibration import load_stereo
 
     out = tmp_path / "sub" / f"stereo{suffix}"

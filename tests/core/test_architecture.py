@@ -36,6 +36,7 @@ NOT_CORE = {
     "registration/projective.py": "cv2.GaussianBlur of the intensity image (host side)",
     "registration/clouds.py": "cv2 box filters / min-max filters on depth images (host side)",
     "stereo/aruco.py": "OpenCV ArUco marker detection (the base frame)",
+    "stereo/calibration.py": "OpenCV calibrateCamera/stereoCalibrate and target detectors",
     "stereo/base_locate.py": "OpenCV flood fill, Canny and Hough (paper's base detection)",
     "stereo/overlay.py": "drawing on images for the overlays (cv2 drawing primitives)",
     "stereo/pipeline.py": "end-to-end driver of one pair: cv2 morphology/projectPoints/fillPoly",
