@@ -92,7 +92,7 @@ def baseline_video(d: Path, cache: Path) -> dict:
     ds = load_motion_dataset(d)
     bl = run_baseline(ds, BL_THS)
     ev = ds.eval_frame
-    frames = {i: rgb for i, rgb, _ in ds.frames() if i == ev}
+    frames = {i: rgb for i, rgb, _ in ds.frames(indices=[ev])}
     rec = {
         "baseline": np.stack([bl[float(t)] for t in BL_THS]),
         "eval_rgb": np.clip(np.round(frames[ev] * 255), 0, 255).astype(np.uint8),

@@ -195,19 +195,6 @@ def run(args) -> int:
         ("--flow-step", args.flow_step),
     ):
         check_count(step, flag, 0, short, "the frames' shorter side; 0 = auto")
-    # Frames the reader could not use (unreadable, corrupt, wrong size) are failed frames: the
-    # run goes on without them but exits 1 (README exit codes). Pairs the method itself does not
-    # use (first frame, end-effector still or out of view, no valid flow) are not failures.
-    failed: dict[int, str] = {}
-    read_frames = ds.frames
-
-    def frames_noting_failures():
-        for i, rgb, why in read_frames():
-            if rgb is None:
-                failed[int(i)] = why
-            yield i, rgb, why
-
-    ds.frames = frames_noting_failures
     models = MODELS if args.model == "both" else (args.model,)
     cfg = MotionConfig(
         superpixel_step=args.superpixel_step,
@@ -253,6 +240,10 @@ def run(args) -> int:
     finally:
         bar.close()
         log.close()
+    # Frames the reader could not use (unreadable, corrupt, wrong size) are failed frames: the
+    # run went on without them but exits 1 (README exit codes). Pairs the method itself does not
+    # use (first frame, end-effector still or out of view, no valid flow) are not failures.
+    failed = res.failed
     gt = ds.mask(res.eval_frame)
     ths = np.round(np.linspace(0.05, 1.0, 20), 3)
     summary = {

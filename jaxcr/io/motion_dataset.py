@@ -51,10 +51,31 @@ class MotionDataset:
     def __len__(self) -> int:
         return len(self.x)
 
-    def frames(self):
-        """Yield (index, rgb float32 (H, W, 3) or None, reason) for every frame in order."""
+    def frames(self, indices=None):
+        """Yield ``(index, rgb float32 (H, W, 3) in [0, 1] or None, reason)`` for every frame in
+        order, or only for the frames in ``indices`` (an iterable of frame indices, yielded in
+        increasing order): an image folder decodes only those, a video stops after the last
+        one (a video is read sequentially, so earlier frames are still decoded).
+
+        ``rgb`` is None for a frame that cannot be used (unreadable, damaged, wrong size), with
+        the reason; never raises for a bad frame. Raises ``ValueError`` for an index outside
+        ``[0, len(self))``.
+        """
+        wanted = None
+        if indices is not None:
+            wanted = sorted({int(i) for i in indices})
+            bad = [i for i in wanted if not 0 <= i < len(self)]
+            if bad:
+                raise ValueError(f"frame index {bad[0]} outside [0, {len(self)})")
+        yield from self._frames(wanted)
+
+    def _frames(self, wanted: list[int] | None):
+        last = len(self) - 1 if wanted is None else (wanted[-1] if wanted else -1)
+        want = None if wanted is None else set(wanted)
         if self._images is not None:
-            for i, p in enumerate(self._images[: len(self)]):
+            for i, p in enumerate(self._images[: last + 1]):
+                if want is not None and i not in want:
+                    continue
                 size = file_header_size(p)  # a wrong-size file is never decoded
                 if size is not None and size != (self.width, self.height):
                     yield i, None, f"image size {size[0]}x{size[1]} != {self.width}x{self.height}"
@@ -79,15 +100,18 @@ class MotionDataset:
         try:
             vw, vh = reader.width, reader.height
             if vw * vh > MAX_PIXELS:  # declared by the container: no frame is decoded
-                for i in range(len(self)):
-                    yield (
-                        i,
-                        None,
-                        f"video frame size {vw}x{vh} exceeds the {MAX_PIXELS} pixel limit",
-                    )
+                for i in range(last + 1):
+                    if want is None or i in want:
+                        yield (
+                            i,
+                            None,
+                            f"video frame size {vw}x{vh} exceeds the {MAX_PIXELS} pixel limit",
+                        )
                 return
-            for i in range(len(self)):
+            for i in range(last + 1):
                 bgr, why = reader.read()
+                if want is not None and i not in want:
+                    continue
                 if bgr is None:
                     yield i, None, why
                     continue

@@ -30,7 +30,9 @@ class MotionResult:
     ``ee_uv`` (n, 2) h(x) per frame; ``records`` one per frame step; ``window_sums`` and
     ``window_counts`` (models, 2, segments) the per-window running sums (before touch,
     touching) from which any integration can be recomputed
-    (:func:`jaxcr.motion.likelihood.object_probability`)."""
+    (:func:`jaxcr.motion.likelihood.object_probability`); ``failed`` {frame: reason} for the
+    frames the reader could not use (unreadable, damaged, wrong size): the run went on without
+    them."""
 
     eval_frame: int
     maps: dict[str, np.ndarray]
@@ -43,6 +45,7 @@ class MotionResult:
     first_segmentation_ms: float = 0.0
     window_sums: np.ndarray | None = None
     window_counts: np.ndarray | None = None
+    failed: dict[int, str] = field(default_factory=dict)
 
 
 def first_touch(ds: MotionDataset) -> int | None:
@@ -91,15 +94,15 @@ def run_motion(
     tracker = None
     last = None  # index of the last good frame
     labels_eval = None
+    failed: dict[int, str] = {}
     for i, rgb, why in ds.frames():
         if rgb is None:
+            failed[int(i)] = why
             rec = (
                 tracker.skip(i, why, ds.touch[i])
                 if tracker
                 else StepRecord(i, False, why, bool(ds.touch[i]), 0, 0, 0, 0)
             )
-            if tracker is None:
-                pass
             if on_step:
                 on_step(rec)
             continue
@@ -148,6 +151,7 @@ def run_motion(
         tracker.first_segmentation_ms,
         np.asarray(tracker.sums),
         np.asarray(tracker.counts),
+        failed,
     )
 
 
@@ -156,11 +160,9 @@ def touch_frames_u8(ds: MotionDataset, t: int) -> list[np.ndarray] | None:
     if t is None or t < 2:
         return None
     want = {t - 2: None, t - 1: None, t: None}
-    for i, rgb, _ in ds.frames():
-        if i in want and rgb is not None:
+    for i, rgb, _ in ds.frames(indices=want):
+        if rgb is not None:
             want[i] = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
-        if i >= t:
-            break
     if any(v is None for v in want.values()):
         return None
     return [want[t - 2], want[t - 1], want[t]]

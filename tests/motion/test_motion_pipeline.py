@@ -75,6 +75,16 @@ def test_video_input_matches_image_folder(video, tmp_path):
     assert len(fv) == len(fi) == 12 and all(f is not None and f.shape == (96, 128, 3) for f in fv)
     # MJPG is lossy: same frames up to compression noise
     assert np.mean([np.abs(a - b).mean() for a, b in zip(fv, fi, strict=True)]) < 0.03
+    # a subset of frames (what the baseline and the P-R evaluation read) is exactly those
+    # frames of the full pass, in increasing order, from either source (same decoder, same bytes)
+    for ds, full in ((ds_video, fv), (ds_img, fi)):
+        sub = list(ds.frames(indices=[7, 2, 7]))
+        assert [i for i, _, _ in sub] == [2, 7]
+        for i, rgb, why in sub:
+            assert why == "" and np.array_equal(rgb, full[i])
+        assert list(ds.frames(indices=[])) == []
+        with pytest.raises(ValueError, match="frame index 12"):
+            list(ds.frames(indices=[3, 12]))
 
 
 def test_corrupt_frame_no_touch_and_out_of_view_are_reported(video, tmp_path):
@@ -93,6 +103,8 @@ def test_corrupt_frame_no_touch_and_out_of_view_are_reported(video, tmp_path):
     )
     reasons = {r.index: r.reason for r in res.records}
     assert "unreadable" in reasons[5]
+    # the reader's failures are data of the result (the CLI's failed frames), nothing else is
+    assert res.failed == {5: reasons[5]}
     assert reasons[8] == "end-effector out of view" and reasons[9] == "end-effector out of view"
     assert reasons[6] == ""  # tracking resumed from frame 4
     assert any("no frame has touch" in w for w in res.warnings)
