@@ -26,12 +26,9 @@ then polished by the warm path. Warm start (``guess``) and that polish:
 :func:`jaxcr.kinematics.newton.fixed_newton`, ``warm_steps`` plain Newton iterations in a
 ``fori_loop``, with the implicit-function derivative
 (:func:`jaxcr.kinematics.newton.implicit_solution`, tested against finite differences), so
-``forward`` is differentiable in ``q``. Why not Optimistix for the warm path: measured on this
-2-core machine (heavily loaded, 64 warm-started q of TEST_CTR vmapped under jit, dalpha ~0.01 rad,
-median of 3), ``optx.root_find(optx.Newton, max_steps=12)`` took 0.198 s per batch (2.6
-iterations on average, 4 at most: the vmapped while loop runs to the slowest member and the
-Cauchy test needs one extra iteration), the previous hand-written damped Newton while loop
-0.109 s, and 3 fixed Newton iterations 0.050 s, with the same final residual (<= 9e-6 rad).
+``forward`` is differentiable in ``q``. A fixed iteration count rather than
+``optx.root_find``: a vmapped while loop runs to the slowest batch member (the alternatives
+and their timings: docs/decisions.md K1).
 ``FkResult.num_steps`` = LM iterations (``sol.stats["num_steps"]``, summed over the starts) plus
 the Newton iterations taken until the residual was within the solver tolerance. ``ok`` = finite
 outputs, residual within ``tol`` and joint limits; the LM ``sol.result`` is not used for ``ok``

@@ -37,38 +37,12 @@ Usage (notebook)::
 Several cameras: pass tuples ``(cam_a, cam_b)``, ``(img_a, img_b)``, ``(bg_a, bg_b)``; the
 energies are summed and ``masks`` holds one mask per camera.
 
-Defaults (:class:`RefineConfig`) were chosen on seeds 0 and 1 of the four synthetic presets
-(seed 3 is kept untouched for the report; no knowledge of the generator's colours: the
-background mask is the generic grey-metal one of :mod:`jaxcr.segmentation.background`): 4 Chebyshev
-coefficients per bending axis, pyramid levels 2 and 1 (160x120 and 320x240 for a 640x480
-image; the output masks are rasterised at full resolution), BFGS with at most 30 + 30 and 20
-steps, gamma = (1, 1, 10, 4). Measured choices (adjusted IoU, 20 frames per set):
-
-* ``camera_correction`` (on, ``g_cam = 0.3``): a thin tube (3-6 px wide) is missed entirely by
-  a calibration error of a few tenths of a degree or a millimetre, which no curvature change
-  can undo because the base pose is fixed. The *true* centreline projected with the nominal
-  camera reaches only 0.61 (seed-1 endoscopic) and 0.19 (seed-1 orthogonal occluded) on
-  their first three frames. With
-  the correction the orthogonal occluded set went 0.40 -> 0.64; ``g_cam = 0.01`` let the
-  camera slide along the short visible part in endoscopic views (0.55 -> 0.26), 3.0 held it
-  too tightly (0.49 on orthogonal occluded).
-* ``local`` (on): mu_out over the band around the silhouette (Lankton & Tannenbaum) instead
-  of the whole image; with tissue-like backgrounds whose low-saturation parts pass the colour
-  mask, the global mean mixes everything (seed-1 endoscopic 0.31 -> 0.55 in the same run).
-* ``robust`` (off): an occlusion-robust (Welsch) inside term, :func:`jaxcr.segmentation.energy.region_terms`.
-  Measured on four sets (adjusted IoU, default -> robust 1.0 -> robust 2.0): seed-0
-  endoscopic occluded 0.667 -> 0.682 -> 0.660, seed-1 orthogonal occluded 0.635 -> 0.576 ->
-  0.608, seed-1 endoscopic 0.535 -> 0.631 -> 0.591, seed-0 endoscopic 0.791 -> 0.766 ->
-  0.775: a wash on average, so the paper's quadratic term stays the default.
-* the regulariser: with gamma_3 = 3 the shape wanders off (seed-1 endoscopic 0.24), at 30 it
-  cannot follow the model error (0.43).
-
-Optimistix BFGS was used; a least-squares formulation (Gauss-Newton/LM on sqrt-weighted
-residuals) was not measured. Each solve runs in image-motion units (parameters scaled by
-the pixels their unit moves the projected centreline, J scaled so the first steepest-descent
-step moves it ~1 px) and stops on an image-space convergence test (:class:`ImageSpaceBFGS`:
-last step moved the tube < ``xtol`` px and changed J < ``ftol``); the former parameter-space
-test (rtol = atol = 1e-4) never passed, so every frame ran all 80 steps.
+Defaults (:class:`RefineConfig`) were chosen on seeds 0 and 1 of the four synthetic presets,
+seed 3 held out, with no knowledge of the generator's colours. Each solve runs in
+image-motion units (parameters scaled by the pixels their unit moves the projected
+centreline, J scaled so that the first steepest-descent step moves it about 1 px) and stops
+on an image-space convergence test (:class:`ImageSpaceBFGS`). The alternatives tried and the
+measurements behind each default are in ``docs/decisions.md`` (records S1-S11).
 """
 
 from __future__ import annotations
@@ -136,7 +110,8 @@ class RefineConfig(eqx.Module):
             (times ``2**level`` at pyramid level ``level``, :func:`silhouette.level_tube`), so
             that ``k_seg`` candidates span a tile with fewer, longer capsules. The margin cost
             per pixel is proportional to ``k_seg``; the chord error of a merged capsule is
-            ``L**2 / (8 R)`` (0.015 px for 7 px capsules on a bend of radius 400 px).
+            ``L**2 / (8 R)`` for capsules of length L px on a bend of radius R px
+            (docs/decisions.md S10).
         g_in, g_out, g_reg, g_pen: gamma_1..4 of eq. 5 on the normalised terms
             (:mod:`jaxcr.segmentation.energy`).
         xtol: convergence tolerance on the *image motion* of a step: a solve stops when
@@ -147,31 +122,26 @@ class RefineConfig(eqx.Module):
         ftol: convergence tolerance on the change of the normalised objective J of an
             accepted step (J is in units of the tube's area, see :mod:`jaxcr.segmentation.energy`).
         solver: ``"bfgs"`` (:class:`ImageSpaceBFGS`, default) or ``"lbfgs"``
-            (:class:`ImageSpaceLBFGS`); with the scaling of :func:`refine_frame`'s solves
-            both took about as many steps (seed-1 endoscopic, 4 frames at 320x240: 44, 47, 36,
-            59 vs 41, 47, 35, 59), BFGS reached a lower J on 3 of the 4 and the higher IoU
-            on the camera-correction test scene (0.85 vs 0.79).
+            (:class:`ImageSpaceLBFGS`), both with the image-space convergence test
+            (docs/decisions.md S6).
         robust: occlusion-robust inside term, Welsch scale in image colour std
-            (:func:`jaxcr.segmentation.energy.region_terms`); 0 = the paper's quadratic eq. 6.
+            (:func:`jaxcr.segmentation.energy.region_terms`); 0 = the paper's quadratic eq. 6
+            (the default, docs/decisions.md S4).
         data_var: what normalises the data terms during the solves: ``"image"`` (the
             image's colour variance, :mod:`jaxcr.segmentation.energy`) or ``"residual"`` (the
             two-region model's own noise variance at the start of each solve,
-            :func:`jaxcr.segmentation.energy.residual_variance`). Measured (adjusted IoU, orthogonal /
-            orth. occluded / endoscopic / endo. occluded) with ``robust=1.0``: seed 1 (12
-            frames) 0.928/0.877/0.713/0.814 -> 0.935/0.904/0.817/0.876, but held out seed 0
-            0.901/0.891/0.894/0.750 -> 0.875/0.880/0.890/0.722 and seed 3
-            0.931/0.889/0.927/0.723 -> 0.901/0.871/0.921/0.782
-            (``experiments/results/segmentation/energy_variants.md``): not the default.
+            :func:`jaxcr.segmentation.energy.residual_variance`); ``"image"`` by default
+            (docs/decisions.md S7).
         robust_envelope: with ``robust``, the solver's gradient does not flow through the
             robust mean's reweightings (envelope-theorem gradient, cheaper;
-            :func:`jaxcr.segmentation.energy.region_terms`): ms per solver step over the quadratic term
-            +17-24 % instead of +60-75 % (``experiments/segmentation/bench_energy_variants.py``, loaded).
+            :func:`jaxcr.segmentation.energy.region_terms`): the same value with a cheaper
+            gradient (docs/decisions.md S8).
         local: mu_out over the band around the silhouette instead of the whole image
-            (:func:`jaxcr.segmentation.energy.region_terms`).
+            (:func:`jaxcr.segmentation.energy.region_terms`; docs/decisions.md S3).
         camera_correction: also estimate a small per-camera pose correction (rotation about
             the optical centre and translation) so that camera calibration error is not
             absorbed by the shape; regularised by ``g_cam`` (units: 0.01 rad and 1 % of
-            the robot's depth).
+            the robot's depth; docs/decisions.md S2).
         camera_correction_mode: how the correction is shared between several cameras.
             ``"camera"``: an independent 6-DOF correction per camera. ``"rig"``: one shared
             correction E of the robot-to-rig transform, in camera 0's frame (regularised by
@@ -182,20 +152,14 @@ class RefineConfig(eqx.Module):
             camera both modes are the same parameterisation.
         g_cam_rel: weight of the residual per-camera corrections of the ``"rig"`` mode (a
             stereo rig's relative calibration is far better known than its registration to
-            the robot); None = rigid rig (no residual). The synthetic presets draw an
-            independent calibration error per camera, so there a rigid rig missed the thin
-            tube in one view (seed-1 orthogonal occluded adjusted IoU, rigid -> 3 -> 0.3 ->
-            per-camera mode: 0.44 -> 0.53 -> 0.83 -> 0.86); ``experiments/segmentation/table2.py`` uses 0.3.
+            the robot); None = rigid rig (no residual). ``experiments/segmentation/table2.py``
+            uses 0.3 (docs/decisions.md S9).
     """
 
     n_coeffs: int = eqx.field(static=True, default=4)
     torsion: bool = eqx.field(static=True, default=False)
-    # Half resolution then full resolution (chosen on seed 1 of the four presets; seeds 0 and
-    # 3 held out): the thinnest (distal) tube is ~3 px wide at 640x480, under one pixel at
-    # level 2, where the coarse solve let the distal part drift onto tissue or the
-    # instrument's jaws; the old (2, 1) schedule never looked at full resolution. Seed-1
-    # adjusted IoU, (2, 1) -> (1, 0): orthogonal 0.910 -> 0.932, orthogonal occluded
-    # 0.692 -> 0.823, endoscopic 0.556 -> 0.714, endoscopic occluded 0.743 -> 0.811.
+    # half resolution then full resolution: the thinnest tube is ~3 px wide at 640x480, under
+    # one pixel at level 2 (docs/decisions.md S1)
     levels: tuple[int, ...] = eqx.field(static=True, default=(1, 0))
     steps: tuple[int, ...] = eqx.field(static=True, default=(30, 30))
     outer: tuple[int, ...] = eqx.field(static=True, default=(2, 2))
@@ -269,8 +233,7 @@ class RefineConfig(eqx.Module):
         The coarse levels exist to bring a cold start (delta-u = 0) into the basin of the
         fine energy; a warm start from the previous frame's answer is already there, and the
         coarse energy's minimum differs from the fine one by up to a coarse pixel, so a
-        coarse solve from the answer walks away and back (measured: from the converged
-        answer, the (1, 0) schedule spent 24-30 steps at level 1 before 18-20 at level 0).
+        coarse solve from the answer walks away and back (docs/decisions.md S11).
         """
         return dataclasses.replace(
             self,
