@@ -150,13 +150,13 @@ def _cameras(text: str) -> tuple[str, str]:
 def run_train(args) -> int:
     from jaxcr.eigen.colour import fit_colour_model
     from jaxcr.eigen.model import TrainConfig, train
-    from jaxcr.eigen.model_file import save_model
     from jaxcr.eigen.pipeline import (
         check_cameras,
         dataset_contours,
         stereo_histograms,
         view_centres,
     )
+    from jaxcr.io.eigen_model import save_model
 
     cams = _cameras(args.cameras)
     cfg = TrainConfig(
@@ -286,8 +286,8 @@ def _atomic_text(path: Path, text: str) -> None:
 
 def run_query(args) -> int:
     from jaxcr.eigen.model import PARAM_KINDS, estimate
-    from jaxcr.eigen.model_file import load_model
     from jaxcr.eigen.pipeline import check_cameras, dataset_contours, stereo_histograms
+    from jaxcr.io.eigen_model import load_model
 
     model = load_model(args.model)
     cfg = model.config

@@ -42,11 +42,6 @@ NOT_CORE = {
     "stereo/pipeline.py": "end-to-end driver of one pair: cv2 morphology/projectPoints/fillPoly",
     "stereo/base_frame.py": "cv2.undistortPoints/projectPoints for the markerless base (host side)",
     "stereo/single_view.py": "one-camera driver: cv2 projectPoints/morphology (host side)",
-    # a documented exception still to move
-    "eigen/model_file.py": (
-        "the eigen model's .npz format; to move to jaxcr/io/ once jaxcr.eigen stops "
-        "re-exporting load_model/save_model at package level (import cycle io <-> eigen)"
-    ),
 }
 
 FILE_CALLS = {

@@ -116,7 +116,7 @@ def test_cli_train_query_round_trip(data, tmp_path, capsys):
     # The default model stores its fixed histogram centres: the mean region centroid of
     # the training frames per view (reference: the centroids of the generator's marker
     # masks are not the same pixels, so only the image box and stereo disparity are checked).
-    from jaxcr.eigen.model_file import load_model
+    from jaxcr.io.eigen_model import load_model
 
     m = load_model(model)
     assert m.config.centre == "fixed" and m.view_centres.shape == (2, 2)

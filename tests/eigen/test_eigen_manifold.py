@@ -24,8 +24,8 @@ from jaxcr.eigen.manifold import (
     query_batch,
 )
 from jaxcr.eigen.model import TrainConfig, estimate, train
-from jaxcr.eigen.model_file import FORMAT, load_model, save_model
 from jaxcr.errors import InputError
+from jaxcr.io.eigen_model import FORMAT, load_model, save_model
 
 
 @pytest.fixture(scope="module")
