@@ -15,7 +15,7 @@ Cameras and images
     :func:`colour_mask` ((h, w, 3) image in [0, 1] -> background mask (h, w), image).
 Kinematic-prior segmentation (Watson et al.)
     :func:`refine` (one frame), :func:`refine_batch` (F frames), :class:`RefineConfig`,
-    :class:`RefineResult`.
+    :class:`RefineResult` (its ``energy``: :class:`RefineEnergy`).
 Data and runtime
     :func:`load_dataset` (a jaxcr dataset folder), :func:`enable_compile_cache`.
 The other papers, one subpackage each
@@ -55,6 +55,7 @@ _NAMES = {
     "refine_batch": "jaxcr.segmentation.api",
     "RefineConfig": "jaxcr.segmentation.refine",
     "RefineResult": "jaxcr.segmentation.refine",
+    "RefineEnergy": "jaxcr.segmentation.refine",
     "load_dataset": "jaxcr.io.dataset",
     "enable_compile_cache": "jaxcr.io.compile_cache",
     "InputError": "jaxcr.errors",
@@ -67,6 +68,7 @@ __all__ = [
     "Camera",
     "InputError",
     "RefineConfig",
+    "RefineEnergy",
     "RefineResult",
     "TEST_CTR",
     "colour_mask",
@@ -116,4 +118,4 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, imported eagerl
     from jaxcr.kinematics.robots import robot_from_dict
     from jaxcr.segmentation.api import refine, refine_batch
     from jaxcr.segmentation.background import colour_mask
-    from jaxcr.segmentation.refine import RefineConfig, RefineResult
+    from jaxcr.segmentation.refine import RefineConfig, RefineEnergy, RefineResult

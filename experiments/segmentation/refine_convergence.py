@@ -91,7 +91,7 @@ def run_preset(ds_dir: Path, repeats: int, cfg) -> dict:
             "steps": np.asarray(r.num_steps).tolist(),
             "steps_per_level": np.asarray(r.steps_per_level).tolist(),
             "status": np.asarray(r.status).tolist(),
-            "J": np.asarray(r.energy["total"]).tolist(),
+            "J": np.asarray(r.energy.total).tolist(),
             "iou": raw,
             "adj_iou": adj,
             "ms_per_frame": ms,
@@ -106,7 +106,7 @@ def run_preset(ds_dir: Path, repeats: int, cfg) -> dict:
         float(iou(np.asarray(vm.masks[0][k]), np.asarray(cold.masks[0][k]))) for k in range(f)
     ]
     out["vmap"]["abs_dJ_vs_map"] = np.abs(
-        np.asarray(vm.energy["total"]) - np.asarray(cold.energy["total"])
+        np.asarray(vm.energy.total) - np.asarray(cold.energy.total)
     ).tolist()
     out["vmap"]["max_dcoeff_vs_map"] = (
         np.abs(np.asarray(vm.coeffs) - np.asarray(cold.coeffs)).reshape(f, -1).max(1).tolist()

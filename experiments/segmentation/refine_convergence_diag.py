@@ -193,7 +193,7 @@ def main(argv=None):
             jax.block_until_ready(out)
         print(f"=== frame {k}: steps {int(out.num_steps)} per level "
               f"{np.asarray(out.steps_per_level)} status {int(out.status)} "
-              f"J {float(out.energy['total']):.5f} (nominal {float(out.energy['total_nominal']):.5f})")  # fmt: skip
+              f"J {float(out.energy.total):.5f} (nominal {float(out.energy.total_nominal):.5f})")  # fmt: skip
         print_log(LOG, frame=frames[k], cfg=cfg)
     return 0
 

@@ -39,7 +39,24 @@ class FkResult(eqx.Module):
 
 @runtime_checkable
 class RobotModel(Protocol):
-    """Structural protocol every kinematic model satisfies (``kind`` and ``n_points`` static)."""
+    """Structural protocol every kinematic model satisfies (``kind`` and ``n_points`` static).
+
+    An interface, not a base class: the built-in models (:class:`ConcentricTubeRobot`,
+    :class:`ConstantCurvature`, :class:`SingleSegment`) are ``eqx.Module`` pytrees with these
+    members, and so may a user's own model be, without inheriting from jaxcr. The pytree
+    requirement (models are passed through ``jit``/``vmap`` as arguments) is a convention this
+    protocol cannot express; see docs/ARCHITECTURE.md, "Robot model protocol".
+
+    Attributes
+    ----------
+    kind : str
+        Class-level name of the model kind (``"ctr"``, ``"constant_curvature"``,
+        ``"single_segment"``).
+    n_points : int
+        Samples along the backbone (static).
+    n_joints : int
+        Length of the joint vector ``q``.
+    """
 
     kind: ClassVar[str]
     n_points: int

@@ -9,6 +9,7 @@ whose results are discarded), so the whole run compiles once.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 
@@ -317,7 +318,10 @@ class Segmenter:
                 "time_s": per_frame,
                 "compile_s": compile_share,
                 "band_exact": bool(host.band_exact[i]),
-                "energy": {k: float(v[i]) for k, v in host.energy.items()},
+                "energy": {
+                    f.name: float(getattr(host.energy, f.name)[i])
+                    for f in dataclasses.fields(host.energy)
+                },
                 "coeffs": host.coeffs[i].tolist(),
                 "fk": {
                     "ok": bool(fk_ok[i]),

@@ -93,67 +93,100 @@ FAILURES = {
 class RefineConfig(eqx.Module):
     """Settings of the refinement (all static: a new config compiles a new function).
 
-    Attributes:
-        n_coeffs: Chebyshev coefficients per bending axis (:mod:`jaxcr.segmentation.shape`).
-        torsion: also perturb the torsion (third axis); off by default.
-        levels: pyramid levels visited, coarse to fine (0 = full resolution).
-        steps: max BFGS steps per solve at each level.
-        outer: solves per level; the band is re-selected before each solve.
-        tau: soft-silhouette temperature (pixels of that level) per level.
-        band_tiles: tiles in the band at level 0 (halved per level, at least ``min_tiles``).
-        min_tiles: smallest band (tiles) at coarse levels.
-        tile: tile size in pixels.
-        k_seg: candidate segments per band tile during the solves (of the merged tube, see
-            ``seg_merge``); the output masks use ``seg_merge * k_seg`` candidates of the
-            unmerged tube.
-        seg_merge: consecutive centreline segments merged into one capsule while solving
-            (times ``2**level`` at pyramid level ``level``, :func:`silhouette.level_tube`), so
-            that ``k_seg`` candidates span a tile with fewer, longer capsules. The margin cost
-            per pixel is proportional to ``k_seg``; the chord error of a merged capsule is
-            ``L**2 / (8 R)`` for capsules of length L px on a bend of radius R px
-            (docs/decisions.md S10).
-        g_in, g_out, g_reg, g_pen: gamma_1..4 of eq. 5 on the normalised terms
-            (:mod:`jaxcr.segmentation.energy`).
-        xtol: convergence tolerance on the *image motion* of a step: a solve stops when
-            its last accepted step moved every projected centreline point by less than
-            ``xtol`` pixels of the current pyramid level (and changed J by less than
-            ``ftol``), or when the line search cannot lower J with a step that small
-            (see :class:`ImageSpaceBFGS`).
-        ftol: convergence tolerance on the change of the normalised objective J of an
-            accepted step (J is in units of the tube's area, see :mod:`jaxcr.segmentation.energy`).
-        solver: ``"bfgs"`` (:class:`ImageSpaceBFGS`, default) or ``"lbfgs"``
-            (:class:`ImageSpaceLBFGS`), both with the image-space convergence test
-            (docs/decisions.md S6).
-        robust: occlusion-robust inside term, Welsch scale in image colour std
-            (:func:`jaxcr.segmentation.energy.region_terms`); 0 = the paper's quadratic eq. 6
-            (the default, docs/decisions.md S4).
-        data_var: what normalises the data terms during the solves: ``"image"`` (the
-            image's colour variance, :mod:`jaxcr.segmentation.energy`) or ``"residual"`` (the
-            two-region model's own noise variance at the start of each solve,
-            :func:`jaxcr.segmentation.energy.residual_variance`); ``"image"`` by default
-            (docs/decisions.md S7).
-        robust_envelope: with ``robust``, the solver's gradient does not flow through the
-            robust mean's reweightings (envelope-theorem gradient, cheaper;
-            :func:`jaxcr.segmentation.energy.region_terms`): the same value with a cheaper
-            gradient (docs/decisions.md S8).
-        local: mu_out over the band around the silhouette instead of the whole image
-            (:func:`jaxcr.segmentation.energy.region_terms`; docs/decisions.md S3).
-        camera_correction: also estimate a small per-camera pose correction (rotation about
-            the optical centre and translation) so that camera calibration error is not
-            absorbed by the shape; regularised by ``g_cam`` (units: 0.01 rad and 1 % of
-            the robot's depth; docs/decisions.md S2).
-        camera_correction_mode: how the correction is shared between several cameras.
-            ``"camera"``: an independent 6-DOF correction per camera. ``"rig"``: one shared
-            correction E of the robot-to-rig transform, in camera 0's frame (regularised by
-            ``g_cam``), so that camera i's corrected pose is ``T_i' = (T_i T_0^-1) E T_0``: the
-            cameras keep their calibrated relative pose and their disparity measures depth,
-            plus, if ``g_cam_rel`` is not None, a residual correction of each camera i >= 1 in
-            its own frame (regularised by ``g_cam_rel``, same units as ``g_cam``). With one
-            camera both modes are the same parameterisation.
-        g_cam_rel: weight of the residual per-camera corrections of the ``"rig"`` mode (a
-            stereo rig's relative calibration is far better known than its registration to
-            the robot); None = rigid rig (no residual). ``experiments/segmentation/table2.py``
-            uses 0.3 (docs/decisions.md S9).
+    Parameters
+    ----------
+    n_coeffs : int
+        Chebyshev coefficients per bending axis (:mod:`jaxcr.segmentation.shape`).
+    torsion : bool
+        also perturb the torsion (third axis); off by default.
+    levels : tuple[int, ...]
+        pyramid levels visited, coarse to fine (0 = full resolution).
+    steps : tuple[int, ...]
+        max BFGS steps per solve at each level.
+    outer : tuple[int, ...]
+        solves per level; the band is re-selected before each solve.
+    tau : tuple[float, ...]
+        soft-silhouette temperature (pixels of that level) per level.
+    band_tiles : int
+        tiles in the band at level 0 (halved per level, at least ``min_tiles``).
+    min_tiles : int
+        smallest band (tiles) at coarse levels.
+    tile : int
+        tile size in pixels.
+    k_seg : int
+        candidate segments per band tile during the solves (of the merged tube, see
+        ``seg_merge``); the output masks use ``seg_merge * k_seg`` candidates of the
+        unmerged tube.
+    seg_merge : int
+        consecutive centreline segments merged into one capsule while solving
+        (times ``2**level`` at pyramid level ``level``, :func:`silhouette.level_tube`), so
+        that ``k_seg`` candidates span a tile with fewer, longer capsules. The margin cost
+        per pixel is proportional to ``k_seg``; the chord error of a merged capsule is
+        ``L**2 / (8 R)`` for capsules of length L px on a bend of radius R px
+        (docs/decisions.md S10).
+    g_in, g_out, g_reg, g_pen : float
+        gamma_1..4 of eq. 5 on the normalised terms
+        (:mod:`jaxcr.segmentation.energy`).
+    xtol : float
+        convergence tolerance on the *image motion* of a step: a solve stops when
+        its last accepted step moved every projected centreline point by less than
+        ``xtol`` pixels of the current pyramid level (and changed J by less than
+        ``ftol``), or when the line search cannot lower J with a step that small
+        (see :class:`ImageSpaceBFGS`).
+    ftol : float
+        convergence tolerance on the change of the normalised objective J of an
+        accepted step (J is in units of the tube's area, see :mod:`jaxcr.segmentation.energy`).
+    solver : str
+        ``"bfgs"`` (:class:`ImageSpaceBFGS`, default) or ``"lbfgs"``
+        (:class:`ImageSpaceLBFGS`), both with the image-space convergence test
+        (docs/decisions.md S6).
+    robust : float
+        occlusion-robust inside term, Welsch scale in image colour std
+        (:func:`jaxcr.segmentation.energy.region_terms`); 0 = the paper's quadratic eq. 6
+        (the default, docs/decisions.md S4).
+    data_var : str
+        what normalises the data terms during the solves: ``"image"`` (the
+        image's colour variance, :mod:`jaxcr.segmentation.energy`) or ``"residual"`` (the
+        two-region model's own noise variance at the start of each solve,
+        :func:`jaxcr.segmentation.energy.residual_variance`); ``"image"`` by default
+        (docs/decisions.md S7).
+    robust_envelope : bool
+        with ``robust``, the solver's gradient does not flow through the
+        robust mean's reweightings (envelope-theorem gradient, cheaper;
+        :func:`jaxcr.segmentation.energy.region_terms`): the same value with a cheaper
+        gradient (docs/decisions.md S8).
+    local : bool
+        mu_out over the band around the silhouette instead of the whole image
+        (:func:`jaxcr.segmentation.energy.region_terms`; docs/decisions.md S3).
+    camera_correction : bool
+        also estimate a small per-camera pose correction (rotation about
+        the optical centre and translation) so that camera calibration error is not
+        absorbed by the shape; regularised by ``g_cam`` (units: 0.01 rad and 1 % of
+        the robot's depth; docs/decisions.md S2).
+    camera_correction_mode : str
+        how the correction is shared between several cameras.
+        ``"camera"``: an independent 6-DOF correction per camera. ``"rig"``: one shared
+        correction E of the robot-to-rig transform, in camera 0's frame (regularised by
+        ``g_cam``), so that camera i's corrected pose is ``T_i' = (T_i T_0^-1) E T_0``: the
+        cameras keep their calibrated relative pose and their disparity measures depth,
+        plus, if ``g_cam_rel`` is not None, a residual correction of each camera i >= 1 in
+        its own frame (regularised by ``g_cam_rel``, same units as ``g_cam``). With one
+        camera both modes are the same parameterisation.
+    g_cam_rel : float | None
+        weight of the residual per-camera corrections of the ``"rig"`` mode (a
+        stereo rig's relative calibration is far better known than its registration to
+        the robot); None = rigid rig (no residual). ``experiments/segmentation/table2.py``
+        uses 0.3 (docs/decisions.md S9).
+
+    Examples
+    --------
+    >>> import jaxcr as jcr
+    >>> cfg = jcr.RefineConfig(levels=(0,), steps=(20,), outer=(1,), tau=(0.5,))
+    >>> cfg.levels, cfg.camera_correction
+    ((0,), True)
+    >>> jcr.RefineConfig(levels=(2, 1, 0))  # steps, outer and tau need one entry per level
+    Traceback (most recent call last):
+    jaxcr.errors.InputError: ...
     """
 
     n_coeffs: int = eqx.field(static=True, default=4)
@@ -247,30 +280,93 @@ class RefineConfig(eqx.Module):
 DEFAULT_CONFIG = RefineConfig()
 
 
+class RefineEnergy(eqx.Module):
+    """Final terms of Watson et al. eq. 5 for one frame, summed over cameras (arrays with a
+    leading frame axis from the batch functions).
+
+    Attributes
+    ----------
+    e_in, e_out : float scalar array
+        inside and outside region terms (eq. 6), full-resolution pixel units,
+        hard mask.
+    e_reg : float scalar array
+        regularisation of delta-u (:func:`jaxcr.segmentation.shape.regularisation`).
+    e_pen : float scalar array
+        penalty term, full-resolution pixel units.
+    total : float scalar array
+        the normalised objective J at the refined shape (what the solver minimised).
+    total_nominal : float scalar array
+        J at delta-u = 0 (the nominal shape); ``total <= total_nominal`` when
+        the solve improved on the kinematic model.
+
+    Examples
+    --------
+    A refinement compiles for minutes, so this example is not run by the doctests;
+    ``examples/refine_frame.py`` runs the same steps in the test suite.
+
+    >>> res = jcr.refine(fk.centreline, camera, image, background)  # doctest: +SKIP
+    >>> bool(res.energy.total <= res.energy.total_nominal)  # doctest: +SKIP
+    True
+    """
+
+    e_in: Float[Array, ""]
+    e_out: Float[Array, ""]
+    e_reg: Float[Array, ""]
+    e_pen: Float[Array, ""]
+    total: Float[Array, ""]
+    total_nominal: Float[Array, ""]
+
+
 class RefineResult(eqx.Module):
     """Output of one frame (or, from the batch functions, arrays with a leading frame axis).
 
-    Attributes:
-        masks: per camera, (h, w) bool full projection of the refined tube (the whole robot,
-            occluded parts included, as in Watson et al.).
-        nominal_masks: per camera, the projection with delta-u = 0.
-        centreline: refined :class:`Centreline` (robot frame, metres).
-        coeffs: (a, k) delta-u coefficients (:mod:`jaxcr.segmentation.shape`).
-        delta_u: (N-1, 3) per-step curvature change (1/m).
-        energy: dict of final eq. 5 terms ``e_in, e_out, e_reg, e_pen`` (full-resolution
-            pixel units, hard mask), ``total`` (normalised objective J) and ``total_nominal``
-            (J at delta-u = 0), all summed over cameras.
-        status: Optimistix RESULTS as int of the last solve (0 = successful).
-        num_steps: total solver steps over all levels.
-        steps_per_level: (n_levels,) solver steps per pyramid level.
-        ok: frame usable: no failure and finite output.
-        failure: code from :data:`FAILURES` (0 = none).
-        band_exact: the final masks are exact rasterisations (band reached every boundary tile).
-        camera_correction: (n_cameras, 6) estimated camera pose correction: rotation vector
-            (rad, about the optical centre) and translation (m), camera frame; zeros unless
-            ``config.camera_correction``. Masks use the corrected cameras. In the ``"rig"``
-            mode each row is that camera's effective correction ``T_i' T_i^-1``.
-        time_s: wall time per frame in seconds (set by the Python entry points; 0 inside jit).
+    Attributes
+    ----------
+    masks : tuple[bool array (h, w), ...]
+        per camera, (h, w) bool full projection of the refined tube (the whole robot,
+        occluded parts included, as in Watson et al.).
+    nominal_masks : tuple[bool array (h, w), ...]
+        per camera, the projection with delta-u = 0.
+    centreline : Centreline
+        refined :class:`Centreline` (robot frame, metres).
+    coeffs : float array (a, k)
+        (a, k) delta-u coefficients (:mod:`jaxcr.segmentation.shape`).
+    delta_u : float array (m, 3)
+        (N-1, 3) per-step curvature change (1/m).
+    energy : RefineEnergy
+        :class:`RefineEnergy`, the final eq. 5 terms ``e_in, e_out, e_reg, e_pen``
+        (full-resolution pixel units, hard mask), ``total`` (normalised objective J) and
+        ``total_nominal`` (J at delta-u = 0), all summed over cameras.
+    status : int scalar array
+        Optimistix RESULTS as int of the last solve (0 = successful).
+    num_steps : int scalar array
+        total solver steps over all levels.
+    steps_per_level : int array (l,)
+        (n_levels,) solver steps per pyramid level.
+    ok : bool scalar array
+        frame usable: no failure and finite output.
+    failure : int scalar array
+        code from :data:`FAILURES` (0 = none).
+    band_exact : bool scalar array
+        the final masks are exact rasterisations (band reached every boundary tile).
+    camera_correction : float array (c, 6)
+        (n_cameras, 6) estimated camera pose correction: rotation vector
+        (rad, about the optical centre) and translation (m), camera frame; zeros unless
+        ``config.camera_correction``. Masks use the corrected cameras. In the ``"rig"``
+        mode each row is that camera's effective correction ``T_i' T_i^-1``.
+    time_s : float scalar array
+        wall time per frame in seconds (set by the Python entry points; 0 inside jit).
+
+    Examples
+    --------
+    A refinement compiles for minutes, so this example is not run by the doctests;
+    ``examples/refine_frame.py`` runs the same steps in the test suite.
+
+    >>> res = jcr.refine(fk.centreline, camera, image, background)  # doctest: +SKIP
+    >>> res.masks[0].shape == image.shape[:2], res.centreline.p.shape  # doctest: +SKIP
+    (True, (64, 3))
+    >>> bool(res.ok), jcr.segmentation.refine.FAILURES[int(res.failure)]  # doctest: +SKIP
+    (True, 'ok')
     """
 
     masks: tuple[Bool[Array, "h w"], ...]
@@ -278,7 +374,7 @@ class RefineResult(eqx.Module):
     centreline: Centreline
     coeffs: Float[Array, "a k"]
     delta_u: Float[Array, "m 3"]
-    energy: dict[str, Float[Array, ""]]
+    energy: RefineEnergy
     status: Int[Array, ""]
     num_steps: Int[Array, ""]
     steps_per_level: Int[Array, " l"]
@@ -724,14 +820,14 @@ def refine_frame(
         jnp.where(~in_view, 2, jnp.where(~data_ok, 3, jnp.where(~finite_out, 4, 0))),
     ).astype(jnp.int32)
     ok = failure == 0
-    energy = {
-        "e_in": e["e_in"],
-        "e_out": e["e_out"],
-        "e_reg": e["e_reg"],
-        "e_pen": e["e_pen"],
-        "total": e["J"],
-        "total_nominal": e_nom["J"],
-    }
+    energy = RefineEnergy(
+        e_in=e["e_in"],
+        e_out=e["e_out"],
+        e_reg=e["e_reg"],
+        e_pen=e["e_pen"],
+        total=e["J"],
+        total_nominal=e_nom["J"],
+    )
     if config.camera_correction and rig:
         # effective per-camera correction T_i' T_i^-1
         cams_c = cameras_of(params)

@@ -37,6 +37,26 @@ def test_steps_per_piece_and_grid():
     np.testing.assert_allclose(np.diff(np.asarray(s))[4:8], 0.075, rtol=1e-5)
 
 
+@pytest.mark.parametrize("kind", ["constant_curvature", "single_segment", "ctr"])
+def test_every_builtin_model_is_a_pytree_satisfying_the_protocol(kind):
+    """docs/ARCHITECTURE.md: RobotModel is a Protocol, and every built-in model is an
+    eqx.Module satisfying it with static structural ints (a change of n_points changes the
+    pytree structure, so jit retraces; the leaves are arrays only, never Python numbers that
+    would be traced or hashed)."""
+    import equinox as eqx
+    import jax
+
+    from jaxcr.kinematics.ctr import TEST_CTR
+
+    d = {"constant_curvature": CC, "single_segment": SS, "ctr": TEST_CTR}[kind]
+    model = robot_from_dict(d)
+    assert isinstance(model, eqx.Module) and isinstance(model, RobotModel)
+    assert model.kind == kind and isinstance(model.n_joints, int)
+    other = robot_from_dict({**d, "n_points": model.n_points + 2})
+    assert jax.tree.structure(other) != jax.tree.structure(model)
+    assert all(isinstance(x, jax.Array | np.ndarray) for x in jax.tree.leaves(model))
+
+
 @pytest.mark.parametrize("d", [CC, SS])
 def test_round_trip(d):
     model = robot_from_dict(d)

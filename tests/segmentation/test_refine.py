@@ -140,7 +140,7 @@ def test_recovers_known_delta_u(scene, per_frame):
         u1, v1, _ = project_xy(cam, r.centreline.p)
         u2, v2, _ = project_xy(cam, f["truth"].p)
         assert float(jnp.mean(jnp.hypot(u1 - u2, v1 - v2))) < 1.5
-        assert float(r.energy["total"]) < float(r.energy["total_nominal"])
+        assert float(r.energy.total) < float(r.energy.total_nominal)
         assert int(r.num_steps) == int(jnp.sum(r.steps_per_level)) > 0
 
 
@@ -159,7 +159,7 @@ def test_batch_map_equals_per_frame(per_frame, batch_map):
         np.testing.assert_array_equal(np.asarray(batch_map.masks[0][k]), np.asarray(r.masks[0]))
         np.testing.assert_allclose(np.asarray(batch_map.coeffs[k]), np.asarray(r.coeffs), atol=1e-6)
         np.testing.assert_allclose(
-            float(batch_map.energy["total"][k]), float(r.energy["total"]), rtol=1e-6
+            float(batch_map.energy.total[k]), float(r.energy.total), rtol=1e-6
         )
         assert bool(batch_map.ok[k])
 

@@ -88,7 +88,7 @@ def test_stops_on_its_criterion_before_max_steps(scene, cold):
         assert int(r.status) == int(optx.RESULTS.successful._value)
         assert int(r.num_steps) < 0.8 * MAX_STEPS, np.asarray(r.steps_per_level)
         assert float(iou(r.masks[0], f["mask"])) > 0.85
-        assert float(r.energy["total"]) < float(r.energy["total_nominal"])
+        assert float(r.energy.total) < float(r.energy.total_nominal)
 
 
 @pytest.fixture(scope="module")

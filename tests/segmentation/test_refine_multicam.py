@@ -216,7 +216,7 @@ def test_warm_start_from_the_result(scene, rig_result, run):
         rig_result.camera_correction,
     )
     assert bool(r2.ok)
-    assert float(r2.energy["total"]) <= float(rig_result.energy["total"]) + 0.02
+    assert float(r2.energy.total) <= float(rig_result.energy.total) + 0.02
     assert float(tip_error(r2.centreline.p, rig_result.centreline.p)) < 2e-3
 
 
