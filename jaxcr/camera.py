@@ -56,12 +56,27 @@ def _float_dtype():
 class Camera(eqx.Module):
     """A calibrated camera (one view).
 
-    Attributes:
-        K: (3, 3) intrinsic matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels.
-        dist: (5,) OpenCV distortion ``(k1, k2, p1, p2, k3)`` (dimensionless).
-        T_cam_robot: (4, 4) rigid transform mapping robot-frame points (metres) to the camera
-            frame (OpenCV axes: x right, y down, z forward).
-        width, height: image size in pixels (static).
+    Parameters
+    ----------
+    K : float array (3, 3)
+        (3, 3) intrinsic matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels.
+    dist : float array (5,)
+        (5,) OpenCV distortion ``(k1, k2, p1, p2, k3)`` (dimensionless).
+    T_cam_robot : float array (4, 4)
+        (4, 4) rigid transform mapping robot-frame points (metres) to the camera
+        frame (OpenCV axes: x right, y down, z forward).
+    width, height : int
+        image size in pixels (static).
+
+    Examples
+    --------
+    >>> import jax.numpy as jnp
+    >>> import jaxcr as jcr
+    >>> K = jnp.array([[100.0, 0.0, 79.5], [0.0, 100.0, 59.5], [0.0, 0.0, 1.0]])
+    >>> T = jnp.eye(4).at[2, 3].set(0.5)  # the robot frame 0.5 m in front of the camera
+    >>> cam = jcr.Camera(K=K, dist=jnp.zeros(5), T_cam_robot=T, width=160, height=120)
+    >>> cam.width, cam.height
+    (160, 120)
     """
 
     K: Float[Array, "3 3"]
@@ -230,6 +245,37 @@ def project_points(
 
     Pinhole + OpenCV radial/tangential distortion (Watson et al. eqs. 3-4); agrees with
     ``cv2.projectPoints``. See the module docstring for conventions and clamping.
+
+    Parameters
+    ----------
+    camera : Camera
+        the view (intrinsics, distortion, robot-to-camera transform, image size).
+    points_robot : float array (n, 3)
+        points in the robot frame, metres.
+    near : float
+        points with camera-frame depth ``Z <= near`` (metres) are behind the camera:
+        invalid, projected as if at ``near``.
+
+    Returns
+    -------
+    uv : float array (n, 2)
+        pixel coordinates ``(u, v)`` (pixel centres at integers), clamped to a few image
+        sizes around the image.
+    valid : bool array (n,)
+        in front of the camera, inside the distortion model's monotone range and inside
+        the image.
+
+    Examples
+    --------
+    >>> import jax.numpy as jnp
+    >>> import jaxcr as jcr
+    >>> K = jnp.array([[100.0, 0.0, 79.5], [0.0, 100.0, 59.5], [0.0, 0.0, 1.0]])
+    >>> cam = jcr.Camera(K=K, dist=jnp.zeros(5), T_cam_robot=jnp.eye(4).at[2, 3].set(0.5),
+    ...                  width=160, height=120)
+    >>> uv, valid = jcr.project_points(cam, jnp.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]))
+    >>> import numpy as np
+    >>> np.asarray(uv, np.float64).round(3).tolist(), valid.tolist()  # u = fx X / Z + cx
+    ([[79.5, 59.5], [89.5, 59.5]], [True, True])
     """
     u, v, valid = project_xy(camera, points_robot, near)
     return jnp.stack([u, v], axis=-1), valid

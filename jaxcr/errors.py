@@ -6,11 +6,25 @@ from __future__ import annotations
 class InputError(Exception):
     """Bad user input. The CLI prints ``str(err)`` as one line and exits with code 2.
 
-    Args:
-        message: what is wrong, in plain words.
-        file: the offending file (path as the user gave it), if any.
-        frame: frame id within a dataset, if any.
-        field: the field name (e.g. ``"q"``, ``"cameras.left.K"``), if any.
+    Parameters
+    ----------
+    message : str
+        what is wrong, in plain words.
+    file : str or None
+        the offending file (path as the user gave it), if any.
+    frame : str, int or None
+        frame id within a dataset, if any.
+    field : str or None
+        the field name (e.g. ``"q"``, ``"cameras.left.K"``), if any.
+
+    Examples
+    --------
+    >>> from jaxcr import InputError
+    >>> err = InputError("must be finite", file="run/dataset.json", frame="000003", field="q")
+    >>> err.field
+    'q'
+    >>> len(str(err).splitlines())  # one line, for the CLI
+    1
     """
 
     def __init__(

@@ -119,9 +119,32 @@ def enable_compile_cache(*, path: str | os.PathLike | bool | None = None) -> str
     """Turn on JAX's persistent compilation cache; returns the folder, or None when it is off
     (switched off, or the folder is not writable: then one warning on stderr).
 
-    ``path``: the folder (None: ``JAXCR_CACHE_DIR`` or the per-user default; False: off).
     Call it before the first compilation of the process; later calls with the same folder do
-    nothing. Raises :class:`~jaxcr.errors.InputError` for a bad ``JAXCR_COMPILE_CACHE``.
+    nothing.
+
+    Parameters
+    ----------
+    path : str, os.PathLike, bool or None
+        the cache folder; None: ``JAXCR_CACHE_DIR`` or the per-user default
+        (``$XDG_CACHE_HOME/jaxcr/jax`` or ``~/.cache/jaxcr/jax``); False: off.
+
+    Returns
+    -------
+    str or None
+        the absolute folder in use, or None when the cache is off.
+
+    Raises
+    ------
+    InputError
+        for a bad ``JAXCR_COMPILE_CACHE`` value.
+
+    Examples
+    --------
+    >>> import jaxcr as jcr
+    >>> jcr.enable_compile_cache(path=False) is None  # off (e.g. in a benchmark)
+    True
+    >>> jcr.enable_compile_cache()  # doctest: +SKIP
+    '/home/me/.cache/jaxcr/jax'
     """
     global _enabled
     folder = resolve_cache_dir(path)

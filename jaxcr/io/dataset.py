@@ -733,6 +733,29 @@ def load_dataset(
     Dataset-level problems raise :class:`InputErrors`. Frame-level problems put the frame in
     ``bad_frames`` (id -> "; "-joined messages), or raise with ``strict=True``. Images are not
     decoded here (only PNG/JPEG headers are read for the size check) unless ``decode_images``.
+    The format is docs/dataset-format.md (``jaxcr.dataset/1``).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        the dataset folder or its dataset.json.
+    strict : bool
+        raise for frame-level problems too, instead of listing them in ``bad_frames``.
+    decode_images : bool
+        decode every image while checking (slow; catches corrupt image data).
+
+    Returns
+    -------
+    Dataset
+        ``name``, ``robot`` (a model), ``cameras`` ({name: Camera}), ``frames`` (the good
+        frames: ``id``, ``q``, ``tags``, image/mask paths, loaders), ``bad_frames``.
+
+    Examples
+    --------
+    >>> import jaxcr as jcr
+    >>> ds = jcr.load_dataset("my_dataset")  # e.g. written by `jaxcr synth`  # doctest: +SKIP
+    >>> [f.id for f in ds.frames][:2], list(ds.cameras)  # doctest: +SKIP
+    (['000000', '000001'], ['main'])
     """
     s = _scan(path, decode_images)
     if s.errors or (strict and s.frame_errors):

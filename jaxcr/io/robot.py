@@ -18,7 +18,28 @@ def load_robot(path: str | os.PathLike) -> RobotModel:
     """Load a robot from a robot.json, a dataset.json, or a dataset folder.
 
     A dataset's ``robot`` entry is either the description itself or a path (relative to the
-    dataset folder) of a robot.json.
+    dataset folder) of a robot.json. The description format is docs/dataset-format.md.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        a robot.json, a dataset.json or a dataset folder.
+
+    Returns
+    -------
+    RobotModel
+        the model (:func:`jaxcr.robot_from_dict` of the description).
+
+    Examples
+    --------
+    >>> import json, os, tempfile
+    >>> import jaxcr as jcr
+    >>> path = os.path.join(tempfile.mkdtemp(), "robot.json")
+    >>> with open(path, "w") as fh:
+    ...     json.dump({"kind": "single_segment", "length": 0.04, "radius": 0.002}, fh)
+    >>> robot = jcr.load_robot(path)
+    >>> robot.kind, robot.n_joints
+    ('single_segment', 2)
     """
     path = os.fspath(path)
     if os.path.isdir(path):

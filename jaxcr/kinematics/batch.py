@@ -132,16 +132,38 @@ def failure_reasons(model, q: np.ndarray, out: dict) -> dict[int, str]:
 class BatchFk(eqx.Module):
     """Forward kinematics of B joint vectors (numpy arrays; robot frame, metres, radians).
 
-    Attributes:
-        s: (B, N) arc length of each centreline sample.
-        p: (B, N, 3) centreline positions.
-        R: (B, N, 3, 3) backbone frames (columns: the frame's axes in the robot frame).
-        rho: (B, N) tube radius at each sample.
-        ok: (B,) whether the row converged to a valid configuration.
-        residual, energy: (B,) solver residual and elastic energy (0 for closed-form models).
-        num_steps: (B,) solver iterations.
-        tip_rotvec: (B, 3) rotation vector of the tip frame.
-        reasons: B strings, ``""`` where ``ok``, else why the row failed.
+    Attributes
+    ----------
+    s : np.ndarray
+        (B, N) arc length of each centreline sample.
+    p : np.ndarray
+        (B, N, 3) centreline positions.
+    R : np.ndarray
+        (B, N, 3, 3) backbone frames (columns: the frame's axes in the robot frame).
+    rho : np.ndarray
+        (B, N) tube radius at each sample.
+    ok : np.ndarray
+        (B,) whether the row converged to a valid configuration.
+    residual, energy : np.ndarray
+        (B,) solver residual and elastic energy (0 for closed-form models).
+    num_steps : np.ndarray
+        (B,) solver iterations.
+    tip_rotvec : np.ndarray
+        (B, 3) rotation vector of the tip frame.
+    reasons : tuple[str, ...]
+        B strings, ``""`` where ``ok``, else why the row failed.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import jaxcr as jcr
+    >>> robot = jcr.robot_from_dict({"kind": "single_segment", "length": 0.04, "radius": 0.002})
+    >>> q = np.tile([np.pi / 2, 0.0], (2, 1))  # theta_L = pi/2: straight (Reiter et al.)
+    >>> fk = jcr.forward(robot, q)
+    >>> isinstance(fk, jcr.BatchFk), fk.s.shape == (2, robot.n_points)
+    (True, True)
+    >>> round(float(fk.p[0, -1, 2]), 6)  # the straight rod's tip at z = length
+    0.04
     """
 
     s: np.ndarray
@@ -159,16 +181,34 @@ class BatchFk(eqx.Module):
 def forward(model, q, *, chunk: int = CHUNK, progress: bool = False) -> BatchFk:
     """Forward kinematics of every row of ``q`` (B, n_joints), with failure reasons.
 
-    Parameters:
-        model: a robot model (:func:`jaxcr.robot_from_dict`).
-        q: (B, n_joints) joint values (a single (n_joints,) vector is treated as B = 1);
-            ``nan`` rows are reported as failed, not raised.
-        chunk: rows per compiled batch (one compile per model and chunk size).
-        progress: show a progress bar for more than one chunk.
+    Parameters
+    ----------
+    model : RobotModel
+        a robot model (:func:`jaxcr.robot_from_dict`).
+    q : array_like, shape (B, n_joints) or (n_joints,)
+        (B, n_joints) joint values (a single (n_joints,) vector is treated as B = 1);
+        ``nan`` rows are reported as failed, not raised.
+    chunk : int
+        rows per compiled batch (one compile per model and chunk size).
+    progress : bool
+        show a progress bar for more than one chunk.
 
-    Returns:
-        :class:`BatchFk`; for one configuration inside ``jax.jit``/``jax.vmap`` use
-        ``model.forward(q)`` directly.
+    Returns
+    -------
+    BatchFk
+        numpy arrays with a leading axis B and a failure reason per row; for one
+        configuration inside ``jax.jit``/``jax.vmap`` use ``model.forward(q)`` directly.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import jaxcr as jcr
+    >>> robot = jcr.robot_from_dict({"kind": "single_segment", "length": 0.04, "radius": 0.002})
+    >>> fk = jcr.forward(robot, np.array([[0.0, 0.0], [np.nan, 0.0]]))
+    >>> fk.p.shape == (2, robot.n_points, 3), fk.ok.tolist()
+    (True, [True, False])
+    >>> fk.reasons
+    ('', 'non-finite joint values')
     """
     q = np.atleast_2d(np.asarray(q, np.float64))
     out = batch_forward(model, q, chunk=chunk, progress=progress)

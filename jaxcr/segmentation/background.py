@@ -74,7 +74,32 @@ def colour_mask(
 ) -> tuple[Bool[Array, "h w"], Float[Array, "h w 3"]]:
     """Colour mask: pixels whose HSV colour lies in none of the robot ``ranges`` are background.
 
-    Returns ``(B, I')``.
+    Parameters
+    ----------
+    image : float array (h, w, 3)
+        RGB in [0, 1].
+    ranges : tuple[HSVRange, ...]
+        HSV boxes of robot colours (hue in degrees, saturation and value in [0, 1]); the
+        default :data:`ROBOT_HSV` takes greys, metals and whites (saturation <= 0.3) that are
+        not near-black.
+
+    Returns
+    -------
+    background : bool array (h, w)
+        B: True where the pixel is background (in no range).
+    image : float array (h, w, 3)
+        I' = I o M with M = not B: the image with the background set to 0 (Watson et al.).
+
+    Examples
+    --------
+    >>> import jax.numpy as jnp
+    >>> import jaxcr as jcr
+    >>> rgb = jnp.array([[[0.6, 0.6, 0.6], [0.1, 0.7, 0.2]]])  # grey (robot), green
+    >>> background, masked = jcr.colour_mask(rgb)
+    >>> background.tolist()
+    [[False, True]]
+    >>> masked[0, 1].tolist()
+    [0.0, 0.0, 0.0]
     """
     hsv = rgb_to_hsv(image)
     h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
