@@ -3,7 +3,9 @@ exposes ``add_parser(subparsers)`` (registering its arguments and ``set_defaults
 and ``run(args) -> int``.
 
 Exit codes: 0 success, 1 a run that failed (e.g. some frames failed), 2 bad usage or input
-(including an output that cannot be written, e.g. a read-only folder), 130 interrupted.
+(including an output that cannot be written, e.g. a read-only folder), 130 interrupted
+(SIGINT, Ctrl-C), 143 terminated (SIGTERM, e.g. ``kill``, a job scheduler or a container
+stop).
 
 Interruption (Ctrl-C, SIGINT): the handler installed by :func:`main` releases the output
 folder's lock (:mod:`jaxcr.io.outdir`), prints one line and ends the process at once with
@@ -14,6 +16,10 @@ XLA's and OpenCV's native threads still run, which crashed with SIGSEGV (exit 13
 once is as safe as ``kill -9``, which every command survives: outputs are written atomically
 (temporary name + rename) and per-item logs line by line, so ``--resume`` (or a rerun)
 continues; the temporary files a killed run leaves are deleted when OUT is next claimed.
+
+Termination (SIGTERM) is handled the same way, with the line ``jaxcr CMD: terminated`` and
+exit 143 (128 + 15, what a shell reports for a process SIGTERM ended): the lock is released,
+so the next run neither waits for nor reports a stale lock, and resumes like after Ctrl-C.
 """
 
 from __future__ import annotations
@@ -125,22 +131,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _on_sigint(state: dict):
-    """The SIGINT handler of :func:`main`; ``state`` holds the command name (known once the
-    arguments are parsed) and the number of locks held before this run."""
+#: exit code and message per handled signal (see the module docstring)
+_SIGNALS = {signal.SIGINT: (130, "interrupted"), signal.SIGTERM: (143, "terminated")}
+
+
+def _on_signal(state: dict):
+    """The SIGINT/SIGTERM handler of :func:`main`; ``state`` holds the command name (known once
+    the arguments are parsed) and the number of locks held before this run."""
 
     def handler(signum, frame):
         from jaxcr.io import outdir
 
         outdir.release_all(state["lock_base"])
+        code, what = _SIGNALS.get(signum, (130, "interrupted"))
         name = f"jaxcr {state['command']}" if state["command"] else "jaxcr"
         # os.write, not print: the handler may run in the middle of a write to sys.stderr
-        msg = f"\n{name}: interrupted\n" if _tty(2) else f"{name}: interrupted\n"
+        msg = f"\n{name}: {what}\n" if _tty(2) else f"{name}: {what}\n"
         try:
             os.write(2, msg.encode())
         except OSError:
             pass
-        os._exit(130)  # see the module docstring: no unwinding, no interpreter finalisation
+        os._exit(code)  # see the module docstring: no unwinding, no interpreter finalisation
 
     return handler
 
@@ -177,9 +188,10 @@ def main(argv: list[str] | None = None) -> int:
     # installed first: importing the commands (JAX, OpenCV) takes seconds, and a Ctrl-C then
     # must end the process too
     state = {"command": None, "lock_base": len(outdir.held())}
-    old_handler = None
+    old_handlers = {}
     if threading.current_thread() is threading.main_thread():
-        old_handler = signal.signal(signal.SIGINT, _on_sigint(state))
+        handler = _on_signal(state)
+        old_handlers = {sig: signal.signal(sig, handler) for sig in _SIGNALS}
     try:
         with warnings.catch_warnings():
             _quiet_warnings(state)
@@ -192,8 +204,8 @@ def main(argv: list[str] | None = None) -> int:
             return _run(args)
     finally:
         outdir.release_all(state["lock_base"])
-        if old_handler is not None:
-            signal.signal(signal.SIGINT, old_handler)
+        for sig, old in old_handlers.items():
+            signal.signal(sig, old)
 
 
 def _run(args) -> int:

@@ -8,7 +8,9 @@ optimised projection, with the adjusted IoU (predicted pixels inside occluded re
 Sec. III-B) after "|" where occlusion masks exist; tip and mean centreline errors (mm) of the
 nominal and refined shapes; median solver steps and time per frame; failed frame counts.
 
-Writes ``table2.md``, ``table2.csv`` (long format), ``per_frame.csv`` and ``iou.png``
+Writes ``table2.md``, ``table2.csv`` (long format), ``per_frame.csv`` and ``iou.png`` into
+OUT (one run) or REPORT_DIR; a REPORT_DIR other than an OUT must be new, empty or an earlier
+evaluate report, and is locked while the command runs (:mod:`jaxcr.io.outdir`)
 (the evaluation itself is :mod:`jaxcr.segmentation.evaluate`; this module parses arguments,
 prints and sets the exit code).
 Exit code 1 when the report counts failed frames (failed in the segment run, or outputs
@@ -51,16 +53,30 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def _same_folder(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve()
+    except OSError:
+        return False
+
+
 def run(args) -> int:
     outs = [Path(o) for o in args.outs]
     for o in outs:
         if not o.exists():
             raise InputError("output folder not found", file=str(o))
+    report_dir = Path(args.out) if args.out else (outs[0] if len(outs) == 1 else
+                                                  Path("jaxcr-report"))  # fmt: skip
+    if not any(_same_folder(report_dir, o) for o in outs):
+        # a report folder of its own (-o, or ./jaxcr-report): new, empty or an earlier
+        # evaluate report, never a user's or another command's folder; locked until exit.
+        # (The default for one run is that run's own folder, which segment owns.)
+        from jaxcr.io import outdir
+
+        outdir.claim(report_dir, "evaluate", recognise=lambda o: (o / "table2.md").exists())
     rows, infos = evaluate_outputs(outs)
     if not rows:
         raise InputError("no results to evaluate (empty results.jsonl)", file=str(outs[0]))
-    report_dir = Path(args.out) if args.out else (outs[0] if len(outs) == 1 else
-                                                  Path("jaxcr-report"))  # fmt: skip
     incomplete = [o for o in outs if not R.output_is_complete(o)]
     table = write_report(rows, infos, report_dir, args.title, plot=not args.no_plot,
                          incomplete=incomplete)  # fmt: skip

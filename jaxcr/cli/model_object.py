@@ -30,13 +30,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
 from jaxcr.cli._common import seed as _seed
+from jaxcr.io import results as R
 
 
 def add_parser(subparsers) -> None:
@@ -144,7 +144,7 @@ def run(args) -> int:
     except RegistrationFailed as e:
         bar.close()
         print(f"jaxcr model-object: registration failed: {e}")
-        (out / "report.md").write_text(f"# model-object\n\nregistration failed: {e}\n")
+        R.atomic_write_text(out / "report.md", f"# model-object\n\nregistration failed: {e}\n")
         return 1
     # the callback is per view: the loop closure and global optimisation that follow the last
     # view are reported once they are done
@@ -179,10 +179,9 @@ def write_outputs(out: Path, sim, result, ev: dict) -> None:
             c = partial_model(r.captures, chain(r.pairs[: len(r.captures) - 1]), 0.002)
             write_ply(out / f"partial_{r.name}.ply", c.points, c.colours, c.normals)
     clean = json.loads(json.dumps(ev, default=_jsonable))
-    tmp = out / "report.json.tmp"
-    tmp.write_text(json.dumps(clean, indent=1))
-    os.replace(tmp, out / "report.json")
-    (out / "report.md").write_text(report_markdown(sim, ev))
+    # each file appears complete or not at all (temporary name, fsync, rename); report.md last
+    R.atomic_write_text(out / "report.json", json.dumps(clean, indent=1))
+    R.atomic_write_text(out / "report.md", report_markdown(sim, ev))
 
 
 POSES_FORMAT = "jaxcr.model_poses/1"
@@ -227,9 +226,7 @@ def write_poses(out: Path, sim, result, ev: dict) -> None:
     }
     last = result.ring[-1]
     doc["anchor"] = {"run": result.runs[last[0]].name, "index": last[1]}  # the view of frame O
-    tmp = out / "poses.json.tmp"
-    tmp.write_text(json.dumps(doc, indent=1))
-    os.replace(tmp, out / "poses.json")
+    R.atomic_write_text(out / "poses.json", json.dumps(doc, indent=1))
 
     def f(x, fmt):
         return "" if x is None else format(x, fmt)
@@ -241,9 +238,7 @@ def write_poses(out: Path, sim, result, ev: dict) -> None:
             f"{f(v['rot_err_before_deg'], '.5f')},{f(v['trans_err_before_mm'], '.4f')},"
             f"{f(v['rot_err_deg'], '.5f')},{f(v['trans_err_mm'], '.4f')}"
         )
-    tmp = out / "poses.csv.tmp"
-    tmp.write_text("\n".join(rows) + "\n")
-    os.replace(tmp, out / "poses.csv")
+    R.atomic_write_text(out / "poses.csv", "\n".join(rows) + "\n")
 
 
 def _jsonable(x):
@@ -341,6 +336,18 @@ def report_markdown(sim, ev: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _save_figure(fig, path: Path, dpi: int) -> None:
+    """PNG written atomically (rendered in memory, then temporary name + rename)."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    R.atomic_write_bytes(path, buf.getvalue())
+
+
 def plot_plan(path: Path, sim, result) -> None:
     import matplotlib
 
@@ -379,8 +386,7 @@ def plot_plan(path: Path, sim, result) -> None:
     ax.set_title("arm motion from above (dashed: planned arcs)")
     ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save_figure(fig, path, dpi=120)
 
 
 def plot_fig13(path: Path, ev: dict) -> None:
@@ -416,5 +422,4 @@ def plot_fig13(path: Path, ev: dict) -> None:
         a.set_ylabel("points")
         a.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save_figure(fig, path, dpi=110)
