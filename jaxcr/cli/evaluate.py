@@ -169,11 +169,16 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
     layout = R.OutputLayout(out)
     if not out.is_dir():
         raise InputError("not a segment output folder", file=str(out))
-    if not layout.run.exists():
+    from jaxcr.scale import shards as S
+
+    # a --shard run keeps run.json and results.jsonl in OUT/shards/I-of-N: merge them all
+    runs = [layout.run] + [d / R.RUN_FILE for _, d in S.shard_dirs(out)]
+    runs = [p for p in runs if p.exists()]
+    if not runs:
         raise InputError("no run.json: not a jaxcr segment output folder", file=str(out))
-    run_info = R.read_run(layout.run)
+    run_info = R.read_run(runs[0])
     try:
-        records = R.read_results(layout.results)
+        records = S.read_all_records(out)
     except ValueError as err:
         raise InputError(str(err)) from None
     ds_path = Path(run_info["dataset"])
@@ -191,7 +196,7 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
 
     rows = []
     eval_failed: dict[str, str] = {}
-    record_lines = _record_lines(layout.results)
+    record_lines = _record_lines(layout.results)  # line numbers for OUT's own results.jsonl
     # reading masks of long runs takes a while: a bar on a terminal, plain lines in a log
     for rec in progress(records, desc=f"evaluate {out.name}", unit="frame", leave=False):
         fid = str(rec["frame"])
@@ -425,14 +430,23 @@ def run(args) -> int:
         raise InputError("no results to evaluate (empty results.jsonl)", file=str(outs[0]))
     report_dir = Path(args.out) if args.out else (outs[0] if len(outs) == 1 else
                                                   Path("jaxcr-report"))  # fmt: skip
-    incomplete = [o for o in outs if not R.output_is_complete(o)]
+    from jaxcr.scale import shards as S
+
+    incomplete = [o for o in outs if not (R.output_is_complete(o) or S.sharded_complete(o))]
     table = write_report(rows, infos, report_dir, args.title, plot=not args.no_plot,
                          incomplete=incomplete)  # fmt: skip
     missing = {
         str(o): info.get("evaluate_missing") or [] for o, info in zip(outs, infos, strict=True)
     }
     for o in incomplete:
-        print(f"jaxcr evaluate: warning: {o} is incomplete (no DONE marker)", file=sys.stderr)
+        unfinished = S.missing_shards(o)
+        if unfinished:
+            names = ", ".join(str(x) for x in unfinished[:8])
+            more = f" (and {len(unfinished) - 8} more)" if len(unfinished) > 8 else ""
+            print(f"jaxcr evaluate: warning: {o} is incomplete: shard(s) {names}{more} not "
+                  "finished (no DONE marker)", file=sys.stderr)  # fmt: skip
+        else:
+            print(f"jaxcr evaluate: warning: {o} is incomplete (no DONE marker)", file=sys.stderr)
     from rich.console import Console
 
     Console().print(rep.table2_rich(table))
@@ -446,9 +460,11 @@ def run(args) -> int:
         ids = missing[str(o)]
         if ids:
             done = "no DONE marker" if o in incomplete else "DONE marker present"
+            shown = ", ".join(ids[:10]) + (f" (and {len(ids) - 10} more)" if len(ids) > 10 else "")
             print(f"jaxcr evaluate: {o}: {len(ids)} of {info['evaluate_expected']} frame(s) "
-                  f"missing (no record in results.jsonl; {done}), first {ids[0]}; "
-                  "continue the run with jaxcr segment --resume", file=sys.stderr)  # fmt: skip
+                  f"missing (no record in results.jsonl or its shards; {done}): {shown}; "
+                  "continue the run with jaxcr segment --resume (or the missing --shard)",
+                  file=sys.stderr)  # fmt: skip
             code = 1
     if failed:
         n_eval = sum(1 for r in failed if str(r.get("reason") or "").startswith("evaluate: "))
