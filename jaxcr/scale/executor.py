@@ -336,5 +336,8 @@ def _run_ray(spec, parts, config, emit, stats: RunStats, failed_record) -> RunSt
         "worker_processes": len(pids),
         "chunks_lost": lost,
         "wall_s": time.perf_counter() - t_start,
+        # seconds the actors spent inside process() (the rest of wall x workers is start-up,
+        # Ray's scheduling and transfer, and idle actors)
+        "task_wall_s": sum(task_wall),
     }
     return stats
