@@ -439,6 +439,9 @@ def run(args) -> int:
                                    args.background, progress=True)  # fmt: skip
         print(f"wrote {path / 'stereo.json'}")
         return 0
+    from jaxcr.scale.shards import SHARDS_DIR, claim_shard, parse_shard
+
+    shard = parse_shard(args.shard)  # bad --shard: one line, before reading anything
     ds = load_stereo_dataset(args.dataset)
     ds["config"].segmentation = args.segmentation
     if args.tolerance is not None:
@@ -462,10 +465,6 @@ def run(args) -> int:
         raise InputError(
             f"--segmentation {args.segmentation} needs background_plates in stereo.json"
         )
-    from jaxcr.scale.shards import SHARDS_DIR, claim_shard, parse_shard
-
-    shard = parse_shard(args.shard)
-
     def recognise(o):
         return (o / "run.json").exists() or (o / SHARDS_DIR).is_dir()
 

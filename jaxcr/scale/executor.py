@@ -253,11 +253,10 @@ def ray_init(address: str | None, workers: int | None) -> None:
 
 
 def _cause(err: BaseException) -> BaseException:
-    """The user-level exception inside a Ray task error."""
-    try:
-        return err.as_instanceof_cause()  # RayTaskError
-    except AttributeError:
-        return err
+    """The user-level exception inside a Ray task error (the original object, so an
+    :class:`InputError` prints its one line, not Ray's traceback)."""
+    cause = getattr(err, "cause", None)
+    return cause if isinstance(cause, BaseException) else err
 
 
 def _run_ray(spec, parts, config, emit, stats: RunStats, failed_record) -> RunStats:
