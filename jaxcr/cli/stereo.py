@@ -131,9 +131,11 @@ def add_parser(subparsers) -> None:
                    help="synth: image size WxH (at least 64x48, height >= 9/16 width)")  # fmt: skip
     p.add_argument("--background", choices=["green", "blue"], default="green",
                    help="synth: chroma cloth colour")  # fmt: skip
+    from jaxcr.scale.executor import add_executor_arguments
     from jaxcr.scale.shards import add_shard_argument
 
     add_shard_argument(p)
+    add_executor_arguments(p, "1 frame")
     add_plate_arguments(p, "--segmentation trace")
     p.set_defaults(func=run)
 
@@ -321,17 +323,89 @@ def _same_run(path: Path, info: dict) -> None:
             )
 
 
+class StereoWorker:
+    """Reconstructs frames of a loaded dataset into ``out`` (files written atomically) and
+    returns their records: the worker of :func:`jaxcr.scale.executor.run_frames`."""
+
+    def __init__(self, dataset: dict, out: str | os.PathLike, overlays: bool = True):
+        self.dataset, self.out, self.overlays = dataset, Path(out), overlays
+        self.frames = {str(fr["id"]): fr for fr in dataset["frames"]}
+        self.compile_s = self.run_s = 0.0
+
+    def failed_record(self, fid: str, reason: str) -> dict:
+        return {"format": RESULTS_FORMAT, "id": fid, "ok": False, "reason": "worker",
+                "message": reason}  # fmt: skip
+
+    def process(self, frame_ids: list[str]) -> list[dict]:
+        import time
+
+        t0 = time.perf_counter()
+        recs = [self._frame(self.frames[fid]) for fid in frame_ids]
+        self.run_s += time.perf_counter() - t0
+        return recs
+
+    def _frame(self, fr: dict) -> dict:
+        from jaxcr.stereo.pipeline import StereoFailure, reconstruct_pair
+        from jaxcr.stereo.single_view import reconstruct_view
+
+        dataset, out, overlays = self.dataset, self.out, self.overlays
+        names = dataset["names"]
+        cams = (dataset["cam1"], dataset["cam2"])[: len(names)]
+        fid = str(fr["id"])
+        rec: dict = {"format": RESULTS_FORMAT, "id": fid}
+        try:
+            images = [
+                _read_rgb(dataset["root"] / fr["images"][n], fid, field=f"images.{n}")
+                for n in names
+            ]
+            plates = dataset["plates"]
+            if len(names) == 2:
+                r = reconstruct_pair(
+                    images[0], images[1], cams[0], cams[1], dataset["config"], plates
+                )
+            else:
+                r = reconstruct_view(
+                    images[0], cams[0], config=dataset["config"],
+                    plate=plates[0] if plates else None,
+                )  # fmt: skip
+            _write_frame(out, fid, r, names)
+            if overlays:
+                _write_overlays(out, fid, names, images, cams, r)
+            rec["ok"] = True
+            rec["views"] = {n: v for n, v in zip(names, r["views_px"], strict=True)}
+            if "p" in r:
+                rec.update(base_mode=r["base_mode"], marker_rms_px=r["marker_rms_px"],
+                           n_markers=list(r["n_markers"]),
+                           entry_residual_px=r["entry_residual_px"],
+                           n_segments=len(r["segments"]),
+                           single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]))  # fmt: skip
+            rec["timings"] = r["timings"]
+        except StereoFailure as err:
+            rec.update(ok=False, reason=err.reason, message=str(err))
+        except InputError as err:
+            rec.update(ok=False, reason="image", message=str(err))
+        return rec
+
+
+def build_stereo_worker(dataset: str, config, out: str, overlays: bool) -> StereoWorker:
+    """A :class:`StereoWorker` from picklable arguments (a Ray worker loads the dataset)."""
+    ds = load_stereo_dataset(dataset)
+    ds["config"] = config
+    return StereoWorker(ds, out, overlays)
+
+
 def run_batch(
     dataset: dict, out: str | os.PathLike, overlays: bool = True, progress: bool = True,
-    shard=None,
+    shard=None, executor=None,
 ) -> list[dict]:  # fmt: skip
     """Reconstruct every frame of a loaded dataset into ``out`` (see module docstring);
     returns the log records of all frames (including ones done by an earlier run).
     ``shard`` (:class:`jaxcr.scale.shards.Shard`): only its block of frames, its log, run.json
-    and tables in ``out/shards/I-of-N`` (frames recorded by other shards are skipped)."""
+    and tables in ``out/shards/I-of-N`` (frames recorded by other shards are skipped).
+    ``executor``: :class:`jaxcr.scale.executor.ExecutorConfig` (default local; ``ray``: the
+    frames as tasks, one per ``--chunk`` frames, default 1)."""
     from jaxcr.io import results as R
     from jaxcr.scale.shards import read_all_records, shard_dir
-    from jaxcr.stereo.pipeline import StereoFailure, reconstruct_pair
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -352,52 +426,25 @@ def run_batch(
         or not (out / "frames" / f"{fr['id']}.json").exists()
         and done[str(fr["id"])].get("ok")
     ]
-    it = todo
+    from jaxcr.scale.executor import ExecutorConfig, WorkerSpec, run_frames
+
+    executor = executor or ExecutorConfig()
+    worker = StereoWorker(dataset, out, overlays)
+    spec = WorkerSpec(build_stereo_worker, (str(dataset["root"]), dataset["config"], str(out),
+                                            overlays))  # fmt: skip
+    bar = None
     if progress and todo:
         from jaxcr.progress import progress as progress_bar
 
-        it = progress_bar(todo, desc="stereo", unit="pair")
-    from jaxcr.stereo.single_view import reconstruct_view
-
-    names = dataset["names"]
-    cams = (dataset["cam1"], dataset["cam2"])[: len(names)]
+        bar = progress_bar(total=len(todo), desc="stereo", unit="pair")
     with R.ResultsLog(log_path) as log:  # cuts a line left half-written by a killed run
-        for fr in it:
-            fid = str(fr["id"])
-            rec: dict = {"format": RESULTS_FORMAT, "id": fid}
-            try:
-                images = [
-                    _read_rgb(dataset["root"] / fr["images"][n], fid, field=f"images.{n}")
-                    for n in names
-                ]
-                plates = dataset["plates"]
-                if len(names) == 2:
-                    r = reconstruct_pair(
-                        images[0], images[1], cams[0], cams[1], dataset["config"], plates
-                    )
-                else:
-                    r = reconstruct_view(
-                        images[0], cams[0], config=dataset["config"],
-                        plate=plates[0] if plates else None,
-                    )  # fmt: skip
-                _write_frame(out, fid, r, names)
-                if overlays:
-                    _write_overlays(out, fid, names, images, cams, r)
-                rec["ok"] = True
-                rec["views"] = {n: v for n, v in zip(names, r["views_px"], strict=True)}
-                if "p" in r:
-                    rec.update(base_mode=r["base_mode"], marker_rms_px=r["marker_rms_px"],
-                               n_markers=list(r["n_markers"]),
-                               entry_residual_px=r["entry_residual_px"],
-                               n_segments=len(r["segments"]),
-                               single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]))  # fmt: skip
-                rec["timings"] = r["timings"]
-            except StereoFailure as err:
-                rec.update(ok=False, reason=err.reason, message=str(err))
-            except InputError as err:
-                rec.update(ok=False, reason="image", message=str(err))
-            log.append(rec)
-            done[fid] = rec
+        stats = run_frames(spec, [str(fr["id"]) for fr in todo], log, executor, chunk=1,
+                           key="id", local_worker=worker,
+                           on_record=None if bar is None else lambda r: bar.update(1))  # fmt: skip
+    if bar is not None:
+        bar.close()
+    for rec in stats.records:
+        done[str(rec["id"])] = rec
     write_tables(out, [str(fr["id"]) for fr in frames], log_dir)
     return [done[str(fr["id"])] for fr in frames]
 
@@ -439,9 +486,11 @@ def run(args) -> int:
                                    args.background, progress=True)  # fmt: skip
         print(f"wrote {path / 'stereo.json'}")
         return 0
+    from jaxcr.scale.executor import executor_config
     from jaxcr.scale.shards import SHARDS_DIR, claim_shard, parse_shard
 
     shard = parse_shard(args.shard)  # bad --shard: one line, before reading anything
+    executor = executor_config(args)
     ds = load_stereo_dataset(args.dataset)
     ds["config"].segmentation = args.segmentation
     if args.tolerance is not None:
@@ -472,7 +521,8 @@ def run(args) -> int:
         _claim(args.out, "stereo", recognise=recognise)
     else:
         claim_shard(args.out, "stereo", shard, recognise=recognise)
-    recs = run_batch(ds, args.out, overlays=not args.no_overlays, shard=shard)
+    recs = run_batch(ds, args.out, overlays=not args.no_overlays, shard=shard,
+                     executor=executor)  # fmt: skip
     n_ok = sum(r["ok"] for r in recs)
     print(f"{n_ok}/{len(recs)} frames reconstructed; results in {args.out}"
           + (f" (failed frames listed below and in {Path(args.out) / 'results.jsonl'})"

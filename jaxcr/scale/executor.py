@@ -264,8 +264,10 @@ def _run_ray(spec, parts, config, emit, stats: RunStats, failed_record) -> RunSt
     from ray.exceptions import ActorDiedError, ActorUnavailableError, RayActorError, RayTaskError
 
     ray_init(config.address, config.workers)
-    n_workers = config.workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
-    n_workers = max(1, min(n_workers, len(parts)))
+    # one CPU per actor; more actors than the cluster's CPUs would wait forever (the others
+    # never give theirs back), so --workers is capped at the cluster's CPUs
+    cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+    n_workers = max(1, min(config.workers or cpus, cpus, len(parts)))
     Actor = _actor_class()
     t_start = time.perf_counter()
     actors = [Actor.options(num_cpus=1).remote(spec) for _ in range(n_workers)]
