@@ -77,7 +77,9 @@ def run(args) -> int:
     rows, infos = evaluate_outputs(outs)
     if not rows:
         raise InputError("no results to evaluate (empty results.jsonl)", file=str(outs[0]))
-    incomplete = [o for o in outs if not R.output_is_complete(o)]
+    from jaxcr.scale import shards as S
+
+    incomplete = [o for o in outs if not (R.output_is_complete(o) or S.sharded_complete(o))]
     table = write_report(rows, infos, report_dir, args.title, plot=not args.no_plot,
                          incomplete=incomplete)  # fmt: skip
     for o, info in zip(outs, infos, strict=True):
@@ -91,7 +93,14 @@ def run(args) -> int:
         str(o): info.get("evaluate_missing") or [] for o, info in zip(outs, infos, strict=True)
     }
     for o in incomplete:
-        print(f"jaxcr evaluate: warning: {o} is incomplete (no DONE marker)", file=sys.stderr)
+        unfinished = S.missing_shards(o)
+        if unfinished:
+            names = ", ".join(str(x) for x in unfinished[:8])
+            more = f" (and {len(unfinished) - 8} more)" if len(unfinished) > 8 else ""
+            print(f"jaxcr evaluate: warning: {o} is incomplete: shard(s) {names}{more} not "
+                  "finished (no DONE marker)", file=sys.stderr)  # fmt: skip
+        else:
+            print(f"jaxcr evaluate: warning: {o} is incomplete (no DONE marker)", file=sys.stderr)
     from rich.console import Console
 
     Console().print(rep.table2_rich(table))
@@ -105,9 +114,11 @@ def run(args) -> int:
         ids = missing[str(o)]
         if ids:
             done = "no DONE marker" if o in incomplete else "DONE marker present"
+            shown = ", ".join(ids[:10]) + (f" (and {len(ids) - 10} more)" if len(ids) > 10 else "")
             print(f"jaxcr evaluate: {o}: {len(ids)} of {info['evaluate_expected']} frame(s) "
-                  f"missing (no record in results.jsonl; {done}), first {ids[0]}; "
-                  "continue the run with jaxcr segment --resume", file=sys.stderr)  # fmt: skip
+                  f"missing (no record in results.jsonl or its shards; {done}): {shown}; "
+                  "continue the run with jaxcr segment --resume (or the missing --shard)",
+                  file=sys.stderr)  # fmt: skip
             code = 1
     if failed:
         n_eval = sum(1 for r in failed if str(r.get("reason") or "").startswith("evaluate: "))

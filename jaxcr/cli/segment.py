@@ -171,6 +171,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="random seed (recorded; the refinement itself is deterministic)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from jaxcr.scale.executor import add_executor_arguments
+    from jaxcr.scale.shards import add_shard_argument
+
+    add_shard_argument(p)
+    add_executor_arguments(p, "--batch-size frames")
     add_plate_arguments(p, "--background plate")
     p.set_defaults(func=run)
     return p
@@ -424,59 +429,98 @@ def select_cameras(ds, names: list[str] | None) -> list[str]:
 PRODUCTS = ("masks", "nominal", "background", "overlays", "centrelines", "centrelines_nominal")
 
 
-def prepare_output(out: Path, resume: bool, overwrite: bool, run_info: dict) -> list[dict]:
-    """Check/prepare OUT; return the records already there (for ``--resume``)."""
+def prepare_output(
+    out: Path, resume: bool, overwrite: bool, run_info: dict, shard=None
+) -> list[dict]:
+    """Check/prepare OUT (``shard``: a :class:`jaxcr.scale.shards.Shard`, whose bookkeeping
+    goes to ``OUT/shards/I-of-N``); return the records already there that this run skips (its
+    own with ``--resume``, and always those of other shards / an unsharded run)."""
     from jaxcr.io import outdir
+    from jaxcr.scale import shards as S
 
-    layout = R.OutputLayout(out)
+    log_dir = None if shard is None else S.shard_dir(out, shard)
+    layout = R.OutputLayout(out, log_dir=log_dir)
     if resume and overwrite:
         raise InputError("--resume and --overwrite exclude each other")
     # Never write into (or --overwrite) a folder that holds something else, e.g. the dataset
     # itself: its masks/<cam>/<id>.png ground truth would be replaced by our predictions; and
     # never beside another process writing the same OUT (the lock, held until exit).
-    lock = outdir.claim(out, "segment", recognise=lambda o: (o / R.RUN_FILE).exists())
+    def recognise(o):
+        return (o / R.RUN_FILE).exists() or (o / S.SHARDS_DIR).is_dir()
+
+    if shard is None:
+        lock = outdir.claim(out, "segment", recognise=recognise)
+    else:
+        lock = S.claim_shard(out, "segment", shard, recognise=recognise)
     try:
-        return _prepare_claimed(out, layout, resume, overwrite, run_info)
+        return _prepare_claimed(out, layout, resume, overwrite, run_info, shard)
     except BaseException:
         outdir.release(lock)  # refused: the folder is free again (library callers)
         raise
 
 
-def _prepare_claimed(out, layout, resume, overwrite, run_info) -> list[dict]:
+_SAME_JOB_KEYS = ("dataset", "cameras", "background", "robot_hsv", "plate", "config")
+
+
+def _check_same_job(path: Path, run_info: dict, what: str) -> None:
+    """Refuse to continue (or add a shard to) the run of ``path`` (a run.json) with other
+    options."""
+    prev = R.read_run(path)
+    for key in _SAME_JOB_KEYS:
+        a, b = R.to_jsonable(prev.get(key)), R.to_jsonable(run_info.get(key))
+        if a != b:
+            if isinstance(a, dict) and isinstance(b, dict):  # name only what differs
+                diff = sorted(k for k in set(a) | set(b) if a.get(k, "?") != b.get(k, "?"))
+                change = ", ".join(
+                    f"{k}: {a.get(k, '(absent)')!r} -> {b.get(k, '(absent)')!r}" for k in diff
+                )
+            else:
+                change = f"{a!r} -> {b!r}"
+            raise InputError(
+                f"cannot {what}: '{key}' differs from the run in this folder ({change}); "
+                "use the same options (or --overwrite, or a new -o)",
+                file=str(path),
+            )
+
+
+def _prepare_claimed(out, layout, resume, overwrite, run_info, shard=None) -> list[dict]:
+    from jaxcr.scale import shards as S
+
     has_results = layout.results.exists() and layout.results.stat().st_size > 0
     if has_results and not (resume or overwrite):
         raise InputError(
             "output folder already has results; use --resume to continue or --overwrite",
-            file=str(out),
+            file=str(out if shard is None else layout.log_root),
         )
     if overwrite and out.exists():
-        for name in PRODUCTS:
-            shutil.rmtree(out / name, ignore_errors=True)
+        if shard is None:  # the whole run: every shard's bookkeeping too (none runs: locked)
+            for name in (*PRODUCTS, S.SHARDS_DIR):
+                shutil.rmtree(out / name, ignore_errors=True)
         for f in (layout.results, layout.summary, layout.done, layout.run):
             f.unlink(missing_ok=True)
+    # the run.json of every other part of this job (OUT's own, other shards'): same options
+    others = [out / R.RUN_FILE] + [d / R.RUN_FILE for _, d in S.shard_dirs(out)]
+    for path in others:
+        if path.exists() and path != layout.run:
+            _check_same_job(path, run_info, "add to the runs in this folder")
     records: list[dict] = []
     if resume and layout.run.exists():
-        prev = R.read_run(layout.run)
-        for key in ("dataset", "cameras", "background", "robot_hsv", "plate", "config"):
-            a, b = R.to_jsonable(prev.get(key)), R.to_jsonable(run_info.get(key))
-            if a != b:
-                if isinstance(a, dict) and isinstance(b, dict):  # name only what differs
-                    diff = sorted(k for k in set(a) | set(b) if a.get(k, "?") != b.get(k, "?"))
-                    what = ", ".join(
-                        f"{k}: {a.get(k, '(absent)')!r} -> {b.get(k, '(absent)')!r}" for k in diff
-                    )
-                else:
-                    what = f"{a!r} -> {b!r}"
-                raise InputError(
-                    f"cannot resume: '{key}' differs from the interrupted run ({what}); "
-                    "use the same options (or --overwrite, or a new -o)",
-                    file=str(layout.run),
-                )
+        _check_same_job(layout.run, run_info, "resume")
         try:
             records = R.read_results(layout.results)
         except ValueError as err:
             raise InputError(str(err)) from None
+    # frames recorded by the other parts of the job are done (a shard never redoes another
+    # shard's frame; an unsharded --resume after shards finishes only what is missing)
+    try:
+        own = {str(r["frame"]) for r in records}
+        for f in S.results_files(out):
+            if f != layout.results:
+                records += [r for r in R.read_results(f) if str(r["frame"]) not in own]
+    except ValueError as err:
+        raise InputError(str(err)) from None
     out.mkdir(parents=True, exist_ok=True)
+    layout.log_root.mkdir(parents=True, exist_ok=True)
     layout.done.unlink(missing_ok=True)
     layout.summary.unlink(missing_ok=True)
     if not (resume and layout.run.exists()):
@@ -536,6 +580,15 @@ def run(args) -> int:
     if given and args.background != "plate":
         raise InputError(f"{given[0]} needs --background plate", field=given[0][2:])
     plate_cfg = plate_config(args) if args.background == "plate" else None
+    from jaxcr.scale.executor import WorkerSpec, executor_config
+    from jaxcr.scale.shards import parse_shard, shard_dir
+
+    shard = parse_shard(args.shard)
+    executor = executor_config(args)
+    if executor.kind == "ray" and args.warm_start:
+        raise InputError("--warm-start needs the frames as one sequence in one process: use "
+                         "--executor local (shards each start their sequence cold)",
+                         field="warm-start")  # fmt: skip
     out = Path(args.out)
     run_info = {
         "format": R.RUN_FORMAT,
@@ -550,39 +603,45 @@ def run(args) -> int:
         "batch_size": args.batch_size,
         "seed": args.seed,
         "config": config_dict(cfg),
+        "shard": None if shard is None else str(shard),
         "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "command": " ".join(sys.argv),
         "versions": versions(),
     }
-    previous = prepare_output(out, args.resume, args.overwrite, run_info)
-    from jaxcr.segmentation.batch import Segmenter
+    previous = prepare_output(out, args.resume, args.overwrite, run_info, shard)
+    from jaxcr.segmentation.batch import Segmenter, build_segmenter
 
-    seg = Segmenter(
-        ds,
-        cams,
-        cfg,
-        args.background,
-        out,
+    seg_kwargs = dict(
         overlays=not args.no_overlays,
         warm_start=args.warm_start,
         batch_size=args.batch_size,
         colour_ranges=ranges,
         plate_config=plate_cfg,
+        log_dir=None if shard is None else shard_dir(out, shard),
     )
+    seg = Segmenter(ds, cams, cfg, args.background, out, **seg_kwargs)
+    spec = WorkerSpec(build_segmenter, (str(ds.root), cams, cfg, args.background, str(out)),
+                      seg_kwargs)  # fmt: skip
+    scope = seg.frame_ids if shard is None else shard.select(seg.frame_ids)
     done = R.done_frame_ids(previous, retry_failed=args.retry_failed)
-    todo = [f for f in seg.frame_ids if f not in done]
+    todo = [f for f in scope if f not in done]
     if args.limit is not None:
         todo = todo[: args.limit]
-    stopped_early = len(done) + len(todo) < len(seg.frame_ids)
+    stopped_early = len({f for f in scope if f in done}) + len(todo) < len(scope)
 
-    new_records = seg.run(todo, progress=not args.quiet)
+    stats = seg.run(todo, progress=not args.quiet, executor=executor, spec=spec)
+    new_records = stats.records
 
-    all_records = R.read_results(R.OutputLayout(out).results)
+    from jaxcr.scale.shards import read_all_records
+
+    in_scope = set(scope)
+    all_records = [r for r in read_all_records(out) if str(r["frame"]) in in_scope]
     n_failed = sum(1 for r in all_records if not r.get("ok"))
+    what = "" if shard is None else f" (shard {shard})"
     if stopped_early:
         print(
-            f"jaxcr segment: stopped after {len(new_records)} new frames (--limit); "
-            f"{len(seg.frame_ids) - len(all_records)} left, continue with --resume",
+            f"jaxcr segment: stopped after {len(new_records)} new frames (--limit){what}; "
+            f"{len(scope) - len(all_records)} left, continue with --resume",
             file=sys.stderr,
         )
         return 1 if n_failed else 0
@@ -592,16 +651,18 @@ def run(args) -> int:
         "ok": len(all_records) - n_failed,
         "failed": n_failed,
         "failures": {r["frame"]: r.get("reason") for r in all_records if not r.get("ok")},
+        "shard": None if shard is None else str(shard),
+        "executor": stats.executor,
         "compile_s": seg.compile_s,
         "run_s": seg.run_s,
         "median_time_s": _median(r.get("time_s") for r in all_records if r.get("ok")),
         "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     }
-    layout = R.OutputLayout(out)
+    layout = seg.layout
     R.atomic_write_json(layout.summary, summary)
     R.atomic_write_text(layout.done, summary["finished"] + "\n")
     print(
-        f"jaxcr segment: {summary['ok']}/{summary['frames']} frames ok"
+        f"jaxcr segment: {summary['ok']}/{summary['frames']} frames ok{what}"
         + (f", {n_failed} failed (reasons in {layout.summary})" if n_failed else "")
         + f" -> {out}"
     )

@@ -61,6 +61,10 @@ done, and is refused if the dataset or options differ from ``OUT/run.json``):
 - ``segments.csv`` and ``segments.md``: the per-segment parameter table of all frames
   (``single_view_mm``: the part of the segment from the single-view tail).
 
+``--shard I/N`` (Slurm arrays, docs/scale-out.md): only the I-th of N contiguous frame
+blocks; ``frames/`` and ``overlays/`` go to OUT, ``results.jsonl``, ``run.json`` and the
+shard's ``segments.csv``/``.md`` to ``OUT/shards/I-of-N/``.
+
 Exit code 0 when every frame succeeded, 1 when any frame failed, 2 on bad input.
 """
 
@@ -127,6 +131,11 @@ def add_parser(subparsers) -> None:
                    help="synth: image size WxH (at least 64x48, height >= 9/16 width)")  # fmt: skip
     p.add_argument("--background", choices=["green", "blue"], default="green",
                    help="synth: chroma cloth colour")  # fmt: skip
+    from jaxcr.scale.executor import add_executor_arguments
+    from jaxcr.scale.shards import add_shard_argument
+
+    add_shard_argument(p)
+    add_executor_arguments(p, "1 frame")
     add_plate_arguments(p, "--segmentation trace")
     p.set_defaults(func=run)
 
@@ -204,6 +213,10 @@ def _write_overlays(out: Path, fid: str, names, images, cams, r) -> None:
         _atomic_write(out / "overlays" / f"{fid}_{n}.png", png.tobytes())
 
 
+def _read_log_list(path: Path) -> list[dict]:
+    return list(_read_log(path).values())
+
+
 def _read_log(path: Path) -> dict[str, dict]:
     done: dict[str, dict] = {}
     if path.exists():
@@ -216,8 +229,10 @@ def _read_log(path: Path) -> dict[str, dict]:
     return done
 
 
-def write_tables(out: Path, frame_ids: list[str]) -> int:
-    """Collect ``frames/<id>.json`` into ``segments.csv`` and ``segments.md``; returns rows."""
+def write_tables(out: Path, frame_ids: list[str], table_dir: Path | None = None) -> int:
+    """Collect ``frames/<id>.json`` into ``segments.csv`` and ``segments.md`` (in
+    ``table_dir``, default ``out``); returns rows."""
+    table_dir = out if table_dir is None else table_dir
     rows = []
     for fid in frame_ids:
         f = out / "frames" / f"{fid}.json"
@@ -229,7 +244,7 @@ def write_tables(out: Path, frame_ids: list[str]) -> int:
     w.writeheader()
     for row in rows:
         w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in row.items()})
-    _atomic_write(out / "segments.csv", sio.getvalue().encode())
+    _atomic_write(table_dir / "segments.csv", sio.getvalue().encode())
     md = ["| " + " | ".join(TABLE_FIELDS) + " |", "|" + "---|" * len(TABLE_FIELDS)]
     for row in rows:
         md.append(
@@ -239,7 +254,7 @@ def write_tables(out: Path, frame_ids: list[str]) -> int:
             )
             + " |"
         )
-    _atomic_write(out / "segments.md", ("\n".join(md) + "\n").encode())
+    _atomic_write(table_dir / "segments.md", ("\n".join(md) + "\n").encode())
     return len(rows)
 
 
@@ -249,7 +264,7 @@ def write_tables(out: Path, frame_ids: list[str]) -> int:
 RUN_FORMAT = "jaxcr.stereo-run/2"
 
 
-def _check_run(out: Path, dataset: dict) -> None:
+def _check_run(out: Path, dataset: dict, log_dir: Path | None = None) -> None:
     """Write ``OUT/run.json`` (dataset and options) on the first run; a rerun into the same
     OUT continues it only with the same dataset and options (frames already in results.jsonl
     are skipped, so different options would silently mix two configurations)."""
@@ -269,24 +284,18 @@ def _check_run(out: Path, dataset: dict) -> None:
         import dataclasses
 
         info["options"]["plate"] = dataclasses.asdict(cfg.plate_foreground)
-    path = out / "run.json"
+    from jaxcr.scale.shards import shard_dirs
+
+    log_dir = out if log_dir is None else log_dir
+    path = log_dir / "run.json"
+    # every part of one job (OUT's own run, each shard's) has the same dataset and options
+    for other in [out / "run.json"] + [d / "run.json" for _, d in shard_dirs(out)]:
+        if other != path and other.exists():
+            _same_run(other, info)
     if path.exists():
-        try:
-            prev = json.loads(path.read_text(encoding="utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError):
-            prev = None
-        if not isinstance(prev, dict) or prev.get("format") != RUN_FORMAT:
-            raise InputError("not a jaxcr stereo run.json; choose another -o", file=str(path))
-        for key in ("dataset", "options"):
-            if R.to_jsonable(prev.get(key)) != R.to_jsonable(info[key]):
-                raise InputError(
-                    f"OUT holds a run with different {key} ({prev.get(key)!r} vs {info[key]!r}); "
-                    "choose a new -o or delete it",
-                    file=str(path),
-                    field=key,
-                )
+        _same_run(path, info)
         return
-    if (out / "results.jsonl").exists() or (out / "frames").exists():
+    if (log_dir / "results.jsonl").exists() or (log_dir == out and (out / "frames").exists()):
         raise InputError(
             "OUT holds stereo results without run.json (an older jaxcr); choose a new -o",
             file=str(out),
@@ -294,77 +303,150 @@ def _check_run(out: Path, dataset: dict) -> None:
     R.atomic_write_json(path, info)
 
 
-def run_batch(
-    dataset: dict, out: str | os.PathLike, overlays: bool = True, progress: bool = True
-) -> list[dict]:
-    """Reconstruct every frame of a loaded dataset into ``out`` (see module docstring);
-    returns the log records of all frames (including ones done by an earlier run)."""
+def _same_run(path: Path, info: dict) -> None:
+    """Refuse when the run.json at ``path`` has another dataset or options than ``info``."""
     from jaxcr.io import results as R
-    from jaxcr.stereo.pipeline import StereoFailure, reconstruct_pair
+
+    try:
+        prev = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        prev = None
+    if not isinstance(prev, dict) or prev.get("format") != RUN_FORMAT:
+        raise InputError("not a jaxcr stereo run.json; choose another -o", file=str(path))
+    for key in ("dataset", "options"):
+        if R.to_jsonable(prev.get(key)) != R.to_jsonable(info[key]):
+            raise InputError(
+                f"OUT holds a run with different {key} ({prev.get(key)!r} vs {info[key]!r}); "
+                "choose a new -o or delete it",
+                file=str(path),
+                field=key,
+            )
+
+
+class StereoWorker:
+    """Reconstructs frames of a loaded dataset into ``out`` (files written atomically) and
+    returns their records: the worker of :func:`jaxcr.scale.executor.run_frames`."""
+
+    def __init__(self, dataset: dict, out: str | os.PathLike, overlays: bool = True):
+        self.dataset, self.out, self.overlays = dataset, Path(out), overlays
+        self.frames = {str(fr["id"]): fr for fr in dataset["frames"]}
+        self.compile_s = self.run_s = 0.0
+
+    def failed_record(self, fid: str, reason: str) -> dict:
+        return {"format": RESULTS_FORMAT, "id": fid, "ok": False, "reason": "worker",
+                "message": reason}  # fmt: skip
+
+    def process(self, frame_ids: list[str]) -> list[dict]:
+        import time
+
+        t0 = time.perf_counter()
+        recs = [self._frame(self.frames[fid]) for fid in frame_ids]
+        self.run_s += time.perf_counter() - t0
+        return recs
+
+    def _frame(self, fr: dict) -> dict:
+        from jaxcr.stereo.pipeline import StereoFailure, reconstruct_pair
+        from jaxcr.stereo.single_view import reconstruct_view
+
+        dataset, out, overlays = self.dataset, self.out, self.overlays
+        names = dataset["names"]
+        cams = (dataset["cam1"], dataset["cam2"])[: len(names)]
+        fid = str(fr["id"])
+        rec: dict = {"format": RESULTS_FORMAT, "id": fid}
+        try:
+            images = [
+                _read_rgb(dataset["root"] / fr["images"][n], fid, field=f"images.{n}")
+                for n in names
+            ]
+            plates = dataset["plates"]
+            if len(names) == 2:
+                r = reconstruct_pair(
+                    images[0], images[1], cams[0], cams[1], dataset["config"], plates
+                )
+            else:
+                r = reconstruct_view(
+                    images[0], cams[0], config=dataset["config"],
+                    plate=plates[0] if plates else None,
+                )  # fmt: skip
+            _write_frame(out, fid, r, names)
+            if overlays:
+                _write_overlays(out, fid, names, images, cams, r)
+            rec["ok"] = True
+            rec["views"] = {n: v for n, v in zip(names, r["views_px"], strict=True)}
+            if "p" in r:
+                rec.update(base_mode=r["base_mode"], marker_rms_px=r["marker_rms_px"],
+                           n_markers=list(r["n_markers"]),
+                           entry_residual_px=r["entry_residual_px"],
+                           n_segments=len(r["segments"]),
+                           single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]))  # fmt: skip
+            rec["timings"] = r["timings"]
+        except StereoFailure as err:
+            rec.update(ok=False, reason=err.reason, message=str(err))
+        except InputError as err:
+            rec.update(ok=False, reason="image", message=str(err))
+        return rec
+
+
+def build_stereo_worker(dataset: str, config, out: str, overlays: bool) -> StereoWorker:
+    """A :class:`StereoWorker` from picklable arguments (a Ray worker loads the dataset)."""
+    ds = load_stereo_dataset(dataset)
+    ds["config"] = config
+    return StereoWorker(ds, out, overlays)
+
+
+def run_batch(
+    dataset: dict, out: str | os.PathLike, overlays: bool = True, progress: bool = True,
+    shard=None, executor=None,
+) -> list[dict]:  # fmt: skip
+    """Reconstruct every frame of a loaded dataset into ``out`` (see module docstring);
+    returns the log records of all frames (including ones done by an earlier run).
+    ``shard`` (:class:`jaxcr.scale.shards.Shard`): only its block of frames, its log, run.json
+    and tables in ``out/shards/I-of-N`` (frames recorded by other shards are skipped).
+    ``executor``: :class:`jaxcr.scale.executor.ExecutorConfig` (default local; ``ray``: the
+    frames as tasks, one per ``--chunk`` frames, default 1)."""
+    from jaxcr.io import results as R
+    from jaxcr.scale.shards import read_all_records, shard_dir
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    log_path = out / "results.jsonl"
-    _check_run(out, dataset)
-    done = _read_log(log_path)
+    log_dir = out if shard is None else shard_dir(out, shard)
+    log_dir.mkdir(parents=True, exist_ok=True)
+    log_path = log_dir / "results.jsonl"
+    _check_run(out, dataset, log_dir)
+    done = {str(r["id"]): r for r in read_all_records(out, _read_log_list, key="id")}
+    done.update(_read_log(log_path))
     # the tables are rebuilt at the end: none is left over that looks like this run's
     for name in ("segments.csv", "segments.md"):
-        (out / name).unlink(missing_ok=True)
+        (log_dir / name).unlink(missing_ok=True)
+    frames = dataset["frames"] if shard is None else shard.select(dataset["frames"])
     todo = [
         fr
-        for fr in dataset["frames"]
+        for fr in frames
         if str(fr["id"]) not in done
         or not (out / "frames" / f"{fr['id']}.json").exists()
         and done[str(fr["id"])].get("ok")
     ]
-    it = todo
+    from jaxcr.scale.executor import ExecutorConfig, WorkerSpec, run_frames
+
+    executor = executor or ExecutorConfig()
+    worker = StereoWorker(dataset, out, overlays)
+    spec = WorkerSpec(build_stereo_worker, (str(dataset["root"]), dataset["config"], str(out),
+                                            overlays))  # fmt: skip
+    bar = None
     if progress and todo:
         from jaxcr.progress import progress as progress_bar
 
-        it = progress_bar(todo, desc="stereo", unit="pair")
-    from jaxcr.stereo.single_view import reconstruct_view
-
-    names = dataset["names"]
-    cams = (dataset["cam1"], dataset["cam2"])[: len(names)]
+        bar = progress_bar(total=len(todo), desc="stereo", unit="pair")
     with R.ResultsLog(log_path) as log:  # cuts a line left half-written by a killed run
-        for fr in it:
-            fid = str(fr["id"])
-            rec: dict = {"format": RESULTS_FORMAT, "id": fid}
-            try:
-                images = [
-                    _read_rgb(dataset["root"] / fr["images"][n], fid, field=f"images.{n}")
-                    for n in names
-                ]
-                plates = dataset["plates"]
-                if len(names) == 2:
-                    r = reconstruct_pair(
-                        images[0], images[1], cams[0], cams[1], dataset["config"], plates
-                    )
-                else:
-                    r = reconstruct_view(
-                        images[0], cams[0], config=dataset["config"],
-                        plate=plates[0] if plates else None,
-                    )  # fmt: skip
-                _write_frame(out, fid, r, names)
-                if overlays:
-                    _write_overlays(out, fid, names, images, cams, r)
-                rec["ok"] = True
-                rec["views"] = {n: v for n, v in zip(names, r["views_px"], strict=True)}
-                if "p" in r:
-                    rec.update(base_mode=r["base_mode"], marker_rms_px=r["marker_rms_px"],
-                               n_markers=list(r["n_markers"]),
-                               entry_residual_px=r["entry_residual_px"],
-                               n_segments=len(r["segments"]),
-                               single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]))  # fmt: skip
-                rec["timings"] = r["timings"]
-            except StereoFailure as err:
-                rec.update(ok=False, reason=err.reason, message=str(err))
-            except InputError as err:
-                rec.update(ok=False, reason="image", message=str(err))
-            log.append(rec)
-            done[fid] = rec
-    write_tables(out, [str(fr["id"]) for fr in dataset["frames"]])
-    return [done[str(fr["id"])] for fr in dataset["frames"]]
+        stats = run_frames(spec, [str(fr["id"]) for fr in todo], log, executor, chunk=1,
+                           key="id", local_worker=worker,
+                           on_record=None if bar is None else lambda r: bar.update(1))  # fmt: skip
+    if bar is not None:
+        bar.close()
+    for rec in stats.records:
+        done[str(rec["id"])] = rec
+    write_tables(out, [str(fr["id"]) for fr in frames], log_dir)
+    return [done[str(fr["id"])] for fr in frames]
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -404,6 +486,11 @@ def run(args) -> int:
                                    args.background, progress=True)  # fmt: skip
         print(f"wrote {path / 'stereo.json'}")
         return 0
+    from jaxcr.scale.executor import executor_config
+    from jaxcr.scale.shards import SHARDS_DIR, claim_shard, parse_shard
+
+    shard = parse_shard(args.shard)  # bad --shard: one line, before reading anything
+    executor = executor_config(args)
     ds = load_stereo_dataset(args.dataset)
     ds["config"].segmentation = args.segmentation
     if args.tolerance is not None:
@@ -427,8 +514,15 @@ def run(args) -> int:
         raise InputError(
             f"--segmentation {args.segmentation} needs background_plates in stereo.json"
         )
-    _claim(args.out, "stereo", recognise=lambda o: (o / "run.json").exists())
-    recs = run_batch(ds, args.out, overlays=not args.no_overlays)
+    def recognise(o):
+        return (o / "run.json").exists() or (o / SHARDS_DIR).is_dir()
+
+    if shard is None:
+        _claim(args.out, "stereo", recognise=recognise)
+    else:
+        claim_shard(args.out, "stereo", shard, recognise=recognise)
+    recs = run_batch(ds, args.out, overlays=not args.no_overlays, shard=shard,
+                     executor=executor)  # fmt: skip
     n_ok = sum(r["ok"] for r in recs)
     print(f"{n_ok}/{len(recs)} frames reconstructed; results in {args.out}"
           + (f" (failed frames listed below and in {Path(args.out) / 'results.jsonl'})"

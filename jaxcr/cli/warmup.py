@@ -136,7 +136,7 @@ def run(args) -> int:
             flush=True,
         )
         with _compile_log() as log:
-            records = seg.run(frames, progress=not args.quiet)
+            records = seg.run(frames, progress=not args.quiet).records
     bad = [r for r in records if not r.get("ok")]
     for name, secs, hit in log.programs:
         print(f"  {name}: {secs:.2f} s" + (" (loaded from the cache)" if hit else ""))

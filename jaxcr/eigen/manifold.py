@@ -155,6 +155,16 @@ def query(manifold: Manifold, x: Float[Array, " k"], *, b: int = 3) -> Float[Arr
 
 
 @eqx.filter_jit
-def query_batch(manifold: Manifold, X: Float[Array, "B k"], b: int = 3) -> Float[Array, "B d"]:
-    """:func:`query` for a batch of eigen-features (one compile per batch shape)."""
+def _query_rows(X: Float[Array, "B k"], manifold: Manifold, b: int) -> Float[Array, "B d"]:
     return jax.vmap(lambda m, x: query(m, x, b=b), in_axes=(None, 0))(manifold, X)
+
+
+def query_batch(
+    manifold: Manifold, X: Float[Array, "B k"], b: int = 3, *, devices: int | None = None
+) -> Float[Array, "B d"]:
+    """:func:`query` for a batch of eigen-features (one compile per batch shape), the rows
+    spread over ``devices`` local devices (None: all, one on a usual machine;
+    :func:`jaxcr.scale.devices.map_frames`, bit-identical per row)."""
+    from jaxcr.scale.devices import map_frames
+
+    return map_frames(_query_rows, X, manifold, b, devices=devices)

@@ -33,6 +33,11 @@ identifies the holder even when the pid is reused. Another executor (a Ray or sh
 can hold an OUT the same way: create the file with ``O_EXCL`` and this content (its own pid,
 host and start time), and delete it when done.
 
+Shards (``--shard I/N``, :mod:`jaxcr.scale.shards`): shard I holds
+``OUT/shards/I-of-N/.jaxcr.lock`` (same format) instead of ``OUT/.jaxcr.lock``; :func:`claim`
+refuses while any shard's lock is live, and a shard refuses while ``OUT/.jaxcr.lock`` is. A Ray
+run's driver holds ``OUT/.jaxcr.lock`` for its workers, which write frame files only.
+
 Interruption: :func:`release_all` deletes the locks this process holds; the CLI calls it on
 exit, also after Ctrl-C (:mod:`jaxcr.cli`).
 """
@@ -295,6 +300,9 @@ def claim(out: str | os.PathLike, command: str, recognise=None) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     lock = acquire(out, command)
     try:
+        from jaxcr.scale.shards import refuse_if_shards_run
+
+        refuse_if_shards_run(out)  # after taking our lock: of two racing runs one sees the other
         prev = owner(out)
         if prev is None:
             entries = _user_entries(out)

@@ -173,10 +173,13 @@ def to_jsonable(obj: Any) -> Any:
 
 class OutputLayout:
     """Paths inside a segment output folder ``root``; ``rel`` gives the path stored in
-    records (relative to ``root``, POSIX separators)."""
+    records (relative to ``root``, POSIX separators). ``log_dir``: where ``results.jsonl``,
+    ``run.json``, ``summary.json`` and ``DONE`` go (default ``root``; a ``--shard`` run's
+    ``root/shards/I-of-N``, :mod:`jaxcr.scale.shards`); frame files always go under ``root``."""
 
-    def __init__(self, root: str | os.PathLike):
+    def __init__(self, root: str | os.PathLike, log_dir: str | os.PathLike | None = None):
         self.root = Path(root)
+        self.log_root = self.root if log_dir is None else Path(log_dir)
 
     def rel(self, *parts: str) -> str:
         return Path(*parts).as_posix()
@@ -204,19 +207,19 @@ class OutputLayout:
 
     @property
     def results(self) -> Path:
-        return self.root / RESULTS_FILE
+        return self.log_root / RESULTS_FILE
 
     @property
     def run(self) -> Path:
-        return self.root / RUN_FILE
+        return self.log_root / RUN_FILE
 
     @property
     def summary(self) -> Path:
-        return self.root / SUMMARY_FILE
+        return self.log_root / SUMMARY_FILE
 
     @property
     def done(self) -> Path:
-        return self.root / DONE_FILE
+        return self.log_root / DONE_FILE
 
 
 # --------------------------------------------------------------------------- results log

@@ -44,8 +44,12 @@ def _compiled_forward():
     return run_chunk
 
 
+def _run_chunk_body(qs, model):
+    return _compiled_forward()(model, qs)
+
+
 def batch_forward(
-    model, q: np.ndarray, chunk: int = CHUNK, progress: bool = True
+    model, q: np.ndarray, chunk: int = CHUNK, progress: bool = True, devices: int | None = None
 ) -> dict[str, np.ndarray]:
     """Forward kinematics of every row of ``q`` (B, m) with one jitted ``vmap`` (one compile).
 
@@ -53,10 +57,14 @@ def batch_forward(
     there is a single trace). Returns numpy arrays keyed as in ``jaxcr fk``'s
     ``centrelines.npz``: ``s`` (B, N), ``p`` (B, N, 3), ``R`` (B, N, 3, 3), ``rho`` (B, N),
     ``ok``, ``residual``, ``energy``, ``num_steps`` (B,), ``tip_rotvec`` (B, 3).
+
+    ``devices``: local devices to spread each chunk's rows over (1-D mesh over rows,
+    :func:`jaxcr.scale.devices.map_frames`; bit-identical per row); None: all local devices
+    (one on a usual machine: no sharding).
     """
     import jax.numpy as jnp
 
-    run_chunk = _compiled_forward()
+    from jaxcr.scale.devices import map_frames
     B = q.shape[0]
     chunk = max(1, min(chunk, B))
     outs = []
@@ -71,7 +79,9 @@ def batch_forward(
         n = part.shape[0]
         if n < chunk:
             part = np.concatenate([part, np.repeat(part[-1:], chunk - n, axis=0)])
-        res, rotvec = run_chunk(model, jnp.asarray(part, jnp.float32))
+        res, rotvec = map_frames(
+            _run_chunk_body, jnp.asarray(part, jnp.float32), model, devices=devices
+        )
         c = res.centreline
         outs.append(
             {
@@ -178,7 +188,9 @@ class BatchFk(eqx.Module):
     reasons: tuple[str, ...]
 
 
-def forward(model, q, *, chunk: int = CHUNK, progress: bool = False) -> BatchFk:
+def forward(
+    model, q, *, chunk: int = CHUNK, progress: bool = False, devices: int | None = None
+) -> BatchFk:
     """Forward kinematics of every row of ``q`` (B, n_joints), with failure reasons.
 
     Parameters
@@ -192,6 +204,8 @@ def forward(model, q, *, chunk: int = CHUNK, progress: bool = False) -> BatchFk:
         rows per compiled batch (one compile per model and chunk size).
     progress : bool
         show a progress bar for more than one chunk.
+    devices : int or None
+        local devices to spread the rows over (None: all; see :func:`batch_forward`).
 
     Returns
     -------
@@ -211,7 +225,7 @@ def forward(model, q, *, chunk: int = CHUNK, progress: bool = False) -> BatchFk:
     ('', 'non-finite joint values')
     """
     q = np.atleast_2d(np.asarray(q, np.float64))
-    out = batch_forward(model, q, chunk=chunk, progress=progress)
+    out = batch_forward(model, q, chunk=chunk, progress=progress, devices=devices)
     why = failure_reasons(model, q, out)
     reasons = tuple(why.get(i, "") for i in range(q.shape[0]))
     return BatchFk(**out, reasons=reasons)

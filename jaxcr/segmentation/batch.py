@@ -91,6 +91,14 @@ def _entry_from_projection(uv, ok, width, height):
     return uv[j], uv[j + far[0] + 1] - uv[j]
 
 
+def build_segmenter(dataset: str, cameras, config, background: str, out: str, **kwargs):
+    """A :class:`Segmenter` from picklable arguments (dataset path, options): the
+    :class:`jaxcr.scale.executor.WorkerSpec` of a Ray worker, which loads the dataset itself."""
+    from jaxcr.io.dataset import load_dataset
+
+    return Segmenter(load_dataset(Path(dataset)), cameras, config, background, out, **kwargs)
+
+
 def _trace_record(tr) -> dict:
     """The ``foreground`` entry of a results record for one camera (pixels, OpenCV
     convention)."""
@@ -126,6 +134,7 @@ class Segmenter:
         batch_size: int = 4,
         colour_ranges=None,
         plate_config=None,
+        log_dir: str | Path | None = None,
     ):
         if ds.robot is None:
             raise InputError(
@@ -136,7 +145,7 @@ class Segmenter:
         self.ds = ds
         self.cams = list(cameras)
         self.config = config
-        self.layout = R.OutputLayout(out)
+        self.layout = R.OutputLayout(out, log_dir=log_dir)
         self.overlays = overlays
         self.warm_start = warm_start
         self.batch_size = int(batch_size)
@@ -197,11 +206,42 @@ class Segmenter:
 
     # ------------------------------------------------------------------ the loop
 
-    def run(self, frame_ids: list[str], progress: bool = True) -> list[dict]:
-        """Process ``frame_ids`` (in order), appending one record per frame; returns them."""
-        from jaxcr.progress import progress as progress_bar
-
+    def process(self, frame_ids: list[str]) -> list[dict]:
+        """One record per frame of ``frame_ids`` (in order; their files written, atomically):
+        failed records for frames that cannot be processed, the others in compiled chunks of
+        ``batch_size``. Writes no results log: the caller appends the records
+        (:func:`jaxcr.scale.executor.run_frames`, which also runs this on Ray workers)."""
         records: list[dict] = []
+        pending: list[tuple[str, list[np.ndarray]]] = []
+        for fid in frame_ids:
+            images, reason = self._check_frame(fid)
+            if reason is not None:
+                records.append(self._failed_record(fid, reason))
+                continue
+            pending.append((fid, images))
+            if len(pending) == self.batch_size:
+                records.extend(self._process_chunk(pending))
+                pending = []
+        if pending:
+            records.extend(self._process_chunk(pending))
+        order = {fid: k for k, fid in enumerate(frame_ids)}
+        return sorted(records, key=lambda r: order[r["frame"]])
+
+    def failed_record(self, fid: str, reason: str) -> dict:
+        return self._failed_record(fid, reason)
+
+    def run(self, frame_ids: list[str], progress: bool = True, executor=None, spec=None):
+        """Process ``frame_ids``, appending one record per frame to ``results.jsonl`` as
+        chunks complete; returns the :class:`jaxcr.scale.executor.RunStats` (records in
+        order). ``executor``: a :class:`jaxcr.scale.executor.ExecutorConfig` (default: local,
+        chunks of ``batch_size``); ``spec``: the :class:`~jaxcr.scale.executor.WorkerSpec`
+        that builds this Segmenter in a Ray worker (required for ``ray``)."""
+        from jaxcr.progress import progress as progress_bar
+        from jaxcr.scale.executor import ExecutorConfig, run_frames
+
+        executor = executor or ExecutorConfig()
+        if executor.kind != "local" and spec is None:
+            raise InputError("a Ray run needs the worker's spec", field="executor")
         bar = progress_bar(
             total=len(frame_ids),
             unit="frame",
@@ -212,28 +252,15 @@ class Segmenter:
             "{rate_noinv_fmt}]",
         )
         with R.ResultsLog(self.layout.results) as log:
-
-            def emit(rec):
-                log.append(rec)
-                records.append(rec)
-                bar.update(1)
-
-            pending: list[tuple[str, list[np.ndarray]]] = []
-            for fid in frame_ids:
-                images, reason = self._check_frame(fid)
-                if reason is not None:
-                    emit(self._failed_record(fid, reason))
-                    continue
-                pending.append((fid, images))
-                if len(pending) == self.batch_size:
-                    for rec in self._process_chunk(pending):
-                        emit(rec)
-                    pending = []
-            if pending:
-                for rec in self._process_chunk(pending):
-                    emit(rec)
+            stats = run_frames(
+                spec, frame_ids, log, executor, chunk=self.batch_size, local_worker=self,
+                on_record=lambda rec: bar.update(1),
+            )  # fmt: skip
         bar.close()
-        return records
+        if executor.kind != "local":  # the workers' compile and run time
+            self.compile_s += stats.compile_s
+            self.run_s += stats.run_s
+        return stats
 
     def _process_chunk(self, chunk: list[tuple[str, list[np.ndarray]]]):
         from jaxcr.segmentation.refine import FAILURES, refine_batch, refine_sequence

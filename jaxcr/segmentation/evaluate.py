@@ -158,11 +158,16 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
     layout = R.OutputLayout(out)
     if not out.is_dir():
         raise InputError("not a segment output folder", file=str(out))
-    if not layout.run.exists():
+    from jaxcr.scale import shards as S
+
+    # a --shard run keeps run.json and results.jsonl in OUT/shards/I-of-N: merge them all
+    runs = [layout.run] + [d / R.RUN_FILE for _, d in S.shard_dirs(out)]
+    runs = [p for p in runs if p.exists()]
+    if not runs:
         raise InputError("no run.json: not a jaxcr segment output folder", file=str(out))
-    run_info = R.read_run(layout.run)
+    run_info = R.read_run(runs[0])
     try:
-        records = R.read_results(layout.results)
+        records = S.read_all_records(out)
     except ValueError as err:
         raise InputError(str(err)) from None
     ds_path = Path(run_info["dataset"])

@@ -909,6 +909,11 @@ def _refine_batch_jit(bases, cameras, images, backgrounds, config, inits, valid,
     return jax.lax.map(one, args)
 
 
+def _refine_batch_body(batched, cameras, config, mode):
+    bases, images, backgrounds, inits, valid, cams0 = batched
+    return _refine_batch_jit(bases, cameras, images, backgrounds, config, inits, valid, mode, cams0)
+
+
 def refine_batch(
     bases: Centreline,
     cameras,
@@ -919,6 +924,7 @@ def refine_batch(
     valid: Bool[Array, " f"] | None = None,
     mode: str = "map",
     init_cams: Float[Array, "f c 6"] | None = None,
+    devices: int | None = None,
 ) -> RefineResult:
     """Refine F independent frames in one compiled call.
 
@@ -937,6 +943,10 @@ def refine_batch(
             where the energy has several minima within reach (``tests/segmentation/test_refine_convergence.py``).
         init_cams: optional (F, n_cameras, 6) warm-start camera corrections
             (:func:`refine_frame`'s ``init_cam``).
+        devices: local devices to spread the frames over (a 1-D mesh over frames,
+            :func:`jaxcr.scale.devices.map_frames`; bit-identical per frame to one device).
+            None: all local devices of the default backend (one on a usual machine: no
+            sharding); 1: one device.
 
     Returns:
         :class:`RefineResult` with a leading frame axis; ``time_s`` is the batch wall time
@@ -956,8 +966,11 @@ def refine_batch(
     inits = jnp.zeros((f,) + config.coeff_shape, dtype) if inits is None else inits
     valid = jnp.ones(f, bool) if valid is None else jnp.asarray(valid, bool)
     cams0 = _cam_init(init_cams, (f,), len(cameras), dtype)
+    from jaxcr.scale.devices import map_frames
+
     t0 = time.perf_counter()
-    out = _refine_batch_jit(bases, cameras, images, backgrounds, config, inits, valid, mode, cams0)
+    batched = (bases, images, backgrounds, inits, valid, cams0)
+    out = map_frames(_refine_batch_body, batched, cameras, config, mode, devices=devices)
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / max(f, 1)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))

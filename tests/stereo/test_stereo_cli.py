@@ -86,6 +86,40 @@ def test_per_frame_failures_and_resume(synth_set, tmp_path):
     assert len((out / "results.jsonl").read_text().splitlines()) == n
 
 
+def test_shards_together_equal_one_run(synth_set, tmp_path):
+    """--shard 0/2 and 1/2 into one OUT: every frame recorded once across the shards, each
+    record the unsharded run's (timings apart), frame files in OUT; the reference is the
+    unsharded run of the same dataset."""
+    d = tmp_path / "set"
+    shutil.copytree(synth_set, d)
+    meta = json.loads((d / "stereo.json").read_text())
+    good = meta["frames"][0]
+    meta["frames"] = [good] + [
+        {"id": f"miss{k}", "images": {"cam1": "none.png", "cam2": "none.png"}} for k in range(3)
+    ]
+    (d / "stereo.json").write_text(json.dumps(meta))
+    ref, out = tmp_path / "ref", tmp_path / "out"
+    assert main(["stereo", str(d), "-o", str(ref), "--no-overlays"]) == 1
+    assert main(["stereo", str(d), "-o", str(out), "--no-overlays", "--shard", "1/2"]) == 1
+    assert main(["stereo", str(d), "-o", str(out), "--no-overlays", "--shard", "0/2"]) == 1
+
+    def recs(path):
+        out = {}
+        for line in path.read_text().splitlines():
+            r = json.loads(line)
+            r.pop("timings", None)
+            out[r["id"]] = r
+        return out
+
+    a = recs(out / "shards" / "0-of-2" / "results.jsonl")
+    b = recs(out / "shards" / "1-of-2" / "results.jsonl")
+    assert sorted(a) == ["000", "miss0"] and sorted(b) == ["miss1", "miss2"]  # contiguous
+    assert {**a, **b} == recs(ref / "results.jsonl")
+    assert (out / "frames" / "000.json").read_bytes() == (ref / "frames" / "000.json").read_bytes()
+    # another option set into the same job is refused
+    assert main(["stereo", str(d), "-o", str(out), "--segments", "2", "--shard", "0/2"]) == 2
+
+
 def test_bad_input_exit_2(tmp_path, capsys):
     assert main(["stereo", str(tmp_path), "-o", str(tmp_path / "o")]) == 2
     (tmp_path / "stereo.json").write_text('{"format": "other"}')
