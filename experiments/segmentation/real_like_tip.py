@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import pickle
 import platform
 import subprocess
 import sys
@@ -105,6 +106,23 @@ def run_view(view, cfg: PlateForegroundConfig) -> dict:
     return out
 
 
+def _frame(seed: int, size: tuple, cache: str | None):
+    """The rendered frame of ``seed`` (from the ``cache`` folder when it holds it)."""
+    if cache is None:
+        return render_real_like_frame(seed, size)
+    path = Path(cache) / f"real_like_{size[0]}x{size[1]}_{seed}.pkl"
+    if path.exists():
+        with open(path, "rb") as f:
+            return pickle.load(f)
+    fr = render_real_like_frame(seed, size)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(fr, f)
+    os.replace(tmp, path)
+    return fr
+
+
 def _atomic(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
@@ -135,6 +153,17 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="experiments/results/segmentation/real_like_tip",
                     help="output path without extension (.md and .json are written)")  # fmt: skip
     ap.add_argument("--role", default="fresh", help="'dev' or 'fresh' (recorded)")
+    ap.add_argument(
+        "--cache",
+        default=None,
+        help="folder for rendered frames (pickles, scratch): a frame found there is "
+        "loaded instead of rendered (rendering is independent of the methods)",
+    )
+    ap.add_argument(
+        "--render-only",
+        action="store_true",
+        help="render the frames into --cache and stop (no method is run)",
+    )
     args = ap.parse_args(argv)
     size = tuple(int(x) for x in args.size.lower().split("x"))
     cfg = PlateForegroundConfig()
@@ -156,8 +185,11 @@ def main(argv=None) -> int:
         if seed in done:
             continue
         t0 = time.perf_counter()
-        fr = render_real_like_frame(seed, size)
+        fr = _frame(seed, size, args.cache)
         t_render = time.perf_counter() - t0
+        if args.render_only:
+            print(f"seed {seed}: rendered", flush=True)
+            continue
         views = [run_view(v, cfg) for v in fr.views]
         rows.append({"seed": seed, "views": views, "render_s": t_render})
         errs = " ".join(f"{m}={[round(v[m]['err_px'], 1) for v in views]}" for m in METHODS)
@@ -169,6 +201,8 @@ def main(argv=None) -> int:
             "summary": summarise(rows), "rows": rows,
         }  # fmt: skip
         _atomic(jpath, json.dumps(meta, indent=1) + "\n")
+    if args.render_only:
+        return 0
     summ = summarise(rows)
     seeds = sorted(r["seed"] for r in rows)
     md = [
