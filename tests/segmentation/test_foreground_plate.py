@@ -246,6 +246,22 @@ def test_refine_tip_on_drawn_ends(angle_deg, cap):
         assert -0.3 < along < 0.65 * cap and 0.35 * cap < a < cap + 0.3
 
 
+def test_trace_turns_at_a_projected_kink():
+    """An L-shaped tube 7 px wide (an inner tube leaving the outer one at a right angle in
+    projection) with a 2 px wide spur (a crease) leaving its far end at a right angle:
+    the tracer turns at the kink and ends at the drawn end, not on the spur; with corners
+    off (corner_deg <= max_turn_deg) it stops at the kink. Tolerance 2 px: nearest-pixel
+    sampling (0.5) + 0.25 px march + pixel half-diagonal (0.71), rounded up."""
+    mask = np.zeros((120, 160), bool)
+    mask[20:100, 37:44] = True  # vertical leg, centre u = 40, from v = 99 up to v = 20
+    mask[20:27, 37:120] = True  # horizontal leg, centre v = 23, to u = 119
+    mask[5:20, 117:119] = True  # thin spur up from the far end
+    tr = trace_tube(mask, (40.0, 99.0), (0.0, -1.0))
+    assert np.linalg.norm(tr.tip - np.array([119.0, 23.0])) < 2.0, tr.tip
+    off = trace_tube(mask, (40.0, 99.0), (0.0, -1.0), PlateForegroundConfig(corner_deg=0.0))
+    assert off.tip[0] < 50.0 and off.tip[1] < 30.0
+
+
 def test_border_entry():
     mask, start, _ = _arc_mask((120, 200), (100, 130), 90.0, -2.8, -0.6, 2.5)
     mask[:, :12] = False
