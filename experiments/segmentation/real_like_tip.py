@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import pickle
 import platform
 import subprocess
 import sys
@@ -46,7 +47,25 @@ from jaxcr.stereo.base_locate import flood_component
 from jaxcr.stereo.chroma import plate_alpha
 from jaxcr.synth.real_like import render_real_like_frame
 
-METHODS = ("trace", "plate", "gmm", "colour")
+METHODS = ("trace", "trace_r1", "plate", "gmm", "colour")
+# The first round's foreground (results/segmentation/real_like_tip_round1.md), loaded from
+# git history so that it runs in the same process on the same frames.
+ROUND1_COMMIT = "cf4b1bb"
+
+
+def _round1_module(commit: str):
+    """jaxcr/segmentation/foreground.py as of ``commit``, imported from ``git show``."""
+    import types
+
+    src = subprocess.run(
+        ["git", "show", f"{commit}:jaxcr/segmentation/foreground.py"],
+        capture_output=True, text=True, check=True, cwd=Path(__file__).parent,
+    ).stdout  # fmt: skip
+    mod = types.ModuleType("foreground_round1")
+    mod.__dict__["__name__"] = "foreground_round1"
+    sys.modules["foreground_round1"] = mod  # dataclasses look their module up
+    exec(compile(src, f"{commit}:foreground.py", "exec"), mod.__dict__)
+    return mod
 
 
 def _seeds(text: str) -> list[int]:
@@ -79,14 +98,19 @@ def _close(m: np.ndarray) -> np.ndarray:
     return cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
 
 
-def run_view(view, cfg: PlateForegroundConfig) -> dict:
+def run_view(view, cfg: PlateForegroundConfig, r1) -> dict:
     img = view.image.astype(np.float32) / 255.0
     plate = view.plate.astype(np.float32) / 255.0
     out = {}
     t = time.perf_counter()
     tr = plate_foreground(view.image, view.plate, view.entry_px, view.entry_dir_px, cfg=cfg)
     out["trace"] = {"tip": tr.tip.tolist(), "time_s": time.perf_counter() - t,
-                    "gaps": len(tr.gaps), "shift": tr.shift.tolist()}  # fmt: skip
+                    "gaps": len(tr.gaps), "shift": tr.shift.tolist(), "cap_px": tr.cap_px}  # fmt: skip
+    t = time.perf_counter()
+    tr1 = r1.plate_foreground(view.image, view.plate, view.entry_px, view.entry_dir_px,
+                              cfg=r1.PlateForegroundConfig())  # fmt: skip
+    out["trace_r1"] = {"tip": tr1.tip.tolist(), "time_s": time.perf_counter() - t,
+                       "gaps": len(tr1.gaps)}  # fmt: skip
     a = np.asarray(plate_alpha(img, plate))
     out["plate"] = {"tip": geodesic_tip(_close(a > 0.5), view.entry_px).tolist()}
     model = bgm.fit_background_model(plate[None], n_components=1)
@@ -103,6 +127,23 @@ def run_view(view, cfg: PlateForegroundConfig) -> dict:
     out["drift_px"] = view.drift_px.tolist()
     out["entry_error_px"] = float(np.linalg.norm(view.entry_px - view.entry_true_px))
     return out
+
+
+def _frame(seed: int, size: tuple, cache: str | None):
+    """The rendered frame of ``seed`` (from the ``cache`` folder when it holds it)."""
+    if cache is None:
+        return render_real_like_frame(seed, size)
+    path = Path(cache) / f"real_like_{size[0]}x{size[1]}_{seed}.pkl"
+    if path.exists():
+        with open(path, "rb") as f:
+            return pickle.load(f)
+    fr = render_real_like_frame(seed, size)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(fr, f)
+    os.replace(tmp, path)
+    return fr
 
 
 def _atomic(path: Path, text: str) -> None:
@@ -135,6 +176,17 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="experiments/results/segmentation/real_like_tip",
                     help="output path without extension (.md and .json are written)")  # fmt: skip
     ap.add_argument("--role", default="fresh", help="'dev' or 'fresh' (recorded)")
+    ap.add_argument(
+        "--cache",
+        default=None,
+        help="folder for rendered frames (pickles, scratch): a frame found there is "
+        "loaded instead of rendered (rendering is independent of the methods)",
+    )
+    ap.add_argument(
+        "--render-only",
+        action="store_true",
+        help="render the frames into --cache and stop (no method is run)",
+    )
     args = ap.parse_args(argv)
     size = tuple(int(x) for x in args.size.lower().split("x"))
     cfg = PlateForegroundConfig()
@@ -147,6 +199,7 @@ def main(argv=None) -> int:
         if prev.get("size") == list(size) and prev.get("config") == cfg.__dict__:
             rows = prev["rows"]
     done = {r["seed"] for r in rows}
+    r1 = None if args.render_only else _round1_module(ROUND1_COMMIT)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
     cmd = "python experiments/segmentation/real_like_tip.py " + " ".join(
@@ -156,9 +209,12 @@ def main(argv=None) -> int:
         if seed in done:
             continue
         t0 = time.perf_counter()
-        fr = render_real_like_frame(seed, size)
+        fr = _frame(seed, size, args.cache)
         t_render = time.perf_counter() - t0
-        views = [run_view(v, cfg) for v in fr.views]
+        if args.render_only:
+            print(f"seed {seed}: rendered", flush=True)
+            continue
+        views = [run_view(v, cfg, r1) for v in fr.views]
         rows.append({"seed": seed, "views": views, "render_s": t_render})
         errs = " ".join(f"{m}={[round(v[m]['err_px'], 1) for v in views]}" for m in METHODS)
         print(f"seed {seed}: {errs}", flush=True)
@@ -169,6 +225,8 @@ def main(argv=None) -> int:
             "summary": summarise(rows), "rows": rows,
         }  # fmt: skip
         _atomic(jpath, json.dumps(meta, indent=1) + "\n")
+    if args.render_only:
+        return 0
     summ = summarise(rows)
     seeds = sorted(r["seed"] for r in rows)
     md = [
@@ -176,10 +234,14 @@ def main(argv=None) -> int:
         "",
         f"Command: `{cmd}` (commit {commit}).",
         "",
-        f"Seeds ({args.role}): {seeds[0]}-{seeds[-1]} ({len(seeds)} frames x 2 views), "
+        f"Seeds ({args.role}): {args.seeds} ({len(seeds)} frames x 2 views), "
         f"image size {size[0]}x{size[1]}.",
         "",
         "Target: tip within 5 px per view in >= 95 % of frames.",
+        "",
+        "Methods: `trace` this commit's plate foreground (defaults); `trace_r1` the first "
+        f"round's (commit {ROUND1_COMMIT}, loaded from git, its defaults); `plate`, `gmm`, "
+        "`colour` the older segmentations (module docstring).",
         "",
         "| method | views | views within 5 px | frames with both views within 5 px | median px "
         "| p90 px | max px |",

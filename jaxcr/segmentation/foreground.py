@@ -45,9 +45,12 @@ __all__ = [
     "align_plate",
     "shift_image",
     "foreground_cues",
+    "cue_maps",
+    "close_score",
     "hysteresis",
     "trace_tube",
     "border_entry",
+    "refine_tip",
     "plate_foreground",
 ]
 
@@ -58,7 +61,7 @@ class PlateForegroundConfig:
 
     Cue thresholds (each cue is 1 at its threshold):
         dark: relative darkening ``1 - Y/Y_plate`` of a pixel where the plate is
-            achromatic (chroma < ``min_chroma``: a white board, black tape) (0.45); on
+            achromatic (chroma < ``min_chroma``: a white board, black tape) (0.3: a grey tube on a white board darkens it by 25-45 %); on
             coloured cloth a cast shadow is the plate darkened, so darkness is no cue there.
         desat: drop of saturation ``(max - min)/max`` from plate to frame (0.25).
         hue_deg: hue change in degrees, counted where both chromas exceed ``min_chroma``
@@ -66,25 +69,39 @@ class PlateForegroundConfig:
         diff: RGB distance to the plate scaled by the best gain in [``min_gain``, 1]
             (0.25; ``min_gain`` 0.35): the old plate mode's cue made shadow-invariant.
         min_chroma: chroma ``max - min`` below which a pixel has no reliable hue (0.08).
+        min_luma: darkening and saturation are relative to ``max(value, min_luma)``
+            (0.2): near-black pixels (tape, deep shadow) have no reliable relative change.
+    Tip: ``refine`` (True) places the tip by :func:`refine_tip` (the score's half level
+    along the end direction, minus the end face's foreshortened half-ellipse, at most
+    ``tip_cap`` (1.0) x the half width; 0 = the silhouette's end).
+    Closing: the score is closed (grey-level, disc of ``close_px`` (2) pixels) so a tube
+    seen only by its two edges is filled (0 = off).
     Hysteresis on the score (the maximum of the cues): ``high`` seeds (1.0), ``low``
     extends (0.4).
     Noise: frame and plate are smoothed with a Gaussian of ``blur_px`` (1.0) pixels.
     Alignment: ``align`` (True) registers the plate; ``max_shift_px`` (8) bounds the shift.
     Tracing: ``step_px`` (2) walker step; ``look_px`` (10) length of the ray that scores a
-    direction; ``max_turn_deg`` (30) largest turn per step; ``support`` (0.6) fraction of
+    direction; ``max_turn_deg`` (30) largest turn per step; ``corner_deg`` (90) where no direction
+    within ``max_turn_deg`` is supported, turns up to this are tried (a projected kink or
+    hook) onto mask not traced already, before a gap is searched; ``support`` (0.6) fraction of
     the ray on the mask to keep walking; ``max_gap_px`` (80) the longest stretch where the
     tube may match the background (tape, shadow, crease) that is bridged; ``gap_turn_deg``
     (12) the cone searched across a gap; ``max_width_px`` (40) the widest tube searched
     across when re-centring; ``min_seed_px`` (20) smallest mask component the walker
-    accepts after a gap (noise specks are smaller); ``start_spread_deg`` (20) a given
+    accepts after a gap (noise specks are smaller); ``gap_visible`` (0.5) a gap is not
+    bridged when the tube's colour (its last traced stretch) would score above ``high``
+    against the plate on more than this fraction of the gap (the tube would have been
+    seen there, so it ended; 1 = off); ``start_spread_deg`` (20) a given
     entry direction is also tried turned by this much either way, the longest trace kept.
     """
 
-    dark: float = 0.45
+    dark: float = 0.3
     desat: float = 0.25
     hue_deg: float = 30.0
     diff: float = 0.25
     min_chroma: float = 0.08
+    min_luma: float = 0.2
+    close_px: float = 2.0
     min_gain: float = 0.35
     high: float = 1.0
     low: float = 0.4
@@ -94,11 +111,15 @@ class PlateForegroundConfig:
     step_px: float = 2.0
     look_px: float = 10.0
     max_turn_deg: float = 30.0
+    corner_deg: float = 90.0
     support: float = 0.6
     max_gap_px: float = 80.0
     gap_turn_deg: float = 12.0
     max_width_px: float = 40.0
     min_seed_px: int = 20
+    gap_visible: float = 0.5
+    tip_cap: float = 1.0
+    refine: bool = True
     start_spread_deg: float = 20.0
 
 
@@ -116,6 +137,7 @@ class TubeTrace:
         score: (H, W) the cue score; ``seed_mask``: the hysteresis mask before tracing.
         width_px: median tube width across the traced path (pixels).
         reason: None, or why tracing stopped early (e.g. "no foreground at the entry").
+        cap_px: length of the end face's half-ellipse removed by :func:`refine_tip` (px).
     """
 
     mask: np.ndarray
@@ -128,6 +150,7 @@ class TubeTrace:
     seed_mask: np.ndarray | None = None
     width_px: float = 0.0
     reason: str | None = None
+    cap_px: float = 0.0
 
 
 # ----------------------------------------------------------------------------- alignment
@@ -237,18 +260,37 @@ def foreground_cues(
     if cfg.blur_px > 0:
         f = ndi.gaussian_filter(f, (cfg.blur_px, cfg.blur_px, 0))
         p = ndi.gaussian_filter(p, (cfg.blur_px, cfg.blur_px, 0))
+    return cue_maps(f, p, cfg)
+
+
+def cue_maps(
+    f: np.ndarray, p: np.ndarray, cfg: PlateForegroundConfig = PlateForegroundConfig()
+) -> dict[str, np.ndarray]:
+    """The cues of :func:`foreground_cues` pixel by pixel, without smoothing: ``f``,
+    ``p`` float RGB of any shape (..., 3) (broadcast); each cue of shape (...)."""
+    f = np.asarray(f, np.float64)
+    p = np.asarray(p, np.float64)
+    f, p = np.broadcast_arrays(f, p)
     eps = 1e-3
-    yf, yp = _grey(f), _grey(p)
+    luma = np.array([0.299, 0.587, 0.114])
+    yf, yp = f @ luma, p @ luma
     mxf, mnf = f.max(-1), f.min(-1)
     mxp, mnp = p.max(-1), p.min(-1)
     # Darkness counts on achromatic background only (white board, black tape, grey): on
     # coloured cloth a cast shadow is the plate darkened, and the tube differs from the
     # cloth by saturation, hue or shadow-invariant colour distance instead.
+    # Relative changes are taken against max(value, min_luma): near black (tape, deep
+    # shadow) a pixel cannot get much darker, and noise / max is large there, so darkening
+    # and saturation of near-black pixels would be noise (they seeded masks along tape).
     achromatic = (mxp - mnp) < cfg.min_chroma
-    dark = np.where(achromatic, np.clip(1.0 - (yf + eps) / (yp + eps), 0.0, None), 0.0)
+    floor = max(cfg.min_luma, eps)
+    # Either sign: a grey metal tube on a white board is darker than the board in its body
+    # and brighter in its specular highlight (shadows only darken, but on achromatic
+    # background a cast shadow is as dark as a grey tube, so the sign would not help).
+    dark = np.where(achromatic, np.abs(yp - yf) / np.maximum(yp, floor), 0.0)
     dark = dark / cfg.dark
-    sat_f = (mxf - mnf) / (mxf + eps)
-    sat_p = (mxp - mnp) / (mxp + eps)
+    sat_f = (mxf - mnf) / np.maximum(mxf, floor)
+    sat_p = (mxp - mnp) / np.maximum(mxp, floor)
     desat = np.clip(sat_p - sat_f, 0.0, None) / cfg.desat
     cf = f - f.mean(-1, keepdims=True)
     cp = p - p.mean(-1, keepdims=True)
@@ -265,6 +307,17 @@ def foreground_cues(
     diff = np.linalg.norm(f - g * p, axis=-1) / cfg.diff
     score = np.maximum(np.maximum(dark, desat), np.maximum(hue, diff))
     return {"dark": dark, "desat": desat, "hue": hue, "diff": diff, "score": score}
+
+
+def close_score(score: np.ndarray, radius_px: float) -> np.ndarray:
+    """Grey-level closing (dilation, then erosion) of ``score`` with a disc of
+    ``radius_px``: a tube whose body matches the background (a lit metal tube on a white
+    board) differs only along its two edges; the closing fills between edges up to
+    ``2 radius_px`` apart, and leaves isolated peaks and steps in place."""
+    r = int(np.floor(radius_px))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disc = xx * xx + yy * yy <= radius_px * radius_px
+    return ndi.grey_closing(score, footprint=disc, mode="nearest")
 
 
 def hysteresis(score: np.ndarray, low: float, high: float) -> np.ndarray:
@@ -388,6 +441,41 @@ def _local_arc(path: list, window_px: float = 24.0) -> tuple[float, float] | Non
     return float(np.arctan2(dv, du)), float(np.clip(kappa, -0.1, 0.1))
 
 
+def _at(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``image`` at the nearest pixel of each (u, v) point (clamped to the image)."""
+    h, w = image.shape[:2]
+    c = np.clip(np.floor(pts[:, 0] + 0.5).astype(np.int64), 0, w - 1)
+    r = np.clip(np.floor(pts[:, 1] + 0.5).astype(np.int64), 0, h - 1)
+    return image[r, c]
+
+
+def _bridge_visible(mask, frame, plate, path, p, q, cfg) -> bool:
+    """Whether the tube, had it gone on from ``p`` to ``q``, would have been seen there:
+    the colour of the tube's last traced stretch (median of ``frame`` on the mask along
+    the last 20 px of ``path``) scored against the aligned ``plate`` with the same cues
+    (:func:`cue_maps`) exceeds ``high`` on more than ``gap_visible`` of the bridge's
+    off-mask pixels. A gap is bridged only where the tube can match the background (tape,
+    shadow, crease); where the background differs from the tube, a missing mask is the
+    tube's end. False when no ``frame``/``plate`` is given (mask-only tracing)."""
+    if frame is None or plate is None or cfg.gap_visible >= 1.0:
+        return False
+    pts = np.asarray(path[-11:], np.float64)
+    on = _sample(mask, pts) > 0
+    if not on.any():
+        return False
+    tube = np.median(_at(frame, pts[on]), axis=0)
+    dist = float(np.linalg.norm(q - p))
+    t = np.arange(1.0, dist - 0.5, 1.0)
+    if not len(t):
+        return False
+    bridge = p[None] + t[:, None] * ((q - p) / dist)[None]
+    bridge = bridge[_sample(mask, bridge) == 0]
+    if not len(bridge):
+        return False
+    score = cue_maps(tube[None], _at(plate, bridge), cfg)["score"]
+    return bool(np.mean(score > cfg.high) > cfg.gap_visible)
+
+
 def _trace_length(t: TubeTrace) -> float:
     return float(np.sum(np.linalg.norm(np.diff(t.backbone, axis=0), axis=1)))
 
@@ -398,6 +486,8 @@ def trace_tube(
     direction_uv=None,
     cfg: PlateForegroundConfig = PlateForegroundConfig(),
     *,
+    frame: np.ndarray | None = None,
+    plate: np.ndarray | None = None,
     _single: bool = False,
 ) -> TubeTrace:
     """Follow the tube on ``mask`` (H, W) bool from ``entry_uv`` (u, v) (see module
@@ -426,7 +516,9 @@ def trace_tube(
         if d is None:
             empty.reason = "no foreground at the entry"
             return empty
-        both = [trace_tube(mask, entry_uv, s * d, cfg) for s in (1.0, -1.0)]
+        both = [
+            trace_tube(mask, entry_uv, s * d, cfg, frame=frame, plate=plate) for s in (1.0, -1.0)
+        ]
         return max(
             both, key=lambda t: float(np.sum(np.linalg.norm(np.diff(t.backbone, axis=0), axis=1)))
         )
@@ -438,7 +530,7 @@ def trace_tube(
         for a in (0.0, -cfg.start_spread_deg, cfg.start_spread_deg):
             c, s_ = np.cos(np.radians(a)), np.sin(np.radians(a))
             dr = np.array([c * d[0] - s_ * d[1], s_ * d[0] + c * d[1]])
-            out.append(trace_tube(mask, entry_uv, dr, cfg, _single=True))
+            out.append(trace_tube(mask, entry_uv, dr, cfg, frame=frame, plate=plate, _single=True))
         return max(out, key=_trace_length)
     theta = float(np.arctan2(d[1], d[0]))
     radii = np.arange(1.0, cfg.look_px + 0.5, 1.0)
@@ -452,14 +544,17 @@ def trace_tube(
     sizes = np.bincount(labels.ravel())
     max_steps = int(4 * (h + w) / cfg.step_px)
 
-    def _visited(c):
-        """Whether pixel c (u, v) lies on the tube already traced, except its last 30 px
-        (the stretch the gap starts from): a gap must not land back on the shaft (a curled
-        tip ending near it)."""
+    last_corner = -(10**9)
+    on_old = 0
+
+    def _visited(c, keep=30.0):
+        """Whether pixel c (u, v) lies on the tube already traced, except its last ``keep``
+        px (the stretch the gap starts from): a gap must not land back on the shaft (a
+        curled tip ending near it)."""
         pts = np.asarray(path)
         seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
         back = np.concatenate([np.cumsum(seg[::-1])[::-1], [0.0]])  # arclength to the end
-        old = pts[back > 30.0]
+        old = pts[back > keep]
         if not len(old):
             return False
         rad = min(np.median(widths) / 2, 8.0) + 3.0 if widths else 5.0
@@ -473,8 +568,34 @@ def trace_tube(
         # Prefer straight on among near-equal supports.
         pref = sup - 0.02 * np.abs(cands - theta) / max(turn, 1e-9)
         j = int(np.argmax(pref))
-        if sup[j] >= cfg.support:
-            dvec = dirs[j]
+        dvec = dirs[j] if sup[j] >= cfg.support else None
+        since = len(path) - last_corner
+        if (dvec is None and cfg.corner_deg > cfg.max_turn_deg and len(path) > 5
+                and since * cfg.step_px >= cfg.look_px):  # fmt: skip
+            # A corner (a projected kink where an inner tube leaves the outer one, or a
+            # hook): turn by up to corner_deg, onto mask not traced already (more than a
+            # look length and a width back: two turns would walk back along the tube's
+            # other edge), at most once per look length.
+            wide = np.radians(cfg.corner_deg)
+            ca = theta + np.concatenate([np.arange(turn, wide + 1e-9, np.radians(5.0)),
+                                         -np.arange(turn, wide + 1e-9, np.radians(5.0))])  # fmt: skip
+            cd = np.stack([np.cos(ca), np.sin(ca)], 1)
+            cs = _sample(mask, p[None, None] + radii[None, :, None] * cd[:, None]).mean(1)
+            # Best supported first (the tube after a kink is covered along the whole
+            # ray; directions into the kink's corner only partly), straighter on ties.
+            for jj in np.argsort(-cs + 0.02 * np.abs(ca - theta) / wide):
+                if cs[jj] < 0.5 * (1.0 + cfg.support):  # a corner needs more support
+                    break
+                wref = float(np.median(widths)) if widths else 5.0
+                # As wide as the tube (not a crease or an edge residue leaving the tip).
+                _, wl = _recentre(mask, p + 0.5 * cfg.look_px * cd[jj], cd[jj], cfg.max_width_px)
+                if not 0.5 * wref <= wl <= 2.0 * wref:
+                    continue
+                if not _visited(p + cfg.look_px * cd[jj], keep=cfg.look_px + wref):
+                    dvec = cd[jj]
+                    last_corner = len(path)
+                    break
+        if dvec is not None:
             q0 = p + cfg.step_px * dvec
             q, wid = _recentre(mask, q0, dvec, cfg.max_width_px)
             # Re-centre only on a run no wider than 1.6 x the tube so far, and not in the
@@ -518,9 +639,12 @@ def trace_tube(
                     ha = head + np.linspace(-turn, turn, 7)
                     hd = np.stack([np.cos(ha), np.sin(ha)], 1)
                     ahead = pts[i][None, None] + radii[None, :, None] * hd[:, None]
-                    if _sample(mask, ahead).mean(1).max() >= cfg.support:
-                        found = pts[i]
-                        break
+                    if _sample(mask, ahead).mean(1).max() < cfg.support:
+                        continue
+                    if _bridge_visible(mask, frame, plate, path, p, pts[i], cfg):
+                        continue
+                    found = pts[i]
+                    break
                 if found is not None:
                     break
             if found is None:
@@ -534,9 +658,20 @@ def trace_tube(
         seen[cell] += 1
         if seen[cell] > 6:  # walking in circles
             break
+        # Walking along the tube traced already (a hook that came back onto the shaft,
+        # not a crossing, which is shorter than the tube's width): the tube ended where
+        # it joined it.
+        wref = float(np.median(widths)) if widths else 5.0
+        if len(path) > 5 and _visited(q, keep=cfg.look_px + wref):
+            on_old += 1
+            if on_old * cfg.step_px > 1.5 * wref + cfg.step_px:
+                del path[len(path) - on_old + 1 :]
+                break
+        else:
+            on_old = 0
         path.append(q)
         # Heading: from the last few points (smooths the re-centring jitter).
-        back = path[max(len(path) - 4, 0)]
+        back = path[min(max(len(path) - 4, 0, last_corner), len(path) - 2)]
         hd = q - back
         theta = float(np.arctan2(hd[1], hd[0])) if np.linalg.norm(hd) > 1e-6 else theta
         p = q
@@ -554,6 +689,74 @@ def trace_tube(
     width = float(np.median(widths)) if widths else 3.0
     out = _path_mask(mask, bb, gaps, width)
     return TubeTrace(out, bb, tip, entry, gaps, width_px=width)
+
+
+def refine_tip(
+    score: np.ndarray,
+    backbone: np.ndarray,
+    width_px: float,
+    cfg: PlateForegroundConfig = PlateForegroundConfig(),
+) -> tuple[np.ndarray, float]:
+    """Sub-pixel tip along the tube's end direction, from the cue ``score`` (H, W) near the
+    end of ``backbone`` (n, 2) (u, v), for a tube of width ``width_px``.
+
+    The score is sampled (bilinear) on a grid aligned with the end direction ``d`` (the
+    quadratic fit of the last 24 px of the backbone), at 0.25 px steps. Levels: inside
+    ``S_in`` (median on the centre line 1-3 widths behind the end) and background ``S_bg``
+    (median beside the tube). Along the centre line the silhouette's end ``s_end`` is where
+    the score falls to the half level ``(S_in + S_bg)/2`` (a blurred step's half level is
+    its edge, whatever the blur). The tube's end face is a disc: seen at an angle, the
+    silhouette ends in a half-ellipse of width ``w`` and length ``a`` beyond the end point
+    (``a = r |sin|`` of the axis' tilt out of the image plane), so the end point is
+    ``s_end - a``. ``a`` follows from the soft area ``T`` (the score normalised to
+    background 0 and inside 1, clipped at 1, integrated) of the stretch from one width
+    behind the end: ``T = w (s_end - a + w) + (pi/4) w a``, so
+    ``a = (s_end + w - T/w) / (1 - pi/4)``, clipped to ``[0, tip_cap * w/2]``.
+    ``cfg.tip_cap`` (1.0) scales the largest correction (0 = the silhouette's end).
+    Returns (tip (u, v), a)."""
+    bb = np.asarray(backbone, np.float64)
+    w = float(max(width_px, 2.0))
+    arc = _local_arc(list(bb), window_px=max(24.0, 3 * w))
+    if arc is None or len(bb) < 3:
+        return bb[-1].copy(), 0.0
+    theta = arc[0]
+    d = np.array([np.cos(theta), np.sin(theta)])
+    n = np.array([-d[1], d[0]])
+    p0 = bb[-1]
+    ss = np.arange(-3 * w, w + cfg.look_px + 0.01, 0.25)
+    tt = np.arange(-1.5 * w, 1.5 * w + 0.01, 0.25)
+    pts = p0[None, None] + ss[:, None, None] * d[None, None] + tt[None, :, None] * n[None, None]
+    g = ndi.map_coordinates(score, [pts[..., 1], pts[..., 0]], order=1, mode="nearest")
+    centre = np.abs(tt) <= 0.5
+    behind = (ss >= -3 * w) & (ss <= -w)
+    s_in = float(np.median(g[behind][:, centre]))
+    s_bg = float(np.median(g[behind][:, np.abs(tt) >= w]))
+    if not s_in > s_bg:
+        return p0.copy(), 0.0
+    half = 0.5 * (s_in + s_bg)
+    prof = g[:, centre].mean(1)
+    # First crossing below the half level after the end region starts (s >= -w).
+    k0 = int(np.searchsorted(ss, -w))
+    below = np.flatnonzero(prof[k0:] < half)
+    if not len(below):
+        return p0.copy(), 0.0
+    k = k0 + int(below[0])
+    if k == 0:
+        return p0.copy(), 0.0
+    f = (prof[k - 1] - half) / max(prof[k - 1] - prof[k], 1e-12)
+    s_end = float(ss[k - 1] + f * (ss[k] - ss[k - 1]))
+    if cfg.tip_cap <= 0:
+        return p0 + s_end * d, 0.0
+    soft = np.clip((g - s_bg) / (s_in - s_bg), None, 1.0)
+    band = np.abs(tt) <= 0.75 * w
+    w_full = float(np.median(soft[behind][:, band].sum(1) * 0.25))
+    if not w_full > 0:
+        return p0 + s_end * d, 0.0
+    region = (ss >= -w) & (ss <= s_end + 0.5 * w)
+    T = float(soft[region][:, band].sum() * 0.25 * 0.25)
+    a = (s_end + w - T / w_full) / (1.0 - np.pi / 4.0)
+    a = float(np.clip(a, 0.0, cfg.tip_cap * w_full / 2.0))
+    return p0 + (s_end - a) * d, a
 
 
 def _path_mask(mask, bb, gaps, width):
@@ -602,6 +805,8 @@ def plate_foreground(
     shift = align_plate(f, p, max_shift_px=cfg.max_shift_px) if cfg.align else np.zeros(2)
     pa = shift_image(p, shift) if cfg.align else p
     cues = foreground_cues(f, pa, cfg)
+    if cfg.close_px > 0:
+        cues["score"] = close_score(cues["score"], cfg.close_px)
     seeds = hysteresis(cues["score"], cfg.low, cfg.high)
     if entry_uv is None:
         be = border_entry(seeds)
@@ -612,6 +817,14 @@ def plate_foreground(
             return tr
         entry_uv, d0 = be
         direction_uv = d0 if direction_uv is None else direction_uv
-    tr = trace_tube(seeds, entry_uv, direction_uv, cfg)
+    fs, ps = f, pa
+    if cfg.blur_px > 0:
+        fs = ndi.gaussian_filter(f, (cfg.blur_px, cfg.blur_px, 0))
+        ps = ndi.gaussian_filter(pa, (cfg.blur_px, cfg.blur_px, 0))
+    tr = trace_tube(seeds, entry_uv, direction_uv, cfg, frame=fs, plate=ps)
+    if cfg.refine and len(tr.backbone) >= 3:
+        tip, tr.cap_px = refine_tip(cues["score"], tr.backbone, tr.width_px, cfg)
+        tr.backbone = np.vstack([tr.backbone[:-1], tip])
+        tr.tip = tip
     tr.shift, tr.score, tr.seed_mask = shift, cues["score"], seeds
     return tr
