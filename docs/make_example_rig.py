@@ -44,7 +44,7 @@ BOARD_COLS, BOARD_ROWS, SQUARE = 6, 5, 0.015
 #: Board poses: tilts (deg) about the board's own x and y axes, relative to facing the
 #: bisector of the two cameras; distinct orientations so the intrinsics are determined.
 BOARD_TILTS = [(0, 0), (20, 0), (-20, 0), (0, 20), (0, -20), (14, 14), (-14, 14), (14, -14),
-               (-14, -14), (8, -4), (-6, 10), (4, 8), (10, 0), (-10, 0), (0, 10), (0, -10)]
+               (-14, -14), (8, -4), (-6, 10), (4, 8)]
 
 
 def _rot(axis: str, deg: float) -> np.ndarray:
@@ -203,8 +203,8 @@ def make_rig(out: str | Path, *, frames: int = 3, size=(160, 120), seed: int = 7
         for k, tilt in enumerate(BOARD_TILTS):
             for _ in range(200):  # a board position that both views see whole
                 R_b, t_b = _board_pose(target, normal, tilt)
-                off = R_b @ np.r_[brng.uniform(-0.06, 0.06), brng.uniform(-0.045, 0.045), 0.0]
-                t_b = target + off + nz * brng.uniform(-0.02, 0.06)
+                off = R_b @ np.r_[brng.uniform(-0.03, 0.03), brng.uniform(-0.025, 0.025), 0.0]
+                t_b = target + off + nz * brng.uniform(-0.01, 0.05)
                 if all(_board_visible(c, T_cam_base[n], R_b, t_b, size)
                        for n, c in (("cam1", cam1), ("cam2", cam2))):  # fmt: skip
                     break
