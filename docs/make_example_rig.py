@@ -44,7 +44,7 @@ BOARD_COLS, BOARD_ROWS, SQUARE = 6, 5, 0.015
 #: Board poses: tilts (deg) about the board's own x and y axes, relative to facing the
 #: bisector of the two cameras; distinct orientations so the intrinsics are determined.
 BOARD_TILTS = [(0, 0), (20, 0), (-20, 0), (0, 20), (0, -20), (14, 14), (-14, 14), (14, -14),
-               (-14, -14), (8, -4), (-6, 10), (4, 8)]
+               (-14, -14), (8, -4), (-6, 10), (4, 8)]  # fmt: skip
 
 
 def _rot(axis: str, deg: float) -> np.ndarray:

@@ -304,7 +304,7 @@ def _best_of_starts(fit, model, opts: dict, n: int):
     from jaxcr.kinematics.fit import start_set
 
     best = None
-    for q0 in start_set(model, n, opts.get("q0")):
+    for q0 in start_set(model, n, q0=opts.get("q0")):
         res = fit({**opts, "q0": q0})
         key = (not bool(res.ok), float(res.cost))
         if best is None or key < best[0]:

@@ -444,7 +444,9 @@ def camera_from_stereo_entry(
     check_known_keys(d, STEREO_ENTRY_KEYS, file, prefix)
     rel = d.get("stereo")
     if not isinstance(rel, str) or not rel:
-        raise InputError("expected the stereo calibration file's path", file, field=prefix + "stereo")
+        raise InputError(
+            "expected the stereo calibration file's path", file, field=prefix + "stereo"
+        )
     path = os.path.join(os.fspath(root), rel)
     if not os.path.exists(path):
         raise InputError(f"stereo calibration file not found: {rel}", file, field=prefix + "stereo")

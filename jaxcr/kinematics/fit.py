@@ -239,7 +239,7 @@ def default_start(model) -> np.ndarray:
     raise ValueError(f"unknown robot kind {kind!r}")
 
 
-def start_set(model, n: int, q0=None) -> np.ndarray:
+def start_set(model, n: int, *, q0=None) -> np.ndarray:
     """(k, m) start joint vectors for a multi-start fit, k = min(n, available): ``q0`` (default
     :func:`default_start`) first, then the same start with other bending planes, since a
     least-squares fit of several sections' planes has local minima (a plane off by ~pi/2

@@ -182,7 +182,7 @@ def test_base_term_and_start_set():
     base = np.asarray(model.forward(q).centreline.p[0])
     np.testing.assert_allclose(np.asarray(r1[-3:]), 2.0 * (np.asarray(pts[0]) - base), atol=1e-7)
     q0 = np.array([1.0, 0.0, 0.04, 1.0, 0.0, 0.03])
-    S = start_set(model, 9, q0)
+    S = start_set(model, 9, q0=q0)
     assert S.shape == (9, 6)
     np.testing.assert_array_equal(S[0], q0)
     np.testing.assert_array_equal(S[1:, [2, 5]], np.tile([0.04, 0.03], (8, 1)))

@@ -7,6 +7,10 @@ initial direction), and the final numbers are checked against the rig's ground t
 commands share one JAX runtime); ``cat > FILE <<'EOF'`` heredocs and ``mkdir -p`` are done
 here; any other line fails the test (the tutorial stays within what a user's shell runs the same
 way).
+
+Measured on the test's rig (seed 7, development numbers): calibration baseline 0.3159 m vs
+0.3166 m; stereo tip pixels 0.6-1.7 px from the truth; fits 0.11-0.37 mm rms, base 0.23 mm and
+0.25 deg from the truth; refined tip 1.8-3.1 px from the true tip pixel (nominal 2.2-4.2 px).
 """
 
 from __future__ import annotations
@@ -90,7 +94,9 @@ def run_doc(workdir: Path, capsys) -> dict[str, int]:
 
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
-    spec = importlib.util.spec_from_file_location("make_example_rig", DOC.parent / "make_example_rig.py")
+    spec = importlib.util.spec_from_file_location(
+        "make_example_rig", DOC.parent / "make_example_rig.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     out = tmp_path_factory.mktemp("tutorial")
@@ -107,6 +113,10 @@ def test_doc_blocks_parse():
         assert any(c.startswith(f"jaxcr {name} ") for c in cmds), name
 
 
+# Marked slow: on this 2-core machine the commands take ~150-200 s of CPU, mostly compiling
+# (segment's 320x240 two-camera refinement ~100 s, stereo, three fits from nine starts); 672 s
+# wall at load 30-40. 320x240 is the smallest size the stereo step works at (see above).
+@pytest.mark.slow
 def test_tutorial_end_to_end(rig, capsys):
     t0 = time.perf_counter()
     run_doc(rig, capsys)
