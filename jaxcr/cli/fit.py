@@ -18,7 +18,8 @@ Outputs, written atomically (temp file, then rename):
 - ``OUT/q.csv``: a header and one row of q, readable by ``jaxcr fk ROBOT OUT/q.csv``.
 - With ``--frame ID`` (ROBOT a dataset): that frame's ``q`` in ROBOT's dataset.json is replaced
   by the fit and ``meta.fit`` records rms, max and the input; with ``--fit-pose`` every
-  camera's inline ``T_cam_robot`` becomes ``T_cam_robot @ T_ref_robot``. dataset.json is
+  camera's inline ``T_cam_robot`` becomes ``T_cam_robot @ T_ref_robot`` (a camera taken from a
+  stereo file, ``{"stereo": ..., "camera": N}``: its ``T_rig_robot``). dataset.json is
   rewritten atomically.
 
 Exit code 0 when the fit converged, 1 when it did not (the outputs are written, ``ok`` false),
@@ -66,11 +67,25 @@ def add_parser(subparsers) -> None:
         help="weight of the measured-tip-to-model-tip term of a backbone fit (default %(default)s)",
     )
     p.add_argument(
+        "--base-weight",
+        type=float,
+        default=1.0,
+        help="weight of the measured-base-to-model-base term of a backbone fit (the first point "
+        "is the base; 0: the model may start before it) (default %(default)s)",
+    )
+    p.add_argument(
         "--prior",
         type=float,
         default=0.0,
         help="weight of (q - q0), and of the pose twist with --fit-pose, in the residual, for "
         "under-determined fits such as tip pixels (default %(default)s)",
+    )
+    p.add_argument(
+        "--starts",
+        type=int,
+        default=1,
+        help="fit from this many starts (other bending planes, jaxcr.kinematics.fit.start_set) "
+        "and keep the lowest cost; several sections' planes have local minima (default 1)",
     )
     p.add_argument(
         "--max-steps",
@@ -80,6 +95,12 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--frame", help="dataset frame id whose q (and cameras, with --fit-pose) to update"
+    )
+    p.add_argument(
+        "--in-camera",
+        metavar="NAME",
+        help="the backbone is in camera NAME's frame (ROBOT a dataset): map it into the "
+        "dataset's robot frame by that camera's T_cam_robot before fitting",
     )
     p.set_defaults(func=run)
 
@@ -130,6 +151,10 @@ def _update_dataset(path: str, frame_id: str, q, T, record: dict, fit_pose: bool
     fr.setdefault("meta", {})["fit"] = record
     if fit_pose:
         for name, cam in d["cameras"].items():
+            if isinstance(cam, dict) and "stereo" in cam:
+                key = "T_rig_robot"
+            else:
+                key = "T_cam_robot"
             if not isinstance(cam, dict):
                 raise InputError(
                     "camera given as a file: cannot apply the fitted pose (inline it, or apply "
@@ -138,11 +163,11 @@ def _update_dataset(path: str, frame_id: str, q, T, record: dict, fit_pose: bool
                     frame_id,
                     f"cameras.{name}",
                 )
-            T0 = np.asarray(cam.get("T_cam_robot", np.eye(4)), np.float64)
+            T0 = np.asarray(cam.get(key, np.eye(4)), np.float64)
             scale = {"m": 1.0, "cm": 100.0, "mm": 1000.0}.get(cam.get("unit", "m"), 1.0)
             Tm = np.array(T, np.float64)
             Tm[:3, 3] *= scale  # the fitted translation (m) in this entry's unit
-            cam["T_cam_robot"] = (T0 @ Tm).tolist()
+            cam[key] = (T0 @ Tm).tolist()
     atomic_write_json(jpath, d)
 
 
@@ -152,11 +177,13 @@ def run(args) -> int:
     from jaxcr.io.backbone import read_backbone, read_tips
     from jaxcr.io.results import atomic_write_json, atomic_write_text
     from jaxcr.io.robot import load_robot
-    from jaxcr.kinematics.fit import fit_backbone, fit_tip_pixels
+    from jaxcr.kinematics.fit import fit_backbone, fit_tip_pixels, pose_start
 
     if args.max_steps < 1:
         raise InputError(f"must be >= 1, got {args.max_steps}", field="--max-steps")
-    for name in ("tip_weight", "prior"):
+    if not 1 <= args.starts <= 1000:
+        raise InputError(f"must be 1 to 1000, got {args.starts}", field="--starts")
+    for name in ("tip_weight", "base_weight", "prior"):
         v = getattr(args, name)
         if not np.isfinite(v) or v < 0:
             raise InputError(
@@ -164,16 +191,45 @@ def run(args) -> int:
             )
     if args.unit is not None and args.backbone is None:
         raise InputError("--unit applies to --backbone only", field="--unit")
+    if args.in_camera is not None and args.backbone is None:
+        raise InputError("--in-camera applies to --backbone only", field="--in-camera")
     is_dataset = os.path.isdir(args.robot) or os.path.basename(args.robot) == "dataset.json"
     if args.frame is not None and not is_dataset:
         raise InputError("--frame needs ROBOT to be a dataset folder or dataset.json", args.robot)
+    if args.in_camera is not None and not is_dataset:
+        raise InputError(
+            "--in-camera needs ROBOT to be a dataset folder or dataset.json", args.robot
+        )
     model = load_robot(args.robot)
     q0 = _parse_q0(args.q0, model.n_joints)
     opts = dict(q0=q0, fit_pose=args.fit_pose, prior_weight=args.prior, max_steps=args.max_steps)
     if args.backbone is not None:
         points = read_backbone(args.backbone, args.unit)
-        res = fit_backbone(
-            model, jnp.asarray(points, jnp.float32), tip_weight=args.tip_weight, **opts
+        if args.in_camera is not None:
+            from jaxcr.io.dataset import load_dataset
+
+            cams = load_dataset(args.robot).cameras
+            if args.in_camera not in cams:
+                raise InputError(
+                    f"unknown camera {args.in_camera!r} (cameras: {sorted(cams)})",
+                    args.robot,
+                    field="--in-camera",
+                )
+            Tcr = np.asarray(cams[args.in_camera].T_cam_robot, np.float64)
+            points = (points - Tcr[:3, 3]) @ Tcr[:3, :3]  # camera frame -> robot frame
+        if args.fit_pose:
+            opts["T0"] = jnp.asarray(pose_start(points), jnp.float32)
+        res = _best_of_starts(
+            lambda o: fit_backbone(
+                model,
+                jnp.asarray(points, jnp.float32),
+                tip_weight=args.tip_weight,
+                base_weight=args.base_weight,
+                **o,
+            ),
+            model,
+            opts,
+            args.starts,
         )
         mode, unit, source = "backbone", "m", args.backbone
         labels = [f"point {i}" for i in range(points.shape[0])]
@@ -187,7 +243,9 @@ def run(args) -> int:
         names = list(tips)
         cams = tuple(ds.cameras[c] for c in names)
         uv = jnp.asarray([tips[c] for c in names], jnp.float32)
-        res = fit_tip_pixels(model, cams, uv, **opts)
+        res = _best_of_starts(
+            lambda o: fit_tip_pixels(model, cams, uv, **o), model, opts, args.starts
+        )
         mode, unit, source = "tips", "px", args.tips
         labels = names
 
@@ -213,6 +271,7 @@ def run(args) -> int:
         "num_steps": int(res.num_steps),
         "result": _result_text(res.result),
         "ok": ok,
+        "starts": int(args.starts),
     }
     os.makedirs(args.out, exist_ok=True)
     atomic_write_json(os.path.join(args.out, "fit.json"), record)
@@ -236,6 +295,21 @@ def run(args) -> int:
         print(f"jaxcr fit: fit did not converge ({record['result']})", file=sys.stderr)
         return 1
     return 0
+
+
+def _best_of_starts(fit, model, opts: dict, n: int):
+    """``fit(opts)`` from each start of :func:`jaxcr.kinematics.fit.start_set` (the first is
+    ``--q0`` or the default); the converged result of lowest cost (any result if none
+    converged). Its ``prior`` stays anchored at each start's own q0."""
+    from jaxcr.kinematics.fit import start_set
+
+    best = None
+    for q0 in start_set(model, n, q0=opts.get("q0")):
+        res = fit({**opts, "q0": q0})
+        key = (not bool(res.ok), float(res.cost))
+        if best is None or key < best[0]:
+            best = (key, res)
+    return best[1]
 
 
 def errors_rms(errors: np.ndarray) -> float:

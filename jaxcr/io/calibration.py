@@ -424,6 +424,56 @@ def load_stereo(path: str | os.PathLike) -> tuple[Camera, Camera]:
     return (camera_from_arrays(K1, D1, T1, *s1), camera_from_arrays(K2, D2, T2, *s2))
 
 
+#: Keys of a dataset camera entry that takes one camera of a stereo calibration file.
+STEREO_ENTRY_KEYS = ("stereo", "camera", "T_rig_robot", "unit")
+
+
+def camera_from_stereo_entry(
+    d: Mapping[str, Any], root: str | os.PathLike, file: str | None = None, prefix: str = ""
+) -> Camera:
+    """One camera of a stereo calibration file, for a dataset camera entry
+    ``{"stereo": "calib/stereo.yaml", "camera": 1 | 2, "T_rig_robot": 4x4, "unit": "m"}``.
+
+    ``stereo`` is relative to ``root`` (the dataset folder). Intrinsics, distortion and size are
+    camera ``camera``'s; its pose is the file's (camera 2: ``[R | T] @ T_cam_robot`` of the file,
+    see :func:`load_stereo`) composed with ``T_rig_robot`` (the robot frame -> the file's
+    robot frame, i.e. camera 1's frame when the file has no ``T_cam_robot``; default identity;
+    its translation in the entry's ``unit``). Both cameras of a rig normally carry the same
+    ``T_rig_robot`` (``jaxcr fit --fit-pose --frame`` updates every entry alike).
+    """
+    from jaxcr.io.units import check_known_keys
+
+    check_known_keys(d, STEREO_ENTRY_KEYS, file, prefix)
+    rel = d.get("stereo")
+    if not isinstance(rel, str) or not rel:
+        raise InputError(
+            "expected the stereo calibration file's path", file, field=prefix + "stereo"
+        )
+    path = os.path.join(os.fspath(root), rel)
+    if not os.path.exists(path):
+        raise InputError(f"stereo calibration file not found: {rel}", file, field=prefix + "stereo")
+    which = d.get("camera")
+    if isinstance(which, bool) or which not in (1, 2):
+        raise InputError(
+            f"expected 1 or 2 (which camera of the stereo file), got {which!r}",
+            file,
+            field=prefix + "camera",
+        )
+    scale = _unit_scale(d, file, prefix)
+    cam = load_stereo(path)[which - 1]
+    T = d.get("T_rig_robot")
+    if T is None:
+        return cam
+    T = check_transform(T, file, prefix + "T_rig_robot", scale)
+    return camera_from_arrays(
+        np.asarray(cam.K, np.float64),
+        np.asarray(cam.dist, np.float64),
+        np.asarray(cam.T_cam_robot, np.float64) @ T,
+        cam.width,
+        cam.height,
+    )
+
+
 def _missing(file, field):
     raise InputError("missing required key", file=file, field=field)
 

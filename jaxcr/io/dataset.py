@@ -27,7 +27,12 @@ import numpy as np
 
 from jaxcr.camera import Camera
 from jaxcr.errors import InputError, InputErrors
-from jaxcr.io.calibration import camera_from_dict, camera_to_dict, load_camera
+from jaxcr.io.calibration import (
+    camera_from_dict,
+    camera_from_stereo_entry,
+    camera_to_dict,
+    load_camera,
+)
 from jaxcr.io.images import file_header_size, image_size, read_image, read_mask, write_png
 from jaxcr.io.units import MAX_LENGTH_M, nearest_key
 from jaxcr.kinematics.robots import robot_to_dict
@@ -310,6 +315,10 @@ class _Scan:
                             field=f"cameras.{name}",
                         )
                     self.cameras[name] = load_camera(path)
+                elif isinstance(entry, dict) and "stereo" in entry:
+                    self.cameras[name] = camera_from_stereo_entry(
+                        entry, self.root, file=self.file, prefix=f"cameras.{name}."
+                    )
                 else:
                     self.cameras[name] = camera_from_dict(
                         entry, file=self.file, prefix=f"cameras.{name}."

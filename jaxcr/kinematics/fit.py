@@ -187,6 +187,37 @@ def free_from_joints(model, q: Float[Array, " m"]) -> Float[Array, " m"]:
     return q
 
 
+def pose_start(points, *, length: float = 0.015) -> np.ndarray:
+    """A start ``T0`` (4, 4) for a backbone fit with ``fit_pose``: the robot frame at the
+    measured base ``points[0]`` with z along the measured initial direction (the slope at the
+    base of a least-squares quadratic through ``points[0]`` over the first ``length`` metres of
+    chord length, at least the first three further points), and x the reference frame's x
+    axis made perpendicular to z (its y axis when z is within 18 deg of x), so that a backbone
+    already in the robot frame starts at (nearly) the identity. Host-side numpy.
+
+    From the identity a Levenberg-Marquardt pose fit to a backbone a quarter metre away (a
+    camera's or tracker's frame) stalls in a local minimum; from here it starts within the
+    measurement's tilt of the truth."""
+    P = np.asarray(points, np.float64)
+    if P.shape[0] < 2:
+        return np.eye(4)
+    c = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
+    n = max(int(np.searchsorted(c, length, side="right")), min(4, len(P)))
+    s, D = c[1:n], P[1:n] - P[0]
+    A = np.stack([s, s**2], axis=1) if len(s) >= 3 else s[:, None]
+    z = np.linalg.lstsq(A, D, rcond=None)[0][0]
+    if not np.all(np.isfinite(z)) or np.linalg.norm(z) < 1e-12:
+        return np.eye(4)
+    z = z / np.linalg.norm(z)
+    ref = np.array([1.0, 0, 0]) if abs(z[0]) < np.cos(np.radians(18)) else np.array([0, 1.0, 0])
+    x = ref - (ref @ z) * z
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = P[0]
+    return T
+
+
 def default_start(model) -> np.ndarray:
     """A start inside the joint limits: slightly bent so that the bending plane has a gradient
     (kappa = 1/m, theta_L = pi/2 - 0.1 rad), phi = delta = 0, nominal section lengths; CTR
@@ -206,6 +237,42 @@ def default_start(model) -> np.ndarray:
         beta = np.asarray(_ctr_betas(model, jnp.zeros(n)), np.float64)
         return np.concatenate([beta, np.zeros(n)])
     raise ValueError(f"unknown robot kind {kind!r}")
+
+
+def start_set(model, n: int, *, q0=None) -> np.ndarray:
+    """(k, m) start joint vectors for a multi-start fit, k = min(n, available): ``q0`` (default
+    :func:`default_start`) first, then the same start with other bending planes, since a
+    least-squares fit of several sections' planes has local minima (a plane off by ~pi/2
+    can stall). ``constant_curvature`` with a ``phi`` joint: kappa a bend of 1 rad per section
+    (``1 / length``) and every combination of phi in (0, 2 pi/3, -2 pi/3) over the sections,
+    the last section varying fastest; ``single_segment``: delta spread over the circle;
+    ``ctr``: every combination of the alphas of tubes 2.. in (0, 2 pi/3, -2 pi/3)."""
+    import itertools
+
+    base = default_start(model) if q0 is None else np.asarray(q0, np.float64)
+    rows = [base]
+    angles = (0.0, 2 * np.pi / 3, -2 * np.pi / 3)
+    kind = model.kind
+    if kind == "constant_curvature" and "phi" in model.joints:
+        nj = len(model.joints)
+        for combo in itertools.product(angles, repeat=model.n_sections):
+            q = base.reshape(model.n_sections, nj).copy()
+            q[:, model.joints.index("phi")] = combo
+            if "kappa" in model.joints:
+                q[:, model.joints.index("kappa")] = 1.0 / np.asarray(model.length, np.float64)
+            rows.append(q.reshape(-1))
+    elif kind == "single_segment":
+        for k in range(1, max(n, 1)):
+            q = base.copy()
+            q[1] = base[1] + 2 * np.pi * k / max(n, 1)
+            rows.append(q)
+    elif kind == "ctr" and model.n_tubes > 1:
+        nt = model.n_tubes
+        for combo in itertools.product(angles, repeat=nt - 1):
+            q = base.copy()
+            q[nt + 1 :] = np.asarray(combo)
+            rows.append(q)
+    return np.stack(rows[: max(n, 1)])
 
 
 def _wrap(a):
@@ -251,14 +318,22 @@ def backbone_residual(
     points: Float[Array, "k 3"],
     tip_weight: float = 1.0,
     guess: Array | None = None,
+    base_weight: float = 0.0,
 ) -> Float[Array, " r"]:
     """Residual vector (3k + 3,) in metres: each measured point minus its closest point on the
     model centreline (mapped into the reference frame by ``T_ref_robot``), then
-    ``tip_weight * (points[-1] - model tip)``. ``guess``: the CTR's warm start (``state``)."""
+    ``tip_weight * (points[-1] - model tip)``, and with ``base_weight > 0`` also
+    ``base_weight * (points[0] - model base)`` (3k + 6,): with a free base pose, a
+    point-to-curve distance alone lets the model start before the measured base (a longer
+    first section with its base below the real one). ``guess``: the CTR's warm start
+    (``state``)."""
     p, _ = _centreline(model, q, guess)
     p = p @ T_ref_robot[:3, :3].T + T_ref_robot[:3, 3]
     c = closest_points_on_polyline(points, p)
-    return jnp.concatenate([(points - c).reshape(-1), tip_weight * (points[-1] - p[-1])])
+    parts = [(points - c).reshape(-1), tip_weight * (points[-1] - p[-1])]
+    if base_weight:
+        parts.append(base_weight * (points[0] - p[0]))
+    return jnp.concatenate(parts)
 
 
 def tip_pixel_residual(
@@ -285,7 +360,20 @@ def tip_pixel_residual(
 
 @eqx.filter_jit
 def _solve(
-    model, data, q0, T0, guess, *, mode, fit_pose, tip_weight, prior_weight, max_steps, rtol, atol
+    model,
+    data,
+    q0,
+    T0,
+    guess,
+    *,
+    mode,
+    fit_pose,
+    tip_weight,
+    prior_weight,
+    max_steps,
+    rtol,
+    atol,
+    base_weight=0.0,
 ):
     """One Levenberg-Marquardt solve (compiled once per model structure and data shape)."""
     dtype = T0.dtype
@@ -301,7 +389,7 @@ def _solve(
     def fn(y, args):
         q, T = unpack(y)
         if mode == "backbone":
-            r = backbone_residual(model, q, T, data, tip_weight, guess)
+            r = backbone_residual(model, q, T, data, tip_weight, guess, base_weight)
         else:
             cameras, tips_px = data
             r = tip_pixel_residual(model, q, T, cameras, tips_px, guess)
@@ -333,7 +421,20 @@ def _tolerances(dtype, rtol, atol, model=None):
 
 
 def _fit(
-    model, data, q0, T0, *, mode, fit_pose, tip_weight, prior_weight, max_steps, rtol, atol, rounds
+    model,
+    data,
+    q0,
+    T0,
+    *,
+    mode,
+    fit_pose,
+    tip_weight,
+    prior_weight,
+    max_steps,
+    rtol,
+    atol,
+    rounds,
+    base_weight=0.0,
 ):
     """Solve; for a CTR, ``rounds`` LM solves each warm-started from the equilibrium (least
     energy branch, cold-solved outside the LM) at the previous round's q: a cold solve at
@@ -346,6 +447,7 @@ def _fit(
         mode=mode,
         fit_pose=fit_pose,
         tip_weight=tip_weight,
+        base_weight=float(base_weight),
         prior_weight=float(prior_weight),
         max_steps=max_steps,
         rtol=rtol,
@@ -371,6 +473,7 @@ def fit_backbone(
     T0: Float[Array, "4 4"] | None = None,
     fit_pose: bool = False,
     tip_weight: float = 1.0,
+    base_weight: float = 0.0,
     prior_weight: float = 0.0,
     max_steps: int = 100,
     rtol: float | None = None,
@@ -386,6 +489,8 @@ def fit_backbone(
         q0: start (default :func:`default_start`). T0: base pose start (default identity:
             the points are in the robot frame).
         tip_weight: weight of the tip-to-tip term (0 disables it).
+        base_weight: weight of the measured-base-to-model-base term (default 0: off; the
+            points' first one is then free to lie anywhere along the model).
         prior_weight: adds ``prior_weight * (q - q0)`` (metres of residual per unit of q),
             and with ``fit_pose`` ``prior_weight * xi`` (the pose twist, m and rad), to keep an
             under-determined fit near its start; 0 by default.
@@ -409,6 +514,7 @@ def fit_backbone(
         mode="backbone",
         fit_pose=fit_pose,
         tip_weight=float(tip_weight),
+        base_weight=float(base_weight),
         prior_weight=prior_weight,
         max_steps=max_steps,
         rtol=rtol,
@@ -491,5 +597,7 @@ __all__ = [
     "fit_tip_pixels",
     "free_from_joints",
     "joints_from_free",
+    "pose_start",
+    "start_set",
     "tip_pixel_residual",
 ]
