@@ -502,6 +502,32 @@ def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float):
     return float(s[-1]) + step * np.arange(1, k + 1), Xt[1:] - Xt[0] + p[-1]
 
 
+MAX_BACKBONE_M = 5.0  # the same bound as a calibration file's translations (jaxcr/io/units.py)
+
+
+def _consistent_points(P: np.ndarray, err: list[np.ndarray], poses) -> np.ndarray:
+    """Triangulated points that reproject within 2 px in both views, are finite, and lie in
+    front of both cameras (a point behind a camera can reproject well and still be wrong)."""
+    good = (err[0] < 2.0) & (err[1] < 2.0) & np.all(np.isfinite(P), axis=1)
+    for T in poses:
+        z = P @ np.asarray(T[2, :3], np.float64) + float(np.asarray(T[2, 3]))
+        good &= np.nan_to_num(z, nan=-1.0) > 0.0
+    return good
+
+
+def _check_backbone_length(P: np.ndarray) -> None:
+    """A frame whose triangulated backbone is longer than :data:`MAX_BACKBONE_M` fails with
+    reason ``correspondence`` (matches from a wrong segmentation triangulate far away; the
+    resampling would otherwise try to allocate a grid of that length)."""
+    length = float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum())
+    if not length <= MAX_BACKBONE_M:
+        raise StereoFailure(
+            "correspondence",
+            f"triangulated backbone is {length:.3g} m long (over {MAX_BACKBONE_M} m): "
+            "the two views' segmentations do not match",
+        )
+
+
 def _resample(p: np.ndarray, step: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Smooth ordered 3-D points along their arclength (Gaussian kernel, local linear) and
     resample at ``step``. Returns ``(s (k,), p (k, 3))``, s from the first point.
@@ -691,9 +717,10 @@ def reconstruct_pair(
     for T, y in zip((T1, T2), (y1, y2), strict=True):
         Pc = P @ np.asarray(T[:3, :3], np.float64).T + np.asarray(T[:3, 3], np.float64)
         err.append(np.linalg.norm(Pc[:, :2] / Pc[:, 2:] - y, axis=1) * f)
-    good = (err[0] < 2.0) & (err[1] < 2.0) & np.all(np.isfinite(P), axis=1)
+    good = _consistent_points(P, err, (T1, T2))
     if good.sum() < 10:
         raise StereoFailure("correspondence", f"only {int(good.sum())} consistent stereo matches")
+    _check_backbone_length(P[good])
     s, p = _resample(P[good], cfg.step, cfg.smooth_sigma)
     s0 = float(np.linalg.norm(p[0] - base))  # the part hidden at the base, assumed straight
     s = s + s0
