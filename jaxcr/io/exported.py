@@ -31,7 +31,7 @@ from pathlib import Path
 import equinox as eqx
 import jax
 
-FORMAT = b"jaxcr.exported/1\n"
+FORMAT = b"jaxcr.exported/2\n"
 _memo: dict[str, tuple[Callable, object]] = {}
 _source_hash: str | None = None
 
@@ -87,12 +87,17 @@ def _load(path: str):
         raise ValueError("not a jaxcr exported program")
     n = int.from_bytes(blob[len(FORMAT) : len(FORMAT) + 8], "little")
     body = blob[len(FORMAT) + 8 :]
-    return jax.export.deserialize(bytearray(body[:n])), pickle.loads(body[n:])
+    # the output's structure is rebuilt here from a pickled example (leaves numbered
+    # 0..k-1), not unpickled as a treedef: a pickled treedef of equinox modules carries
+    # copies of equinox's sentinel objects and cannot unflatten them in a new process
+    template = pickle.loads(body[n:])
+    return jax.export.deserialize(bytearray(body[:n])), jax.tree_util.tree_structure(template)
 
 
 def _store(path: str, exported, out_tree) -> None:
     body = exported.serialize()
-    blob = FORMAT + len(body).to_bytes(8, "little") + bytes(body) + pickle.dumps(out_tree)
+    template = jax.tree_util.tree_unflatten(out_tree, list(range(out_tree.num_leaves)))
+    blob = FORMAT + len(body).to_bytes(8, "little") + bytes(body) + pickle.dumps(template)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(path))
     try:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from jaxcr.io import exported
+from jaxcr.kinematics.cosserat import Centreline
 
 
 class Params(eqx.Module):
@@ -21,7 +22,10 @@ class Params(eqx.Module):
 @eqx.filter_jit
 def _poly(p: Params, x, mode):
     y = p.a * x**p.power
-    return {"y": y if mode == "plain" else -y, "s": jnp.sum(y)}
+    n = y.shape[0]
+    # an equinox module in the output (its structure must survive a new process)
+    cl = Centreline(s=y, p=jnp.zeros((n, 3)), R=jnp.zeros((n, 3, 3)), u=jnp.zeros((n, 3)), rho=y)
+    return {"y": y if mode == "plain" else -y, "s": jnp.sum(y), "cl": cl}
 
 
 STORED = []
@@ -57,6 +61,8 @@ def test_stored_program_is_reused_without_tracing(folder):
     out2 = exported.cached_call(_poly, p, x2, "plain")
     assert len(STORED) == 1
     np.testing.assert_allclose(out2["y"], _poly(p, x2, "plain")["y"], rtol=1e-6)
+    assert isinstance(out2["cl"], Centreline)
+    np.testing.assert_allclose(out2["cl"].rho, out2["y"], rtol=1e-6)
 
 
 def test_static_values_and_shapes_make_new_entries(folder):
