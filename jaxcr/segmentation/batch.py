@@ -21,6 +21,7 @@ import numpy as np
 from jaxcr._timing import CompileTimer
 from jaxcr.errors import InputError
 from jaxcr.io import results as R
+from jaxcr.io.exported import cached_call
 from jaxcr.io.overlay import fig4_panel
 
 FK_FAILED = "kinematics failed (solver did not converge or non-finite shape)"
@@ -162,6 +163,7 @@ class Segmenter:
         self.run_s = 0.0
         self._coeffs_prev = None  # warm start carried across chunks
         self._cam_prev = None  # and the camera-pose correction with it
+        self._hess_prev = None  # and the solver's inverse Hessian
 
     # ------------------------------------------------------------------ per-frame checks
 
@@ -272,6 +274,8 @@ class Segmenter:
         qs = jnp.asarray(np.stack([self.frames[fid].q for fid, _ in full]), jnp.float32)
         imgs_np = [np.stack([ims[k] for _, ims in full]) for k in range(len(self.cams))]
         with CompileTimer() as timer:
+            # not through cached_call: exporting the CTR kinematics failed (cached_call fell
+            # back to tracing, so it was traced twice; cause not investigated)
             fk = _fk_batch(self.ds.robot, qs)
             bgs, subs = [], []
             traces = None
@@ -293,7 +297,9 @@ class Segmenter:
                     self.config,
                     init=self._coeffs_prev,
                     init_cam=self._cam_prev,
+                    init_hessian=self._hess_prev,
                     valid=valid,
+                    jit_call=cached_call,
                 )
             else:
                 res = refine_batch(
@@ -303,6 +309,7 @@ class Segmenter:
                     tuple(bgs),
                     self.config,
                     valid=valid,
+                    jit_call=cached_call,
                 )
             res = jax.block_until_ready(res)
         self.compile_s += timer.compile_s
@@ -321,6 +328,7 @@ class Segmenter:
             if ok_idx:
                 self._coeffs_prev = jnp.asarray(host.coeffs[ok_idx[-1]])
                 self._cam_prev = jnp.asarray(host.camera_correction[ok_idx[-1]])
+                self._hess_prev = jnp.asarray(host.hessian_inv[ok_idx[-1]])
 
         for i, (fid, images) in enumerate(chunk):
             frame = self.frames[fid]

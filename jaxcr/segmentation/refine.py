@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -177,6 +178,13 @@ class RefineConfig(eqx.Module):
         stereo rig's relative calibration is far better known than its registration to
         the robot); None = rigid rig (no residual). ``experiments/segmentation/table2.py``
         uses 0.3 (docs/decisions.md S9).
+    hessian_memory : bool
+        (``solver="bfgs"``) start each solve of a level after the first from the inverse
+        Hessian the previous solve ended with (moved into the new solve's scaling), and a
+        warm-started frame (``init_hessian`` of :func:`refine_frame`,
+        :func:`refine_sequence`) from the previous frame's; otherwise every solve starts
+        from the identity (steepest descent). Each new pyramid level starts from the
+        identity. Measured in ``experiments/results/segmentation/profile_refine_*.md``.
 
     Examples
     --------
@@ -217,6 +225,7 @@ class RefineConfig(eqx.Module):
     g_cam: float = eqx.field(static=True, default=0.3)
     camera_correction_mode: str = eqx.field(static=True, default="camera")
     g_cam_rel: float | None = eqx.field(static=True, default=None)
+    hessian_memory: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         n = len(self.levels)
@@ -354,6 +363,13 @@ class RefineResult(eqx.Module):
         (rad, about the optical centre) and translation (m), camera frame; zeros unless
         ``config.camera_correction``. Masks use the corrected cameras. In the ``"rig"``
         mode each row is that camera's effective correction ``T_i' T_i^-1``.
+    hessian_inv : float array (n, n)
+        (n, n) the BFGS approximation of the inverse Hessian of the objective J with respect
+        to the flattened parameters (``coeffs`` then the camera-correction parameters, in
+        the units of :func:`refine_frame`'s solves before scaling) at the end of the last
+        solve: solver state for warm-starting the next frame
+        (:attr:`RefineConfig.hessian_memory`), not a calibrated covariance (the identity
+        when no solve updated it).
     time_s : float scalar array
         wall time per frame in seconds (set by the Python entry points; 0 inside jit).
 
@@ -382,6 +398,7 @@ class RefineResult(eqx.Module):
     failure: Int[Array, ""]
     band_exact: Bool[Array, ""]
     camera_correction: Float[Array, "c 6"]
+    hessian_inv: Float[Array, "n n"]
     time_s: Float[Array, ""]
 
 
@@ -543,6 +560,17 @@ class ImageSpaceBFGS(optx.BFGS):
         self.xtol = xtol
         self.ftol = ftol
 
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        """Optimistix's init, starting from ``options["hessian_inv0"]`` ((n, n), the inverse
+        Hessian in the solver's units, for a flat ``y`` of n) instead of the identity when
+        given: the first BFGS direction is then ``-H0 g`` (a quasi-Newton step from what an
+        earlier solve learnt) rather than steepest descent."""
+        state = super().init(fn, y, args, options, f_struct, aux_struct, tags)
+        h0 = options.get("hessian_inv0")
+        if h0 is None:
+            return state
+        return eqx.tree_at(lambda s: s.f_info.hessian_inv.pytree, state, h0.astype(y.dtype))
+
     def step(self, fn, y, args, options, state, tags):
         y_new, new, aux = super().step(fn, y, args, options, state, tags)
         return y_new, _image_space_stop(self, y, state, new, options), aux
@@ -584,6 +612,7 @@ def refine_frame(
     init: Float[Array, "a k"] | None = None,
     valid: Bool[Array, ""] | bool = True,
     init_cam: Float[Array, "c 6"] | None = None,
+    init_hessian: Float[Array, "n n"] | None = None,
 ) -> RefineResult:
     """Refine one frame (pure; jit it, or use :func:`refine_batch` / :func:`refine_frame_jit`).
 
@@ -600,6 +629,9 @@ def refine_frame(
             of :attr:`RefineResult.camera_correction` (e.g. the previous frame's; a
             calibration error persists across frames); zeros if None. Ignored unless
             ``config.camera_correction``.
+        init_hessian: warm-start inverse Hessian (n, n) for the first solve (the previous
+            frame's :attr:`RefineResult.hessian_inv`); identity if None or non-finite. Used
+            only with ``config.hessian_memory`` and BFGS.
 
     Returns:
         :class:`RefineResult` (see there).
@@ -684,10 +716,10 @@ def refine_frame(
     in_view = area_ref > 1.0
 
     def objective(params, args):
-        bands, datas, level, tau, vars_ = args
+        bands, datas, level, tau, vars_, gathered = args
         _, tubes = tubes_of(params)
         J = reg_of(params)
-        for tube, band, data, var in zip(tubes, bands, datas, vars_, strict=True):
+        for tube, band, data, var, gat in zip(tubes, bands, datas, vars_, gathered, strict=True):
             Jc, _ = chan_vese_energy(
                 level_tube(tube, level, config.seg_merge),
                 band,
@@ -700,6 +732,7 @@ def refine_frame(
                 config.robust,
                 var,
                 config.robust_envelope,
+                gat,
             )
             J = J + Jc
         return J
@@ -711,16 +744,28 @@ def refine_frame(
     params = params0
     steps = []
     status = jnp.asarray(0, jnp.int32)
+    n_flat = jax.flatten_util.ravel_pytree(params0)[0].shape[0]
+    memory = config.hessian_memory and config.solver == "bfgs"
+    eye = jnp.eye(n_flat, dtype=dtype)
+    if init_hessian is None:
+        hinv, have_h = eye, jnp.asarray(False)
+    else:
+        hinv = jnp.asarray(init_hessian, dtype).reshape(n_flat, n_flat)
+        have_h = jnp.all(jnp.isfinite(hinv))
+        hinv = jnp.where(have_h, hinv, eye)
     n_levels = max(config.levels) + 1
     pyramids = [pyramid(im, bg, n_levels) for im, bg in zip(images, backgrounds, strict=True)]
     data_ok = sum(jnp.sum(p[0][1]) for p in pyramids) > 0.5
     for li, level in enumerate(config.levels):
+        if li > 0:
+            # the coarse level's curvature (wider tau, coarser pixels) is not the fine one's
+            hinv, have_h = eye, jnp.asarray(False)
         datas = tuple(region_data_from_level(*p[level], level, config.tile) for p in pyramids)
         k_tiles = config.tiles_at(level)
         tau = config.tau[li]
 
         def solve(carry, _, datas=datas, level=level, k_tiles=k_tiles, tau=tau, li=li):
-            params, nsteps, _ = carry
+            params, nsteps, _, hinv, have_h = carry
             _, tubes = tubes_of(params)
             bands = tuple(
                 select_band(level_tube(t, level, config.seg_merge), d.grid, k_tiles, config.k_seg)
@@ -738,7 +783,9 @@ def refine_frame(
                 )  # fmt: skip
             else:
                 vars_ = (None,) * len(tubes)
-            args = (bands, datas, level, tau, vars_)
+            # the band's pixels once per solve, not at every energy evaluation
+            gathered = tuple(d.gather(bd.tiles) for d, bd in zip(datas, bands, strict=True))
+            args = (bands, datas, level, tau, vars_, gathered)
             # solve in image-motion units (see ImageSpaceBFGS): z_i = scale_i * y_i with
             # scale_i the RMS motion (level px) of the projected points per unit of y_i, and
             # J divided by kappa so that the first, steepest-descent step moves the tube by
@@ -760,25 +807,37 @@ def refine_frame(
             def scaled(z, args):
                 return objective(unravel(z / scale), args) / kappa
 
+            options = {"motion_jac": jac / scale, "f_scale": kappa}
+            # the inverse Hessian is carried in J per (parameter unit)^2 and moved into this
+            # solve's units (z = scale * y, J / kappa): H_z^-1 = kappa D H^-1 D, D = diag(scale)
+            outer_scale = scale[:, None] * scale[None, :]
+            if memory:
+                hz = kappa * outer_scale * hinv
+                use = have_h & jnp.all(jnp.isfinite(hz))
+                options["hessian_inv0"] = jnp.where(use, hz, eye)
             sol = optx.minimise(
                 scaled,
                 solver,
                 flat0 * scale,
                 args=args,
-                options={"motion_jac": jac / scale, "f_scale": kappa},
+                options=options,
                 max_steps=config.steps[li],
                 throw=False,
             )
             value = unravel(sol.value / scale)
             good = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(value)]))
             new = jax.tree.map(lambda a, b: jnp.where(good, a, b), value, params)
-            return (new, nsteps + sol.stats["num_steps"], _result_int(sol.result)), None
+            if memory:
+                h_new = sol.state.f_info.hessian_inv.pytree / (kappa * outer_scale)
+                keep = good & jnp.all(jnp.isfinite(h_new))
+                hinv = jnp.where(keep, h_new, hinv)
+                have_h = have_h | keep
+            out = (new, nsteps + sol.stats["num_steps"], _result_int(sol.result), hinv, have_h)
+            return out, None
 
-        (params, n, status), _ = jax.lax.scan(
-            solve,
-            (params, jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32)),
-            None,
-            length=config.outer[li],
+        zero = jnp.asarray(0, jnp.int32)
+        (params, n, status, hinv, have_h), _ = jax.lax.scan(
+            solve, (params, zero, zero, hinv, have_h), None, length=config.outer[li]
         )
         steps.append(n)
 
@@ -862,13 +921,25 @@ def refine_frame(
         failure=failure,
         band_exact=exact,
         camera_correction=cam_corr,
+        hessian_inv=hinv,
         time_s=jnp.asarray(0.0, dtype),
     )
 
 
 @eqx.filter_jit
-def _refine_frame_jit(base, cameras, images, backgrounds, config, init, valid, init_cam):
-    return refine_frame(base, cameras, images, backgrounds, config, init, valid, init_cam)
+def _refine_frame_jit(base, cameras, images, backgrounds, config, init, valid, init_cam, init_h):
+    return refine_frame(base, cameras, images, backgrounds, config, init, valid, init_cam, init_h)
+
+
+def _direct(fn, *args):
+    return fn(*args)
+
+
+def _cam_rows(config: RefineConfig, n_cam: int) -> int:
+    """Rows of the camera-correction parameters (:func:`refine_frame`'s ``params["cam"]``)."""
+    rig = config.camera_correction_mode == "rig"
+    residual = rig and config.g_cam_rel is not None and n_cam > 1
+    return n_cam if (residual or not rig) else 1
 
 
 def _cam_init(init_cam, lead: tuple[int, ...], n_cam: int, dtype):
@@ -884,6 +955,7 @@ def refine_frame_jit(
     init=None,
     valid=True,
     init_cam=None,
+    init_hessian=None,
 ) -> RefineResult:
     """Jit-compiled :func:`refine_frame` (compiled once per shape/config) with wall time."""
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
@@ -891,8 +963,9 @@ def refine_frame_jit(
     init_cam = _cam_init(init_cam, (), len(cameras), base.p.dtype)
     t0 = time.perf_counter()
     out = _refine_frame_jit(
-        base, cameras, images, backgrounds, config, init, jnp.asarray(valid, bool), init_cam
-    )
+        base, cameras, images, backgrounds, config, init, jnp.asarray(valid, bool), init_cam,
+        init_hessian,
+    )  # fmt: skip
     jax.block_until_ready(out)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.asarray(time.perf_counter() - t0))
 
@@ -909,11 +982,6 @@ def _refine_batch_jit(bases, cameras, images, backgrounds, config, inits, valid,
     return jax.lax.map(one, args)
 
 
-def _refine_batch_body(batched, cameras, config, mode):
-    bases, images, backgrounds, inits, valid, cams0 = batched
-    return _refine_batch_jit(bases, cameras, images, backgrounds, config, inits, valid, mode, cams0)
-
-
 def refine_batch(
     bases: Centreline,
     cameras,
@@ -925,6 +993,7 @@ def refine_batch(
     mode: str = "map",
     init_cams: Float[Array, "f c 6"] | None = None,
     devices: int | None = None,
+    jit_call: Callable | None = None,
 ) -> RefineResult:
     """Refine F independent frames in one compiled call.
 
@@ -947,6 +1016,9 @@ def refine_batch(
             :func:`jaxcr.scale.devices.map_frames`; bit-identical per frame to one device).
             None: all local devices of the default backend (one on a usual machine: no
             sharding); 1: one device.
+        jit_call: how the compiled function is called, ``jit_call(fn, *args)``; None calls
+            ``fn(*args)``. ``jaxcr.io.exported.cached_call`` reuses the traced program of an
+            earlier process (what ``jaxcr segment`` does).
 
     Returns:
         :class:`RefineResult` with a leading frame axis; ``time_s`` is the batch wall time
@@ -969,8 +1041,15 @@ def refine_batch(
     from jaxcr.scale.devices import map_frames
 
     t0 = time.perf_counter()
+    call = _direct if jit_call is None else jit_call
+
+    def body(batched, cameras, config, mode):
+        bases, images, backgrounds, inits, valid, cams0 = batched
+        args = (bases, cameras, images, backgrounds, config, inits, valid, mode, cams0)
+        return call(_refine_batch_jit, *args)
+
     batched = (bases, images, backgrounds, inits, valid, cams0)
-    out = map_frames(_refine_batch_body, batched, cameras, config, mode, devices=devices)
+    out = map_frames(body, batched, cameras, config, mode, devices=devices)
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / max(f, 1)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))
@@ -978,30 +1057,31 @@ def refine_batch(
 
 @eqx.filter_jit
 def _refine_sequence_jit(
-    bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, cold_first
+    bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0, cold_first
 ):
     n_levels = len(config.levels)
 
-    def one(cfg, c_prev, cam_prev, base, ims, bgs, v):
-        r = refine_frame(base, cameras, ims, bgs, cfg, c_prev, v, cam_prev)
+    def one(cfg, c_prev, cam_prev, h_prev, base, ims, bgs, v):
+        r = refine_frame(base, cameras, ims, bgs, cfg, c_prev, v, cam_prev, h_prev)
         # steps_per_level follows config's levels: levels a warm frame skips count 0 steps
         spl = r.steps_per_level
         pad = jnp.zeros((max(n_levels - spl.shape[0], 0),), spl.dtype)
         r = eqx.tree_at(lambda x: x.steps_per_level, r, jnp.concatenate([pad, spl]))
         c_next = jnp.where(r.ok, r.coeffs, c_prev)
         cam_next = jnp.where(r.ok, r.camera_correction, cam_prev)
-        return (c_next, cam_next), r
+        h_next = jnp.where(r.ok, r.hessian_inv, h_prev)
+        return (c_next, cam_next, h_next), r
 
     def step(prev, args):
         return one(warm_config, *prev, *args)
 
     seq = (bases, images, backgrounds, valid)
     if not cold_first:
-        _, out = jax.lax.scan(step, (init, cam0), seq)
+        _, out = jax.lax.scan(step, (init, cam0, h0), seq)
         return out
     # the first frame has no previous answer: the full (coarse-to-fine) schedule
     first = jax.tree.map(lambda x: x[0], seq)
-    prev, r0 = one(config, init, cam0, *first)
+    prev, r0 = one(config, init, cam0, h0, *first)
     _, rest = jax.lax.scan(step, prev, jax.tree.map(lambda x: x[1:], seq))
     return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), r0, rest)
 
@@ -1016,11 +1096,14 @@ def refine_sequence(
     valid: Bool[Array, " f"] | None = None,
     init_cam: Float[Array, "c 6"] | None = None,
     warm_config: RefineConfig | None = None,
+    init_hessian: Float[Array, "n n"] | None = None,
+    jit_call: Callable | None = None,
 ) -> RefineResult:
     """Refine a sequence, warm-starting frame t from frame t-1's delta-u and camera
     correction (in one compiled ``lax.scan``). A failed frame passes the last good values on.
     Arguments as :func:`refine_batch`; ``init`` and ``init_cam`` (:func:`refine_frame`)
-    warm-start the first frame.
+    warm-start the first frame, with ``init_hessian`` (the last frame's
+    :attr:`RefineResult.hessian_inv`; NaN = identity). ``jit_call`` as :func:`refine_batch`.
 
     Warm-started frames use ``warm_config`` (default ``config.warm()``: the finest pyramid
     level only, see :meth:`RefineConfig.warm`); the first frame uses ``config`` unless
@@ -1033,10 +1116,17 @@ def refine_sequence(
     valid = jnp.ones(f, bool) if valid is None else jnp.asarray(valid, bool)
     cam0 = _cam_init(init_cam, (), len(cameras), dtype)
     warm_config = config.warm() if warm_config is None else warm_config
-    t0 = time.perf_counter()
-    out = _refine_sequence_jit(
-        bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, cold_first
+    n_flat = config.coeff_shape[0] * config.coeff_shape[1] + (
+        6 * _cam_rows(config, len(cameras)) if config.camera_correction else 0
     )
+    # NaN = no Hessian yet (refine_frame falls back to the identity): one compiled shape
+    h0 = jnp.full((n_flat, n_flat), jnp.nan, dtype) if init_hessian is None else init_hessian
+    t0 = time.perf_counter()
+    call = _direct if jit_call is None else jit_call
+    out = call(
+        _refine_sequence_jit, bases, cameras, images, backgrounds, config, warm_config, init,
+        valid, cam0, h0, cold_first,
+    )  # fmt: skip
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / max(f, 1)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))

@@ -122,12 +122,16 @@ def test_warm_start_from_the_answer_takes_fewer_steps(scene, cold):
 
 def test_sequence_equals_per_frame_cold_then_warm(scene, cold, sequence):
     """refine_sequence: frame 0 is the cold per-frame result, frame 1 the warm per-frame
-    result started from frame 0's answer (slow-loop reference: one refine_frame per frame).
-    Same compiled ops up to the scan, so the tolerance is float32 rounding: mask IoU > 0.98."""
+    result started from frame 0's answer and its solver Hessian (slow-loop reference: one
+    refine_frame per frame). Same compiled ops up to the scan, so the tolerance is float32
+    rounding: mask IoU > 0.98."""
     base, cam, frames = scene
     r0 = cold[0]
     np.testing.assert_allclose(sequence.coeffs[0], r0.coeffs, atol=1e-4)
-    w1 = refine_frame_jit(base, cam, frames[1]["img"], frames[1]["bg"], CFG.warm(), init=r0.coeffs)
+    w1 = refine_frame_jit(
+        base, cam, frames[1]["img"], frames[1]["bg"], CFG.warm(), init=r0.coeffs,
+        init_hessian=r0.hessian_inv,
+    )  # fmt: skip
     np.testing.assert_allclose(sequence.coeffs[1], w1.coeffs, atol=1e-3)
     assert float(iou(sequence.masks[0][1], w1.masks[0])) > 0.98
     assert np.asarray(sequence.steps_per_level).shape == (2, 2)  # padded to the cold schedule

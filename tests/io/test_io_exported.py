@@ -1,0 +1,95 @@
+"""jaxcr.io.exported.cached_call: stored traced programs (jax.export) reused by a later process.
+
+A small eqx.filter_jit function with a module argument (arrays and a static field) stands in
+for the refinement; the reference is the direct call (same compiled arithmetic, so equality
+is exact up to XLA's choice of fusion: float32 rounding, rtol 1e-6)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxcr.io import exported
+from jaxcr.kinematics.cosserat import Centreline
+
+
+class Params(eqx.Module):
+    a: jax.Array
+    power: int = eqx.field(static=True)
+
+
+@eqx.filter_jit
+def _poly(p: Params, x, mode):
+    y = p.a * x**p.power
+    n = y.shape[0]
+    # an equinox module in the output (its structure must survive a new process)
+    cl = Centreline(s=y, p=jnp.zeros((n, 3)), R=jnp.zeros((n, 3, 3)), u=jnp.zeros((n, 3)), rho=y)
+    return {"y": y if mode == "plain" else -y, "s": jnp.sum(y), "cl": cl}
+
+
+STORED = []
+
+
+@pytest.fixture
+def folder(tmp_path, monkeypatch):
+    d = str(tmp_path / "exported")
+    monkeypatch.setattr(exported, "_folder", lambda: d)
+    monkeypatch.setattr(exported, "_memo", {})
+    store = exported._store
+    STORED.clear()
+
+    def counting_store(*a):  # an entry is stored exactly when the function was exported
+        STORED.append(a[0])
+        store(*a)
+
+    monkeypatch.setattr(exported, "_store", counting_store)
+    return tmp_path / "exported"
+
+
+def test_stored_program_is_reused_without_tracing(folder):
+    p, x = Params(jnp.arange(3.0), 2), jnp.linspace(0.0, 1.0, 3)
+    ref = _poly(p, x, "plain")
+    out = exported.cached_call(_poly, p, x, "plain")
+    assert len(STORED) == 1
+    np.testing.assert_allclose(out["y"], ref["y"], rtol=1e-6)
+    np.testing.assert_allclose(out["s"], ref["s"], rtol=1e-6)
+    assert len(list(folder.glob("*.jaxexport"))) == 1
+    # a new process: empty memo, the file is loaded and called, nothing is exported again
+    exported._memo.clear()
+    x2 = x + 1.0
+    out2 = exported.cached_call(_poly, p, x2, "plain")
+    assert len(STORED) == 1
+    np.testing.assert_allclose(out2["y"], _poly(p, x2, "plain")["y"], rtol=1e-6)
+    assert isinstance(out2["cl"], Centreline)
+    np.testing.assert_allclose(out2["cl"].rho, out2["y"], rtol=1e-6)
+
+
+def test_static_values_and_shapes_make_new_entries(folder):
+    p, x = Params(jnp.arange(3.0), 2), jnp.ones(3)
+    exported.cached_call(_poly, p, x, "plain")
+    neg = exported.cached_call(_poly, p, x, "negated")  # a static string argument
+    np.testing.assert_allclose(neg["y"], -_poly(p, x, "plain")["y"], rtol=1e-6)
+    cube = exported.cached_call(_poly, Params(p.a, 3), 2.0 * x, "plain")  # a static field
+    np.testing.assert_allclose(cube["y"], p.a * 8.0, rtol=1e-6)
+    exported.cached_call(_poly, Params(jnp.arange(4.0), 2), jnp.ones(4), "plain")  # shapes
+    assert len(list(folder.glob("*.jaxexport"))) == 4
+
+
+def test_cache_off_calls_directly(monkeypatch, tmp_path):
+    monkeypatch.setattr(exported, "_folder", lambda: None)
+    p, x = Params(jnp.arange(2.0), 1), jnp.ones(2)
+    out = exported.cached_call(_poly, p, x, "plain")
+    np.testing.assert_allclose(out["y"], np.arange(2.0))
+    assert not any(tmp_path.iterdir())
+
+
+def test_unreadable_entry_is_rebuilt(folder):
+    p, x = Params(jnp.arange(3.0), 2), jnp.ones(3)
+    exported.cached_call(_poly, p, x, "plain")
+    (path,) = folder.glob("*.jaxexport")
+    path.write_bytes(b"garbage")
+    exported._memo.clear()
+    out = exported.cached_call(_poly, p, x, "plain")
+    np.testing.assert_allclose(out["y"], np.arange(3.0))
+    assert path.read_bytes().startswith(exported.FORMAT)
