@@ -30,10 +30,10 @@ per q; the warm path stops at convergence).
   from each of the ``n_starts`` starts, vmapped over the starts; the least-energy start whose
   residual is within ``tol`` is then polished on the full grid by the warm path. No while loop
   over the starts, no Jacobian by automatic differentiation: the compiled function is small.
-* Warm start (``guess``) and that polish: chord iterations
-  (:func:`jaxcr.kinematics.newton.chord_newton`: one difference Jacobian at the guess, one
-  residual per iteration, a ``while_loop`` that stops once the residual is within the solver
-  tolerance, at most ``warm_steps`` iterations), with the implicit-function derivative
+* Warm start (``guess``) and that polish: quasi-Newton iterations
+  (:func:`jaxcr.kinematics.newton.chord_newton`: one difference Jacobian at the guess, then
+  one residual per iteration with Broyden updates, a ``while_loop`` that stops once the
+  residual is within the solver tolerance, at most ``warm_steps`` iterations), with the implicit-function derivative
   (:func:`jaxcr.kinematics.newton.implicit_root`, exact Jacobian formed only when
   differentiated, tested against finite differences), so ``forward`` is differentiable in q.
 
@@ -430,7 +430,7 @@ class ConcentricTubeRobot(eqx.Module):
         return jax.vmap(one)(guesses)
 
     def _warm_solve(self, q: Array, guess: Array) -> tuple[Array, Array, Array]:
-        """Chord iterations from ``guess`` that stop at convergence; differentiable in q.
+        """Quasi-Newton iterations from ``guess`` that stop at convergence; differentiable in q.
 
         The derivative is the implicit-function one (:func:`implicit_root`: the exact Jacobian
         at the solution, formed only when differentiated, no derivative through the
