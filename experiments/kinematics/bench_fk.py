@@ -25,8 +25,11 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--n-reference", type=int, default=3, help="q timed with scipy")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--no-previous", action="store_true",
-                    help="skip the pre-issue-18 solvers (their cold path compiles for minutes)")
+    ap.add_argument(
+        "--no-previous",
+        action="store_true",
+        help="skip the pre-issue-18 solvers (their cold path compiles for minutes)",
+    )
     ap.add_argument(
         "-o", "--out", default=os.path.join(HERE, "..", "results", "kinematics", "bench_fk.md")
     )
