@@ -26,13 +26,22 @@ def main(argv=None) -> int:
     ap.add_argument("--n-reference", type=int, default=3, help="q timed with scipy")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--no-previous",
+        action="store_true",
+        help="skip the pre-issue-18 solvers (their cold path compiles for minutes)",
+    )
+    ap.add_argument(
         "-o", "--out", default=os.path.join(HERE, "..", "results", "kinematics", "bench_fk.md")
     )
     args = ap.parse_args(argv)
-    res = run_fk_benchmark(args.batch, args.cold_batch, args.repeats, args.n_reference, args.seed)
+    res = run_fk_benchmark(
+        args.batch, args.cold_batch, args.repeats, args.n_reference, args.seed,
+        previous=not args.no_previous,
+    )  # fmt: skip
     command = (
         f"python experiments/kinematics/bench_fk.py --batch {args.batch} "
         f"--cold-batch {args.cold_batch} --repeats {args.repeats}"
+        + (" --no-previous" if args.no_previous else "")
     )
     text = markdown(res, command)
     print(text)

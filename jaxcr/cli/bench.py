@@ -1,7 +1,8 @@
-"""``jaxcr bench segment|fk``: run a benchmark and report it (console table + Markdown).
+"""``jaxcr bench segment|fk|motion``: run a benchmark and report it (console table + Markdown).
 
 The measurements live in the package, :mod:`jaxcr.benchmarks` (``segment.py``:
-``run_segment_benchmark``, ``fk.py``: ``run_fk_benchmark``), so this command works from an
+``run_segment_benchmark``, ``fk.py``: ``run_fk_benchmark``, ``motion.py``:
+``run_motion_benchmark``), so this command works from an
 installed wheel; it finds them (see :data:`PROVIDERS`), passes the options they accept, and
 prints and writes what they return.
 
@@ -42,6 +43,7 @@ HELP = "benchmark segmentation or forward kinematics (medians, compile time, rat
 PROVIDERS = {
     "segment": [("jaxcr.benchmarks.segment", "run_segment_benchmark")],
     "fk": [("jaxcr.benchmarks.fk", "run_fk_benchmark")],
+    "motion": [("jaxcr.benchmarks.motion", "run_motion_benchmark")],
 }
 
 
@@ -60,6 +62,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--size", default=None, metavar="WxH", help="segment: image size")
     p.add_argument("--batch", type=int, default=None, help="fk: joint vectors per batch (<= 65536)")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--previous",
+        action="store_true",
+        help="fk, motion: also time the previous implementation in the same run "
+        "(fk: the pre-issue-18 CTR solvers, minutes of compilation)",
+    )
     p.set_defaults(func=run)
     return p  # fmt: skip
 
@@ -112,7 +120,7 @@ class _ScriptProvider:
 def _call(fn, args) -> dict:
     """Call ``fn`` with the CLI options it accepts (by parameter name)."""
     opts = {"repeats": args.repeats, "frames": args.frames, "batch": args.batch,
-            "seed": args.seed}  # fmt: skip
+            "seed": args.seed, "previous": getattr(args, "previous", False) or None}  # fmt: skip
     if args.size is not None:
         from jaxcr.synth.generate import parse_size
 

@@ -19,20 +19,29 @@ Shooting unknowns: ``x`` = the ``n - 1`` tip angles of tubes 2..n relative to tu
 ODE is integrated from the free distal ends (``u_iz = 0``) to the base, and the residual is the
 mismatch of the base angles with the joint values (:meth:`ConcentricTubeRobot.shooting_residual`).
 
-Solvers. Cold start (``guess=None``): ``optx.least_squares`` with ``optx.LevenbergMarquardt``
-from the :meth:`ConcentricTubeRobot.initial_guesses` scan starts (vmapped, ``throw=False``, at
-most ``cold_steps`` iterations each); the least-energy branch whose residual is within ``tol`` is
-then polished by the warm path. Warm start (``guess``) and that polish:
-:func:`jaxcr.kinematics.newton.fixed_newton`, ``warm_steps`` plain Newton iterations in a
-``fori_loop``, with the implicit-function derivative
-(:func:`jaxcr.kinematics.newton.implicit_solution`, tested against finite differences), so
-``forward`` is differentiable in ``q``. A fixed iteration count rather than
-``optx.root_find``: a vmapped while loop runs to the slowest batch member (the alternatives
-and their timings: docs/decisions.md K1).
-``FkResult.num_steps`` = LM iterations (``sol.stats["num_steps"]``, summed over the starts) plus
-the Newton iterations taken until the residual was within the solver tolerance. ``ok`` = finite
-outputs, residual within ``tol`` and joint limits; the LM ``sol.result`` is not used for ``ok``
-(the branch is judged by its residual after the polish).
+Solvers (issue 18: the cold path compiles once per robot shape class and costs a fixed amount
+per q; the warm path stops at convergence).
+
+* Cold start (``guess=None``), a fixed-size branch search on a *coarse* copy of the grid
+  (``scan_n_points`` samples, default 25: the RK4 error there is ~1e-5 of the residual's
+  scale, far below the spacing of distinct equilibria): the residual scan of
+  :meth:`ConcentricTubeRobot.initial_guesses`, then ``cold_steps`` Newton iterations with a
+  forward-difference Jacobian (:func:`jaxcr.kinematics.newton.fd_newton`, a ``fori_loop``)
+  from each of the ``n_starts`` starts, vmapped over the starts; the least-energy start whose
+  residual is within ``tol`` is then polished on the full grid by the warm path. No while loop
+  over the starts, no Jacobian by automatic differentiation: the compiled function is small.
+* Warm start (``guess``) and that polish: quasi-Newton iterations
+  (:func:`jaxcr.kinematics.newton.chord_newton`: one difference Jacobian at the guess, then
+  one residual per iteration with Broyden updates, a ``while_loop`` that stops once the
+  residual is within the solver tolerance, at most ``warm_steps`` iterations), with the implicit-function derivative
+  (:func:`jaxcr.kinematics.newton.implicit_root`, exact Jacobian formed only when
+  differentiated, tested against finite differences), so ``forward`` is differentiable in q.
+
+The previous solvers (LM cold, fixed Newton warm) and the measurements behind the change:
+docs/decisions.md K1 and K2.
+``FkResult.num_steps`` = coarse Newton iterations (summed over the starts) plus the chord
+iterations of the polish. ``ok`` = finite outputs, residual within ``tol`` on the full grid and
+joint limits.
 
 Several equilibria. For some ``q`` the rod has several (two stable, one unstable) solutions.
 ``forward(q)`` without ``guess`` solves from a fixed set of initial twist guesses
@@ -56,7 +65,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from jaxcr._types import Array, Float
 from jaxcr.errors import InputError
@@ -78,7 +86,7 @@ from jaxcr.kinematics.ctr_mechanics import (
     second_moments,
     telescoping_ok,
 )
-from jaxcr.kinematics.newton import fixed_newton, implicit_solution
+from jaxcr.kinematics.newton import chord_newton, fd_newton, implicit_root
 
 #: Public 3-tube test robot (innermost first), SI units, in the dataset robot schema.
 TEST_CTR: dict[str, Any] = {
@@ -132,10 +140,13 @@ class ConcentricTubeRobot(eqx.Module):
             ``(N - 1) / 2n`` RK4 steps each (the remainder to the first pieces).
         transmission_torsion: let the transmission behind s = 0 twist (static).
         tol: converged when the base-angle mismatch is at most ``tol`` (rad) (static).
-        warm_steps: fixed number of warm-start Newton iterations (static).
-        cold_steps: iteration bound of each cold start (static).
+        warm_steps: iteration bound of the warm-start chord iterations, which stop at
+            convergence (static).
+        cold_steps: fixed number of Newton iterations of each cold start (static).
         scan_points: tip angles per tube in the cold-start residual scan (static).
         n_starts: cold starts refined by Newton (static); see :meth:`initial_guesses`.
+        scan_n_points: samples of the coarse grid the cold branch search runs on (static;
+            at most ``n_points``).
     """
 
     kind: ClassVar[str] = "ctr"
@@ -150,13 +161,19 @@ class ConcentricTubeRobot(eqx.Module):
     n_points: int = eqx.field(static=True, default=97)
     transmission_torsion: bool = eqx.field(static=True, default=False)
     tol: float = eqx.field(static=True, default=1e-4)
-    warm_steps: int = eqx.field(static=True, default=5)
-    cold_steps: int = eqx.field(static=True, default=20)
+    warm_steps: int = eqx.field(static=True, default=8)
+    cold_steps: int = eqx.field(static=True, default=8)
     scan_points: int = eqx.field(static=True, default=24)
     n_starts: int = eqx.field(static=True, default=6)
+    scan_n_points: int = eqx.field(static=True, default=25)
 
     def __check_init__(self):
         steps_per_piece(2 * self.n_tubes, self.n_points)  # raises if n_points is too small
+        steps_per_piece(2 * self.n_tubes, self._coarse_points)
+
+    @property
+    def _coarse_points(self) -> int:
+        return min(self.scan_n_points, self.n_points)
 
     # ------------------------------------------------------------------ construction
 
@@ -303,6 +320,23 @@ class ConcentricTubeRobot(eqx.Module):
         psi0 = self._base_angles(beta, alpha, traj.uz0)
         return tubes, grid, traj, psi0
 
+    def _shooting(self, q: Array, n_points: int | None = None):
+        """``x -> (residual, energy)`` for fixed q, its grid (``n_points`` samples, default
+        the model's) built once, so the solver loops do not rebuild it at every residual."""
+        beta, alpha = self._split(jax.lax.stop_gradient(q))
+        tubes = self.mechanics(beta.dtype)
+        grid = make_grid(tubes, beta, self.n_points if n_points is None else n_points)
+
+        def fun(x):
+            theta_tip = jnp.concatenate([jnp.zeros(1, beta.dtype), x.astype(beta.dtype)])
+            traj = integrate_torsion(tubes, grid, theta_tip, with_centreline=False)
+            psi0 = self._base_angles(beta, alpha, traj.uz0)
+            d = traj.theta0[1:] - (psi0[1:] - psi0[0])
+            energy = traj.energy + self._transmission_energy(tubes, beta, traj.uz0)
+            return jnp.arctan2(jnp.sin(d), jnp.cos(d)), energy
+
+        return fun
+
     def shooting_residual(self, q: Float[Array, " m"], x: Float[Array, " n-1"]) -> Array:
         """Base-angle mismatch (rad, wrapped to (-pi, pi]) for tip angles ``x``.
 
@@ -323,8 +357,9 @@ class ConcentricTubeRobot(eqx.Module):
     def initial_guesses(self, q: Float[Array, " m"]) -> Float[Array, "k n-1"]:
         """Cold-start tip angles: the most promising local minima of a residual scan.
 
-        The base-angle residual and the elastic energy are evaluated (no Jacobian) on a regular
-        grid of ``scan_points`` angles per tube on the torus of relative tip angles
+        The base-angle residual and the elastic energy are evaluated (no Jacobian, on the
+        coarse grid of ``scan_n_points`` samples) on a regular grid of ``scan_points`` angles
+        per tube on the torus of relative tip angles
         (``scan_points ** (n - 1)`` points, offset by the untwisted state
         ``alpha_i - alpha_1``). Grid points whose residual norm is no larger than that of every
         (periodic) neighbour are candidates; the ``n_starts - n_starts // 2`` candidates of
@@ -341,8 +376,7 @@ class ConcentricTubeRobot(eqx.Module):
         offsets = 2.0 * np.pi * (np.arange(g) / g) - np.pi
         mesh = np.stack(np.meshgrid(*([offsets] * (n - 1)), indexing="ij"), -1)
         pts = base + jnp.asarray(mesh.reshape(-1, n - 1), beta.dtype)
-        qs = jax.lax.stop_gradient(q)
-        r, energy = jax.vmap(lambda x: self._residual_and_energy(qs, x))(pts)
+        r, energy = jax.vmap(self._shooting(q, self._coarse_points))(pts)
         r = jnp.sum(r**2, axis=-1)
         r = jnp.where(jnp.isfinite(r), r, jnp.inf).reshape((g,) * (n - 1))
         is_min = jnp.isfinite(r)
@@ -364,50 +398,52 @@ class ConcentricTubeRobot(eqx.Module):
         # Iterate well below the `ok` tolerance (a converged solve lands near rounding).
         return self.tol * (1e-8 if dtype == jnp.float64 else 0.1)
 
-    def _cold_solve(self, q: Array, guesses: Array) -> tuple[Array, Array, Array, Array]:
-        """Levenberg-Marquardt (optimistix) from every guess, no derivative.
+    @staticmethod
+    def _fd_step(dtype) -> float:
+        # forward-difference step (rad): ~sqrt(eps) balances truncation and rounding
+        return 1e-6 if dtype == jnp.float64 else 1e-3
 
-        Returns the solved tip angles (k, n - 1), their max-abs residuals and energies (k,) and
-        the optimistix iteration counts (k,).
+    def _cold_solve(self, q: Array, guesses: Array) -> tuple[Array, Array, Array, Array]:
+        """``cold_steps`` difference-Jacobian Newton iterations from every guess on the coarse
+        grid (fixed count, vmapped over the guesses), no derivative.
+
+        Returns the solved tip angles (k, n - 1), their max-abs residuals and energies (k,)
+        on the coarse grid, and the iteration counts (k,).
         """
-        q = jax.lax.stop_gradient(q)
+        fun = self._shooting(q, self._coarse_points)
         tol = self._solver_tol(guesses.dtype)
-        solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
 
         def one(g):
-            sol = optx.least_squares(
-                _shooting_fn,
-                solver,
+            res = fd_newton(
+                fun,
                 g,
-                args=(self, q),
-                has_aux=True,
-                max_steps=self.cold_steps,
-                throw=False,
+                steps=self.cold_steps,
+                tol=tol,
+                fd_step=self._fd_step(g.dtype),
+                max_step=0.5,  # rad: a fraction of the branch spacing on the tip-angle torus
             )
-            r, energy = self._residual_and_energy(q, sol.value)
-            res = jnp.max(jnp.abs(r), initial=0.0)
-            return sol.value, res, energy, sol.stats["num_steps"]
+            r, energy = fun(res.x)
+            return res.x, jnp.max(jnp.abs(r), initial=0.0), energy, res.num_steps
 
         return jax.vmap(one)(guesses)
 
     def _warm_solve(self, q: Array, guess: Array) -> tuple[Array, Array, Array]:
-        """``warm_steps`` fixed Newton iterations from ``guess``; differentiable in q.
+        """Quasi-Newton iterations from ``guess`` that stop at convergence; differentiable in q.
 
-        The derivative is the implicit-function one (:func:`implicit_solution`: the Jacobian
-        at the solution, no derivative through the iterations). Returns
-        ``(x, num_steps, True)``; convergence is judged by the residual in :meth:`_result`.
+        The derivative is the implicit-function one (:func:`implicit_root`: the exact Jacobian
+        at the solution, formed only when differentiated, no derivative through the
+        iterations). Returns ``(x, num_steps, True)``; convergence is judged by the residual
+        in :meth:`_result`.
         """
-        qs = jax.lax.stop_gradient(q)
-        res = fixed_newton(
-            lambda x: self._residual_and_energy(qs, x),
-            guess,
-            steps=self.warm_steps,
+        res = chord_newton(
+            self._shooting(q),
+            jax.lax.stop_gradient(guess),
+            max_steps=self.warm_steps,
             tol=self._solver_tol(guess.dtype),
+            fd_step=self._fd_step(guess.dtype),
             max_step=0.5,  # rad: a fraction of the branch spacing on the tip-angle torus
         )
-        x = implicit_solution(
-            lambda p, z: p[0].shooting_residual(p[1], z), (self, q), res.x, res.jac
-        )
+        x = implicit_root(lambda p, z: p[0].shooting_residual(p[1], z), (self, q), res.x)
         return x, res.num_steps, jnp.asarray(True)
 
     def _result(self, q: Array, x: Array, num_steps: Array, solved: Array) -> FkResult:
@@ -502,12 +538,6 @@ class ConcentricTubeRobot(eqx.Module):
             return self._result(q, xk, nk + polish, solved)
 
         return jax.vmap(one)(x, steps)
-
-
-def _shooting_fn(x: Array, args: tuple[ConcentricTubeRobot, Array]) -> tuple[Array, Array]:
-    """Optimistix form ``fn(y, args) -> (residual, energy)`` of the shooting residual."""
-    model, q = args
-    return model._residual_and_energy(q, x)
 
 
 def make_test_ctr(**kwargs) -> ConcentricTubeRobot:

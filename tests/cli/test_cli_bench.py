@@ -80,3 +80,16 @@ def test_bench_script_provider_main(tmp_path, monkeypatch, capsys):
     assert main(["bench", "fk", "--batch", "32", "--seed", "3", "-o", str(out)]) == 0
     assert out.read_text() == "batch 32 seed 3"
     assert "script_bench.py:main" in capsys.readouterr().out
+
+
+def test_previous_flag_reaches_providers_that_accept_it(tmp_path, monkeypatch):
+    prov = tmp_path / "prev_bench.py"
+    prov.write_text(
+        "def run_motion_benchmark(frames=2, previous=False):\n"
+        "    return {'name': 'fake', 'unit': 'frame', 'median_s': 0.01, 'previous': previous}\n"
+    )
+    monkeypatch.setitem(bench.PROVIDERS, "motion", [(str(prov), "run_motion_benchmark")])
+    for flag, expect in (([], "False"), (["--previous"], "True")):
+        out = tmp_path / f"m{len(flag)}.md"
+        assert main(["bench", "motion", *flag, "-o", str(out)]) == 0
+        assert f"| previous | {expect} |" in out.read_text()
