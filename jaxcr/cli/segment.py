@@ -170,6 +170,22 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         default=0,
         help="random seed (recorded; the refinement itself is deterministic)",
     )
+    p.add_argument(
+        "--depth-warning-factor",
+        type=float,
+        default=None,
+        metavar="F",
+        help="warn (once per run on stderr, and flag 'depth_ambiguous' in every such "
+        "frame's record) when the tip's 1-sigma uncertainty along a camera's optical axis "
+        "exceeds F times its 1-sigma uncertainty in that camera's image plane (default 3: "
+        "about what a stereo pair with 20 degrees of vergence gives; docs/uncertainty.md)",
+    )
+    p.add_argument(
+        "--no-uncertainty",
+        action="store_true",
+        help="skip the per-frame Laplace covariance of the refined shape (no 'uncertainty' "
+        "entry in results.jsonl, no depth warning)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_plate_arguments(p, "--background plate")
     p.set_defaults(func=run)
@@ -457,7 +473,16 @@ def _prepare_claimed(out, layout, resume, overwrite, run_info) -> list[dict]:
     records: list[dict] = []
     if resume and layout.run.exists():
         prev = R.read_run(layout.run)
-        for key in ("dataset", "cameras", "background", "robot_hsv", "plate", "config"):
+        keys = (
+            "results_format",
+            "dataset",
+            "cameras",
+            "background",
+            "robot_hsv",
+            "plate",
+            "config",
+        )
+        for key in keys:
             a, b = R.to_jsonable(prev.get(key)), R.to_jsonable(run_info.get(key))
             if a != b:
                 if isinstance(a, dict) and isinstance(b, dict):  # name only what differs
@@ -536,7 +561,14 @@ def run(args) -> int:
     if given and args.background != "plate":
         raise InputError(f"{given[0]} needs --background plate", field=given[0][2:])
     plate_cfg = plate_config(args) if args.background == "plate" else None
+    factor = args.depth_warning_factor
+    if factor is not None and not (math.isfinite(factor) and factor >= 1.0):
+        raise InputError(
+            "--depth-warning-factor must be a finite number >= 1", field="depth-warning-factor"
+        )
     out = Path(args.out)
+    from jaxcr.segmentation.uncertainty import DEPTH_FACTOR
+
     run_info = {
         "format": R.RUN_FORMAT,
         "results_format": R.RESULTS_FORMAT,
@@ -549,6 +581,9 @@ def run(args) -> int:
         "warm_start": bool(args.warm_start),
         "batch_size": args.batch_size,
         "seed": args.seed,
+        "uncertainty": None
+        if args.no_uncertainty
+        else {"depth_warning_factor": DEPTH_FACTOR if factor is None else factor},
         "config": config_dict(cfg),
         "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "command": " ".join(sys.argv),
@@ -568,6 +603,9 @@ def run(args) -> int:
         batch_size=args.batch_size,
         colour_ranges=ranges,
         plate_config=plate_cfg,
+        uncertainty=not args.no_uncertainty,
+        depth_factor=factor,
+        warn=lambda msg: print(f"jaxcr segment: warning: {msg}", file=sys.stderr, flush=True),
     )
     done = R.done_frame_ids(previous, retry_failed=args.retry_failed)
     todo = [f for f in seg.frame_ids if f not in done]
@@ -595,6 +633,12 @@ def run(args) -> int:
         "compile_s": seg.compile_s,
         "run_s": seg.run_s,
         "median_time_s": _median(r.get("time_s") for r in all_records if r.get("ok")),
+        "median_uncertainty_time_s": _median(
+            (r.get("uncertainty") or {}).get("time_s") for r in all_records if r.get("ok")
+        ),
+        "depth_ambiguous": [
+            r["frame"] for r in all_records if (r.get("uncertainty") or {}).get("depth_ambiguous")
+        ],
         "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     }
     layout = R.OutputLayout(out)
@@ -603,6 +647,11 @@ def run(args) -> int:
     print(
         f"jaxcr segment: {summary['ok']}/{summary['frames']} frames ok"
         + (f", {n_failed} failed (reasons in {layout.summary})" if n_failed else "")
+        + (
+            f", {len(summary['depth_ambiguous'])} depth-ambiguous"
+            if summary["depth_ambiguous"]
+            else ""
+        )
         + f" -> {out}"
     )
     return 1 if n_failed else 0

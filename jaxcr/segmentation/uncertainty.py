@@ -96,8 +96,10 @@ class ShapeUncertainty(eqx.Module):
         tip: (3,) refined tip position, robot frame, m.
         tip_jacobian: (3, n) d tip / d coefficients, m per unit coefficient.
         tip_cov: (3, 3) finite part of the tip covariance, robot frame, m^2.
-        tip_unbounded: (3,) bool, the tip moves along robot axis x/y/z in an unobservable
-            direction.
+        tip_null: (3, n) tip motion (m) per unit step along each unobservable direction of
+            the coefficients (zero columns for the observable ones): a tip direction d has an
+            infinite sigma when ``|d^T tip_null|`` exceeds :data:`LEAK_TOL` times
+            ``|tip_jacobian|``.
         sigma_depth: (n_cameras,) 1-sigma tip uncertainty along each camera's optical axis
             (m; inf when unobservable).
         sigma_lateral: (n_cameras,) largest 1-sigma tip uncertainty within each camera's
@@ -116,7 +118,7 @@ class ShapeUncertainty(eqx.Module):
     tip: Float[Array, " 3"]
     tip_jacobian: Float[Array, "3 n"]
     tip_cov: Float[Array, "3 3"]
-    tip_unbounded: Bool[Array, " 3"]
+    tip_null: Float[Array, "3 n"]
     sigma_depth: Float[Array, " c"]
     sigma_lateral: Float[Array, " c"]
     sigma_px: Float[Array, " c"]
@@ -314,8 +316,7 @@ def shape_uncertainty(
     lam, vec, cov, null = laplace_covariance(H, rcond)
 
     tip_cov = Jt @ cov @ Jt.T
-    eye = jnp.eye(3, dtype=dtype)
-    tip_unb = jnp.stack([jnp.isinf(_sigma_of(eye[i : i + 1], Jt, cov, vec, null)) for i in range(3)])
+    tip_null = jnp.where(null[None, :], Jt @ vec, 0.0)
 
     cams = corrected_cameras(cameras, corr)
     depth, lat, px = [], [], []
@@ -338,7 +339,7 @@ def shape_uncertainty(
         tip=tip,
         tip_jacobian=Jt,
         tip_cov=tip_cov,
-        tip_unbounded=tip_unb,
+        tip_null=tip_null,
         sigma_depth=depth,
         sigma_lateral=lat,
         sigma_px=px,
@@ -346,9 +347,7 @@ def shape_uncertainty(
     )
 
 
-def depth_ambiguous(
-    unc: ShapeUncertainty, factor: float = DEPTH_FACTOR
-) -> Bool[Array, "..."]:
+def depth_ambiguous(unc: ShapeUncertainty, factor: float = DEPTH_FACTOR) -> Bool[Array, "..."]:
     """The frame's warning flag: for some camera the depth sigma exceeds ``factor`` times the
     image-plane sigma, or the depth is unbounded (works on a batch: leading axes kept)."""
     flag = (unc.sigma_depth > factor * unc.sigma_lateral) | jnp.isinf(unc.sigma_depth)
