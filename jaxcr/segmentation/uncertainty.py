@@ -39,8 +39,8 @@ Usage::
     res = refine_frame(base, cams, imgs, bgs, cfg)
     unc = shape_uncertainty(base, cams, imgs, bgs, cfg, res.coeffs, res.camera_correction)
     unc.sigma_depth      # (n_cameras,) 1-sigma tip uncertainty along each optical axis, m
-    unc.sigma_lateral    # (n_cameras,) worst 1-sigma tip uncertainty in the image plane, m
-    unc.sigma_px         # (n_cameras,) the same in pixels
+    unc.sigma_px         # (n_cameras,) worst 1-sigma uncertainty of the projected tip, px
+    unc.sigma_lateral    # (n_cameras,) the same in metres at the tip's depth
     depth_ambiguous(unc, DEPTH_FACTOR)   # the frame's warning flag
 """
 
@@ -102,10 +102,12 @@ class ShapeUncertainty(eqx.Module):
             ``|tip_jacobian|``.
         sigma_depth: (n_cameras,) 1-sigma tip uncertainty along each camera's optical axis
             (m; inf when unobservable).
-        sigma_lateral: (n_cameras,) largest 1-sigma tip uncertainty within each camera's
-            image plane (square root of the larger eigenvalue of the 2x2 covariance of the
-            camera-frame x, y), m; inf when unobservable.
-        sigma_px: (n_cameras,) the same for the projected tip, pixels.
+        sigma_px: (n_cameras,) largest 1-sigma uncertainty of the projected tip in each
+            image (square root of the larger eigenvalue of its 2x2 pixel covariance), px; inf
+            when unobservable.
+        sigma_lateral: (n_cameras,) the same in metres at the tip's depth Z:
+            ``sigma_px * Z / sqrt(fx fy)`` (a motion along the viewing ray counts as depth,
+            not as image-plane motion).
         depth_ratio: (n_cameras,) ``sigma_depth / sigma_lateral`` (inf when only the depth is
             unbounded, nan when both are).
     """
@@ -321,11 +323,14 @@ def shape_uncertainty(
     cams = corrected_cameras(cameras, corr)
     depth, lat, px = [], [], []
     for cam in cams:
-        R = cam.R
-        depth.append(_sigma_of(R[2:3], Jt, cov, vec, null))
-        lat.append(_sigma_of(R[:2], Jt, cov, vec, null))
+        depth.append(_sigma_of(cam.R[2:3], Jt, cov, vec, null))
         Juv = jax.jacfwd(lambda p, cam=cam: project_points(cam, p[None])[0][0])(tip)
-        px.append(_sigma_of(Juv, Jt, cov, vec, null))
+        spx = _sigma_of(Juv, Jt, cov, vec, null)
+        px.append(spx)
+        # image plane in metres: the pixel sigma at the tip's depth (a motion along the
+        # viewing ray is depth, not image-plane motion, even off the optical axis)
+        z = jnp.maximum(tip @ cam.R[2] + cam.t[2], 1e-6)
+        lat.append(spx * z / jnp.sqrt(cam.K[0, 0] * cam.K[1, 1]))
     depth, lat, px = jnp.stack(depth), jnp.stack(lat), jnp.stack(px)
     ratio = depth / jnp.where(jnp.isinf(lat) | (lat <= 0), 1.0, lat)
     ratio = jnp.where(lat <= 0, jnp.where(depth > 0, jnp.inf, 1.0), ratio)
