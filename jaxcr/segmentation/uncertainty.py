@@ -318,6 +318,7 @@ def shape_uncertainty(
     lam, vec, cov, null = laplace_covariance(H, rcond)
 
     tip_cov = Jt @ cov @ Jt.T
+    tip_cov = 0.5 * (tip_cov + tip_cov.T)  # exact symmetry (rounding of V diag V^T)
     tip_null = jnp.where(null[None, :], Jt @ vec, 0.0)
 
     cams = corrected_cameras(cameras, corr)
