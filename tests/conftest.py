@@ -10,6 +10,7 @@ SLOW_MODULES = (
     "tests/segmentation/test_refine.py",
     "tests/segmentation/test_refine_multicam.py",
     "tests/segmentation/test_refine_convergence.py",
+    "tests/segmentation/test_uncertainty.py",  # two compiles of the covariance (1 and 2 views)
     "tests/cli/test_cli_segment.py",
     "tests/cli/test_cli_demo.py",
 )

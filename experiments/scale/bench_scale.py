@@ -267,11 +267,13 @@ def report(res: dict) -> str:
         f"{res['append_ms']:.2f} ms;",
         f"- the Ray runs' fixed cost (wall minus start-up minus the frames at the 1-worker "
         f"local rate): {m['ray_fixed_s']:.1f} s;",
-        *[f"- Ray, {w} worker(s), inside the run: executor wall {e['wall_s']:.1f} s x {w} "
-          f"actors, of which {e['task_wall_s']:.1f} s inside the chunks; the rest, "
-          f"{(e['wall_s'] * w - e['task_wall_s']) / e['tasks']:.2f} s per task over "
-          f"{e['tasks']} tasks, is actor start, first cache load, scheduling and idle time;"
-          for w, e in ((w, r[f'ray_{w}']['summary']['executor']) for w in (1, 2))],
+        *[
+            f"- Ray, {w} worker(s), inside the run: executor wall {e['wall_s']:.1f} s x {w} "
+            f"actors, of which {e['task_wall_s']:.1f} s inside the chunks; the rest, "
+            f"{(e['wall_s'] * w - e['task_wall_s']) / e['tasks']:.2f} s per task over "
+            f"{e['tasks']} tasks, is actor start, first cache load, scheduling and idle time;"
+            for w, e in ((w, r[f"ray_{w}"]["summary"]["executor"]) for w in (1, 2))
+        ],
         f"- output per frame: {res['output']['bytes_per_frame'] / 1e3:.1f} kB in "
         f"{res['output']['files_per_frame']:.1f} files (no overlays).",
         "",

@@ -170,6 +170,22 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         default=0,
         help="random seed (recorded; the refinement itself is deterministic)",
     )
+    p.add_argument(
+        "--depth-warning-factor",
+        type=float,
+        default=None,
+        metavar="F",
+        help="warn (once per run on stderr, and flag 'depth_ambiguous' in every such "
+        "frame's record) when the tip's 1-sigma uncertainty along a camera's optical axis "
+        "exceeds F times its 1-sigma uncertainty in that camera's image plane (default 3: "
+        "about what a stereo pair with 20 degrees of vergence gives; docs/uncertainty.md)",
+    )
+    p.add_argument(
+        "--no-uncertainty",
+        action="store_true",
+        help="skip the per-frame Laplace covariance of the refined shape (no 'uncertainty' "
+        "entry in results.jsonl, no depth warning)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     from jaxcr.scale.executor import add_executor_arguments
     from jaxcr.scale.shards import add_shard_argument
@@ -442,6 +458,7 @@ def prepare_output(
     layout = R.OutputLayout(out, log_dir=log_dir)
     if resume and overwrite:
         raise InputError("--resume and --overwrite exclude each other")
+
     # Never write into (or --overwrite) a folder that holds something else, e.g. the dataset
     # itself: its masks/<cam>/<id>.png ground truth would be replaced by our predictions; and
     # never beside another process writing the same OUT (the lock, held until exit).
@@ -459,7 +476,15 @@ def prepare_output(
         raise
 
 
-_SAME_JOB_KEYS = ("dataset", "cameras", "background", "robot_hsv", "plate", "config")
+_SAME_JOB_KEYS = (
+    "results_format",
+    "dataset",
+    "cameras",
+    "background",
+    "robot_hsv",
+    "plate",
+    "config",
+)
 
 
 def _check_same_job(path: Path, run_info: dict, what: str) -> None:
@@ -589,7 +614,14 @@ def run(args) -> int:
         raise InputError("--warm-start needs the frames as one sequence in one process: use "
                          "--executor local (shards each start their sequence cold)",
                          field="warm-start")  # fmt: skip
+    factor = args.depth_warning_factor
+    if factor is not None and not (math.isfinite(factor) and factor >= 1.0):
+        raise InputError(
+            "--depth-warning-factor must be a finite number >= 1", field="depth-warning-factor"
+        )
     out = Path(args.out)
+    from jaxcr.segmentation.uncertainty import DEPTH_FACTOR
+
     run_info = {
         "format": R.RUN_FORMAT,
         "results_format": R.RESULTS_FORMAT,
@@ -602,6 +634,9 @@ def run(args) -> int:
         "warm_start": bool(args.warm_start),
         "batch_size": args.batch_size,
         "seed": args.seed,
+        "uncertainty": None
+        if args.no_uncertainty
+        else {"depth_warning_factor": DEPTH_FACTOR if factor is None else factor},
         "config": config_dict(cfg),
         "shard": None if shard is None else str(shard),
         "started": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
@@ -618,6 +653,9 @@ def run(args) -> int:
         colour_ranges=ranges,
         plate_config=plate_cfg,
         log_dir=None if shard is None else shard_dir(out, shard),
+        uncertainty=not args.no_uncertainty,
+        depth_factor=factor,
+        warn=lambda msg: print(f"jaxcr segment: warning: {msg}", file=sys.stderr, flush=True),
     )
     seg = Segmenter(ds, cams, cfg, args.background, out, **seg_kwargs)
     spec = WorkerSpec(build_segmenter, (str(ds.root), cams, cfg, args.background, str(out)),
@@ -656,6 +694,12 @@ def run(args) -> int:
         "compile_s": seg.compile_s,
         "run_s": seg.run_s,
         "median_time_s": _median(r.get("time_s") for r in all_records if r.get("ok")),
+        "median_uncertainty_time_s": _median(
+            (r.get("uncertainty") or {}).get("time_s") for r in all_records if r.get("ok")
+        ),
+        "depth_ambiguous": [
+            r["frame"] for r in all_records if (r.get("uncertainty") or {}).get("depth_ambiguous")
+        ],
         "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     }
     layout = seg.layout
@@ -664,6 +708,11 @@ def run(args) -> int:
     print(
         f"jaxcr segment: {summary['ok']}/{summary['frames']} frames ok{what}"
         + (f", {n_failed} failed (reasons in {layout.summary})" if n_failed else "")
+        + (
+            f", {len(summary['depth_ambiguous'])} depth-ambiguous"
+            if summary["depth_ambiguous"]
+            else ""
+        )
         + f" -> {out}"
     )
     return 1 if n_failed else 0

@@ -514,6 +514,7 @@ def run(args) -> int:
         raise InputError(
             f"--segmentation {args.segmentation} needs background_plates in stereo.json"
         )
+
     def recognise(o):
         return (o / "run.json").exists() or (o / SHARDS_DIR).is_dir()
 

@@ -1,4 +1,4 @@
-"""The output folder of ``jaxcr segment`` (format ``jaxcr.segment/1``): layout, atomic file
+"""The output folder of ``jaxcr segment`` (format ``jaxcr.segment/2``): layout, atomic file
 writes and the append-only ``results.jsonl`` log.
 
 Layout of ``OUT`` (all paths in records are relative to ``OUT``)::
@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-RESULTS_FORMAT = "jaxcr.segment/1"
+RESULTS_FORMAT = "jaxcr.segment/2"  # /2: the "uncertainty" entry (docs/uncertainty.md)
 RUN_FORMAT = "jaxcr.segment-run/1"
 RESULTS_FILE = "results.jsonl"
 RUN_FILE = "run.json"

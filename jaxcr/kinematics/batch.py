@@ -65,6 +65,7 @@ def batch_forward(
     import jax.numpy as jnp
 
     from jaxcr.scale.devices import map_frames
+
     B = q.shape[0]
     chunk = max(1, min(chunk, B))
     outs = []

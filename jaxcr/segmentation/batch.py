@@ -136,6 +136,9 @@ class Segmenter:
         colour_ranges=None,
         plate_config=None,
         log_dir: str | Path | None = None,
+        uncertainty: bool = True,
+        depth_factor: float | None = None,
+        warn: Callable[[str], None] | None = None,
     ):
         if ds.robot is None:
             raise InputError(
@@ -154,6 +157,15 @@ class Segmenter:
         self.frame_ids = list(ds.bad_frames) + [f.id for f in ds.frames]
         self.cameras = tuple(ds.cameras[c] for c in self.cams)
         self.plate_config = plate_config
+        # the Laplace tip covariance (jaxcr.segmentation.uncertainty), once per frame after
+        # convergence; ``warn`` is called once per run, at the first depth-ambiguous frame
+        from jaxcr.segmentation.uncertainty import DEPTH_FACTOR
+
+        self.uncertainty = bool(uncertainty)
+        self.depth_factor = DEPTH_FACTOR if depth_factor is None else float(depth_factor)
+        self.warn = warn
+        self.depth_ambiguous: list[str] = []  # frame ids flagged in this process
+        self.uncertainty_s = 0.0
         if background == "plate":
             self.plates = {c: _plate_image(ds, c) for c in self.cams}
             self.bg_fns = {}
@@ -316,6 +328,26 @@ class Segmenter:
         self.run_s += timer.run_s
         per_frame = timer.run_s / B
         compile_share = timer.compile_s / max(n, 1)
+        unc, unc_per_frame = None, 0.0
+        if self.uncertainty:
+            from jaxcr.segmentation.uncertainty import shape_uncertainty_batch
+
+            with CompileTimer() as utimer:
+                unc = shape_uncertainty_batch(
+                    fk.centreline,
+                    self.cameras,
+                    tuple(subs),
+                    tuple(bgs),
+                    self.config,
+                    res.coeffs,
+                    res.camera_correction,
+                )
+                unc = jax.tree.map(np.asarray, jax.block_until_ready(unc))
+            self.compile_s += utimer.compile_s
+            self.run_s += utimer.run_s
+            self.uncertainty_s += utimer.run_s
+            unc_per_frame = utimer.run_s / B
+            compile_share += utimer.compile_s / max(n, 1)
 
         host = jax.tree.map(np.asarray, res)
         fk_ok = np.asarray(fk.ok)
@@ -371,11 +403,61 @@ class Segmenter:
             cc = getattr(host, "camera_correction", None)
             if cc is not None:  # per-camera pose correction (rotation vector, translation)
                 rec["camera_correction"] = {c: cc[i][k].tolist() for k, c in enumerate(self.cams)}
+            if ok and unc is not None:
+                rec["uncertainty"] = self._uncertainty_record(fid, unc, i, unc_per_frame)
             if ok and np.all(np.isfinite(host.centreline.p[i])):
                 rec["files"] = self._write_frame_files(
                     fid, frame, images, host, i, bgs_np, nominal_p[i]
                 )
             yield rec
+
+    def _uncertainty_record(self, fid: str, unc, i: int, time_s: float) -> dict:
+        """The ``uncertainty`` entry of a results record (docs/uncertainty.md): per camera
+        the 1-sigma tip uncertainty along the optical axis and in the image plane; ``None``
+        (JSON null) for a sigma the images do not bound."""
+
+        def fin(x, scale=1.0):
+            x = float(x)
+            return x * scale if np.isfinite(x) else None
+
+        cams = {}
+        flagged = None
+        for k, c in enumerate(self.cams):
+            d, lat = float(unc.sigma_depth[i][k]), float(unc.sigma_lateral[i][k])
+            amb = bool(np.isinf(d) or d > self.depth_factor * lat)
+            cams[c] = {
+                "sigma_depth_mm": fin(d, 1e3),
+                "sigma_image_mm": fin(lat, 1e3),
+                "sigma_image_px": fin(unc.sigma_px[i][k]),
+                "depth_ratio": fin(unc.depth_ratio[i][k]),
+                "depth_ambiguous": amb,
+                "noise_std": fin(unc.noise_std[i][k]),
+            }
+            if amb and flagged is None:
+                flagged = (c, d, lat)
+        if flagged is not None:
+            if not self.depth_ambiguous and self.warn is not None:
+                c, d, lat = flagged
+                dtxt = "unbounded" if np.isinf(d) else f"{1e3 * d:.2g} mm"
+                ltxt = "unbounded" if np.isinf(lat) else f"{1e3 * lat:.2g} mm"
+                self.warn(
+                    f"frame {fid}: the tip's 1-sigma uncertainty along camera '{c}''s optical "
+                    f"axis ({dtxt}) exceeds {self.depth_factor:g} x the image-plane one "
+                    f"({ltxt}): the images do not determine the depth (flag "
+                    "'depth_ambiguous' in results.jsonl; docs/uncertainty.md); further such "
+                    "frames are flagged without a message"
+                )
+            self.depth_ambiguous.append(fid)
+        return {
+            "model": "laplace-gauss-newton/1",
+            "depth_factor": self.depth_factor,
+            "depth_ambiguous": flagged is not None,
+            "null_dims": int(unc.null_dims[i]),
+            "tip_m": [float(x) for x in unc.tip[i]],
+            "tip_cov_m2": np.asarray(unc.tip_cov[i], float).tolist(),
+            "cameras": cams,
+            "time_s": time_s,
+        }
 
     def _plate_backgrounds(self, fk, imgs_np):
         """Plate foreground of every frame and camera (:func:`jaxcr.segmentation.foreground.

@@ -38,6 +38,7 @@ PER_FRAME_FIELDS = [
     "tip_nominal_mm", "tip_refined_mm", "cl_nominal_mm", "cl_refined_mm",
     "tip_lateral_nominal_mm", "tip_lateral_refined_mm", "tip_depth_nominal_mm",
     "tip_depth_refined_mm",
+    "sigma_depth_mm", "sigma_image_mm", "sigma_image_px", "depth_ambiguous",
     "num_steps", "time_s",
 ]  # fmt: skip
 _METRIC_FIELDS = PER_FRAME_FIELDS[6:19]
@@ -233,6 +234,7 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
                     **{k: math.nan for k in _METRIC_FIELDS},
                 }
                 row.update(e3)
+                row.update(_uncertainty_fields(rec, cam))
                 visible = frame.load_mask(cam) if frame is not None and cam in frame.masks else None
                 if rec.get("ok") and visible is not None:
                     occ = _occluded_region(frame, cam, visible)
@@ -279,6 +281,63 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
     return rows, run_info
 
 
+def _uncertainty_fields(rec: dict, cam: str) -> dict:
+    """The per-camera tip uncertainty of a record (format jaxcr.segment/2, docs/uncertainty.md):
+    NaN where the record has none (older runs, --no-uncertainty, failed frames), inf where the
+    images do not bound it (JSON null)."""
+    u = (rec.get("uncertainty") or {}).get("cameras", {}).get(cam)
+    if not rec.get("ok") or not isinstance(u, dict):
+        return {"sigma_depth_mm": math.nan, "sigma_image_mm": math.nan,
+                "sigma_image_px": math.nan, "depth_ambiguous": ""}  # fmt: skip
+
+    def val(k):
+        v = u.get(k)
+        return math.inf if v is None else float(v)
+
+    return {"sigma_depth_mm": val("sigma_depth_mm"), "sigma_image_mm": val("sigma_image_mm"),
+            "sigma_image_px": val("sigma_image_px"),
+            "depth_ambiguous": bool(u.get("depth_ambiguous"))}  # fmt: skip
+
+
+def uncertainty_markdown(rows: list[dict]) -> list[str]:
+    """Report lines: per group and camera, the median 1-sigma tip uncertainty (Laplace,
+    docs/uncertainty.md), the depth-ambiguous frames and, where the dataset has the true
+    centreline, how often the refined tip's depth error (first camera) is within 1 and 2
+    predicted sigma. Empty when no row has an uncertainty."""
+    have = [r for r in rows if r.get("ok") and r.get("depth_ambiguous") != ""]
+    if not have:
+        return []
+
+    def med(v):
+        v = [x for x in v if not math.isnan(x)]
+        return f"{float(np.median(v)):.3g}" if v else "-"
+
+    first_cam = {}
+    for r in rows:
+        first_cam.setdefault(r["out"], r["camera"])
+    lines = ["Tip uncertainty (1 sigma, Laplace covariance of the refined shape, "
+             "docs/uncertainty.md; medians over ok frames; inf = not bounded by the images):",
+             "", "| group | camera | frames | depth (mm) | image plane (mm) | image plane (px) "
+             "| depth-ambiguous | depth error within 1 / 2 sigma |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    keys = sorted({(r["group"], r["camera"]) for r in have})
+    for g, c in keys:
+        rs = [r for r in have if r["group"] == g and r["camera"] == c]
+        cover = "-"
+        ev = [r for r in rs if r["camera"] == first_cam[r["out"]]
+              and math.isfinite(r.get("tip_depth_refined_mm", math.nan))]  # fmt: skip
+        if ev:
+            n1 = sum(abs(r["tip_depth_refined_mm"]) <= r["sigma_depth_mm"] for r in ev)
+            n2 = sum(abs(r["tip_depth_refined_mm"]) <= 2 * r["sigma_depth_mm"] for r in ev)
+            cover = f"{n1 / len(ev):.0%} / {n2 / len(ev):.0%} of {len(ev)}"
+        lines.append(
+            f"| {g} | {c} | {len(rs)} | {med(r['sigma_depth_mm'] for r in rs)} | "
+            f"{med(r['sigma_image_mm'] for r in rs)} | {med(r['sigma_image_px'] for r in rs)} | "
+            f"{sum(bool(r['depth_ambiguous']) for r in rs)} | {cover} |"
+        )
+    return lines + [""]
+
+
 def evaluate_outputs(outs: list[str | Path]) -> tuple[list[dict], list[dict]]:
     """Rows of several output folders (grouped by dataset name when more than one; folder
     names disambiguate equal dataset names) and their run.json dicts."""
@@ -307,7 +366,8 @@ def per_frame_csv(rows: list[dict]) -> str:
                        lineterminator="\n")  # fmt: skip
     w.writeheader()
     for r in rows:
-        w.writerow({k: ("" if isinstance(v, float) and not math.isfinite(v) else v)
+        # NaN (no value) as an empty cell; inf (an unbounded sigma) as "inf"
+        w.writerow({k: ("" if isinstance(v, float) and math.isnan(v) else v)
                     for k, v in r.items()})  # fmt: skip
     return buf.getvalue()
 
@@ -389,6 +449,7 @@ def write_report(rows, infos, report_dir: Path, title: str | None = None, plot: 
     lines.append("Published (Watson et al. Table II, real images, 20 frames per set):")
     lines.append("")
     lines.append(rep.paper_table2_markdown())
+    lines += uncertainty_markdown(rows)
     lines.append("Runs:")
     lines.append("")
     for info in infos:

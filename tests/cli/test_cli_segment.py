@@ -115,8 +115,17 @@ def test_segment_writes_everything_and_fails_bad_frames(full_run):
     assert "files" not in recs["000006"]
     for fid in GOOD:
         r = recs[fid]
-        assert r["format"] == "jaxcr.segment/1"
+        assert r["format"] == "jaxcr.segment/2"
         assert r["ok"] is True, r
+        # the tip covariance (docs/uncertainty.md): present, self-consistent and positive
+        u = r["uncertainty"]
+        assert u["model"] == "laplace-gauss-newton/1" and u["depth_factor"] == 3.0
+        c = u["cameras"]["main"]
+        assert c["sigma_image_mm"] > 0 and c["sigma_image_px"] > 0 and c["noise_std"] > 0
+        cov = np.asarray(u["tip_cov_m2"])
+        assert cov.shape == (3, 3) and np.allclose(cov, cov.T, atol=1e-12)
+        depth = c["sigma_depth_mm"]
+        assert u["depth_ambiguous"] == (depth is None or depth > 3.0 * c["sigma_image_mm"])
         assert r["num_steps"] >= 1 and r["time_s"] > 0
         assert set(r["energy"]) >= {"e_in", "e_out", "e_reg", "e_pen", "total"}
         assert np.asarray(r["coeffs"]).shape == (2, 4)
@@ -131,6 +140,8 @@ def test_segment_writes_everything_and_fails_bad_frames(full_run):
         assert cl.shape == (24, 3) and np.all(np.isfinite(cl))
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 7 and summary["failed"] == 3
+    flagged = sorted(f for f in GOOD if recs[f]["uncertainty"]["depth_ambiguous"])
+    assert sorted(summary["depth_ambiguous"]) == flagged
     assert (out / "DONE").exists()
     run = json.loads((out / "run.json").read_text())
     assert run["format"] == "jaxcr.segment-run/1" and run["cameras"] == ["main"]

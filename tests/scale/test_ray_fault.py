@@ -153,8 +153,9 @@ def test_ray_run_survives_a_killed_worker_and_equals_the_local_run(runs):
     # every frame exactly once, in the local run's order
     lines = (root / "ray" / "results.jsonl").read_text().splitlines()
     frames = [json.loads(line)["frame"] for line in lines]
-    local_frames = [json.loads(x)["frame"]
-                    for x in (root / "local" / "results.jsonl").read_text().splitlines()]
+    local_frames = [
+        json.loads(x)["frame"] for x in (root / "local" / "results.jsonl").read_text().splitlines()
+    ]
     assert frames == local_frames and len(set(frames)) == 12
     # the same records (timings apart), the same failed record for the bad frame
     assert _records(root / "ray") == _records(root / "local")
@@ -167,7 +168,8 @@ def test_ray_run_survives_a_killed_worker_and_equals_the_local_run(runs):
     s_loc = json.loads((root / "local" / "summary.json").read_text())
     drop = ("executor", "compile_s", "run_s", "median_time_s", "finished")
     assert {k: v for k, v in s_ray.items() if k not in drop} == {
-        k: v for k, v in s_loc.items() if k not in drop}
+        k: v for k, v in s_loc.items() if k not in drop
+    }
     # the killed worker was replaced and its chunk re-run: more worker processes than actors
     assert s_ray["executor"]["kind"] == "ray" and s_ray["executor"]["workers"] == 2
     assert s_ray["executor"]["worker_processes"] >= 3
