@@ -57,6 +57,24 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.nodeid.split("::")[0] in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
+    # Modules holding slow (compile-heavy) tests first, the rest in their usual order: with
+    # whole modules per worker (below) the long ones then overlap each other and the short
+    # ones fill in at the end, instead of one long module running alone after the others.
+    heavy = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.nodeid.split("::")[0] not in heavy)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """`pytest -n N`: whole test modules per worker (as --dist loadfile), unless another --dist
+    was asked for. xdist's default (load) splits a module's tests across workers, and each
+    worker then builds the module-scoped fixtures -- most of them compile something -- again.
+    """
+    if config.getoption("dist") != "load":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    return LoadFileScheduling(config, log)
 
 
 @pytest.fixture(autouse=True)
