@@ -74,6 +74,9 @@ def pytest_xdist_make_scheduler(config, log):
         return None
     from xdist.scheduler import LoadFileScheduling
 
+    # keep the order above (xdist would otherwise start the modules with the most tests first,
+    # leaving the few-test, compile-heavy refinement modules for the end)
+    config.option.loadscopereorder = False
     return LoadFileScheduling(config, log)
 
 
