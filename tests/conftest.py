@@ -1,11 +1,49 @@
+import atexit
 import gc
 import os
+import shutil
+import tempfile
 
 import pytest
 
-# Modules whose fixtures compile the refinement (145-205 s each on the loaded 2-core machine,
-# issue 15) or run `jaxcr segment`/`demo` end to end: marked slow as a whole, so
-# `pytest -m "not slow"` is the fast subset. Individual tests elsewhere use @pytest.mark.slow.
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+# One persistent JAX compilation cache per test run, shared by the xdist workers and by every
+# process the tests start. The run's first process (the xdist controller, or the only process
+# without -n) creates an empty folder before any worker starts; the workers and the `jaxcr`
+# subprocesses inherit these variables, so a program compiled once in the run (the refinement,
+# the CTR solver, a command's glue) is loaded from disk by every later process and after
+# jax.clear_caches() below, instead of being compiled again (each `jaxcr` subprocess used to
+# recompile everything from scratch). The folder starts empty, so a run never depends on an
+# earlier one, and the per-user cache (~/.cache/jaxcr) is never written by the tests. Set
+# JAXCR_TESTS_CACHE_DIR yourself to keep a cache across runs.
+RUN_CACHE_ENV = "JAXCR_TESTS_CACHE_DIR"
+if not os.environ.get(RUN_CACHE_ENV):
+    _run_cache = tempfile.mkdtemp(prefix="jaxcr-tests-jax-cache-")
+    os.environ[RUN_CACHE_ENV] = _run_cache
+    atexit.register(shutil.rmtree, _run_cache, ignore_errors=True)
+RUN_CACHE = os.environ[RUN_CACHE_ENV]
+# jaxcr's commands (jaxcr.io.compile_cache) ...
+os.environ["JAXCR_COMPILE_CACHE"] = "1"
+os.environ["JAXCR_CACHE_DIR"] = RUN_CACHE
+# ... and JAX itself, in any process (a `python -c` subprocess too): every compilation is
+# stored (JAX's default threshold, 1 s, would skip the many small programs a command runs)
+os.environ["JAX_COMPILATION_CACHE_DIR"] = RUN_CACHE
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+
+
+def _use_run_cache():
+    """Point this process's JAX at the run's cache (again: a test may have switched it off or
+    elsewhere, e.g. `main(["--no-compile-cache", ...])` or enable_compile_cache(path=...))."""
+    from jaxcr.io.compile_cache import enable_compile_cache
+
+    enable_compile_cache(path=RUN_CACHE)
+
+
+# Modules whose fixtures compile the refinement or run `jaxcr segment`/`demo` end to end: marked
+# slow as a whole, so `pytest -m "not slow"` is a smaller subset (the whole suite is the test
+# command). Individual tests elsewhere use @pytest.mark.slow.
 SLOW_MODULES = (
     "tests/segmentation/test_refine.py",
     "tests/segmentation/test_refine_multicam.py",
@@ -20,14 +58,33 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.nodeid.split("::")[0] in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
+    # Modules holding slow (compile-heavy) tests first, the rest in their usual order: with
+    # whole modules per worker (below) the long ones then overlap each other and the short
+    # ones fill in at the end, instead of one long module running alone after the others.
+    heavy = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.nodeid.split("::")[0] not in heavy)
 
 
-os.environ.setdefault("JAX_PLATFORMS", "cpu")
-# Commands run in-process by the tests would otherwise turn on the per-user persistent
-# compilation cache (on by default in every command) for the rest of the worker, writing
-# thousands of entries to ~/.cache; the cache has its own tests (tests/io/test_io_compile_cache.py,
-# tests/cli/test_cli_warmup.py), which set these variables themselves.
-os.environ.setdefault("JAXCR_COMPILE_CACHE", "0")
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """`pytest -n N`: whole test modules per worker (as --dist loadfile), unless another --dist
+    was asked for. xdist's default (load) splits a module's tests across workers, and each
+    worker then builds the module-scoped fixtures -- most of them compile something -- again.
+    """
+    if config.getoption("dist") != "load":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    # keep the order above (xdist would otherwise start the modules with the most tests first,
+    # leaving the few-test, compile-heavy refinement modules for the end)
+    config.option.loadscopereorder = False
+    return LoadFileScheduling(config, log)
+
+
+@pytest.fixture(autouse=True)
+def _run_compile_cache():
+    _use_run_cache()
+    yield
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -39,9 +96,50 @@ def _release_compiled_code():
     (vm.max_map_count = 65530 here) near the end of the suite and crashed with "LLVM
     compilation error: Cannot allocate memory" / a segmentation fault. Module-scoped fixtures
     holding compiled functions are torn down before this runs, so their code is freed too.
+    A program needed again later is loaded from the run's compilation cache (above).
     """
     yield
     import jax
 
     jax.clear_caches()
     gc.collect()
+
+
+# ----------------------------------------------------------- optional: where compile time goes
+# JAXCR_TESTS_COMPILE_LOG=<folder>: each process appends one line per test to
+# <folder>/<worker>.tsv: test id, then seconds of tracing, lowering to MLIR and XLA compilation
+# (or loading from the cache), cache hits and misses. Off by default.
+_COMPILE_LOG = os.environ.get("JAXCR_TESTS_COMPILE_LOG")
+_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "compile",
+    "/jax/compilation_cache/cache_hits": "hits",
+    "/jax/compilation_cache/cache_misses": "misses",
+}
+_tally = dict.fromkeys(_EVENTS.values(), 0.0)
+
+if _COMPILE_LOG:
+    from jax._src import monitoring
+
+    def _on_duration(event, duration_secs, **kwargs):
+        if event in _EVENTS:
+            _tally[_EVENTS[event]] += duration_secs
+
+    def _on_event(event, **kwargs):
+        if event in _EVENTS:
+            _tally[_EVENTS[event]] += 1
+
+    monitoring.register_event_duration_secs_listener(_on_duration)
+    monitoring.register_event_listener(_on_event)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        for k in _tally:
+            _tally[k] = 0.0
+        yield
+        os.makedirs(_COMPILE_LOG, exist_ok=True)
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(os.path.join(_COMPILE_LOG, f"{worker}.tsv"), "a") as f:
+            f.write("\t".join([item.nodeid, *(f"{_tally[k]:.3f}" for k in _EVENTS.values())]))
+            f.write("\n")

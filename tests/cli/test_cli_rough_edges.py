@@ -186,7 +186,7 @@ def _read_frames(d):
     import sys
 
     p = subprocess.run([sys.executable, "-c", _READ_FRAMES, str(d)], capture_output=True,
-                       text=True, timeout=120)  # fmt: skip
+                       text=True, timeout=900)  # fmt: skip
     return p.returncode, p.stdout.splitlines(), p.stderr
 
 
@@ -221,7 +221,7 @@ def test_truncated_video_is_quiet_and_fails_the_damaged_frames(motion_video, tmp
     import subprocess
 
     p = subprocess.run(["jaxcr", "motion", str(d), "-o", str(tmp_path / "o")],
-                       capture_output=True, text=True, timeout=120)  # fmt: skip
+                       capture_output=True, text=True, timeout=900)  # fmt: skip
     assert p.returncode == 2
     assert p.stderr.splitlines() == [f"jaxcr motion: error: {lines[0][len('InputError: ') :]}"]
 

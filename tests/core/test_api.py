@@ -113,6 +113,7 @@ def test_enable_compile_cache_returns_the_folder(tmp_path, monkeypatch):
     try:
         assert jcr.enable_compile_cache(path=tmp_path / "c") == os.fspath(tmp_path / "c")
         assert jax.config.jax_compilation_cache_dir == os.fspath(tmp_path / "c")
+        monkeypatch.delenv("JAXCR_CACHE_DIR", raising=False)  # the test run sets it (conftest)
         monkeypatch.setenv("JAXCR_JAX_CACHE", "")
         assert jcr.enable_compile_cache() is None
     finally:
