@@ -75,6 +75,7 @@ import csv
 import io
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -336,13 +337,16 @@ class StereoWorker:
         return {"format": RESULTS_FORMAT, "id": fid, "ok": False, "reason": "worker",
                 "message": reason}  # fmt: skip
 
-    def process(self, frame_ids: list[str]) -> list[dict]:
+    def process(self, frame_ids: list[str]) -> Iterator[dict]:
+        """Yield each frame's record as soon as its files are written (the caller appends it
+        to results.jsonl at once, so an interrupted run keeps every finished frame)."""
         import time
 
-        t0 = time.perf_counter()
-        recs = [self._frame(self.frames[fid]) for fid in frame_ids]
-        self.run_s += time.perf_counter() - t0
-        return recs
+        for fid in frame_ids:
+            t0 = time.perf_counter()
+            rec = self._frame(self.frames[fid])
+            self.run_s += time.perf_counter() - t0
+            yield rec
 
     def _frame(self, fr: dict) -> dict:
         from jaxcr.stereo.pipeline import StereoFailure, reconstruct_pair

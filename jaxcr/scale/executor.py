@@ -217,7 +217,7 @@ def _actor_class():
 
         def process(self, ids: list[str]) -> dict:
             c0, r0, t0 = self.worker.compile_s, self.worker.run_s, time.perf_counter()
-            recs = self.worker.process(ids)
+            recs = list(self.worker.process(ids))
             return {
                 "records": recs,
                 "compile_s": self.worker.compile_s - c0,

@@ -10,7 +10,7 @@ whose results are discarded), so the whole run compiles once.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import equinox as eqx
@@ -220,26 +220,40 @@ class Segmenter:
 
     # ------------------------------------------------------------------ the loop
 
-    def process(self, frame_ids: list[str]) -> list[dict]:
-        """One record per frame of ``frame_ids`` (in order; their files written, atomically):
-        failed records for frames that cannot be processed, the others in compiled chunks of
-        ``batch_size``. Writes no results log: the caller appends the records
-        (:func:`jaxcr.scale.executor.run_frames`, which also runs this on Ray workers)."""
-        records: list[dict] = []
+    def process(self, frame_ids: list[str]) -> Iterator[dict]:
+        """Yield one record per frame of ``frame_ids``, in that order, each as soon as its
+        files are written (atomically) and every earlier frame's record has been yielded:
+        failed records for frames that cannot be processed, the others from compiled chunks
+        of ``batch_size``. Writes no results log: the caller appends each record as it comes
+        (:func:`jaxcr.scale.executor.run_frames`, which also runs this on Ray workers), so an
+        interrupted run keeps every frame finished before the interruption."""
+        ready: dict[str, dict] = {}
+        order = iter(frame_ids)
+        waiting = next(order, None)
+
+        def flush():
+            nonlocal waiting
+            while waiting is not None and waiting in ready:
+                yield ready.pop(waiting)
+                waiting = next(order, None)
+
         pending: list[tuple[str, list[np.ndarray]]] = []
         for fid in frame_ids:
             images, reason = self._check_frame(fid)
             if reason is not None:
-                records.append(self._failed_record(fid, reason))
+                ready[fid] = self._failed_record(fid, reason)
+                yield from flush()
                 continue
             pending.append((fid, images))
             if len(pending) == self.batch_size:
-                records.extend(self._process_chunk(pending))
+                for rec in self._process_chunk(pending):
+                    ready[rec["frame"]] = rec
+                    yield from flush()
                 pending = []
         if pending:
-            records.extend(self._process_chunk(pending))
-        order = {fid: k for k, fid in enumerate(frame_ids)}
-        return sorted(records, key=lambda r: order[r["frame"]])
+            for rec in self._process_chunk(pending):
+                ready[rec["frame"]] = rec
+                yield from flush()
 
     def failed_record(self, fid: str, reason: str) -> dict:
         return self._failed_record(fid, reason)
