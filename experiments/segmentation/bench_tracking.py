@@ -5,7 +5,7 @@ Scenes: the 640x480 scenes of ``jaxcr/benchmarks/segment.py``: ``make_scene(fram
 smooth=True)`` (a smooth sequence, tracked with :func:`refine_sequence`: frame 0 cold, then
 warm) and ``make_scene(frames, seed=0)`` (independent frames, :func:`refine_batch`, cold).
 Each variant is a :class:`RefineConfig`; the reference is the first one (``baseline``, today's
-package defaults with ``hessian_memory=False``). Repeats are interleaved (A, B, A, B, ...) so
+package defaults, ``hessian_memory=False``). Repeats are interleaved (A, B, A, B, ...) so
 the load of the shared machine falls on every variant alike; medians of ms/frame, their ratio
 to the baseline, solver steps per frame and mean IoU against the rendered truth are reported.
 Compile time is excluded (one call per variant first).
@@ -36,7 +36,7 @@ OUT = Path(__file__).resolve().parents[1] / "results" / "segmentation"
 
 VARIANTS = {
     "baseline (hessian_memory=False)": RefineConfig(hessian_memory=False),
-    "hessian_memory": RefineConfig(),
+    "hessian_memory": RefineConfig(hessian_memory=True),
 }
 
 

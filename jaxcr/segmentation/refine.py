@@ -184,7 +184,9 @@ class RefineConfig(eqx.Module):
         warm-started frame (``init_hessian`` of :func:`refine_frame`,
         :func:`refine_sequence`) from the previous frame's; otherwise every solve starts
         from the identity (steepest descent). Each new pyramid level starts from the
-        identity. Measured in ``experiments/results/segmentation/profile_refine_*.md``.
+        identity. Off by default (docs/decisions.md S12): it cut tracking time to 0.55x and
+        cold time to 0.71x at equal IoU on the benchmark scenes, but on the camera-correction
+        scene of ``tests/segmentation/test_refine.py`` the refined IoU fell from > 0.8 to 0.69.
 
     Examples
     --------
@@ -225,7 +227,7 @@ class RefineConfig(eqx.Module):
     g_cam: float = eqx.field(static=True, default=0.3)
     camera_correction_mode: str = eqx.field(static=True, default="camera")
     g_cam_rel: float | None = eqx.field(static=True, default=None)
-    hessian_memory: bool = eqx.field(static=True, default=True)
+    hessian_memory: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         n = len(self.levels)
