@@ -447,6 +447,10 @@ def run_batch(
                            on_record=None if bar is None else lambda r: bar.update(1))  # fmt: skip
     if bar is not None:
         bar.close()
+    if executor is not None and executor.kind != "local" and shard is None:
+        from jaxcr.io.outdir import clean_leftovers
+
+        clean_leftovers(out)  # temp files of a worker killed mid-write (OUT is locked, all done)
     for rec in stats.records:
         done[str(rec["id"])] = rec
     write_tables(out, [str(fr["id"]) for fr in frames], log_dir)

@@ -288,6 +288,12 @@ class Segmenter:
         if executor.kind != "local":  # the workers' compile and run time
             self.compile_s += stats.compile_s
             self.run_s += stats.run_s
+            if self.layout.log_root == self.layout.root:
+                # a worker killed mid-write leaves its temporary file; every worker is done and
+                # this (unsharded) run holds OUT's lock, so none is being written
+                from jaxcr.io.outdir import clean_leftovers
+
+                clean_leftovers(self.layout.root)
         return stats
 
     def _process_chunk(self, chunk: list[tuple[str, list[np.ndarray]]]):

@@ -89,7 +89,9 @@ def test_ctrl_c_exits_130_at_once_and_resume_completes(tmp_path):
         text=True,
     )
     log = out / R.RESULTS_FILE
-    deadline = time.monotonic() + 1800  # a hang guard: the first frame compiles (minutes under load)
+    deadline = (
+        time.monotonic() + 1800
+    )  # a hang guard: the first frame compiles (minutes under load)
     while not (log.exists() and log.read_bytes().count(b"\n") >= 1):
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() < deadline
