@@ -1,12 +1,7 @@
 """``jaxcr evaluate OUT [OUT ...] [-o REPORT_DIR]``: Watson et al. Table II for segment runs.
 
-Reads each segment output folder (``results.jsonl`` and its masks/centrelines) and the
-dataset's ground truth (visible robot masks, occluder masks, true centrelines), and reports
-per column (the frames' tag set for one OUT, e.g. "orthogonal occluded"; the dataset name for
-several OUTs) the mean ± std IoU (eq. 8) of background subtraction, the unoptimised and the
-optimised projection, with the adjusted IoU (predicted pixels inside occluded regions removed,
-Sec. III-B) after "|" where occlusion masks exist; tip and mean centreline errors (mm) of the
-nominal and refined shapes; median solver steps and time per frame; failed frame counts.
+What is measured and how: :mod:`jaxcr.segmentation.evaluate` (the library this command
+calls; its module docstring lists every column).
 
 Writes ``table2.md``, ``table2.csv`` (long format), ``per_frame.csv`` and ``iou.png`` into
 OUT (one run) or REPORT_DIR; a REPORT_DIR other than an OUT must be new, empty or an earlier
