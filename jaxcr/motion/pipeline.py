@@ -257,6 +257,36 @@ def _retire_lost(
     return alive & (new >= fraction * area), new
 
 
+@dataclass(frozen=True)
+class PairFlow:
+    """M-L step 2 for one frame pair (host arrays): the next frame's grey image, the LK grid
+    points, flow and validity (:func:`~jaxcr.motion.flow.grid_flow`), the dense flow at the
+    superpixels' working resolution (:func:`~jaxcr.motion.flow.dense_from_grid`) and the
+    wall time it took (ms)."""
+
+    gray: np.ndarray
+    pts: np.ndarray
+    flow: np.ndarray
+    valid: np.ndarray
+    dense: np.ndarray
+    ms: float
+
+
+def pair_flow(
+    prev_gray: np.ndarray, next_frame: np.ndarray, flow_cfg: flowmod.FlowConfig, scale: int
+) -> PairFlow:
+    """Grid flow from ``prev_gray`` (uint8, (H, W)) to ``next_frame`` (RGB as
+    :func:`~jaxcr.motion.flow.to_gray_u8` takes it, or uint8 grey) with a resolved
+    ``flow_cfg`` (its ``step`` set) and its dense field at working ``scale``. OpenCV and
+    NumPy only (no JAX; OpenCV releases the GIL): safe and useful in a second thread."""
+    t0 = time.perf_counter()
+    next_gray = flowmod.to_gray_u8(next_frame)
+    h, w = next_gray.shape
+    pts, fl, valid = flowmod.grid_flow(prev_gray, next_gray, flow_cfg)
+    dense = flowmod.dense_from_grid(fl, valid, h, w, flow_cfg.step, scale)
+    return PairFlow(next_gray, pts, fl, valid, dense, 1e3 * (time.perf_counter() - t0))
+
+
 @dataclass
 class StepRecord:
     """What happened between frames ``index - 1`` and ``index``."""
@@ -320,6 +350,13 @@ class MotionTracker:
             and 0 <= uv[1] <= self.height - 1
         )
 
+    def pair_flow(self, prev_gray: np.ndarray, next_frame: np.ndarray) -> PairFlow:
+        """The flow of one frame pair as :meth:`step` uses it (:func:`pair_flow` with this
+        tracker's settings). Touches no tracker state, so it may run in another thread while
+        the tracker steps (:func:`jaxcr.motion.run.run_motion` overlaps it with the JAX work
+        of the previous pair)."""
+        return pair_flow(prev_gray, next_frame, self.flow_cfg, self.scale)
+
     def step(
         self,
         index: int,
@@ -329,15 +366,17 @@ class MotionTracker:
         touch: bool,
         now_visible: bool = True,
         next_visible: bool = True,
+        *,
+        flow: PairFlow | None = None,
     ) -> StepRecord:
-        """Advance to ``next_rgb``; ``x_now``/``x_next`` are h(x) at the two frames (px)."""
+        """Advance to ``next_rgb``; ``x_now``/``x_next`` are h(x) at the two frames (px).
+        ``flow``: the pair's flow already computed by :meth:`pair_flow` from the tracker's
+        last frame to ``next_rgb`` (its time is then the recorded ``flow_ms``); default:
+        computed here."""
         cfg = self.cfg
-        t0 = time.perf_counter()
-        gray = flowmod.to_gray_u8(next_rgb)
-        pts, fl, valid = flowmod.grid_flow(self.gray, gray, self.flow_cfg)
-        dense = flowmod.dense_from_grid(
-            fl, valid, self.height, self.width, self.flow_cfg.step, self.scale
-        )
+        if flow is None:
+            flow = self.pair_flow(self.gray, next_rgb)
+        gray, pts, fl, valid, dense = flow.gray, flow.pts, flow.flow, flow.valid, flow.dense
         t1 = time.perf_counter()
         reason = ""
         x_now = np.asarray(x_now, np.float32)
@@ -400,7 +439,7 @@ class MotionTracker:
             not reason,
             reason,
             bool(touch),
-            1e3 * (t1 - t0),
+            flow.ms,
             1e3 * (t3 - t2),
             1e3 * (t2 - t1),
             float(valid.mean()),

@@ -11,7 +11,8 @@ grabCut baseline around the first touch.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 
 import jax
 import jax.numpy as jnp
@@ -20,7 +21,13 @@ import numpy as np
 from jaxcr.io.motion_dataset import MotionDataset
 from jaxcr.motion.baseline import fitzpatrick_segment
 from jaxcr.motion.calibration import end_effector_image
-from jaxcr.motion.pipeline import MotionConfig, MotionTracker, StepRecord
+from jaxcr.motion.pipeline import (
+    MotionConfig,
+    MotionTracker,
+    StepRecord,
+    pair_flow,
+    resolve_steps,
+)
 
 
 @dataclass
@@ -71,14 +78,44 @@ def end_effector_pixels(ds: MotionDataset) -> tuple[np.ndarray, np.ndarray]:
     return uv, front & inside
 
 
+def _with_flow(frames, flow_fn, pool):
+    """``(i, rgb, why, flow)`` for every item of ``frames`` (``(i, rgb, why)``; ``rgb`` None for
+    an unreadable frame), in order, where ``flow`` is the future of ``flow_fn(prev_grey,
+    rgb)`` from the previous readable frame (None for the first one and for unreadable
+    frames). Each item is held back until the next readable frame has been read and its
+    flow submitted to ``pool``, so the flow of pair k+1 runs while the caller steps pair k."""
+    from jaxcr.motion.flow import to_gray_u8
+
+    held: list = []
+    prev = None
+    for i, rgb, why in frames:
+        if rgb is None:
+            held.append((i, None, why, None))
+            continue
+        fut = None if prev is None else pool.submit(flow_fn, prev, rgb)
+        prev = to_gray_u8(rgb)
+        yield from held
+        held = [(i, rgb, why, fut)]
+    yield from held
+
+
 def run_motion(
     ds: MotionDataset,
     cfg: MotionConfig | None = None,
     on_step: Callable[[StepRecord], None] | None = None,
     eval_frame: int | None = None,
+    *,
+    overlap_flow: bool = True,
 ) -> MotionResult:
     """M-L over the whole video. ``eval_frame`` defaults to the dataset's, else the first touch
-    frame, else the last frame."""
+    frame, else the last frame.
+
+    ``overlap_flow`` (default): the OpenCV flow of the next frame pair runs in a second thread
+    while the JAX likelihood and segmentation of the current pair run (they need only the
+    two grey frames, not the tracker), so a frame costs about max(flow, JAX) instead of their
+    sum where a second core is free. The results are identical either way (same functions on
+    the same inputs; tests/motion/test_motion_overlap.py); ``False`` runs them one after the
+    other."""
     cfg = cfg or MotionConfig()
     warnings = []
     t_touch = first_touch(ds)
@@ -95,41 +132,55 @@ def run_motion(
     last = None  # index of the last good frame
     labels_eval = None
     failed: dict[int, str] = {}
-    for i, rgb, why in ds.frames():
-        if rgb is None:
-            failed[int(i)] = why
-            rec = (
-                tracker.skip(i, why, ds.touch[i])
-                if tracker
-                else StepRecord(i, False, why, bool(ds.touch[i]), 0, 0, 0, 0)
-            )
+    pool = (
+        ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxcr-flow") if overlap_flow else None
+    )
+    if pool is not None:
+        _, scale, step = resolve_steps(cfg, ds.width)
+        flow_cfg = replace(cfg.flow, step=step)
+        items = _with_flow(ds.frames(), lambda a, b: pair_flow(a, b, flow_cfg, scale), pool)
+    else:
+        items = ((i, rgb, why, None) for i, rgb, why in ds.frames())
+    try:
+        for i, rgb, why, fut in items:
+            if rgb is None:
+                failed[int(i)] = why
+                rec = (
+                    tracker.skip(i, why, ds.touch[i])
+                    if tracker
+                    else StepRecord(i, False, why, bool(ds.touch[i]), 0, 0, 0, 0)
+                )
+                if on_step:
+                    on_step(rec)
+                continue
+            if tracker is None:
+                tracker = MotionTracker(cfg, rgb)
+                last = i
+                rec = StepRecord(
+                    i,
+                    False,
+                    "first frame",
+                    bool(ds.touch[i]),
+                    0.0,
+                    tracker.first_segmentation_ms,
+                    0.0,
+                    0.0,
+                )
+                tracker.records.append(rec)
+            else:
+                # the touch flag of the interval [last, i]: touching at its end
+                rec = tracker.step(
+                    i, rgb, uv[last], uv[i], bool(ds.touch[i]), bool(vis[last]), bool(vis[i]),
+                    flow=None if fut is None else fut.result(),
+                )  # fmt: skip
+                last = i
+            if i == ev:
+                labels_eval = np.asarray(tracker.labels)
             if on_step:
                 on_step(rec)
-            continue
-        if tracker is None:
-            tracker = MotionTracker(cfg, rgb)
-            last = i
-            rec = StepRecord(
-                i,
-                False,
-                "first frame",
-                bool(ds.touch[i]),
-                0.0,
-                tracker.first_segmentation_ms,
-                0.0,
-                0.0,
-            )
-            tracker.records.append(rec)
-        else:
-            # the touch flag of the interval [last, i]: touching at its end
-            rec = tracker.step(
-                i, rgb, uv[last], uv[i], bool(ds.touch[i]), bool(vis[last]), bool(vis[i])
-            )
-            last = i
-        if i == ev:
-            labels_eval = np.asarray(tracker.labels)
-        if on_step:
-            on_step(rec)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     if tracker is None:
         raise RuntimeError("no readable frame in the video")
     if labels_eval is None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import astuple
 
 import numpy as np
 import pytest
@@ -199,3 +200,50 @@ def test_frame_update_compiles_once_per_shape(video, result):
     assert frame_update._cache_size() == before
     for m in CFG.models:
         np.testing.assert_array_equal(again.maps[m], result.maps[m])
+
+
+def _untimed(rec):
+    # StepRecord: index, used, reason, touch, flow_ms, segmentation_ms, likelihood_ms, valid
+    t = astuple(rec)
+    return t[:4] + t[7:]
+
+
+def test_overlapped_flow_equals_sequential(video, tmp_path):
+    """run_motion's default overlaps the next pair's OpenCV flow (a second thread) with the
+    JAX steps of the current pair; the sequential path runs the same functions on the same
+    inputs, so every output must be bit-identical (tolerance 0), also around unreadable
+    frames, where the flow must start from the last readable frame."""
+    d = tmp_path / "gaps"
+    shutil.copytree(video, d)
+    for k in (4, 5):  # the pair after them is (3, 6)
+        (d / "frames" / f"{k:06d}.png").write_bytes(b"not a png")
+    meta = json.loads((d / "motion.json").read_text())
+    meta["source"] = {"images": "frames"}
+    (d / "motion.json").write_text(json.dumps(meta))
+    ds = load_motion_dataset(d)
+    seq = run_motion(ds, CFG, overlap_flow=False)
+    seen = []
+    par = run_motion(ds, CFG, overlap_flow=True, on_step=lambda r: seen.append(r.index))
+    assert seen == list(range(12))  # every frame reported once, in order
+    assert seq.failed == par.failed and sorted(par.failed) == [4, 5]
+    assert [_untimed(r) for r in seq.records] == [_untimed(r) for r in par.records]
+    assert par.records[6].used  # tracking resumed from frame 3
+    np.testing.assert_array_equal(seq.labels_eval, par.labels_eval)
+    np.testing.assert_array_equal(seq.window_sums, par.window_sums)
+    np.testing.assert_array_equal(seq.window_counts, par.window_counts)
+    for m in CFG.models:
+        np.testing.assert_array_equal(seq.maps[m], par.maps[m])
+        np.testing.assert_array_equal(seq.final_maps[m], par.final_maps[m])
+    assert all(r.flow_ms > 0 for r in par.records if r.used)  # the flow's own wall time
+
+
+def test_flow_error_in_the_thread_reaches_the_caller(video, monkeypatch):
+    """A failure inside the flow thread is raised by run_motion, not lost with the thread."""
+    import jaxcr.motion.run as run_mod
+
+    def broken(*a, **k):
+        raise RuntimeError("flow broke")
+
+    monkeypatch.setattr(run_mod, "pair_flow", broken)
+    with pytest.raises(RuntimeError, match="flow broke"):
+        run_motion(load_motion_dataset(video), CFG, overlap_flow=True)
