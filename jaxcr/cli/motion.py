@@ -14,6 +14,13 @@ or an image folder. OUT receives, as they complete:
   baseline_pr.csv       the baseline over its threshold (if the dataset has ground truth)
   report.md, summary.json
 
+A batch of videos (several DATASET folders, or one folder whose sub-folders are datasets;
+docs/scale-out.md) writes each video's files above into OUT/<video>/ and one line per video
+to OUT/results.jsonl (jaxcr.motion-batch/1: ok or the reason it failed, scores), then
+OUT/summary.json and OUT/DONE. The unit of work is a video (M-L tracks and integrates over
+the whole sequence): --resume skips recorded videos, --shard I/N takes the I-th block of the
+sorted videos (records in OUT/shards/I-of-N/), --executor ray runs videos as Ray tasks.
+
 ``jaxcr motion synth -o OUT`` writes a synthetic video dataset instead (presets
 pushed_static, pushed_changing, held_static, held_changing).
 
@@ -21,6 +28,8 @@ Examples:
   jaxcr motion synth --preset pushed_changing --seed 3 -o /tmp/push3
   jaxcr motion /tmp/push3 -o /tmp/push3_out
   jaxcr motion /tmp/push3 -o /tmp/out --model homography --lambda 20 --flow dis
+  jaxcr motion /data/videos -o /shared/out --shard $SLURM_ARRAY_TASK_ID/8
+  jaxcr motion /data/videos -o /shared/out --executor ray --address auto
 """
 
 from __future__ import annotations
@@ -31,8 +40,6 @@ import os
 import sys
 import time
 from pathlib import Path
-
-import numpy as np
 
 from jaxcr.cli._common import seed as _seed
 from jaxcr.errors import InputError
@@ -47,7 +54,12 @@ def add_parser(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__.split("\n\n", 1)[1],
     )
-    p.add_argument("dataset", help="dataset folder (jaxcr.motion/1), or 'synth' to generate one")
+    p.add_argument(
+        "dataset",
+        nargs="+",
+        help="dataset folder (jaxcr.motion/1), or 'synth' to generate one; several folders, or "
+        "a folder of dataset folders, run as a batch of videos (OUT/<video>/ each)",
+    )
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument(
         "--model",
@@ -110,6 +122,24 @@ def add_parser(subparsers) -> None:
         "mask_baseline.png and the report (default 40, chosen on the static synthetic videos "
         "like lambda; the paper's 5 leaves the mask empty on them)",
     )
+    b = p.add_argument_group("batch of videos (several DATASETs or a folder of them)")
+    b.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a batch in OUT: skip the videos it already recorded",
+    )
+    b.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="like --resume, but re-run the videos recorded as failed",
+    )
+    b.add_argument("--shard", default=None, metavar="I/N",
+                   help="process only the I-th of N contiguous blocks of the batch's videos "
+                   "(sorted by name; 0-based, e.g. $SLURM_ARRAY_TASK_ID/N) into the same OUT; "
+                   "records go to OUT/shards/I-of-N/ (default: all videos)")  # fmt: skip
+    from jaxcr.scale.executor import add_executor_arguments
+
+    add_executor_arguments(p, "1 video")
     g = p.add_argument_group("synth (with DATASET = synth)")
     g.add_argument("--preset", default="pushed_static")
     g.add_argument("--seed", type=_seed, default=0, help="random seed of the generated scene")
@@ -146,32 +176,15 @@ def _synth(args) -> int:
     return 0
 
 
-def _png(path: Path, a: np.ndarray) -> None:
-    from jaxcr.io.images import write_png
-
-    write_png(path, a)
+from jaxcr.motion.batch import timing_line  # noqa: E402,F401  (re-exported: tests, docs)
 
 
-def timing_line(timing: dict) -> str:
-    """The report's median per-frame times (ms, one decimal; '-' without used frames)."""
-    parts = []
-    for k in ("flow", "segmentation", "likelihood"):
-        v = timing.get(f"{k}_ms")
-        parts.append(f"{k} -" if v is None else f"{k} {v:.1f} ms")
-    return "Median per-frame time: " + ", ".join(parts) + "."
-
-
-def run(args) -> int:
-    if args.dataset == "synth":
-        return _synth(args)
-    os.environ.setdefault("JAX_PLATFORMS", "cpu")
-    from jaxcr.io.motion_dataset import load_motion_dataset
+def _config(args, width_of=None):
+    """The MotionConfig and VideoOptions of the arguments (bad values: InputError, exit 2)."""
     from jaxcr.limits import check_number
-    from jaxcr.motion import metrics as mt
+    from jaxcr.motion.batch import VideoOptions
     from jaxcr.motion.flow import FlowConfig
-    from jaxcr.motion.pipeline import MODELS, MotionConfig, resolve_steps
-    from jaxcr.motion.run import first_touch, run_baseline, run_motion
-    from jaxcr.progress import progress
+    from jaxcr.motion.pipeline import MODELS, MotionConfig
 
     check_number(args.prior_frames, "--prior-frames", 0.0)  # NaN/inf were accepted
     check_number(args.lam, "--lambda", 0.0, lo_open=True)
@@ -185,16 +198,6 @@ def run(args) -> int:
             "--superpixel-step must be 0 (auto) or >= 4 and --flow-step >= 0 (0: auto)",
             field="--superpixel-step",
         )
-    ds = load_motion_dataset(args.dataset)
-    # a grid step over the frame's shorter side leaves one superpixel / one flow vector
-    short = min(ds.width, ds.height)
-    from jaxcr.limits import check_count
-
-    for flag, step in (
-        ("--superpixel-step", args.superpixel_step),
-        ("--flow-step", args.flow_step),
-    ):
-        check_count(step, flag, 0, short, "the frames' shorter side; 0 = auto")
     models = MODELS if args.model == "both" else (args.model,)
     cfg = MotionConfig(
         superpixel_step=args.superpixel_step,
@@ -206,207 +209,215 @@ def run(args) -> int:
         integration=args.integration,
         prior_frames=args.prior_frames,
     )
+    opts = VideoOptions(args.threshold, not args.no_baseline, float(args.baseline_threshold))
+    return cfg, opts
+
+
+def _check_steps(args, ds) -> None:
+    """A grid step over the frames' shorter side leaves one superpixel / one flow vector."""
+    from jaxcr.limits import check_count
+
+    short = min(ds.width, ds.height)
+    for flag, step in (
+        ("--superpixel-step", args.superpixel_step),
+        ("--flow-step", args.flow_step),
+    ):
+        check_count(step, flag, 0, short, "the frames' shorter side; 0 = auto")
+
+
+def _batch_flags(args) -> list[str]:
+    given = []
+    if args.shard is not None:
+        given.append("--shard")
+    if args.executor != "local":
+        given.append("--executor " + args.executor)
+    for flag in ("chunk", "workers", "address"):
+        if getattr(args, flag) is not None:
+            given.append("--" + flag)
+    if args.resume or args.retry_failed:
+        given.append("--resume" if args.resume else "--retry-failed")
+    return given
+
+
+def run(args) -> int:
+    if args.dataset == ["synth"]:
+        return _synth(args)
+    if "synth" in args.dataset:
+        raise InputError("'synth' generates one dataset: give it alone", field="dataset")
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    from jaxcr.motion.batch import find_videos
+
+    cfg, opts = _config(args)
+    first = Path(args.dataset[0])
+    # one dataset folder (or a motion.json, or a missing path: the loader names the problem)
+    # is a single video; several, or a folder of dataset folders, are a batch
+    single = len(args.dataset) == 1 and (not first.is_dir() or (first / "motion.json").exists())
+    if not single:
+        return _run_batch(args, find_videos(args.dataset), cfg, opts)
+    given = _batch_flags(args)
+    if given:
+        raise InputError(
+            f"{given[0]} needs a batch of videos (several DATASET folders or a folder of them):"
+            " one video is one tracked sequence and runs in one process",
+            field=given[0].split()[0][2:],
+        )
+    return _run_single(args, args.dataset[0], cfg, opts)
+
+
+def _run_single(args, dataset: str, cfg, opts) -> int:
+    from jaxcr.io.motion_dataset import load_motion_dataset
+    from jaxcr.motion.batch import motion_video, video_failure
+    from jaxcr.progress import progress
+
+    ds = load_motion_dataset(dataset)
+    _check_steps(args, ds)
     out = Path(args.out)
     from jaxcr.io import outdir
 
     # new, empty or an earlier motion run (whose results are replaced), never another command's
     # folder; locked until exit
     outdir.claim(out, "motion", recognise=lambda o: (o / "frames.jsonl").exists())
-    # An earlier run's results must not sit beside this run's partial log if it stops early:
-    # remove them now; summary.json and report.md (last) are written only when it completes.
-    for stale in ("summary.json", "report.md", "baseline_pr.csv", "mask_baseline.png"):
-        (out / stale).unlink(missing_ok=True)
-    for pattern in ("prob_*.npy", "prob_*.png", "mask_*.png", "pr_*.csv"):
-        for f in out.glob(pattern):
-            f.unlink()
-    t0 = time.time()
-    log = open(out / "frames.jsonl", "w")
     bar = progress(total=len(ds), desc="motion", unit="frame")
-
-    def on_step(rec):
-        log.write(
-            json.dumps(
-                {k: (round(v, 3) if isinstance(v, float) else v) for k, v in vars(rec).items()}
-            )
-            + "\n"
-        )
-        log.flush()
-        bar.update(1)
-
     try:
-        res = run_motion(ds, cfg, on_step=on_step)
-    except RuntimeError as err:
-        raise InputError(str(err), file=args.dataset) from None
+        summary, report = motion_video(dataset, out, cfg, opts, ds=ds,
+                                       on_step=lambda rec: bar.update(1))  # fmt: skip
     finally:
         bar.close()
-        log.close()
+    print(report, end="")
     # Frames the reader could not use (unreadable, corrupt, wrong size) are failed frames: the
     # run went on without them but exits 1 (README exit codes). Pairs the method itself does not
     # use (first frame, end-effector still or out of view, no valid flow) are not failures.
-    failed = res.failed
-    gt = ds.mask(res.eval_frame)
-    ths = np.round(np.linspace(0.05, 1.0, 20), 3)
-    summary = {
-        "dataset": str(args.dataset),
-        "eval_frame": res.eval_frame,
-        "first_touch": first_touch(ds),
-        "warnings": res.warnings,
-        "models": {},
-    }
-    for m in models:
-        pm = res.maps[m]
-        norm = pm / max(float(pm.max()), 1e-12)
-        np.save(out / f"prob_{m}.npy", pm)
-        _png(out / f"prob_{m}.png", np.clip(np.round(norm * 255), 0, 255).astype(np.uint8))
-        mask = norm >= args.threshold
-        _png(out / f"mask_{m}.png", mask)
-        info = {"max_probability": float(pm.max())}
-        if gt is not None:
-            import jax.numpy as jnp
-
-            pr, re = mt.pr_curve(jnp.asarray(norm), jnp.asarray(gt), jnp.asarray(ths))
-            pr, re = np.asarray(pr), np.asarray(re)
-            np.savetxt(
-                out / f"pr_{m}.csv",
-                np.stack([ths, pr, re], 1),
-                delimiter=",",
-                header="threshold,precision,recall",
-                comments="",
-                fmt="%.5f",
-            )
-            k, tbest = mt.optimal_threshold(ths, pr, re)
-            info.update(
-                tanimoto=float(mt.tanimoto_distance(jnp.asarray(mask), jnp.asarray(gt))),
-                l2=float(mt.l2_distance(jnp.asarray(mask), jnp.asarray(gt))),
-                optimal_threshold=tbest,
-                optimal_precision=float(pr[k]),
-                optimal_recall=float(re[k]),
-            )
-        summary["models"][m] = info
-    if not args.no_baseline:
-        bth = float(args.baseline_threshold)
-        bths = sorted({2.0, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0, bth})
-        bl = run_baseline(ds, bths if gt is not None else [bth])
-        if bl is None:
-            summary["warnings"].append(
-                "baseline skipped: no touch event at frame >= 2 with readable frames"
-            )
-        else:
-            _png(out / "mask_baseline.png", bl[bth])
-            summary["baseline"] = {"threshold": bth, "mask_pixels": int(bl[bth].sum())}
-        if bl is not None and gt is not None:
-            import jax.numpy as jnp
-
-            rows = []
-            for th, msk in bl.items():
-                p_, r_ = mt.precision_recall(jnp.asarray(msk), jnp.asarray(gt))
-                rows.append(
-                    [
-                        th,
-                        float(p_),
-                        float(r_),
-                        float(mt.tanimoto_distance(jnp.asarray(msk), jnp.asarray(gt))),
-                    ]
-                )
-            np.savetxt(
-                out / "baseline_pr.csv",
-                np.array(rows),
-                delimiter=",",
-                header="threshold,precision,recall,tanimoto",
-                comments="",
-                fmt="%.5f",
-            )
-            by_th = {r[0]: r for r in rows}
-            best = min(rows, key=lambda r: r[3])
-            summary["baseline"].update(
-                tanimoto=by_th[bth][3],
-                precision=by_th[bth][1],
-                recall=by_th[bth][2],
-                tanimoto_at_5=by_th[5.0][3],
-                best_tanimoto=best[3],
-                best_threshold=best[0],
-            )
-    recs = res.records
-    used = [r for r in recs if r.used]
-    skipped = [r for r in recs if not r.used and r.reason != "first frame"]
-    timing = {
-        k: float(np.median([getattr(r, k) for r in used])) if used else None
-        for k in ("flow_ms", "segmentation_ms", "likelihood_ms")
-    }
-    sp, scale, flow_step = resolve_steps(cfg, ds.width)
-    settings = {
-        "superpixel_step_px": sp,
-        "superpixel_working_scale": scale,
-        "flow": cfg.flow.method,
-        "flow_step_px": flow_step,
-        "lk_window_px": cfg.flow.window,
-        "lk_levels": cfg.flow.levels,
-        "lambda_px2": cfg.lam,
-        "threshold": args.threshold,
-    }
-    summary.update(
-        settings=settings,
-        frames=len(ds),
-        used=len(used),
-        skipped=len(skipped),
-        failed={str(k): v for k, v in sorted(failed.items())},
-        median_ms=timing,
-        wall_s=time.time() - t0,
-    )
-    R.atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
-    lines = [
-        f"# Motion-Likelihood: {args.dataset}",
-        "",
-        f"{len(ds)} frames, {len(used)} frame pairs used, {len(skipped)} skipped; evaluation frame {res.eval_frame} "
-        f"(first touch {first_touch(ds)}).",
-        "",
-    ]
-    lines.append(
-        f"Settings: superpixel step {sp} px (SLIC on the frame shrunk {scale}x), "
-        f"{cfg.flow.method.upper()} flow on a {flow_step}-px grid (window {cfg.flow.window} px, "
-        f"{cfg.flow.levels} levels), lambda {cfg.lam:g} px^2, threshold {args.threshold:g} x the map "
-        "maximum."
-    )
-    lines.append("")
-    for w in res.warnings:
-        lines.append(f"**warning:** {w}")
-    if skipped:
-        lines += ["", "| frame | reason |", "|---|---|"] + [
-            f"| {r.index} | {r.reason} |" for r in skipped
-        ]
-    lines += [
-        "",
-        "| model | Tanimoto (eq. 20) | L2 (eq. 19) | P-R optimum (threshold, Pr, Re) |",
-        "|---|---|---|---|",
-    ]
-    for m, info in summary["models"].items():
-        if "tanimoto" in info:
-            lines.append(
-                f"| {m} | {info['tanimoto']:.3f} | {info['l2']:.2e} | {info['optimal_threshold']:.2f}, "
-                f"{info['optimal_precision']:.2f}, {info['optimal_recall']:.2f} |"
-            )
-        else:
-            lines.append(f"| {m} | (no ground truth) | | |")
-    if "tanimoto" in summary.get("baseline", {}):
-        b = summary["baseline"]
-        lines += [
-            f"| baseline (diff > {b['threshold']:g} + grabCut; mask_baseline.png) | "
-            f"{b['tanimoto']:.3f} | | {b['threshold']:g}, {b['precision']:.2f}, "
-            f"{b['recall']:.2f} |",
-            f"| baseline at the paper's threshold 5 | {b['tanimoto_at_5']:.3f} | | |",
-            f"| baseline at its best threshold for this video ({b['best_threshold']:g}; chosen "
-            f"with the ground truth, an upper bound) | {b['best_tanimoto']:.3f} | | |",
-        ]
-    lines += [
-        "",
-        timing_line(timing),
-    ]
-    R.atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    failed = summary["failed"]
     if failed:
-        i, why = min(failed.items())
-        more = f" (and {len(failed) - 1} more)" if len(failed) > 1 else ""
-        more += f"; all listed in {out / 'summary.json'}"
-        print(f"jaxcr motion: {len(failed)} frame(s) failed: frame {i}: {why}{more}",
+        print(f"jaxcr motion: {video_failure(summary)}; all listed in {out / 'summary.json'}",
               file=sys.stderr)  # fmt: skip
-    return 0 if used and not failed else 1
+    return 0 if summary["used"] and not failed else 1
+
+
+def _run_batch(args, videos: dict, cfg, opts) -> int:
+    """Several videos (docs/scale-out.md, "motion"): one item per video."""
+    from jaxcr.io.motion_dataset import load_motion_dataset
+    from jaxcr.motion import batch as B
+    from jaxcr.progress import progress
+    from jaxcr.scale.executor import WorkerSpec, executor_config, run_frames
+    from jaxcr.scale.shards import parse_shard
+
+    shard = parse_shard(args.shard)
+    executor = executor_config(args)
+    if args.retry_failed:
+        args.resume = True
+    # bad input is found before any work: every video's motion.json and the grid steps
+    for path in videos.values():
+        _check_steps(args, load_motion_dataset(path))
+    out = Path(args.out)
+    run_info = {
+        "format": B.BATCH_RUN_FORMAT,
+        "videos": {k: str(Path(v).resolve()) for k, v in videos.items()},
+        "config": R.to_jsonable(_asdict(cfg)),
+        "options": _asdict(opts),
+    }
+    previous, log_dir, lock = _prepare_batch(out, shard, run_info, args.resume)
+    ids = list(videos)
+    scope = ids if shard is None else shard.select(ids)
+    done = {str(r["video"]) for r in previous if r.get("ok") or not args.retry_failed}
+    todo = [v for v in scope if v not in done]
+    worker = B.MotionWorker({k: str(v) for k, v in videos.items()}, out, cfg, opts)
+    spec = WorkerSpec(B.build_motion_worker,
+                      ({k: str(v) for k, v in videos.items()}, str(out), cfg, opts))  # fmt: skip
+    bar = progress(total=len(todo), desc="motion", unit="video") if todo else None
+    t0 = time.time()
+    with R.ResultsLog(log_dir / "results.jsonl") as log:
+        stats = run_frames(spec, todo, log, executor, chunk=1, key="video",
+                           local_worker=worker,
+                           on_record=None if bar is None else lambda r: bar.update(1))  # fmt: skip
+    if bar is not None:
+        bar.close()
+    if executor.kind != "local" and shard is None:
+        from jaxcr.io.outdir import clean_leftovers
+
+        clean_leftovers(out)  # temp files of a worker killed mid-write (OUT is locked, all done)
+    merged = {str(r["video"]): r for r in _all_records(out)}
+    recs = [merged[v] for v in scope if v in merged]
+    failed = [r for r in recs if not r.get("ok")]
+    summary = {
+        "format": B.BATCH_FORMAT,
+        "videos": len(recs),
+        "ok": len(recs) - len(failed),
+        "failed": len(failed),
+        "failures": {r["video"]: r.get("reason") for r in failed},
+        "missing": [v for v in scope if v not in merged],
+        "shard": None if shard is None else str(shard),
+        "executor": stats.executor,
+        "run_s": stats.run_s,
+        "wall_s": time.time() - t0,
+    }
+    R.atomic_write_json(log_dir / "summary.json", summary)
+    R.atomic_write_text(log_dir / "DONE", time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()) + "\n")
+    what = "" if shard is None else f" (shard {shard})"
+    print(f"jaxcr motion: {summary['ok']}/{len(recs)} videos ok{what} -> {out}")
+    for r in failed:
+        print(f"  {r['video']}: {r.get('reason')}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _asdict(obj) -> dict:
+    import dataclasses
+
+    return dataclasses.asdict(obj)
+
+
+def _all_records(out: Path) -> list[dict]:
+    from jaxcr.motion.batch import read_video_records
+    from jaxcr.scale.shards import read_all_records
+
+    return read_all_records(out, read_video_records, key="video")
+
+
+def _prepare_batch(out: Path, shard, run_info: dict, resume: bool):
+    """Lock OUT (or the shard's folder), check that every part of the job ran with the same
+    videos and options, and return (records this run skips, the folder of its results.jsonl,
+    the lock). Without --resume an OUT that already holds this part's records is refused."""
+    from jaxcr.io import outdir
+    from jaxcr.scale import shards as S
+
+    def recognise(o):
+        return (o / R.RUN_FILE).exists() or (o / S.SHARDS_DIR).is_dir()
+
+    if shard is None:
+        lock = outdir.claim(out, "motion", recognise=recognise)
+        log_dir = out
+    else:
+        lock = S.claim_shard(out, "motion", shard, recognise=recognise)
+        log_dir = S.shard_dir(out, shard)
+    try:
+        if (out / "frames.jsonl").exists():
+            raise InputError("output folder holds a single-video motion run; choose a new "
+                             "folder for a batch", file=str(out))  # fmt: skip
+        for other in [out / R.RUN_FILE] + [d / R.RUN_FILE for _, d in S.shard_dirs(out)]:
+            if other.exists():
+                prev = json.loads(other.read_text())
+                if {k: prev.get(k) for k in run_info} != run_info:
+                    raise InputError(
+                        "another part of this job ran with other videos or options "
+                        f"({other}); use the same arguments or a new folder",
+                        file=str(out),
+                    )
+        from jaxcr.motion.batch import read_video_records
+
+        own = read_video_records(log_dir / "results.jsonl")
+        if own and not resume:
+            raise InputError(
+                f"output folder already holds {len(own)} video record(s) of this job; add "
+                "--resume to continue it (--retry-failed to re-run failed videos) or choose a "
+                "new folder",
+                file=str(log_dir / "results.jsonl"),
+            )
+        (log_dir / "summary.json").unlink(missing_ok=True)
+        (log_dir / "DONE").unlink(missing_ok=True)
+        R.atomic_write_json(log_dir / R.RUN_FILE, run_info)
+        # every part's records: a shard never redoes another part's video
+        previous = _all_records(out)
+    except BaseException:
+        outdir.release(lock)
+        raise
+    return previous, log_dir, lock

@@ -28,6 +28,7 @@ NOT_CORE = {
     "segmentation/evaluate.py": "evaluation driver: reads segment outputs and ground truth",
     "motion/run.py": "per-video driver over a MotionDataset (jaxcr.io.motion_dataset)",
     "motion/api.py": "front door of motion/run.py (type-only import of the dataset)",
+    "motion/batch.py": "writes one video's outputs and a batch's records (jaxcr.io)",
     # OpenCV as a numerical library on host numpy arrays, outside jit (not file I/O)
     "motion/flow.py": "OpenCV pyramidal Lucas-Kanade on a grid (the M-L paper's tracker)",
     "motion/baseline.py": "the paper's baseline: frame differencing + OpenCV grabCut",
