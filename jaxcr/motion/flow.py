@@ -19,9 +19,10 @@ import numpy as np
 class FlowConfig:
     """Flow settings: grid step (px; 0: :func:`auto_step` of the frame width), LK window (px),
     pyramid levels, forward-backward check threshold (px; 0 disables it), method "lk" or
-    "dis", and LK's minimum eigenvalue of the gradient matrix (OpenCV's minEigThreshold; points
+    "dis", LK's minimum eigenvalue of the gradient matrix (OpenCV's minEigThreshold; points
     in textureless areas, whose flow the aperture problem leaves undetermined, are marked
-    invalid).
+    invalid) and LK's iteration cap per level (OpenCV's criteria count; the stop at 0.03 px
+    steps is fixed).
 
     The default (grid step W / 80, window 15 px, 3 levels) is the setting the accuracy
     experiments validate: 4 px on their 320x240 videos (experiments/results/motion/motion_report.md),
@@ -33,6 +34,7 @@ class FlowConfig:
     fb_threshold: float = 0.0
     method: str = "lk"
     min_eig: float = 1e-3
+    iters: int = 20  # LK iterations per pyramid level at most (OpenCV's criteria count)
 
 
 def grid_points(height: int, width: int, step: int) -> np.ndarray:
@@ -85,7 +87,7 @@ def grid_flow(
         return pts, np.where(valid[:, None], flow, 0.0).astype(np.float32), valid
     if cfg.method != "lk":
         raise ValueError(f"unknown flow method {cfg.method!r}")
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, cfg.iters, 0.03)
     lk = dict(
         winSize=(cfg.window, cfg.window),
         maxLevel=cfg.levels,
