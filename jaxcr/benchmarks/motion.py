@@ -95,9 +95,9 @@ def run_motion_benchmark(
     grey = [to_gray_u8(x) for x in rgb]
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
 
-    def lk(levels):
-        opts = dict(winSize=(fc.window, fc.window), maxLevel=levels, criteria=crit,
-                    minEigThreshold=fc.min_eig)  # fmt: skip
+    def lk(levels, iters=20):
+        opts = dict(winSize=(fc.window, fc.window), maxLevel=levels,
+                    criteria=(crit[0], iters, crit[2]), minEigThreshold=fc.min_eig)  # fmt: skip
         return lambda: [cv2.calcOpticalFlowPyrLK(a, b, pts, None, **opts)
                         for a, b in zip(grey[:-1], grey[1:], strict=True)]  # fmt: skip
 
@@ -108,6 +108,9 @@ def run_motion_benchmark(
         f"OpenCV LK, {len(pts)} grid points, window {fc.window}, 3 levels (validated)": _median_ms(
             lk(3), n
         ) / pairs,
+        "OpenCV LK, same points, 2 levels": _median_ms(lk(2), n) / pairs,
+        "OpenCV LK, same points, 3 levels, at most 10 iterations": _median_ms(lk(3, 10), n)
+        / pairs,
         "OpenCV LK, same points, 1 level": _median_ms(lk(1), n) / pairs,
         "OpenCV LK, same points, no pyramid": _median_ms(lk(0), n) / pairs,
         "OpenCV DIS (fast preset, dense)": _median_ms(

@@ -355,7 +355,8 @@ def test_grid_flow_vs_opencv_and_known_shift():
     g0 = _texture(72, 96, 5)
     M = np.float32([[1, 0, 2.5], [0, 1, -1.5]])
     g1 = cv2.warpAffine(g0, M, (96, 72), borderMode=cv2.BORDER_REFLECT)
-    for cfg in (fm.FlowConfig(step=8), fm.FlowConfig(step=8, window=9, levels=2)):
+    for cfg in (fm.FlowConfig(step=8), fm.FlowConfig(step=8, window=9, levels=2),
+                fm.FlowConfig(step=8, iters=1)):  # fmt: skip
         pts, flow, valid = fm.grid_flow(g0, g1, cfg)
         nxt, st, _ = cv2.calcOpticalFlowPyrLK(
             g0,
@@ -364,7 +365,7 @@ def test_grid_flow_vs_opencv_and_known_shift():
             None,
             winSize=(cfg.window, cfg.window),
             maxLevel=cfg.levels,
-            criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03),
+            criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, cfg.iters, 0.03),
             minEigThreshold=cfg.min_eig,
         )
         ok = st.ravel().astype(bool)
@@ -372,6 +373,9 @@ def test_grid_flow_vs_opencv_and_known_shift():
         np.testing.assert_allclose(flow[valid], (nxt[:, 0] - pts)[valid], atol=1e-6)
         interior = valid & (pts[:, 0] > 12) & (pts[:, 0] < 84) & (pts[:, 1] > 12) & (pts[:, 1] < 60)
         np.testing.assert_allclose(np.median(flow[interior], 0), [2.5, -1.5], atol=0.05)
+        if cfg.iters == 1:  # the cap reaches OpenCV: one step per level is not 20 steps
+            full = fm.grid_flow(g0, g1, fm.FlowConfig(step=8))[1]
+            assert np.abs(flow[valid] - full[valid]).max() > 1e-3
 
 
 def test_tracker_at_working_scale_two(tmp_path):
