@@ -147,7 +147,7 @@ def report(recs, summary, args, load) -> str:
         f"{load[0]:.1f} (a shared 2-core machine: times are inflated by the load, compare within "
         "the table).",
         "",
-        f"Development seeds only ({args.seeds}, pushed_changing, {args.size}, 24 frames); both "
+        f"{'Fresh (reserved)' if args.fresh else 'Development'} seeds only ({args.seeds}, pushed_changing, {args.size}, 24 frames); both "
         "models, package defaults otherwise. Equal = mean paired change within "
         f"{EQUAL_TOL} (Tanimoto not higher, AP not lower by more) and the bootstrap 95 % interval "
         "of the change contains 0, for both models.",
@@ -202,10 +202,15 @@ def main() -> None:
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--log", default=None, help="JSON lines (default: DATA/speed_r2.jsonl)")
     ap.add_argument("--out", default=None, help="report .md (default: print only)")
+    ap.add_argument("--fresh", action="store_true",
+                    help="the seeds reserved for this check, 340-355 (fresh_seeds_reserved.md), "
+                    "run once with the variants fixed before the run")  # fmt: skip
     args = ap.parse_args()
     lo, hi = (int(v) for v in args.seeds.split("-"))
-    if lo < 20 or hi > 35:
-        raise SystemExit("development seeds are 20-35 (fresh_seeds_reserved.md)")
+    allowed = (340, 355) if args.fresh else (20, 35)
+    if lo < allowed[0] or hi > allowed[1]:
+        raise SystemExit(f"seeds must be within {allowed[0]}-{allowed[1]} "
+                         "(fresh_seeds_reserved.md)")  # fmt: skip
     w, h = (int(v) for v in args.size.split("x"))
     data = Path(args.data)
     log = Path(args.log or data / "speed_r2.jsonl")
