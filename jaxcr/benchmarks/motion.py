@@ -23,6 +23,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -64,13 +65,16 @@ def run_motion_benchmark(
         # wall time per used frame pair (the interval between its step's report and the
         # previous one), for the sequential path and the overlapped flow, alternated in the
         # same run (equal load); their outputs must be identical
-        wall = {False: [], True: []}
+        # "iters10": the overlapped path with LK capped at 10 iterations per level
+        # (experiments/results/motion/motion_speed_r2.md), in the same loop
+        cfg10 = replace(cfg, flow=replace(cfg.flow, iters=10))
+        wall = {False: [], True: [], "iters10": []}
         maps = {}
         for _ in range(max(1, repeats)):
-            for overlap in (False, True):
+            for overlap in (False, True, "iters10"):
                 stamps = []
                 res = run_motion(
-                    ds, cfg, overlap_flow=overlap,
+                    ds, cfg10 if overlap == "iters10" else cfg, overlap_flow=bool(overlap),
                     on_step=lambda r, st=stamps: st.append((r.used, time.perf_counter())),
                 )  # fmt: skip
                 wall[overlap] += [
@@ -79,7 +83,7 @@ def run_motion_benchmark(
                     if used
                 ]
                 maps[overlap] = res.maps
-                if overlap:
+                if overlap is not False:
                     continue
                 for r in (r for r in res.records if r.used):
                     stage["flow"].append(r.flow_ms)
@@ -127,6 +131,9 @@ def run_motion_benchmark(
         {"stage": "wall per frame, sequential (overlap_flow=False)", "median_ms": seq_ms},
         {"stage": "wall per frame, overlapped flow (default)", "median_ms": ovl_ms,
          "share": ovl_ms / seq_ms},
+        {"stage": "wall per frame, overlapped flow, LK at most 10 iterations",
+         "median_ms": float(np.median(wall["iters10"])),
+         "share": float(np.median(wall["iters10"])) / seq_ms},
     ]  # fmt: skip
     return {
         "name": f"motion likelihood (M-L) per frame, {w}x{h}, validated setting",
