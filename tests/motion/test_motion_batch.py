@@ -169,3 +169,30 @@ def test_ray_batch_equals_local(videos, local, ray_session, tmp_path):
         k: v for k, v in s_loc.items() if k not in drop
     }
     assert s_ray["executor"]["kind"] == "ray" and s_ray["executor"]["chunks_lost"] == 0
+
+
+def test_concurrent_runs_are_refused_naming_the_holder(videos, tmp_path, capsys):
+    """A shard that runs (its lock held by a live process) refuses an unsharded run into the
+    same OUT, and the same shard twice: one line naming the holder's pid, exit 2, no work."""
+    import json as _json
+    import subprocess
+    import sys
+
+    from jaxcr.io import outdir
+
+    out = tmp_path / "busy"
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        d = out / "shards" / "0-of-2"
+        d.mkdir(parents=True)
+        info = outdir.lock_info("motion")
+        info.update(pid=holder.pid, pid_start=outdir._pid_start(holder.pid))
+        (d / outdir.LOCK_FILE).write_text(_json.dumps(info) + "\n")
+        for extra in ([], ["--shard", "0/2"]):
+            assert main(["motion", str(videos), "-o", str(out), *FAST, *extra]) == 2
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and f"pid {holder.pid}" in err[0], err
+        assert not (out / "results.jsonl").exists() and not (d / "results.jsonl").exists()
+    finally:
+        holder.kill()
+        holder.wait()
