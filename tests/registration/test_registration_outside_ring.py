@@ -12,6 +12,7 @@ in float64 (which must stay > 3 mm off, or the test would not test anything)."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -68,20 +69,37 @@ def _pair(T):
     return PairResult(T, 50, 40, True, 0.9, 1e-3, 0.0, INFO.copy())
 
 
+# median depth (m) of each view: the first views approach the object (Task 1: 0.6, 0.47 m)
+DEPTH = [0.6, 0.47] + [0.3] * (N - 2)
+CALLS: list = []  # (source, target, geometric_points) of every oracle registration
+SLID = N - 1  # the oracle's registrations of views 0-1 to this view slide 4 mm, without keypoints
+
+
 @dataclasses.dataclass(frozen=True)
 class OracleConfig(PipelineConfig):
-    """Registrations from the true poses (frame = capture index) with seeded noise."""
+    """Registrations from the true poses (frame.index = capture) with seeded noise; those
+    of the outside views to view SLID without keypoint consensus and slid 4 mm (an
+    ICP-alone wrong minimum)."""
 
     world: tuple = ()
 
     def register(self, src, tgt, K, prior, seed, prior_gate=None):
+        CALLS.append((src.index, tgt.index, self.geometric_points))
         rng = np.random.default_rng(seed)
-        return _pair(_noise(rng) @ np.linalg.inv(self.world[tgt]) @ self.world[src])
+        T = _noise(rng) @ np.linalg.inv(self.world[tgt.index]) @ self.world[src.index]
+        if tgt.index == SLID and src.index < K0:
+            p = _pair(_T(np.zeros(3), [0.0, BAD, 0.0]) @ T)
+            return dataclasses.replace(p, seeded_by_keypoints=False)
+        return _pair(T)
+
+
+def _frame(i):
+    return SimpleNamespace(index=i, depth=np.full((4, 4), DEPTH[i]))
 
 
 def _result(world, seed=0):
     rng = np.random.default_rng(seed)
-    caps = [Capture("1", i, i, world[i], world[i], None) for i in range(N)]
+    caps = [Capture("1", i, _frame(i), world[i], world[i], None) for i in range(N)]
     pairs = []
     for k in range(N - 1):
         E = _noise(rng) @ np.linalg.inv(world[k + 1]) @ world[k]
@@ -113,12 +131,21 @@ def _errors_mm(result, outside):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_outside_views_rest_on_several_registrations(world, seed):
     cfg = OracleConfig(world=tuple(world), extra_gaps=(2,))
+    CALLS.clear()
     result = optimize_pose_graph_stage(_result(world, seed), np.eye(3), cfg, seed=seed)
     assert result.outside == [(0, 0), (0, 1)]
-    # each outside view: its forward registrations plus outside_links ring registrations
+    # each outside view: its forward registrations plus outside_links ring registrations,
+    # none to the view whose registrations slid without keypoint consensus
+    ring_slid = SLID - K0
     linked = {i for e in result.outside_edges for i in e[:2] if i < N - K0}
     assert len(result.outside_edges) == 2 + 2 * cfg.outside_links
-    assert len(linked) >= cfg.outside_links
+    assert len(linked) >= cfg.outside_links and ring_slid not in linked
+    # a source farther than its target by > far_source_ratio: raw source points (views 0
+    # and 1 to the ring, 0 -> 1 re-registered); every other registration denoised
+    for src, tgt, points in CALLS:
+        far = DEPTH[src] > cfg.far_source_ratio * DEPTH[tgt]
+        assert points == ("raw" if far else "plane"), (src, tgt, points)
+    assert (0, 1, "raw") in CALLS
     chained = _errors_mm(result, None)
     graph = _errors_mm(result, result.outside_poses)
     for i in range(K0):
