@@ -310,7 +310,8 @@ def report_markdown(sim, ev: dict) -> str:
             lines += [
                 "",
                 f"{o['views']} view(s) outside the ring (captured before the loop's closing "
-                "view; chained from the nearest ring view by the forward registrations): worst "
+                "view; pose-graph nodes with registrations to several ring views, or chained "
+                "from the nearest ring view without a pose graph): worst "
                 f"{o['max_rot_deg']:.3f} deg / {1000 * o['max_trans_m']:.2f} mm after global "
                 "optimisation (poses.csv, poses.json).",
             ]
