@@ -199,6 +199,8 @@ def evaluate_result(
                 "images": len(r.captures),
                 "delta_s_m": r.delta_s,
                 "planning_ms": 1000 * r.planning_time,
+                # per planner step (the paper reports 20-31 ms per step)
+                "planning_step_ms": [1000 * t for t in r.planning_step_times],
                 "status": r.status,
                 "events": r.events,
                 "pair_seconds": [p.seconds for p in r.pairs],

@@ -56,6 +56,7 @@ class RunLog:
     delta_s: float
     status: str = ""
     planning_time: float = 0.0
+    planning_step_times: list[float] = field(default_factory=list)  # s, one per planner step
     events: list[str] = field(default_factory=list)
     arcs: list = field(default_factory=list)
     captures: list[Capture] = field(default_factory=list)
@@ -332,6 +333,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
     else:
         log.status = "step limit"
     log.planning_time = planner.state.planning_time
+    log.planning_step_times = list(planner.state.step_times)
     log.events = list(planner.state.events) + log.events
     log.arcs = list(planner.state.arcs)
     log.obstacles = clusters.points()
