@@ -8,7 +8,7 @@ import numpy as np
 
 from jaxcr.registration.clouds import Cloud, voxel_downsample
 from jaxcr.registration.metrics import knn_mean_distance, neighbour_counts, pose_error
-from jaxcr.registration.pipeline import ModelResult, _capture
+from jaxcr.registration.pipeline import ModelResult, _capture, chained_view_pose
 
 
 def model_cloud(
@@ -75,32 +75,30 @@ def pose_errors(result: ModelResult, poses: list[np.ndarray]) -> dict:
     }
 
 
-def view_poses(result: ModelResult, ring_poses: list[np.ndarray]) -> list[dict]:
+def view_poses(
+    result: ModelResult, ring_poses: list[np.ndarray], outside_poses: list | None = None
+) -> list[dict]:
     """Pose T_O,i (4x4, camera i -> frame O = the last ring view) of every captured view,
-    in run and capture order. Ring views take ``ring_poses`` (in ring order); a view left out
-    of the ring (captured before the loop's closing view) is chained from the nearest ring
-    view of its run through the run's forward registrations (T_{i+1 <- i}), so its error
-    includes that chain's drift. Each entry: ``run`` (name), ``index``, ``ring_position``
-    (None outside the ring), ``T`` and, when the scene records them, ``T_true`` (the true
-    pose in the same frame O)."""
+    in run and capture order. Ring views take ``ring_poses`` (in ring order). A view left
+    out of the ring (captured before the loop's closing view) takes its pose-graph pose
+    from ``outside_poses`` (``result.outside_poses``, same order as ``result.outside``)
+    when given and it has one, else it is chained from the nearest ring view of its run
+    through the run's forward registrations (T_{i+1 <- i}; :func:`chained_view_pose`), so
+    its error includes that chain's drift. Each entry: ``run`` (name), ``index``,
+    ``ring_position`` (None outside the ring), ``T`` and, when the scene records them,
+    ``T_true`` (the true pose in the same frame O)."""
     pos = {k: j for j, k in enumerate(result.ring)}
+    graph = {}
+    if outside_poses:
+        graph = dict(zip(result.outside, outside_poses, strict=True))
     anchor = _capture(result.runs, result.ring[-1]).T_true
     out = []
     for r, log in enumerate(result.runs):
-        members = [i for i in range(len(log.captures)) if (r, i) in pos]
         for i, cap in enumerate(log.captures):
-            if (r, i) in pos:
-                T = np.asarray(ring_poses[pos[(r, i)]], np.float64)
-            elif members:
-                j = min(members, key=lambda m: abs(m - i))
-                T = np.asarray(ring_poses[pos[(r, j)]], np.float64)
-                lo, hi = min(i, j), max(i, j)
-                T_hi_lo = np.eye(4)  # T_{hi <- lo} from the forward pairs lo..hi-1
-                for k in range(lo, hi):
-                    T_hi_lo = np.asarray(log.pairs[k].T, np.float64) @ T_hi_lo
-                T = T @ (T_hi_lo if i < j else np.linalg.inv(T_hi_lo))
+            if (r, i) in graph:
+                T = np.asarray(graph[(r, i)], np.float64)
             else:
-                T = None  # no ring view in this run: nothing to chain from
+                T = chained_view_pose(result, ring_poses, (r, i))
             true = None
             if cap.T_true is not None and anchor is not None:
                 true = np.linalg.inv(anchor) @ cap.T_true
@@ -116,10 +114,12 @@ def view_poses(result: ModelResult, ring_poses: list[np.ndarray]) -> list[dict]:
     return out
 
 
-def view_errors(result: ModelResult, ring_poses: list[np.ndarray]) -> list[dict]:
+def view_errors(
+    result: ModelResult, ring_poses: list[np.ndarray], outside_poses: list | None = None
+) -> list[dict]:
     """:func:`view_poses` with the rotation (deg) and translation (m) error of every view
     against the truth (NaN where either pose is missing)."""
-    views = view_poses(result, ring_poses)
+    views = view_poses(result, ring_poses, outside_poses)
     for v in views:
         if v["T"] is None or v["T_true"] is None:
             v["rot_deg"], v["trans_m"] = float("nan"), float("nan")
@@ -199,6 +199,8 @@ def evaluate_result(
                 "images": len(r.captures),
                 "delta_s_m": r.delta_s,
                 "planning_ms": 1000 * r.planning_time,
+                # per planner step (the paper reports 20-31 ms per step)
+                "planning_step_ms": [1000 * t for t in r.planning_step_times],
                 "status": r.status,
                 "events": r.events,
                 "pair_seconds": [p.seconds for p in r.pairs],
@@ -221,8 +223,12 @@ def evaluate_result(
         tags.insert(2, ("alg2", a2.poses))
     for tag, poses in tags:
         out[tag] = model_statistics(sim, result, poses, idx, seam, k, radius)
-    # every captured view, ring or not (views before the loop's closing view are chained)
-    out["views"] = {"before": view_errors(result, g.initial), "after": view_errors(result, g.poses)}
+    # every captured view, ring or not
+    # (views left out of the ring: chained before, their pose-graph poses after)
+    out["views"] = {
+        "before": view_errors(result, g.initial),
+        "after": view_errors(result, g.poses, result.outside_poses),
+    }
     left = [v for v in out["views"]["after"] if v["ring_position"] is None]
     out["outside_ring"] = {
         "views": len(left),

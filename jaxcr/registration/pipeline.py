@@ -56,6 +56,7 @@ class RunLog:
     delta_s: float
     status: str = ""
     planning_time: float = 0.0
+    planning_step_times: list[float] = field(default_factory=list)  # s, one per planner step
     events: list[str] = field(default_factory=list)
     arcs: list = field(default_factory=list)
     captures: list[Capture] = field(default_factory=list)
@@ -79,6 +80,12 @@ class ModelResult:
     extra: list[tuple[int, int, PairResult]] = field(default_factory=list)  # (i, j) ring pos.
     extra_seconds: float = 0.0
     pose_graph: PoseGraphResult | None = None
+    # Views left out of the ring (captured before the loop's closing view), as (run, capture),
+    # their pose-graph edges (i, j, pair) in node numbers (ring positions, then these views
+    # from len(ring) on) and their optimised poses T_O,i (empty without a pose graph).
+    outside: list[tuple[int, int]] = field(default_factory=list)
+    outside_edges: list[tuple[int, int, PairResult]] = field(default_factory=list)
+    outside_poses: list[np.ndarray] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -102,9 +109,10 @@ class PipelineConfig:
     # gate but not this one is replaced by the chained estimate (:func:`check_closure`).
     closure_drift_deg: float = 0.2
     closure_drift_m: float = 0.001
-    # Gate of a registration against the nominal kinematics (cross-route ring edges, loop
-    # consistency): ~3x the nominal drift over a whole loop (3.5 deg / 25 mm on Task 1), so
-    # only gross failures (a cylinder registered half a face around) are caught.
+    # Gate of the cross-route ring edges against the routes' chained registrations joined
+    # by the nominal kinematics at their first views (:func:`route_estimates`), and of the
+    # loop's consistency: ~3x the nominal drift over a whole loop (3.5 deg / 25 mm on Task
+    # 1), so only gross failures (a cylinder registered half a face around) are caught.
     nominal_gate_deg: float = 10.0
     nominal_gate_m: float = 0.05
     association: str = "projective"  # ICP data association: "projective" or "nearest"
@@ -140,6 +148,20 @@ class PipelineConfig:
     # the object on Task 1): worst pose after the pose graph over Task 1/2 seeds 0-4
     # 2.24 -> 1.39 mm, mean of the ten worst 1.35 -> 0.88 mm (8 of 10 lower).
     geometric_points: str = "plane"
+    # Views left out of the ring (Task 1: those before the loop's closing view) join the pose
+    # graph as nodes with their forward registrations and registrations to this many ring
+    # views (the nearest by nominal viewing direction), instead of being chained from the
+    # nearest ring view through one forward registration (fresh Task 1 seeds 310/313/314:
+    # the chained first views erred 2.1-4.8 mm, every ring view <= 1.3 mm). 0 = chain them.
+    outside_links: int = 4
+    # Registrations of those views whose source is this much farther from the scene (median
+    # depth ratio) than the target use the raw source points: the plane fit behind "plane"
+    # has a fixed pixel window, so its footprint and model error grow with depth (fresh Task
+    # 1 seeds 310/314, view 0 at 0.59-0.60 m to ring views at 0.25-0.47 m: view 0's pose
+    # 2.4-5.4 mm off with denoised points in all 7 registrations, 0.8-2.8 mm raw; the raw
+    # bias the denoising removes is that of views at similar depths). The run's forward
+    # registration of such a pair is registered again this way.
+    far_source_ratio: float = 1.15
 
     def register(self, src, tgt, K, prior, seed: int, prior_gate=None) -> PairResult:
         """:func:`register_pair` with this configuration's ICP, keypoint and colour options."""
@@ -311,6 +333,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
     else:
         log.status = "step limit"
     log.planning_time = planner.state.planning_time
+    log.planning_step_times = list(planner.state.step_times)
     log.events = list(planner.state.events) + log.events
     log.arcs = list(planner.state.arcs)
     log.obstacles = clusters.points()
@@ -378,8 +401,15 @@ def build_model(
         run_direction(sim, r, cfg, progress, seed=seed + 100 * k)
         for k, r in enumerate(sim.cfg["runs"])
     ]
+    return model_from_runs(runs, sim.K, cfg, seed=seed)
+
+
+def model_from_runs(
+    runs: list[RunLog], K: np.ndarray, cfg: PipelineConfig = PipelineConfig(), seed: int = 0
+) -> ModelResult:
+    """The second half of :func:`build_model`: the ring, its edges and the global
+    optimisation from the recorded winding runs (no sensor needed; camera matrix ``K``)."""
     notes: list[str] = []
-    K = sim.K
     merge: dict = {}
     if len(runs) == 1:
         log = runs[0]
@@ -407,6 +437,16 @@ def build_model(
         # the initial estimates of the cross-route edges).
         est = {(0, i): T_BA @ P for i, P in enumerate(PA)}
         est.update({(1, i): P for i, P in enumerate(PB)})
+        # The reference that gates the cross-route registrations: each route's chained
+        # forward registrations, joined at the routes' first views by the nominal
+        # kinematics (the arm is short there). Not the nominal kinematics at both ends:
+        # their curvature errors add up along each route (fresh Task 2 seed 300: the
+        # nominal relative poses of the far cross-route edges were 9.7-11.6 deg off the
+        # truth, the registrations 0.02-0.07 deg, the chains <= 0.4 deg; the 10 deg gate
+        # rejected right registrations, the edges took the nominal and the loop composed
+        # to 35 deg / 386 mm). Not the merged estimate either: the merge of two partial
+        # models of a cylinder can slide around its axis (seed 300: 1.5 deg).
+        ref = route_estimates(PA, PB, init)
         nominal = {
             (r, i): c.T_nominal for r, lg in enumerate(runs) for i, c in enumerate(lg.captures)
         }
@@ -423,37 +463,17 @@ def build_model(
                 edges.append(runs[a[0]].pairs[b[1]].reversed())
                 continue
             fa, fb = _capture(runs, a).frame, _capture(runs, b).frame
-            nom = np.linalg.inv(nominal[b]) @ nominal[a]
-            # Seed with the merged-model estimate, then with the nominal kinematics (dropping
-            # keypoint estimates outside the gate: a false RANSAC consensus); keep a result
-            # only if it agrees with the kinematics within the gate (a merge of two partial
-            # models of a cylinder can slide around its axis, a repeated texture can match).
-            pair, why = None, ""
-            gate = (cfg.nominal_gate_deg, cfg.nominal_gate_m)
-            for prior, pg in ((np.linalg.inv(est[b]) @ est[a], None), (nom, gate)):
-                try:
-                    cand = cfg.register(fa, fb, K, prior, seed + j, prior_gate=pg)
-                except RegistrationFailed as e:
-                    why = str(e)
-                    continue
-                r_err, t_err = pose_error(cand.T, nom)
-                if r_err <= cfg.nominal_gate_deg and t_err <= cfg.nominal_gate_m:
-                    pair = cand
-                    break
-                why = (
-                    f"{r_err:.1f} deg / {1000 * t_err:.0f} mm from the nominal kinematics "
-                    f"(gate {cfg.nominal_gate_deg:.0f} deg / {1000 * cfg.nominal_gate_m:.0f} mm)"
-                )
-                notes.append(f"ring edge {a}->{b}: registration rejected ({why})")
-            if pair is None:
-                # No registration agrees with the kinematics (e.g. a wide baseline with no
-                # keypoints: ICP on a cylinder slides to the largest overlap): the edge keeps
-                # the nominal relative pose, and Algorithm 2 treats it like any other.
-                notes.append(
-                    f"ring edge {a}->{b}: no consistent registration ({why}); "
-                    "the nominal kinematics are used for this edge"
-                )
-                pair = PairResult(nom, 0, 0, False, 0.0, float("nan"), 0.0)
+            pair = cross_route_edge(
+                cfg,
+                fa,
+                fb,
+                K,
+                np.linalg.inv(est[b]) @ est[a],
+                np.linalg.inv(ref[b]) @ ref[a],
+                seed + j,
+                notes,
+                f"ring edge {a}->{b}",
+            )
             edges.append(pair)
     # Loop consistency: the product of the ring's registrations must be near the identity
     # (its residual is the drift Algorithm 2 spreads); a gross residual means a wrong edge,
@@ -478,22 +498,111 @@ def build_model(
     result = ModelResult(runs, ring, edges, g, t_alg2, merge, notes, g, t_alg2)
     if cfg.global_method == "alg2":
         return result
+    return optimize_pose_graph_stage(result, K, cfg, seed=seed)
+
+
+def optimize_pose_graph_stage(
+    result: ModelResult, K: np.ndarray, cfg: PipelineConfig, seed: int = 0
+) -> ModelResult:
+    """The pose-graph stage of :func:`model_from_runs`, after Algorithm 2
+    (``result.alg2_result``): register the extra constraints (:func:`extra_edges`) and the
+    views left out of the ring (:func:`outside_view_edges`), solve the weighted pose graph
+    (anchor: the last ring view) and set ``result.global_result`` (ring poses, frame O =
+    the last ring view), ``result.outside_poses`` and ``result.pose_graph``. Returns
+    ``result``."""
+    ring, g = result.ring, result.alg2_result
     t0 = time.perf_counter()
     result.extra = extra_edges(result, K, cfg, seed=seed)
+    result.outside, outside_init, result.outside_edges = outside_view_edges(
+        result, K, cfg, seed=seed
+    )
     result.extra_seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
-    ring_edges = [(k, (k + 1) % len(ring), e) for k, e in enumerate(edges)]
-    graph = graph_edges(result, ring_edges + result.extra, _graph_weights(cfg.edge_weights))
+    ring_edges = [(k, (k + 1) % len(ring), e) for k, e in enumerate(result.edges)]
+    graph = graph_edges(
+        result,
+        ring_edges + result.extra + result.outside_edges,
+        _graph_weights(cfg.edge_weights),
+        nodes=ring + result.outside,
+    )
     pg = optimize_pose_graph(
-        g.poses, graph, anchor=len(ring) - 1, calibrate=cfg.edge_weights == "calibrated"
+        list(g.poses) + outside_init,
+        graph,
+        anchor=len(ring) - 1,
+        calibrate=cfg.edge_weights == "calibrated",
     )
     result.pose_graph = pg
     # Frame O = the last ring view exactly (it is the anchor; re-anchor against float32).
-    anchor = np.linalg.inv(pg.poses[-1])
+    anchor = np.linalg.inv(pg.poses[len(ring) - 1])
     poses = [anchor @ P for P in pg.poses]
-    result.global_result = GlobalResult(poses, g.initial, pg.iterations, pg.step_norm < 1e-5)
+    result.outside_poses = poses[len(ring) :]
+    result.global_result = GlobalResult(
+        poses[: len(ring)], g.initial, pg.iterations, pg.step_norm < 1e-5
+    )
     result.global_seconds = time.perf_counter() - t0
     return result
+
+
+def cross_route_edge(
+    cfg: PipelineConfig,
+    fa: Frame,
+    fb: Frame,
+    K: np.ndarray,
+    prior: np.ndarray,
+    reference: np.ndarray,
+    seed: int,
+    notes: list[str],
+    label: str,
+) -> PairResult:
+    """A ring edge ``T_{b <- a}`` between two routes' views: registered from ``prior`` (the
+    merged-model estimate), then from ``reference`` (the chained registrations,
+    :func:`route_estimates`), and kept only when it agrees with ``reference`` within
+    ``cfg.nominal_gate_*``; else ``reference`` itself as a nominal-weight edge. Rejections
+    are appended to ``notes`` (prefixed ``label``)."""
+    nom = reference
+    # Seed with the merged-model estimate, then with the chained reference (dropping
+    # keypoint estimates outside the gate: a false RANSAC consensus); keep a result only if
+    # it agrees with the reference within the gate (a merge of two partial models of a
+    # cylinder can slide around its axis, a repeated texture can match).
+    pair, why = None, ""
+    gate = (cfg.nominal_gate_deg, cfg.nominal_gate_m)
+    for pr, pg in ((prior, None), (nom, gate)):
+        try:
+            cand = cfg.register(fa, fb, K, pr, seed, prior_gate=pg)
+        except RegistrationFailed as e:
+            why = str(e)
+            continue
+        r_err, t_err = pose_error(cand.T, nom)
+        if r_err <= cfg.nominal_gate_deg and t_err <= cfg.nominal_gate_m:
+            pair = cand
+            break
+        why = (
+            f"{r_err:.1f} deg / {1000 * t_err:.0f} mm from the chained registrations "
+            f"(gate {cfg.nominal_gate_deg:.0f} deg / {1000 * cfg.nominal_gate_m:.0f} mm)"
+        )
+        notes.append(f"{label}: registration rejected ({why})")
+    if pair is None:
+        # No registration agrees with the reference (e.g. a wide baseline with no keypoints:
+        # ICP on a cylinder slides to the largest overlap): the edge keeps the reference's
+        # relative pose, and Algorithm 2 treats it like any other.
+        notes.append(
+            f"{label}: no consistent registration ({why}); "
+            "the chained registrations are used for this edge"
+        )
+        pair = PairResult(nom, 0, 0, False, 0.0, float("nan"), 0.0)
+    return pair
+
+
+def route_estimates(
+    PA: list[np.ndarray], PB: list[np.ndarray], T_B0_A0: np.ndarray
+) -> dict[tuple[int, int], np.ndarray]:
+    """Poses of the captures of two routes in the frame of route B's first camera, keyed
+    (route, capture): each route's chained forward registrations (``PA``, ``PB``: poses in
+    the frame of the route's first capture, :func:`chain`) joined by ``T_B0_A0`` (A's
+    first camera -> B's, from the nominal kinematics)."""
+    out = {(0, i): T_B0_A0 @ P for i, P in enumerate(PA)}
+    out.update({(1, i): np.asarray(P) for i, P in enumerate(PB)})
+    return out
 
 
 def _graph_weights(edge_weights: str) -> str:
@@ -507,7 +616,10 @@ def _graph_weights(edge_weights: str) -> str:
 
 
 def graph_edges(
-    result: ModelResult, edges: list[tuple[int, int, PairResult]], weights: str = "information"
+    result: ModelResult,
+    edges: list[tuple[int, int, PairResult]],
+    weights: str = "information",
+    nodes: list[tuple[int, int]] | None = None,
 ) -> list[GraphEdge]:
     """Pose-graph constraints from registrations ``(i, j, pair)`` between ring positions
     (``pair.T = T_{j <- i}``). ``weights="information"``: each registration's ICP
@@ -516,7 +628,8 @@ def graph_edges(
     for a failed edge) gets the point information of its source cloud scaled to the
     median registration's trace, divided by 100 for a nominal edge (~10x the error).
     ``"points"``: every edge the point information of its source cloud (Algorithm 2's
-    weighting)."""
+    weighting). ``nodes``: the (run, capture) of every node number (default: the ring)."""
+    nodes = result.ring if nodes is None else nodes
     if weights not in ("information", "points"):
         raise ValueError(f"weights must be 'information' or 'points', got {weights!r}")
 
@@ -531,7 +644,7 @@ def graph_edges(
             # float32 normal matrices: clip round-off negative eigenvalues
             info = _psd(e.information)
         else:
-            f = _capture(result.runs, result.ring[i]).frame
+            f = _capture(result.runs, nodes[i]).frame
             p = np.asarray(f.arrays.points)[np.asarray(f.arrays.mask)]
             info = point_information(p @ e.T[:3, :3].T + e.T[:3, 3])
             if weights == "information":
@@ -597,6 +710,119 @@ def extra_edges(
             if r_err <= gate[0] and t_err <= gate[1]:
                 out.append((i, j, pair))
     return out
+
+
+def median_depth(frame: Frame) -> float:
+    """Median depth (m) of the frame's valid pixels (its distance from the scene)."""
+    d = np.asarray(frame.depth)
+    d = d[np.isfinite(d) & (d > 0)]
+    return float(np.median(d)) if len(d) else float("nan")
+
+
+def chained_view_pose(
+    result: ModelResult, ring_poses: list[np.ndarray], key: tuple[int, int]
+) -> np.ndarray | None:
+    """Pose T_O,i of the view ``key`` = (run, capture) chained from the nearest ring view of
+    its run (``ring_poses`` in ring order) through the run's forward registrations
+    (T_{i+1 <- i}); the ring view's own pose for a ring view; None when the run has no ring
+    view."""
+    pos = {k: j for j, k in enumerate(result.ring)}
+    if key in pos:
+        return np.asarray(ring_poses[pos[key]], np.float64)
+    r, i = key
+    log = result.runs[r]
+    members = [k for k in range(len(log.captures)) if (r, k) in pos]
+    if not members:
+        return None
+    j = min(members, key=lambda k: abs(k - i))
+    T = np.asarray(ring_poses[pos[(r, j)]], np.float64)
+    lo, hi = min(i, j), max(i, j)
+    T_hi_lo = np.eye(4)  # T_{hi <- lo} from the forward pairs lo..hi-1
+    for k in range(lo, hi):
+        T_hi_lo = np.asarray(log.pairs[k].T, np.float64) @ T_hi_lo
+    return T @ (T_hi_lo if i < j else np.linalg.inv(T_hi_lo))
+
+
+def outside_view_edges(
+    result: ModelResult, K: np.ndarray, cfg: PipelineConfig, seed: int = 0
+) -> tuple[list[tuple[int, int]], list[np.ndarray], list[tuple[int, int, PairResult]]]:
+    """Pose-graph nodes and edges of the views left out of the ring (captured before the
+    loop's closing view). Returns (their (run, capture) keys, their initial poses T_O,i
+    chained from the Algorithm 2 ring poses, edges (i, j, pair) with ``pair.T = T_{j <- i}``
+    in node numbers: ring positions, then these views from ``len(ring)`` on). The edges are
+    the run's forward registrations that touch them and registrations of each to up to
+    ``cfg.outside_links`` ring views nearest to it in nominal viewing direction, seeded from
+    the chained poses, kept when they agree with them within the closure gate (like
+    :func:`extra_edges`) and have keypoint consensus (ICP-alone ones only when none has). A view thus rests on several registrations, not on the one
+    forward registration its chain starts with. No views, no Algorithm 2 result or
+    ``cfg.outside_links <= 0``: nothing (such views stay chained in the evaluation)."""
+    ring, m = result.ring, len(result.ring)
+    pos = {k: n for n, k in enumerate(ring)}
+    outside = [
+        (r, i)
+        for r, run in enumerate(result.runs)
+        for i in range(len(run.captures))
+        if (r, i) not in pos and any(k[0] == r for k in ring)
+    ]
+    if not outside or cfg.outside_links <= 0 or result.alg2_result is None:
+        return [], [], []
+    ring_poses = result.alg2_result.poses
+
+    def register(a, b, prior, seed_ab, gate=None):
+        """T_{b <- a}: raw source points when a is much farther than b (see cfg)."""
+        fa, fb = _capture(result.runs, a).frame, _capture(result.runs, b).frame
+        c = cfg
+        if median_depth(fa) > cfg.far_source_ratio * median_depth(fb):
+            c = dataclasses.replace(cfg, geometric_points="raw")
+        return c.register(fa, fb, K, prior, seed_ab, prior_gate=gate)
+
+    node = dict(pos)
+    node.update({k: m + n for n, k in enumerate(outside)})
+    init = [chained_view_pose(result, ring_poses, k) for k in outside]
+    poses = list(ring_poses) + init
+    edges: list[tuple[int, int, PairResult]] = []
+    linked = set()
+    for r, run in enumerate(result.runs):
+        for k, pair in enumerate(run.pairs[: len(run.captures) - 1]):
+            a, b = (r, k), (r, k + 1)
+            if a in node and b in node and (a not in pos or b not in pos):
+                fa, fb = run.captures[k].frame, run.captures[k + 1].frame
+                if cfg.geometric_points == "plane" and median_depth(fa) > (
+                    cfg.far_source_ratio * median_depth(fb)
+                ):
+                    try:
+                        pair = register(a, b, pair.T, seed + 3000 + k)
+                    except RegistrationFailed:
+                        pass  # keep the run's registration
+                edges.append((node[a], node[b], pair))
+                linked.add(frozenset((node[a], node[b])))
+    gate = (cfg.closure_gate_deg, cfg.closure_gate_m)
+    for n, key in enumerate(outside):
+        cap = _capture(result.runs, key)
+        # nearest ring views by the angle between the nominal optical axes
+        axis = cap.T_nominal[:3, 2]
+        order = sorted(
+            range(m), key=lambda j: -float(axis @ _capture(result.runs, ring[j]).T_nominal[:3, 2])
+        )
+        # Links with keypoint consensus are preferred (as for the loop closure): ICP alone
+        # across these wide baselines can settle in a wrong minimum inside the gate (fresh
+        # Task 1 seed 310, view 0: 0.8-1.3 mm with keypoints, 2.7 / 4.7 mm by ICP alone).
+        # Up to 2 x outside_links candidates are tried; ICP-alone links only when none has
+        # keypoints.
+        seeded, alone = [], []
+        for j in [j for j in order if frozenset((m + n, j)) not in linked][: 2 * cfg.outside_links]:
+            if len(seeded) >= cfg.outside_links:
+                break
+            prior = np.linalg.inv(poses[j]) @ poses[m + n]
+            try:
+                pair = register(key, ring[j], prior, seed + 2000 + 100 * n + j, gate)
+            except RegistrationFailed:
+                continue
+            r_err, t_err = pose_error(pair.T, prior)
+            if r_err <= gate[0] and t_err <= gate[1]:
+                (seeded if pair.seeded_by_keypoints else alone).append((m + n, j, pair))
+        edges += seeded or alone[: cfg.outside_links]
+    return outside, init, edges
 
 
 def ring_clouds(

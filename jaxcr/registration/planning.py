@@ -52,8 +52,9 @@ class PlanState:
     arcs: list[Arc] = field(default_factory=list)
     travelled: list[float] = field(default_factory=list)
     status: str = "moving"
-    planning_time: float = 0.0
+    planning_time: float = 0.0  # seconds, all steps (the paper's Table I T_mp per route)
     events: list[str] = field(default_factory=list)
+    step_times: list[float] = field(default_factory=list)  # seconds, one per step
 
 
 def _winding(xy: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -221,7 +222,9 @@ class ArcPlanner:
             except ArmLimit:
                 st.travelled[-1] -= self.cfg.delta_s
                 st.status = "arm limit"
-        st.planning_time += time.perf_counter() - t0
+        dt = time.perf_counter() - t0
+        st.planning_time += dt
+        st.step_times.append(dt)
         return st.status
 
     def sections(self) -> tuple[np.ndarray, np.ndarray]:
