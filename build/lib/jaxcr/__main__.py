@@ -1,0 +1,5 @@
+import sys
+
+from jaxcr.cli import main
+
+sys.exit(main())

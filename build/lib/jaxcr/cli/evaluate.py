@@ -1,0 +1,124 @@
+"""``jaxcr evaluate OUT [OUT ...] [-o REPORT_DIR]``: Watson et al. Table II for segment runs.
+
+What is measured and how: :mod:`jaxcr.segmentation.evaluate` (the library this command
+calls; its module docstring lists every column).
+
+Writes ``table2.md``, ``table2.csv`` (long format), ``per_frame.csv`` and ``iou.png`` into
+OUT (one run) or REPORT_DIR; a REPORT_DIR other than an OUT must be new, empty or an earlier
+evaluate report, and is locked while the command runs (:mod:`jaxcr.io.outdir`)
+(the evaluation itself is :mod:`jaxcr.segmentation.evaluate`; this module parses arguments,
+prints and sets the exit code).
+Exit code 1 when the report counts failed frames (failed in the segment run, or outputs
+missing/damaged/mis-sized); they are listed in ``per_frame.csv`` with the reason.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from jaxcr.errors import InputError
+from jaxcr.io import report as rep
+from jaxcr.io import results as R
+from jaxcr.segmentation.evaluate import (  # noqa: F401  (re-exported for older callers)
+    PER_FRAME_FIELDS,
+    evaluate_outputs,
+    frame_rows,
+    iou_plot,
+    per_frame_csv,
+    write_report,
+)
+
+HELP = "evaluate segment outputs against ground truth (Watson et al. Table II)"
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "evaluate", help=HELP, description=__doc__.split("\n\n")[0].replace("``", "")
+    )
+    p.add_argument("outs", nargs="+", metavar="OUT", help="output folder(s) of jaxcr segment")
+    p.add_argument(
+        "-o", "--out", default=None, metavar="REPORT_DIR",
+        help="report folder (default: OUT for one run, ./jaxcr-report for several)",
+    )  # fmt: skip
+    p.add_argument("--no-plot", action="store_true", help="do not write iou.png")
+    p.add_argument("--title", default=None, help="title of the Markdown report")
+    p.set_defaults(func=run)
+    return p
+
+
+def _same_folder(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve()
+    except OSError:
+        return False
+
+
+def run(args) -> int:
+    outs = [Path(o) for o in args.outs]
+    for o in outs:
+        if not o.exists():
+            raise InputError("output folder not found", file=str(o))
+    report_dir = Path(args.out) if args.out else (outs[0] if len(outs) == 1 else
+                                                  Path("jaxcr-report"))  # fmt: skip
+    if not any(_same_folder(report_dir, o) for o in outs):
+        # a report folder of its own (-o, or ./jaxcr-report): new, empty or an earlier
+        # evaluate report, never a user's or another command's folder; locked until exit.
+        # (The default for one run is that run's own folder, which segment owns.)
+        from jaxcr.io import outdir
+
+        outdir.claim(report_dir, "evaluate", recognise=lambda o: (o / "table2.md").exists())
+    rows, infos = evaluate_outputs(outs)
+    if not rows:
+        raise InputError("no results to evaluate (empty results.jsonl)", file=str(outs[0]))
+    from jaxcr.scale import shards as S
+
+    incomplete = [o for o in outs if not (R.output_is_complete(o) or S.sharded_complete(o))]
+    table = write_report(rows, infos, report_dir, args.title, plot=not args.no_plot,
+                         incomplete=incomplete)  # fmt: skip
+    for o, info in zip(outs, infos, strict=True):
+        eval_failed = info.get("evaluate_failed") or {}
+        if eval_failed:
+            fid, why = next(iter(eval_failed.items()))
+            more = f" (and {len(eval_failed) - 1} more)" if len(eval_failed) > 1 else ""
+            print(f"jaxcr evaluate: warning: {o}: {len(eval_failed)} frame(s) counted as failed: "
+                  f"frame {fid}: {why}{more}", file=sys.stderr)  # fmt: skip
+    missing = {
+        str(o): info.get("evaluate_missing") or [] for o, info in zip(outs, infos, strict=True)
+    }
+    for o in incomplete:
+        unfinished = S.missing_shards(o)
+        if unfinished:
+            names = ", ".join(str(x) for x in unfinished[:8])
+            more = f" (and {len(unfinished) - 8} more)" if len(unfinished) > 8 else ""
+            print(f"jaxcr evaluate: warning: {o} is incomplete: shard(s) {names}{more} not "
+                  "finished (no DONE marker)", file=sys.stderr)  # fmt: skip
+        else:
+            print(f"jaxcr evaluate: warning: {o} is incomplete (no DONE marker)", file=sys.stderr)
+    from rich.console import Console
+
+    Console().print(rep.table2_rich(table))
+    print(f"report: {report_dir / 'table2.md'}")
+    # exit 1 when the report counts failed frames (failed in the segment run, or whose outputs
+    # could not be evaluated): the numbers are over fewer frames than the run was given
+    frames = {(r["out"], r["frame"]): r for r in rows}
+    failed = [r for r in frames.values() if not r["ok"]]
+    code = 0
+    for o, info in zip(outs, infos, strict=True):
+        ids = missing[str(o)]
+        if ids:
+            done = "no DONE marker" if o in incomplete else "DONE marker present"
+            shown = ", ".join(ids[:10]) + (f" (and {len(ids) - 10} more)" if len(ids) > 10 else "")
+            print(f"jaxcr evaluate: {o}: {len(ids)} of {info['evaluate_expected']} frame(s) "
+                  f"missing (no record in results.jsonl or its shards; {done}): {shown}; "
+                  "continue the run with jaxcr segment --resume (or the missing --shard)",
+                  file=sys.stderr)  # fmt: skip
+            code = 1
+    if failed:
+        n_eval = sum(1 for r in failed if str(r.get("reason") or "").startswith("evaluate: "))
+        print(f"jaxcr evaluate: {len(failed)} of {len(frames)} frame(s) failed ("
+              f"{len(failed) - n_eval} in the segment run, {n_eval} in evaluation); reasons in "
+              f"{report_dir / 'per_frame.csv'} (rows with ok False)", file=sys.stderr)  # fmt: skip
+        return 1
+    return code

@@ -1,0 +1,153 @@
+"""Traced programs kept on disk beside the persistent compilation cache (``jax.export``).
+
+JAX's persistent compilation cache (:mod:`jaxcr.io.compile_cache`) stores XLA's output, but
+finds it by hashing the lowered program, so every new process still traces the Python code to
+a jaxpr and lowers it to StableHLO before it can look the executable up. For the refinement of
+``jaxcr segment`` that was most of a second process's compile time (measured in
+``experiments/results/segmentation/compile_split.md``). :func:`cached_call` stores the lowered
+program itself (``jax.export`` serialisation) under a key made of the arguments' shapes,
+dtypes and static values, the function's name, the versions of JAX and the solver libraries,
+and a hash of jaxcr's own source files (any change of the code makes new keys); a later process
+deserialises it and calls it, which lowers only a thin wrapper and finds the executable in the
+persistent cache.
+
+Only functions whose result depends on nothing but their arguments may go through it (no
+closures over values that are not arguments): module-level ``eqx.filter_jit`` functions such as
+``refine._refine_batch_jit``. The entries live in ``<cache folder>/exported/``; the cache's
+switches (``JAXCR_COMPILE_CACHE``, ``JAXCR_CACHE_DIR``) turn them off with it. A file that cannot
+be read or written is not an error: the function is then traced as usual.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import pickle
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import equinox as eqx
+import jax
+
+FORMAT = b"jaxcr.exported/2\n"
+_memo: dict[str, tuple[Callable, object]] = {}
+_source_hash: str | None = None
+
+
+def _jaxcr_source_hash() -> str:
+    """SHA-256 over every ``.py`` file of the installed jaxcr package (path and content)."""
+    global _source_hash
+    if _source_hash is None:
+        root = Path(__file__).resolve().parents[1]
+        h = hashlib.sha256()
+        for p in sorted(root.rglob("*.py")):
+            h.update(str(p.relative_to(root)).encode())
+            h.update(p.read_bytes())
+        _source_hash = h.hexdigest()
+    return _source_hash
+
+
+def _versions() -> str:
+    import importlib.metadata as md
+
+    out = []
+    for name in ("jax", "jaxlib", "equinox", "optimistix", "lineax"):
+        try:
+            out.append(f"{name}={md.version(name)}")
+        except md.PackageNotFoundError:
+            out.append(f"{name}=?")
+    return ",".join(out)
+
+
+def _folder() -> str | None:
+    """``<cache folder>/exported``, or None when the cache is off or JAX cannot serialise
+    (``jax.export`` needs the ``flatbuffers`` package, a dependency of jaxcr)."""
+    base = jax.config.jax_compilation_cache_dir
+    if not base or importlib.util.find_spec("flatbuffers") is None:
+        return None
+    return os.path.join(base, "exported")
+
+
+def _key(name: str, leaves, static) -> str:
+    h = hashlib.sha256()
+    h.update(FORMAT + name.encode() + _versions().encode() + _jaxcr_source_hash().encode())
+    h.update(str(jax.tree_util.tree_structure(static)).encode())
+    h.update(repr(jax.tree_util.tree_leaves(static)).encode())
+    for x in leaves:
+        h.update(f"{x.shape}{x.dtype}{getattr(x, 'weak_type', False)};".encode())
+    return h.hexdigest()[:40]
+
+
+def _load(path: str):
+    with open(path, "rb") as fh:
+        blob = fh.read()
+    if not blob.startswith(FORMAT):
+        raise ValueError("not a jaxcr exported program")
+    n = int.from_bytes(blob[len(FORMAT) : len(FORMAT) + 8], "little")
+    body = blob[len(FORMAT) + 8 :]
+    # the output's structure is rebuilt here from a pickled example (leaves numbered
+    # 0..k-1), not unpickled as a treedef: a pickled treedef of equinox modules carries
+    # copies of equinox's sentinel objects and cannot unflatten them in a new process
+    template = pickle.loads(body[n:])
+    return jax.export.deserialize(bytearray(body[:n])), jax.tree_util.tree_structure(template)
+
+
+def _store(path: str, exported, out_tree) -> None:
+    body = exported.serialize()
+    template = jax.tree_util.tree_unflatten(out_tree, list(range(out_tree.num_leaves)))
+    blob = FORMAT + len(body).to_bytes(8, "little") + bytes(body) + pickle.dumps(template)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(path))
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(blob)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def cached_call(fn: Callable, *args):
+    """``fn(*args)`` through a stored traced program when the compilation cache is on.
+
+    ``fn``: a module-level function (typically ``eqx.filter_jit``) whose result is a pytree of
+    arrays determined by ``args`` alone; non-array arguments (configs, strings, static fields
+    of modules) are part of the key. Falls back to ``fn(*args)`` when the cache is off or an
+    entry cannot be made.
+    """
+    folder = _folder()
+    if folder is None:
+        return fn(*args)
+    dyn, static = eqx.partition(args, eqx.is_array)
+    leaves, in_tree = jax.tree_util.tree_flatten(dyn)
+    name = f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', repr(fn))}"
+    key = _key(name, leaves, static)
+    if key not in _memo:
+        path = os.path.join(folder, f"{name.rsplit('.', 1)[-1]}-{key}.jaxexport")
+        try:
+            exported, out_tree = _load(path)
+        except (OSError, ValueError, EOFError, pickle.UnpicklingError):
+            out_box = []
+
+            def flat(*lv):
+                a = eqx.combine(jax.tree_util.tree_unflatten(in_tree, lv), static)
+                out_leaves, out_tree_ = jax.tree_util.tree_flatten(fn(*a))
+                out_box.append(out_tree_)
+                return out_leaves
+
+            try:
+                shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
+                exported = jax.export.export(jax.jit(flat))(*shapes)
+            except Exception:  # not exportable (e.g. a host callback): trace as usual
+                return fn(*args)
+            out_tree = out_box[0]
+            try:
+                _store(path, exported, out_tree)
+            except OSError:
+                pass
+        _memo[key] = (jax.jit(exported.call), out_tree)
+    call, out_tree = _memo[key]
+    return jax.tree_util.tree_unflatten(out_tree, call(*leaves))

@@ -1,0 +1,830 @@
+"""Robot foreground on real backgrounds from a background plate (issue 16 item 2), shared by
+``jaxcr segment --background plate`` and ``jaxcr stereo --segmentation trace``.
+
+A key colour alone fails on real rigs: a dark, green-tinted tube over green cloth has the
+cloth's hue, creases and static shadows are darker cloth, and where the tube crosses black
+tape it matches the background completely. This module works in four steps, all numpy /
+scipy on float RGB in [0, 1] (no cv2, no file I/O):
+
+1. :func:`align_plate`: the plate (the empty scene) is registered to the frame by a
+   translation, found to sub-pixel precision (cameras drift by pixels over a recording):
+   phase correlation for the integer part, then weighted Gauss-Newton (Lucas-Kanade) on the
+   grey images with Tukey weights, so the robot's pixels (large residuals) do not pull the
+   estimate. :func:`shift_image` resamples the plate (bilinear).
+2. :func:`foreground_cues`: per-pixel cues beyond the key colour, each scaled so that 1
+   means "at its threshold": *darker* than the plate (``1 - Y / Y_plate``), *less
+   saturated* (chroma drop relative to brightness), *different hue* (angle between the
+   chroma vectors, where both are coloured) and the plain colour distance. The score is
+   their maximum.
+3. :func:`hysteresis`: pixels with score >= ``high`` seed the mask; pixels >= ``low``
+   connected (8-neighbours) to a seed extend it (as ``skimage.filters.
+   apply_hysteresis_threshold``).
+4. :func:`trace_tube`: a walker follows the tube on that mask from its entry point (a given
+   pixel, or found at the image border): each step picks the direction (within
+   ``max_turn_deg`` of the current one) whose ray ahead is best covered by the mask and
+   re-centres across the tube. Where the tube matches the background (tape, shadows,
+   creases) the mask breaks; the walker then looks straight on (within
+   ``gap_turn_deg``) up to ``max_gap_px`` pixels for the mask to resume and bridges the
+   gap. Beyond that, the tube ends: the tip is the last mask pixel along the path.
+   Output: the robot mask (mask pixels near the path plus the bridges drawn at the tube's
+   width), the ordered 2-D backbone and the tip pixel.
+
+Pixel convention: OpenCV's (u, v) = (column, row), pixel centres at integers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage as ndi
+
+__all__ = [
+    "PlateForegroundConfig",
+    "TubeTrace",
+    "align_plate",
+    "shift_image",
+    "foreground_cues",
+    "cue_maps",
+    "close_score",
+    "hysteresis",
+    "trace_tube",
+    "border_entry",
+    "refine_tip",
+    "plate_foreground",
+]
+
+
+@dataclass(frozen=True)
+class PlateForegroundConfig:
+    """Thresholds of the plate foreground (every one is a CLI flag ``--plate-...``).
+
+    Cue thresholds (each cue is 1 at its threshold):
+        dark: relative darkening ``1 - Y/Y_plate`` of a pixel where the plate is
+            achromatic (chroma < ``min_chroma``: a white board, black tape) (0.3: a grey tube on a white board darkens it by 25-45 %); on
+            coloured cloth a cast shadow is the plate darkened, so darkness is no cue there.
+        desat: drop of saturation ``(max - min)/max`` from plate to frame (0.25).
+        hue_deg: hue change in degrees, counted where both chromas exceed ``min_chroma``
+            (30).
+        diff: RGB distance to the plate scaled by the best gain in [``min_gain``, 1]
+            (0.25; ``min_gain`` 0.35): the old plate mode's cue made shadow-invariant.
+        min_chroma: chroma ``max - min`` below which a pixel has no reliable hue (0.08).
+        min_luma: darkening and saturation are relative to ``max(value, min_luma)``
+            (0.2): near-black pixels (tape, deep shadow) have no reliable relative change.
+    Tip: ``refine`` (True) places the tip by :func:`refine_tip` (the score's half level
+    along the end direction, minus the end face's foreshortened half-ellipse, at most
+    ``tip_cap`` (1.0) x the half width; 0 = the silhouette's end).
+    Closing: the score is closed (grey-level, disc of ``close_px`` (2) pixels) so a tube
+    seen only by its two edges is filled (0 = off).
+    Hysteresis on the score (the maximum of the cues): ``high`` seeds (1.0), ``low``
+    extends (0.4).
+    Noise: frame and plate are smoothed with a Gaussian of ``blur_px`` (1.0) pixels.
+    Alignment: ``align`` (True) registers the plate; ``max_shift_px`` (8) bounds the shift.
+    Tracing: ``step_px`` (2) walker step; ``look_px`` (10) length of the ray that scores a
+    direction; ``max_turn_deg`` (30) largest turn per step; ``corner_deg`` (90) where no direction
+    within ``max_turn_deg`` is supported, turns up to this are tried (a projected kink or
+    hook) onto mask not traced already, before a gap is searched; ``support`` (0.6) fraction of
+    the ray on the mask to keep walking; ``max_gap_px`` (80) the longest stretch where the
+    tube may match the background (tape, shadow, crease) that is bridged; ``gap_turn_deg``
+    (12) the cone searched across a gap; ``max_width_px`` (40) the widest tube searched
+    across when re-centring; ``min_seed_px`` (20) smallest mask component the walker
+    accepts after a gap (noise specks are smaller); ``gap_visible`` (0.5) a gap is not
+    bridged when the tube's colour (its last traced stretch) would score above ``high``
+    against the plate on more than this fraction of the gap (the tube would have been
+    seen there, so it ended; 1 = off); ``start_spread_deg`` (20) a given
+    entry direction is also tried turned by this much either way, the longest trace kept.
+    """
+
+    dark: float = 0.3
+    desat: float = 0.25
+    hue_deg: float = 30.0
+    diff: float = 0.25
+    min_chroma: float = 0.08
+    min_luma: float = 0.2
+    close_px: float = 2.0
+    min_gain: float = 0.35
+    high: float = 1.0
+    low: float = 0.4
+    blur_px: float = 1.0
+    align: bool = True
+    max_shift_px: float = 8.0
+    step_px: float = 2.0
+    look_px: float = 10.0
+    max_turn_deg: float = 30.0
+    corner_deg: float = 90.0
+    support: float = 0.6
+    max_gap_px: float = 80.0
+    gap_turn_deg: float = 12.0
+    max_width_px: float = 40.0
+    min_seed_px: int = 20
+    gap_visible: float = 0.5
+    tip_cap: float = 1.0
+    refine: bool = True
+    start_spread_deg: float = 20.0
+
+
+@dataclass
+class TubeTrace:
+    """Result of :func:`plate_foreground` / :func:`trace_tube`.
+
+    Attributes:
+        mask: (H, W) bool robot pixels (the traced mask components plus bridged gaps).
+        backbone: (n, 2) ordered (u, v) pixels from the entry to the tip.
+        tip: (2,) (u, v) tip pixel.
+        entry: (2,) (u, v) where tracing started.
+        gaps: list of (start index, end index) into ``backbone`` of bridged stretches.
+        shift: (2,) (du, dv) plate alignment shift applied (frame(x) ~ plate(x - shift)).
+        score: (H, W) the cue score; ``seed_mask``: the hysteresis mask before tracing.
+        width_px: median tube width across the traced path (pixels).
+        reason: None, or why tracing stopped early (e.g. "no foreground at the entry").
+        cap_px: length of the end face's half-ellipse removed by :func:`refine_tip` (px).
+    """
+
+    mask: np.ndarray
+    backbone: np.ndarray
+    tip: np.ndarray
+    entry: np.ndarray
+    gaps: list = field(default_factory=list)
+    shift: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    score: np.ndarray | None = None
+    seed_mask: np.ndarray | None = None
+    width_px: float = 0.0
+    reason: str | None = None
+    cap_px: float = 0.0
+
+
+# ----------------------------------------------------------------------------- alignment
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    im = np.asarray(image, np.float64)
+    return im @ np.array([0.299, 0.587, 0.114]) if im.ndim == 3 else im
+
+
+def shift_image(image: np.ndarray, shift_uv) -> np.ndarray:
+    """``out(u, v) = image(u - du, v - dv)`` by bilinear interpolation (edges clamped):
+    the image content moves by ``shift_uv = (du, dv)`` pixels. A constant shift is
+    separable: integer index shifts plus two linear blends."""
+    im = np.asarray(image, np.float64)
+    h, w = im.shape[:2]
+    out = im
+    for axis, n, sh in ((1, w, float(shift_uv[0])), (0, h, float(shift_uv[1]))):
+        x = np.arange(n) - sh
+        i0 = np.floor(x)
+        t = x - i0
+        i0 = i0.astype(np.int64)
+        a = np.take(out, np.clip(i0, 0, n - 1), axis=axis)
+        b = np.take(out, np.clip(i0 + 1, 0, n - 1), axis=axis)
+        shape = [1] * im.ndim
+        shape[axis] = n
+        t = t.reshape(shape)
+        out = a + t * (b - a)
+    return out
+
+
+def _phase_correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Integer (du, dv) with ``a(x) ~ b(x - d)`` (normalised cross-power spectrum, Hann
+    window)."""
+    h, w = a.shape
+    win = np.outer(np.hanning(h), np.hanning(w))
+    fa = np.fft.fft2((a - a.mean()) * win)
+    fb = np.fft.fft2((b - b.mean()) * win)
+    cp = fa * np.conj(fb)
+    r = np.fft.ifft2(cp / np.maximum(np.abs(cp), 1e-12)).real
+    dv, du = np.unravel_index(int(np.argmax(r)), r.shape)
+    dv = dv - h if dv > h // 2 else dv
+    du = du - w if du > w // 2 else du
+    return np.array([du, dv], np.float64)
+
+
+def align_plate(
+    frame: np.ndarray,
+    plate: np.ndarray,
+    *,
+    max_shift_px: float = 8.0,
+    iterations: int = 10,
+    weights: np.ndarray | None = None,
+) -> np.ndarray:
+    """The translation ``(du, dv)`` (pixels) with ``frame(x) ~ plate(x - d)``, i.e.
+    ``shift_image(plate, d)`` lines up with the frame.
+
+    Phase correlation gives the integer part (ignored if beyond ``max_shift_px``); then
+    Gauss-Newton on the grey images (Lucas-Kanade for a translation) with Tukey weights
+    (scale 4.685 x the residuals' robust sigma, MAD) so that the robot, which the plate
+    lacks, does not bias the shift. ``weights`` (H, W) optionally down-weights pixels
+    further (e.g. a previous robot mask). Images RGB or grey, float; a border of
+    ``max_shift_px + 2`` pixels is left out.
+    """
+    a = ndi.gaussian_filter(_grey(frame), 1.0)
+    b = ndi.gaussian_filter(_grey(plate), 1.0)
+    d = _phase_correlation(a, b)
+    if np.any(np.abs(d) > max_shift_px):
+        d = np.zeros(2)
+    m = int(np.ceil(max_shift_px)) + 2
+    inner = (slice(m, -m), slice(m, -m))
+    gv, gu = np.gradient(b)
+    w0 = np.ones_like(a) if weights is None else np.asarray(weights, np.float64)
+    for _ in range(iterations):
+        bs = shift_image(b, d)[inner]
+        gus = shift_image(gu, d)[inner]
+        gvs = shift_image(gv, d)[inner]
+        r = a[inner] - bs
+        sig = 1.4826 * np.median(np.abs(r - np.median(r))) + 1e-6
+        c = 4.685 * sig
+        wt = np.where(np.abs(r) < c, (1 - (r / c) ** 2) ** 2, 0.0) * w0[inner]
+        # d(plate(x - d))/dd = -grad plate(x - d)
+        J = -np.stack([gus.ravel(), gvs.ravel()], 1)
+        wr = wt.ravel()
+        H = J.T @ (J * wr[:, None])
+        g = J.T @ (wr * r.ravel())
+        step = np.linalg.solve(H + 1e-9 * np.eye(2), g)
+        d = d + step
+        if np.any(np.abs(d) > max_shift_px):
+            return np.clip(d, -max_shift_px, max_shift_px)
+        if np.max(np.abs(step)) < 1e-4:
+            break
+    return d
+
+
+# ----------------------------------------------------------------------------- cues
+
+
+def foreground_cues(
+    frame: np.ndarray, plate: np.ndarray, cfg: PlateForegroundConfig = PlateForegroundConfig()
+) -> dict[str, np.ndarray]:
+    """Per-pixel cues (H, W), each scaled so that 1 is at its threshold in ``cfg``, and
+    ``score``, their maximum. ``frame``/``plate`` float RGB [0, 1] (H, W, 3), the plate
+    already aligned."""
+    f = np.asarray(frame, np.float64)
+    p = np.asarray(plate, np.float64)
+    if cfg.blur_px > 0:
+        f = ndi.gaussian_filter(f, (cfg.blur_px, cfg.blur_px, 0))
+        p = ndi.gaussian_filter(p, (cfg.blur_px, cfg.blur_px, 0))
+    return cue_maps(f, p, cfg)
+
+
+def cue_maps(
+    f: np.ndarray, p: np.ndarray, cfg: PlateForegroundConfig = PlateForegroundConfig()
+) -> dict[str, np.ndarray]:
+    """The cues of :func:`foreground_cues` pixel by pixel, without smoothing: ``f``,
+    ``p`` float RGB of any shape (..., 3) (broadcast); each cue of shape (...)."""
+    f = np.asarray(f, np.float64)
+    p = np.asarray(p, np.float64)
+    f, p = np.broadcast_arrays(f, p)
+    eps = 1e-3
+    luma = np.array([0.299, 0.587, 0.114])
+    yf, yp = f @ luma, p @ luma
+    mxf, mnf = f.max(-1), f.min(-1)
+    mxp, mnp = p.max(-1), p.min(-1)
+    # Darkness counts on achromatic background only (white board, black tape, grey): on
+    # coloured cloth a cast shadow is the plate darkened, and the tube differs from the
+    # cloth by saturation, hue or shadow-invariant colour distance instead.
+    # Relative changes are taken against max(value, min_luma): near black (tape, deep
+    # shadow) a pixel cannot get much darker, and noise / max is large there, so darkening
+    # and saturation of near-black pixels would be noise (they seeded masks along tape).
+    achromatic = (mxp - mnp) < cfg.min_chroma
+    floor = max(cfg.min_luma, eps)
+    # Either sign: a grey metal tube on a white board is darker than the board in its body
+    # and brighter in its specular highlight (shadows only darken, but on achromatic
+    # background a cast shadow is as dark as a grey tube, so the sign would not help).
+    dark = np.where(achromatic, np.abs(yp - yf) / np.maximum(yp, floor), 0.0)
+    dark = dark / cfg.dark
+    sat_f = (mxf - mnf) / np.maximum(mxf, floor)
+    sat_p = (mxp - mnp) / np.maximum(mxp, floor)
+    desat = np.clip(sat_p - sat_f, 0.0, None) / cfg.desat
+    cf = f - f.mean(-1, keepdims=True)
+    cp = p - p.mean(-1, keepdims=True)
+    nf = np.linalg.norm(cf, axis=-1)
+    npl = np.linalg.norm(cp, axis=-1)
+    cos = np.sum(cf * cp, -1) / np.maximum(nf * npl, 1e-12)
+    ang = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    coloured = ((mxf - mnf) > cfg.min_chroma) & ((mxp - mnp) > cfg.min_chroma)
+    hue = np.where(coloured, ang, 0.0) / cfg.hue_deg
+    # Colour distance to the best-scaled plate g P, g in [min_gain, 1]: a cast shadow
+    # (the plate darkened, same chromaticity) is no foreground by this cue.
+    g = np.sum(f * p, -1) / np.maximum(np.sum(p * p, -1), 1e-9)
+    g = np.clip(g, cfg.min_gain, 1.0)[..., None]
+    diff = np.linalg.norm(f - g * p, axis=-1) / cfg.diff
+    score = np.maximum(np.maximum(dark, desat), np.maximum(hue, diff))
+    return {"dark": dark, "desat": desat, "hue": hue, "diff": diff, "score": score}
+
+
+def close_score(score: np.ndarray, radius_px: float) -> np.ndarray:
+    """Grey-level closing (dilation, then erosion) of ``score`` with a disc of
+    ``radius_px``: a tube whose body matches the background (a lit metal tube on a white
+    board) differs only along its two edges; the closing fills between edges up to
+    ``2 radius_px`` apart, and leaves isolated peaks and steps in place."""
+    r = int(np.floor(radius_px))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disc = xx * xx + yy * yy <= radius_px * radius_px
+    return ndi.grey_closing(score, footprint=disc, mode="nearest")
+
+
+def hysteresis(score: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Pixels with ``score > low`` in an 8-connected component holding a pixel with
+    ``score > high`` (the convention of ``skimage.filters.apply_hysteresis_threshold``)."""
+    weak = score > low
+    lab, n = ndi.label(weak, structure=np.ones((3, 3), bool))
+    if n == 0:
+        return weak
+    strong_labels = np.unique(lab[(score > high) & weak])
+    keep = np.zeros(n + 1, bool)
+    keep[strong_labels] = True
+    keep[0] = False
+    return keep[lab]
+
+
+# ----------------------------------------------------------------------------- tracing
+
+
+def _sample(mask: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Mask value (0/1) at the nearest pixel of each (u, v) point; 0 outside."""
+    h, w = mask.shape
+    c = np.floor(pts[..., 0] + 0.5).astype(np.int64)
+    r = np.floor(pts[..., 1] + 0.5).astype(np.int64)
+    inside = (c >= 0) & (c < w) & (r >= 0) & (r < h)
+    out = np.zeros(pts.shape[:-1])
+    out[inside] = mask[r[inside], c[inside]]
+    return out
+
+
+def _unit(a: float) -> np.ndarray:
+    return np.array([np.cos(a), np.sin(a)])
+
+
+def _recentre(mask, p, d, max_w):
+    """Centre of the mask run across direction ``d`` through ``p`` (or the run nearest to
+    ``p`` within 3 px); returns (new point, run width) or (p, 0)."""
+    n = np.array([-d[1], d[0]])
+    offs = np.arange(-max_w / 2, max_w / 2 + 0.5, 0.5)
+    vals = _sample(mask, p[None] + offs[:, None] * n[None]) > 0
+    if not vals.any():
+        return p, 0.0
+    on = np.flatnonzero(vals)
+    k0 = on[np.argmin(np.abs(offs[on]))]
+    if abs(offs[k0]) > 3.0:
+        return p, 0.0
+    lo = k0
+    while lo > 0 and vals[lo - 1]:
+        lo -= 1
+    hi = k0
+    while hi < len(vals) - 1 and vals[hi + 1]:
+        hi += 1
+    centre = 0.5 * (offs[lo] + offs[hi])
+    width = offs[hi] - offs[lo] + 0.5
+    shift = np.clip(centre, -1.0, 1.0)
+    return p + shift * n, width
+
+
+def border_entry(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the robot enters the image: the mask component with the most pixels on the
+    image border; returns ((u, v) mean of its border pixels, inward unit direction) or
+    None if no component touches the border."""
+    h, w = mask.shape
+    lab, n = ndi.label(mask, structure=np.ones((3, 3), bool))
+    if n == 0:
+        return None
+    border = np.zeros_like(mask)
+    border[0, :] = border[-1, :] = border[:, 0] = border[:, -1] = True
+    counts = np.bincount(lab[border & mask], minlength=n + 1)
+    counts[0] = 0
+    if counts.max() == 0:
+        return None
+    k = int(np.argmax(counts))
+    rr, cc = np.nonzero((lab == k) & border)
+    uv = np.array([cc.mean(), rr.mean()])
+    # Inward direction: towards the component's pixels near the entry.
+    r2, c2 = np.nonzero(lab == k)
+    near = (c2 - uv[0]) ** 2 + (r2 - uv[1]) ** 2 < 30.0**2
+    d = np.array([c2[near].mean(), r2[near].mean()]) - uv
+    if np.linalg.norm(d) < 1e-6:
+        d = np.array([w / 2, h / 2]) - uv
+    return uv, d / np.linalg.norm(d)
+
+
+def _initial_direction(mask: np.ndarray, entry: np.ndarray, radius: float = 25.0):
+    h, w = mask.shape
+    r0, r1 = int(max(entry[1] - radius, 0)), int(min(entry[1] + radius + 1, h))
+    c0, c1 = int(max(entry[0] - radius, 0)), int(min(entry[0] + radius + 1, w))
+    rr, cc = np.nonzero(mask[r0:r1, c0:c1])
+    if len(rr) < 3:
+        return None
+    d = np.array([cc.mean() + c0, rr.mean() + r0]) - entry
+    if np.linalg.norm(d) < 1.0:
+        pts = np.stack([cc + c0, rr + r0], 1).astype(float)
+        pts -= pts.mean(0)
+        d = np.linalg.svd(pts, full_matrices=False)[2][0]
+    return d / np.linalg.norm(d)
+
+
+def _local_arc(path: list, window_px: float = 24.0) -> tuple[float, float] | None:
+    """Heading (rad) and curvature (rad/px, clipped to +-0.1) at the end of the path from a
+    quadratic least-squares fit of u(s), v(s) over its last ``window_px`` of arclength
+    (the per-step headings jitter with the re-centring); None if the path is shorter."""
+    pts = np.asarray(path[-64:], np.float64)
+    if len(pts) < 5:
+        return None
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s = s - s[-1]
+    keep = s >= -window_px
+    if keep.sum() < 5 or -s[keep][0] < 0.5 * window_px:
+        return None
+    cu = np.polyfit(s[keep], pts[keep, 0], 2)
+    cv = np.polyfit(s[keep], pts[keep, 1], 2)
+    du, dv = cu[1], cv[1]  # first derivatives at s = 0
+    ddu, ddv = 2 * cu[0], 2 * cv[0]
+    n = np.hypot(du, dv)
+    if n < 1e-9:
+        return None
+    kappa = (du * ddv - dv * ddu) / n**3
+    return float(np.arctan2(dv, du)), float(np.clip(kappa, -0.1, 0.1))
+
+
+def _at(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``image`` at the nearest pixel of each (u, v) point (clamped to the image)."""
+    h, w = image.shape[:2]
+    c = np.clip(np.floor(pts[:, 0] + 0.5).astype(np.int64), 0, w - 1)
+    r = np.clip(np.floor(pts[:, 1] + 0.5).astype(np.int64), 0, h - 1)
+    return image[r, c]
+
+
+def _bridge_visible(mask, frame, plate, path, p, q, cfg) -> bool:
+    """Whether the tube, had it gone on from ``p`` to ``q``, would have been seen there:
+    the colour of the tube's last traced stretch (median of ``frame`` on the mask along
+    the last 20 px of ``path``) scored against the aligned ``plate`` with the same cues
+    (:func:`cue_maps`) exceeds ``high`` on more than ``gap_visible`` of the bridge's
+    off-mask pixels. A gap is bridged only where the tube can match the background (tape,
+    shadow, crease); where the background differs from the tube, a missing mask is the
+    tube's end. False when no ``frame``/``plate`` is given (mask-only tracing)."""
+    if frame is None or plate is None or cfg.gap_visible >= 1.0:
+        return False
+    pts = np.asarray(path[-11:], np.float64)
+    on = _sample(mask, pts) > 0
+    if not on.any():
+        return False
+    tube = np.median(_at(frame, pts[on]), axis=0)
+    dist = float(np.linalg.norm(q - p))
+    t = np.arange(1.0, dist - 0.5, 1.0)
+    if not len(t):
+        return False
+    bridge = p[None] + t[:, None] * ((q - p) / dist)[None]
+    bridge = bridge[_sample(mask, bridge) == 0]
+    if not len(bridge):
+        return False
+    score = cue_maps(tube[None], _at(plate, bridge), cfg)["score"]
+    return bool(np.mean(score > cfg.high) > cfg.gap_visible)
+
+
+def _trace_length(t: TubeTrace) -> float:
+    return float(np.sum(np.linalg.norm(np.diff(t.backbone, axis=0), axis=1)))
+
+
+def trace_tube(
+    mask: np.ndarray,
+    entry_uv,
+    direction_uv=None,
+    cfg: PlateForegroundConfig = PlateForegroundConfig(),
+    *,
+    frame: np.ndarray | None = None,
+    plate: np.ndarray | None = None,
+    _single: bool = False,
+) -> TubeTrace:
+    """Follow the tube on ``mask`` (H, W) bool from ``entry_uv`` (u, v) (see module
+    docstring, step 4). ``direction_uv``: the initial direction (default: the axis of the
+    mask pixels near the entry, traced both ways, the longer trace kept). Returns a :class:`TubeTrace` (``score``/``shift`` unset)."""
+    mask = np.asarray(mask, bool)
+    h, w = mask.shape
+    entry = np.asarray(entry_uv, np.float64)
+    empty = TubeTrace(np.zeros_like(mask), entry[None].copy(), entry.copy(), entry.copy())
+    # Start on the mask pixel nearest the entry (within 20 px).
+    rr, cc = np.nonzero(mask[
+        max(int(entry[1]) - 20, 0) : int(entry[1]) + 21,
+        max(int(entry[0]) - 20, 0) : int(entry[0]) + 21,
+    ])  # fmt: skip
+    if not len(rr):
+        empty.reason = "no foreground at the entry"
+        return empty
+    rr = rr + max(int(entry[1]) - 20, 0)
+    cc = cc + max(int(entry[0]) - 20, 0)
+    k = int(np.argmin((cc - entry[0]) ** 2 + (rr - entry[1]) ** 2))
+    p = np.array([cc[k], rr[k]], np.float64)
+    if direction_uv is None:
+        # The axis of the mask near the entry, both ways (a shadow may leave the base on
+        # the other side): the longer trace wins.
+        d = _initial_direction(mask, p)
+        if d is None:
+            empty.reason = "no foreground at the entry"
+            return empty
+        both = [
+            trace_tube(mask, entry_uv, s * d, cfg, frame=frame, plate=plate) for s in (1.0, -1.0)
+        ]
+        return max(
+            both, key=lambda t: float(np.sum(np.linalg.norm(np.diff(t.backbone, axis=0), axis=1)))
+        )
+    d = np.asarray(direction_uv, np.float64) / np.linalg.norm(direction_uv)
+    if cfg.start_spread_deg > 0 and not _single:
+        # The given direction is a model's: also start turned by +-start_spread_deg, and
+        # keep the longest trace (a shadow or crease at the base can divert one start).
+        out = []
+        for a in (0.0, -cfg.start_spread_deg, cfg.start_spread_deg):
+            c, s_ = np.cos(np.radians(a)), np.sin(np.radians(a))
+            dr = np.array([c * d[0] - s_ * d[1], s_ * d[0] + c * d[1]])
+            out.append(trace_tube(mask, entry_uv, dr, cfg, frame=frame, plate=plate, _single=True))
+        return max(out, key=_trace_length)
+    theta = float(np.arctan2(d[1], d[0]))
+    radii = np.arange(1.0, cfg.look_px + 0.5, 1.0)
+    turn = np.radians(cfg.max_turn_deg)
+    cands = theta + np.linspace(-turn, turn, 2 * int(round(cfg.max_turn_deg / 5.0)) + 1)
+    path = [p.copy()]
+    widths = []
+    gaps = []
+    seen = np.zeros((h // 4 + 1, w // 4 + 1), np.int32)
+    labels, _ = ndi.label(mask, structure=np.ones((3, 3), bool))
+    sizes = np.bincount(labels.ravel())
+    max_steps = int(4 * (h + w) / cfg.step_px)
+
+    last_corner = -(10**9)
+    on_old = 0
+
+    def _visited(c, keep=30.0):
+        """Whether pixel c (u, v) lies on the tube already traced, except its last ``keep``
+        px (the stretch the gap starts from): a gap must not land back on the shaft (a
+        curled tip ending near it)."""
+        pts = np.asarray(path)
+        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        back = np.concatenate([np.cumsum(seg[::-1])[::-1], [0.0]])  # arclength to the end
+        old = pts[back > keep]
+        if not len(old):
+            return False
+        rad = min(np.median(widths) / 2, 8.0) + 3.0 if widths else 5.0
+        return bool(np.min(np.sum((old - c[None]) ** 2, 1)) <= rad * rad)
+
+    for _ in range(max_steps):
+        cands = theta + np.linspace(-turn, turn, len(cands))
+        dirs = np.stack([np.cos(cands), np.sin(cands)], 1)
+        pts = p[None, None] + radii[None, :, None] * dirs[:, None]
+        sup = _sample(mask, pts).mean(1)
+        # Prefer straight on among near-equal supports.
+        pref = sup - 0.02 * np.abs(cands - theta) / max(turn, 1e-9)
+        j = int(np.argmax(pref))
+        dvec = dirs[j] if sup[j] >= cfg.support else None
+        since = len(path) - last_corner
+        if (dvec is None and cfg.corner_deg > cfg.max_turn_deg and len(path) > 5
+                and since * cfg.step_px >= cfg.look_px):  # fmt: skip
+            # A corner (a projected kink where an inner tube leaves the outer one, or a
+            # hook): turn by up to corner_deg, onto mask not traced already (more than a
+            # look length and a width back: two turns would walk back along the tube's
+            # other edge), at most once per look length.
+            wide = np.radians(cfg.corner_deg)
+            ca = theta + np.concatenate([np.arange(turn, wide + 1e-9, np.radians(5.0)),
+                                         -np.arange(turn, wide + 1e-9, np.radians(5.0))])  # fmt: skip
+            cd = np.stack([np.cos(ca), np.sin(ca)], 1)
+            cs = _sample(mask, p[None, None] + radii[None, :, None] * cd[:, None]).mean(1)
+            # Best supported first (the tube after a kink is covered along the whole
+            # ray; directions into the kink's corner only partly), straighter on ties.
+            for jj in np.argsort(-cs + 0.02 * np.abs(ca - theta) / wide):
+                if cs[jj] < 0.5 * (1.0 + cfg.support):  # a corner needs more support
+                    break
+                wref = float(np.median(widths)) if widths else 5.0
+                # As wide as the tube (not a crease or an edge residue leaving the tip).
+                _, wl = _recentre(mask, p + 0.5 * cfg.look_px * cd[jj], cd[jj], cfg.max_width_px)
+                if not 0.5 * wref <= wl <= 2.0 * wref:
+                    continue
+                if not _visited(p + cfg.look_px * cd[jj], keep=cfg.look_px + wref):
+                    dvec = cd[jj]
+                    last_corner = len(path)
+                    break
+        if dvec is not None:
+            q0 = p + cfg.step_px * dvec
+            q, wid = _recentre(mask, q0, dvec, cfg.max_width_px)
+            # Re-centre only on a run no wider than 1.6 x the tube so far, and not in the
+            # first 5 steps (the entry direction is given; a shadow or crease leaving the
+            # base widens the run there and would pull the walker onto it).
+            ref = float(np.median(widths)) if len(widths) >= 3 else None
+            if len(path) < 5 or wid == 0 or (ref is not None and wid > 1.6 * ref):
+                q = q0
+            if wid > 0 and (ref is None or wid <= 1.6 * ref):
+                widths.append(wid)
+        else:
+            # Gap: look on along the current arc (heading and curvature of the last few
+            # steps) for the mask to resume in a big enough component, within
+            # +-max(gap_turn_deg, 4 px lateral) of the predicted chord.
+            arc = _local_arc(path)
+            head0, kappa = (theta, 0.0) if arc is None else arc
+            found = None
+            for dist in np.arange(cfg.step_px, cfg.max_gap_px + 0.5, 1.0):
+                tol = max(np.radians(cfg.gap_turn_deg), np.arctan(4.0 / dist))
+                pred = head0 + np.clip(kappa * dist / 2.0, -np.pi / 2, np.pi / 2)
+                n_ang = 2 * int(np.ceil(tol * dist / 0.7)) + 1
+                gc = pred + np.linspace(-tol, tol, n_ang)
+                gd = np.stack([np.cos(gc), np.sin(gc)], 1)
+                pts = p[None] + dist * gd
+                hits = _sample(mask, pts) > 0
+                if not hits.any():
+                    continue
+                for i in np.flatnonzero(hits)[np.argsort(np.abs(gc[hits] - pred))]:
+                    c = np.floor(pts[i] + 0.5).astype(int)
+                    if sizes[labels[c[1], c[0]]] < cfg.min_seed_px or _visited(c):
+                        continue
+                    if widths:
+                        # As wide as the tube (not a thin edge residue or a broad blob).
+                        _, wl = _recentre(mask, pts[i], gd[i], cfg.max_width_px)
+                        ref = float(np.median(widths))
+                        if not 0.5 * ref <= wl <= 2.0 * ref:
+                            continue
+                    # The tube goes on from there (any direction within max_turn of the
+                    # predicted heading at the landing point).
+                    head = pred + np.clip(kappa * dist / 2.0, -np.pi / 2, np.pi / 2)
+                    ha = head + np.linspace(-turn, turn, 7)
+                    hd = np.stack([np.cos(ha), np.sin(ha)], 1)
+                    ahead = pts[i][None, None] + radii[None, :, None] * hd[:, None]
+                    if _sample(mask, ahead).mean(1).max() < cfg.support:
+                        continue
+                    if _bridge_visible(mask, frame, plate, path, p, pts[i], cfg):
+                        continue
+                    found = pts[i]
+                    break
+                if found is not None:
+                    break
+            if found is None:
+                break
+            gaps.append((len(path) - 1, len(path)))
+            q = found
+            dvec = (q - p) / np.linalg.norm(q - p)
+        if not (0 <= q[0] <= w - 1 and 0 <= q[1] <= h - 1):
+            break
+        cell = (int(q[1]) // 4, int(q[0]) // 4)
+        seen[cell] += 1
+        if seen[cell] > 6:  # walking in circles
+            break
+        # Walking along the tube traced already (a hook that came back onto the shaft,
+        # not a crossing, which is shorter than the tube's width): the tube ended where
+        # it joined it.
+        wref = float(np.median(widths)) if widths else 5.0
+        if len(path) > 5 and _visited(q, keep=cfg.look_px + wref):
+            on_old += 1
+            if on_old * cfg.step_px > 1.5 * wref + cfg.step_px:
+                del path[len(path) - on_old + 1 :]
+                break
+        else:
+            on_old = 0
+        path.append(q)
+        # Heading: from the last few points (smooths the re-centring jitter).
+        back = path[min(max(len(path) - 4, 0, last_corner), len(path) - 2)]
+        hd = q - back
+        theta = float(np.arctan2(hd[1], hd[0])) if np.linalg.norm(hd) > 1e-6 else theta
+        p = q
+    bb = np.array(path)
+    # Tip: march on along the heading while on the mask (0.25 px steps).
+    tip = bb[-1].copy()
+    hd = _unit(theta)
+    for t in np.arange(0.25, cfg.look_px + 0.01, 0.25):
+        if _sample(mask, (bb[-1] + t * hd)[None])[0] > 0:
+            tip = bb[-1] + t * hd
+        else:
+            break
+    if np.linalg.norm(tip - bb[-1]) > 1e-9:
+        bb = np.vstack([bb, tip])
+    width = float(np.median(widths)) if widths else 3.0
+    out = _path_mask(mask, bb, gaps, width)
+    return TubeTrace(out, bb, tip, entry, gaps, width_px=width)
+
+
+def refine_tip(
+    score: np.ndarray,
+    backbone: np.ndarray,
+    width_px: float,
+    cfg: PlateForegroundConfig = PlateForegroundConfig(),
+) -> tuple[np.ndarray, float]:
+    """Sub-pixel tip along the tube's end direction, from the cue ``score`` (H, W) near the
+    end of ``backbone`` (n, 2) (u, v), for a tube of width ``width_px``.
+
+    The score is sampled (bilinear) on a grid aligned with the end direction ``d`` (the
+    quadratic fit of the last 24 px of the backbone), at 0.25 px steps. Levels: inside
+    ``S_in`` (median on the centre line 1-3 widths behind the end) and background ``S_bg``
+    (median beside the tube). Along the centre line the silhouette's end ``s_end`` is where
+    the score falls to the half level ``(S_in + S_bg)/2`` (a blurred step's half level is
+    its edge, whatever the blur). The tube's end face is a disc: seen at an angle, the
+    silhouette ends in a half-ellipse of width ``w`` and length ``a`` beyond the end point
+    (``a = r |sin|`` of the axis' tilt out of the image plane), so the end point is
+    ``s_end - a``. ``a`` follows from the soft area ``T`` (the score normalised to
+    background 0 and inside 1, clipped at 1, integrated) of the stretch from one width
+    behind the end: ``T = w (s_end - a + w) + (pi/4) w a``, so
+    ``a = (s_end + w - T/w) / (1 - pi/4)``, clipped to ``[0, tip_cap * w/2]``.
+    ``cfg.tip_cap`` (1.0) scales the largest correction (0 = the silhouette's end).
+    Returns (tip (u, v), a)."""
+    bb = np.asarray(backbone, np.float64)
+    w = float(max(width_px, 2.0))
+    arc = _local_arc(list(bb), window_px=max(24.0, 3 * w))
+    if arc is None or len(bb) < 3:
+        return bb[-1].copy(), 0.0
+    theta = arc[0]
+    d = np.array([np.cos(theta), np.sin(theta)])
+    n = np.array([-d[1], d[0]])
+    p0 = bb[-1]
+    ss = np.arange(-3 * w, w + cfg.look_px + 0.01, 0.25)
+    tt = np.arange(-1.5 * w, 1.5 * w + 0.01, 0.25)
+    pts = p0[None, None] + ss[:, None, None] * d[None, None] + tt[None, :, None] * n[None, None]
+    g = ndi.map_coordinates(score, [pts[..., 1], pts[..., 0]], order=1, mode="nearest")
+    centre = np.abs(tt) <= 0.5
+    behind = (ss >= -3 * w) & (ss <= -w)
+    s_in = float(np.median(g[behind][:, centre]))
+    s_bg = float(np.median(g[behind][:, np.abs(tt) >= w]))
+    if not s_in > s_bg:
+        return p0.copy(), 0.0
+    half = 0.5 * (s_in + s_bg)
+    prof = g[:, centre].mean(1)
+    # First crossing below the half level after the end region starts (s >= -w).
+    k0 = int(np.searchsorted(ss, -w))
+    below = np.flatnonzero(prof[k0:] < half)
+    if not len(below):
+        return p0.copy(), 0.0
+    k = k0 + int(below[0])
+    if k == 0:
+        return p0.copy(), 0.0
+    f = (prof[k - 1] - half) / max(prof[k - 1] - prof[k], 1e-12)
+    s_end = float(ss[k - 1] + f * (ss[k] - ss[k - 1]))
+    if cfg.tip_cap <= 0:
+        return p0 + s_end * d, 0.0
+    soft = np.clip((g - s_bg) / (s_in - s_bg), None, 1.0)
+    band = np.abs(tt) <= 0.75 * w
+    w_full = float(np.median(soft[behind][:, band].sum(1) * 0.25))
+    if not w_full > 0:
+        return p0 + s_end * d, 0.0
+    region = (ss >= -w) & (ss <= s_end + 0.5 * w)
+    T = float(soft[region][:, band].sum() * 0.25 * 0.25)
+    a = (s_end + w - T / w_full) / (1.0 - np.pi / 4.0)
+    a = float(np.clip(a, 0.0, cfg.tip_cap * w_full / 2.0))
+    return p0 + (s_end - a) * d, a
+
+
+def _path_mask(mask, bb, gaps, width):
+    """Mask pixels within ``width/2 + 2`` px of the path, plus the gaps' segments drawn at
+    ``width`` (distance transform of the path sampled every 0.5 px)."""
+    h, w = mask.shape
+
+    def dense(pts):
+        seg = [pts[:1]]
+        for a, b in zip(pts[:-1], pts[1:], strict=True):
+            n = max(int(np.ceil(np.linalg.norm(b - a) / 0.5)), 1)
+            seg.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+        return np.concatenate(seg)
+
+    def near(pts, radius):
+        q = np.floor(dense(pts) + 0.5).astype(np.int64)
+        ok = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
+        raster = np.ones((h, w), bool)
+        raster[q[ok, 1], q[ok, 0]] = False
+        if raster.all():
+            return np.zeros((h, w), bool)
+        return ndi.distance_transform_edt(raster) <= radius
+
+    if len(bb) < 2:
+        return np.zeros_like(mask)
+    out = near(bb, width / 2 + 2) & mask
+    for a, _ in gaps:
+        out |= near(bb[a : a + 2], width / 2)
+    return out
+
+
+def plate_foreground(
+    frame: np.ndarray,
+    plate: np.ndarray,
+    entry_uv=None,
+    direction_uv=None,
+    cfg: PlateForegroundConfig = PlateForegroundConfig(),
+) -> TubeTrace:
+    """Steps 1-4 of the module docstring on one view: ``frame``, ``plate`` RGB (H, W, 3)
+    (uint8 or float [0, 1]); ``entry_uv`` the pixel where the robot enters the view (None:
+    found at the image border, :func:`border_entry`)."""
+    f = np.asarray(frame)
+    p = np.asarray(plate)
+    f = f.astype(np.float64) / 255.0 if f.dtype == np.uint8 else f.astype(np.float64)
+    p = p.astype(np.float64) / 255.0 if p.dtype == np.uint8 else p.astype(np.float64)
+    shift = align_plate(f, p, max_shift_px=cfg.max_shift_px) if cfg.align else np.zeros(2)
+    pa = shift_image(p, shift) if cfg.align else p
+    cues = foreground_cues(f, pa, cfg)
+    if cfg.close_px > 0:
+        cues["score"] = close_score(cues["score"], cfg.close_px)
+    seeds = hysteresis(cues["score"], cfg.low, cfg.high)
+    if entry_uv is None:
+        be = border_entry(seeds)
+        if be is None:
+            tr = TubeTrace(np.zeros(seeds.shape, bool), np.zeros((0, 2)), np.full(2, np.nan),
+                           np.full(2, np.nan), reason="no foreground touches the image border")  # fmt: skip
+            tr.score, tr.seed_mask, tr.shift = cues["score"], seeds, shift
+            return tr
+        entry_uv, d0 = be
+        direction_uv = d0 if direction_uv is None else direction_uv
+    fs, ps = f, pa
+    if cfg.blur_px > 0:
+        fs = ndi.gaussian_filter(f, (cfg.blur_px, cfg.blur_px, 0))
+        ps = ndi.gaussian_filter(pa, (cfg.blur_px, cfg.blur_px, 0))
+    tr = trace_tube(seeds, entry_uv, direction_uv, cfg, frame=fs, plate=ps)
+    if cfg.refine and len(tr.backbone) >= 3:
+        tip, tr.cap_px = refine_tip(cues["score"], tr.backbone, tr.width_px, cfg)
+        tr.backbone = np.vstack([tr.backbone[:-1], tip])
+        tr.tip = tip
+    tr.shift, tr.score, tr.seed_mask = shift, cues["score"], seeds
+    return tr

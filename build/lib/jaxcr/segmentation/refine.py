@@ -1,0 +1,1134 @@
+"""Kinematic-prior segmentation: refine delta-u so the projected tube explains the image.
+
+Watson et al. (Sec. II): the kinematic model gives the nominal curvature u(s) = f(q); the
+unknown is a small curvature change delta-u(s) (:mod:`jaxcr.segmentation.shape`), re-integrated from the
+same base pose (eq. 1), drawn as a tube (eq. 7), projected (eqs. 3-4, :mod:`jaxcr.segmentation.silhouette`)
+and scored by the region energy of eq. 5 with eq. 6 (:mod:`jaxcr.segmentation.energy`). This module
+minimises that energy with Optimistix BFGS, coarse to fine over an image pyramid, for one
+frame seen by one or several cameras (one delta-u explains all cameras: a 3-D estimate), and
+for batches and sequences of frames.
+
+Everything below ``refine_frame`` is pure and jit-compiled; a batch of frames with equal
+image sizes and robot sampling is refined by one compiled call (``refine_batch``), compiled
+once per shape. Solvers never raise: each frame carries ``status`` (Optimistix RESULTS as
+int, 0 = success), ``num_steps``, ``ok`` and ``failure`` (:data:`FAILURES`).
+
+Usage (notebook)::
+
+    import jax, jax.numpy as jnp
+    from jaxcr.segmentation.background import colour_mask
+    from jaxcr.segmentation.refine import RefineConfig, refine_frame, refine_batch
+
+    fk = robot.forward(q)                               # FkResult, .centreline in robot frame
+    bg, img = colour_mask(image)                        # B (h, w) bool and I' = I o M
+    cfg = RefineConfig()                                # weights, basis, pyramid, solver
+    res = refine_frame(fk.centreline, camera, img, bg, cfg)
+    res.masks[0]        # (h, w) bool: full projection of the refined robot (occluded parts too)
+    res.centreline.p    # (N, 3) refined centreline, robot frame, metres
+    res.coeffs, res.delta_u, res.energy, res.status, res.num_steps, res.ok
+
+    # a dataset: stack frames (leading axis F) and refine in one compiled call
+    cls = jax.vmap(robot.forward)(qs).centreline        # Centreline with leading axis F
+    bgs, imgs = jax.vmap(colour_mask)(images)           # (F, h, w), (F, h, w, 3)
+    out = refine_batch(cls, (camera,), (imgs,), (bgs,), cfg)   # RefineResult, axis F
+    # sequences: warm start each frame from the previous delta-u
+    out = refine_sequence(cls, (camera,), (imgs,), (bgs,), cfg)
+
+Several cameras: pass tuples ``(cam_a, cam_b)``, ``(img_a, img_b)``, ``(bg_a, bg_b)``; the
+energies are summed and ``masks`` holds one mask per camera.
+
+Defaults (:class:`RefineConfig`) were chosen on seeds 0 and 1 of the four synthetic presets,
+seed 3 held out, with no knowledge of the generator's colours. Each solve runs in
+image-motion units (parameters scaled by the pixels their unit moves the projected
+centreline, J scaled so that the first steepest-descent step moves it about 1 px) and stops
+on an image-space convergence test (:class:`ImageSpaceBFGS`). The alternatives tried and the
+measurements behind each default are in ``docs/decisions.md`` (records S1-S11).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import optimistix as optx
+
+from jaxcr._types import Array, Bool, Float, Int
+from jaxcr.camera import Camera
+from jaxcr.errors import InputError
+from jaxcr.geometry import so3_exp, so3_log
+from jaxcr.kinematics.cosserat import Centreline
+from jaxcr.segmentation.energy import (
+    RegionData,
+    Weights,
+    chan_vese_energy,
+    pyramid,
+    region_data_from_level,
+    region_terms,
+    residual_variance,
+)
+from jaxcr.segmentation.shape import delta_u_steps, n_axes, perturbed_centreline, regularisation
+from jaxcr.segmentation.silhouette import (
+    Band,
+    TubeImage,
+    band_margin,
+    level_tube,
+    project_tube,
+    select_band,
+)
+
+#: failure codes of :attr:`RefineResult.failure`
+FAILURES = {
+    0: "ok",
+    1: "invalid input (non-finite joints/centreline or missing image)",
+    2: "robot out of view (nominal projection misses every image)",
+    3: "no data (every pixel is background)",
+    4: "solver produced a non-finite result",
+}
+
+
+class RefineConfig(eqx.Module):
+    """Settings of the refinement (all static: a new config compiles a new function).
+
+    Parameters
+    ----------
+    n_coeffs : int
+        Chebyshev coefficients per bending axis (:mod:`jaxcr.segmentation.shape`).
+    torsion : bool
+        also perturb the torsion (third axis); off by default.
+    levels : tuple[int, ...]
+        pyramid levels visited, coarse to fine (0 = full resolution).
+    steps : tuple[int, ...]
+        max BFGS steps per solve at each level.
+    outer : tuple[int, ...]
+        solves per level; the band is re-selected before each solve.
+    tau : tuple[float, ...]
+        soft-silhouette temperature (pixels of that level) per level.
+    band_tiles : int
+        tiles in the band at level 0 (halved per level, at least ``min_tiles``).
+    min_tiles : int
+        smallest band (tiles) at coarse levels.
+    tile : int
+        tile size in pixels.
+    k_seg : int
+        candidate segments per band tile during the solves (of the merged tube, see
+        ``seg_merge``); the output masks use ``seg_merge * k_seg`` candidates of the
+        unmerged tube.
+    seg_merge : int
+        consecutive centreline segments merged into one capsule while solving
+        (times ``2**level`` at pyramid level ``level``, :func:`silhouette.level_tube`), so
+        that ``k_seg`` candidates span a tile with fewer, longer capsules. The margin cost
+        per pixel is proportional to ``k_seg``; the chord error of a merged capsule is
+        ``L**2 / (8 R)`` for capsules of length L px on a bend of radius R px
+        (docs/decisions.md S10).
+    g_in, g_out, g_reg, g_pen : float
+        gamma_1..4 of eq. 5 on the normalised terms
+        (:mod:`jaxcr.segmentation.energy`).
+    xtol : float
+        convergence tolerance on the *image motion* of a step: a solve stops when
+        its last accepted step moved every projected centreline point by less than
+        ``xtol`` pixels of the current pyramid level (and changed J by less than
+        ``ftol``), or when the line search cannot lower J with a step that small
+        (see :class:`ImageSpaceBFGS`).
+    ftol : float
+        convergence tolerance on the change of the normalised objective J of an
+        accepted step (J is in units of the tube's area, see :mod:`jaxcr.segmentation.energy`).
+    solver : str
+        ``"bfgs"`` (:class:`ImageSpaceBFGS`, default) or ``"lbfgs"``
+        (:class:`ImageSpaceLBFGS`), both with the image-space convergence test
+        (docs/decisions.md S6).
+    robust : float
+        occlusion-robust inside term, Welsch scale in image colour std
+        (:func:`jaxcr.segmentation.energy.region_terms`); 0 = the paper's quadratic eq. 6
+        (the default, docs/decisions.md S4).
+    data_var : str
+        what normalises the data terms during the solves: ``"image"`` (the
+        image's colour variance, :mod:`jaxcr.segmentation.energy`) or ``"residual"`` (the
+        two-region model's own noise variance at the start of each solve,
+        :func:`jaxcr.segmentation.energy.residual_variance`); ``"image"`` by default
+        (docs/decisions.md S7).
+    robust_envelope : bool
+        with ``robust``, the solver's gradient does not flow through the
+        robust mean's reweightings (envelope-theorem gradient, cheaper;
+        :func:`jaxcr.segmentation.energy.region_terms`): the same value with a cheaper
+        gradient (docs/decisions.md S8).
+    local : bool
+        mu_out over the band around the silhouette instead of the whole image
+        (:func:`jaxcr.segmentation.energy.region_terms`; docs/decisions.md S3).
+    camera_correction : bool
+        also estimate a small per-camera pose correction (rotation about
+        the optical centre and translation) so that camera calibration error is not
+        absorbed by the shape; regularised by ``g_cam`` (units: 0.01 rad and 1 % of
+        the robot's depth; docs/decisions.md S2).
+    camera_correction_mode : str
+        how the correction is shared between several cameras.
+        ``"camera"``: an independent 6-DOF correction per camera. ``"rig"``: one shared
+        correction E of the robot-to-rig transform, in camera 0's frame (regularised by
+        ``g_cam``), so that camera i's corrected pose is ``T_i' = (T_i T_0^-1) E T_0``: the
+        cameras keep their calibrated relative pose and their disparity measures depth,
+        plus, if ``g_cam_rel`` is not None, a residual correction of each camera i >= 1 in
+        its own frame (regularised by ``g_cam_rel``, same units as ``g_cam``). With one
+        camera both modes are the same parameterisation.
+    g_cam_rel : float | None
+        weight of the residual per-camera corrections of the ``"rig"`` mode (a
+        stereo rig's relative calibration is far better known than its registration to
+        the robot); None = rigid rig (no residual). ``experiments/segmentation/table2.py``
+        uses 0.3 (docs/decisions.md S9).
+    hessian_memory : bool
+        (``solver="bfgs"``) start each solve of a level after the first from the inverse
+        Hessian the previous solve ended with (moved into the new solve's scaling), and a
+        warm-started frame (``init_hessian`` of :func:`refine_frame`,
+        :func:`refine_sequence`) from the previous frame's; otherwise every solve starts
+        from the identity (steepest descent). Each new pyramid level starts from the
+        identity. Off by default (docs/decisions.md S12): it cut tracking time to 0.55x and
+        cold time to 0.71x at equal IoU on the benchmark scenes, but on the camera-correction
+        scene of ``tests/segmentation/test_refine.py`` the refined IoU fell from > 0.8 to 0.69.
+
+    Examples
+    --------
+    >>> import jaxcr as jcr
+    >>> cfg = jcr.RefineConfig(levels=(0,), steps=(20,), outer=(1,), tau=(0.5,))
+    >>> cfg.levels, cfg.camera_correction
+    ((0,), True)
+    >>> jcr.RefineConfig(levels=(2, 1, 0))  # steps, outer and tau need one entry per level
+    Traceback (most recent call last):
+    jaxcr.errors.InputError: ...
+    """
+
+    n_coeffs: int = eqx.field(static=True, default=4)
+    torsion: bool = eqx.field(static=True, default=False)
+    # half resolution then full resolution: the thinnest tube is ~3 px wide at 640x480, under
+    # one pixel at level 2 (docs/decisions.md S1)
+    levels: tuple[int, ...] = eqx.field(static=True, default=(1, 0))
+    steps: tuple[int, ...] = eqx.field(static=True, default=(30, 30))
+    outer: tuple[int, ...] = eqx.field(static=True, default=(2, 2))
+    tau: tuple[float, ...] = eqx.field(static=True, default=(0.8, 0.5))
+    band_tiles: int = eqx.field(static=True, default=384)
+    min_tiles: int = eqx.field(static=True, default=48)
+    tile: int = eqx.field(static=True, default=8)
+    k_seg: int = eqx.field(static=True, default=4)
+    seg_merge: int = eqx.field(static=True, default=2)
+    g_in: float = eqx.field(static=True, default=1.0)
+    g_out: float = eqx.field(static=True, default=1.0)
+    g_reg: float = eqx.field(static=True, default=10.0)
+    g_pen: float = eqx.field(static=True, default=4.0)
+    xtol: float = eqx.field(static=True, default=0.1)
+    ftol: float = eqx.field(static=True, default=1e-4)
+    solver: str = eqx.field(static=True, default="bfgs")
+    local: bool = eqx.field(static=True, default=True)
+    robust: float = eqx.field(static=True, default=0.0)
+    data_var: str = eqx.field(static=True, default="image")
+    robust_envelope: bool = eqx.field(static=True, default=False)
+    camera_correction: bool = eqx.field(static=True, default=True)
+    g_cam: float = eqx.field(static=True, default=0.3)
+    camera_correction_mode: str = eqx.field(static=True, default="camera")
+    g_cam_rel: float | None = eqx.field(static=True, default=None)
+    hessian_memory: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        n = len(self.levels)
+        if not (len(self.steps) == len(self.outer) == len(self.tau) == n) or n == 0:
+            raise InputError(
+                "levels, steps, outer and tau must have the same non-zero length",
+                field="RefineConfig",
+            )
+        if self.n_coeffs < 1 or min(self.levels) < 0 or self.k_seg < 1 or self.seg_merge < 1:
+            raise InputError(
+                "n_coeffs, k_seg and seg_merge must be >= 1 and levels >= 0", field="RefineConfig"
+            )
+        if self.solver not in ("lbfgs", "bfgs"):
+            raise InputError(
+                f"solver must be 'lbfgs' or 'bfgs', got {self.solver!r}", field="RefineConfig"
+            )
+        if not (self.xtol > 0 and self.ftol > 0):
+            raise InputError("xtol and ftol must be > 0", field="RefineConfig")
+        if self.camera_correction_mode not in ("camera", "rig"):
+            raise InputError(
+                "camera_correction_mode must be 'camera' or 'rig', got "
+                f"{self.camera_correction_mode!r}",
+                field="RefineConfig",
+            )
+        if self.data_var not in ("image", "residual"):
+            raise InputError(
+                f"data_var must be 'image' or 'residual', got {self.data_var!r}",
+                field="RefineConfig",
+            )
+        if self.g_cam_rel is not None and not self.g_cam_rel > 0:
+            raise InputError("g_cam_rel must be > 0 or None", field="RefineConfig")
+
+    @property
+    def weights(self) -> Weights:
+        return Weights(self.g_in, self.g_out, self.g_reg, self.g_pen)
+
+    @property
+    def coeff_shape(self) -> tuple[int, int]:
+        return (n_axes(self.torsion), self.n_coeffs)
+
+    def tiles_at(self, level: int) -> int:
+        return max(self.min_tiles, -(-self.band_tiles // (2**level)))
+
+    def warm(self) -> RefineConfig:
+        """The schedule for a warm start (:func:`refine_sequence`): the finest level only.
+
+        The coarse levels exist to bring a cold start (delta-u = 0) into the basin of the
+        fine energy; a warm start from the previous frame's answer is already there, and the
+        coarse energy's minimum differs from the fine one by up to a coarse pixel, so a
+        coarse solve from the answer walks away and back (docs/decisions.md S11).
+        """
+        return dataclasses.replace(
+            self,
+            levels=self.levels[-1:],
+            steps=self.steps[-1:],
+            outer=self.outer[-1:],
+            tau=self.tau[-1:],
+        )
+
+
+DEFAULT_CONFIG = RefineConfig()
+
+
+class RefineEnergy(eqx.Module):
+    """Final terms of Watson et al. eq. 5 for one frame, summed over cameras (arrays with a
+    leading frame axis from the batch functions).
+
+    Attributes
+    ----------
+    e_in, e_out : float scalar array
+        inside and outside region terms (eq. 6), full-resolution pixel units,
+        hard mask.
+    e_reg : float scalar array
+        regularisation of delta-u (:func:`jaxcr.segmentation.shape.regularisation`).
+    e_pen : float scalar array
+        penalty term, full-resolution pixel units.
+    total : float scalar array
+        the normalised objective J at the refined shape (what the solver minimised).
+    total_nominal : float scalar array
+        J at delta-u = 0 (the nominal shape); ``total <= total_nominal`` when
+        the solve improved on the kinematic model.
+
+    Examples
+    --------
+    A refinement compiles for minutes, so this example is not run by the doctests;
+    ``examples/refine_frame.py`` runs the same steps in the test suite.
+
+    >>> res = jcr.refine(fk.centreline, camera, image, background)  # doctest: +SKIP
+    >>> bool(res.energy.total <= res.energy.total_nominal)  # doctest: +SKIP
+    True
+    """
+
+    e_in: Float[Array, ""]
+    e_out: Float[Array, ""]
+    e_reg: Float[Array, ""]
+    e_pen: Float[Array, ""]
+    total: Float[Array, ""]
+    total_nominal: Float[Array, ""]
+
+
+class RefineResult(eqx.Module):
+    """Output of one frame (or, from the batch functions, arrays with a leading frame axis).
+
+    Attributes
+    ----------
+    masks : tuple[bool array (h, w), ...]
+        per camera, (h, w) bool full projection of the refined tube (the whole robot,
+        occluded parts included, as in Watson et al.).
+    nominal_masks : tuple[bool array (h, w), ...]
+        per camera, the projection with delta-u = 0.
+    centreline : Centreline
+        refined :class:`Centreline` (robot frame, metres).
+    coeffs : float array (a, k)
+        (a, k) delta-u coefficients (:mod:`jaxcr.segmentation.shape`).
+    delta_u : float array (m, 3)
+        (N-1, 3) per-step curvature change (1/m).
+    energy : RefineEnergy
+        :class:`RefineEnergy`, the final eq. 5 terms ``e_in, e_out, e_reg, e_pen``
+        (full-resolution pixel units, hard mask), ``total`` (normalised objective J) and
+        ``total_nominal`` (J at delta-u = 0), all summed over cameras.
+    status : int scalar array
+        Optimistix RESULTS as int of the last solve (0 = successful).
+    num_steps : int scalar array
+        total solver steps over all levels.
+    steps_per_level : int array (l,)
+        (n_levels,) solver steps per pyramid level.
+    ok : bool scalar array
+        frame usable: no failure and finite output.
+    failure : int scalar array
+        code from :data:`FAILURES` (0 = none).
+    band_exact : bool scalar array
+        the final masks are exact rasterisations (band reached every boundary tile).
+    camera_correction : float array (c, 6)
+        (n_cameras, 6) estimated camera pose correction: rotation vector
+        (rad, about the optical centre) and translation (m), camera frame; zeros unless
+        ``config.camera_correction``. Masks use the corrected cameras. In the ``"rig"``
+        mode each row is that camera's effective correction ``T_i' T_i^-1``.
+    hessian_inv : float array (n, n)
+        (n, n) the BFGS approximation of the inverse Hessian of the objective J with respect
+        to the flattened parameters (``coeffs`` then the camera-correction parameters, in
+        the units of :func:`refine_frame`'s solves before scaling) at the end of the last
+        solve: solver state for warm-starting the next frame
+        (:attr:`RefineConfig.hessian_memory`), not a calibrated covariance (the identity
+        when no solve updated it).
+    time_s : float scalar array
+        wall time per frame in seconds (set by the Python entry points; 0 inside jit).
+
+    Examples
+    --------
+    A refinement compiles for minutes, so this example is not run by the doctests;
+    ``examples/refine_frame.py`` runs the same steps in the test suite.
+
+    >>> res = jcr.refine(fk.centreline, camera, image, background)  # doctest: +SKIP
+    >>> res.masks[0].shape == image.shape[:2], res.centreline.p.shape  # doctest: +SKIP
+    (True, (64, 3))
+    >>> bool(res.ok), jcr.segmentation.refine.FAILURES[int(res.failure)]  # doctest: +SKIP
+    (True, 'ok')
+    """
+
+    masks: tuple[Bool[Array, "h w"], ...]
+    nominal_masks: tuple[Bool[Array, "h w"], ...]
+    centreline: Centreline
+    coeffs: Float[Array, "a k"]
+    delta_u: Float[Array, "m 3"]
+    energy: RefineEnergy
+    status: Int[Array, ""]
+    num_steps: Int[Array, ""]
+    steps_per_level: Int[Array, " l"]
+    ok: Bool[Array, ""]
+    failure: Int[Array, ""]
+    band_exact: Bool[Array, ""]
+    camera_correction: Float[Array, "c 6"]
+    hessian_inv: Float[Array, "n n"]
+    time_s: Float[Array, ""]
+
+
+def _as_tuple(x):
+    return tuple(x) if isinstance(x, (tuple, list)) else (x,)
+
+
+def _straight(base: Centreline) -> Centreline:
+    """A harmless straight replacement for a non-finite centreline (keeps shapes)."""
+    n = base.s.shape[0]
+    s = jnp.where(jnp.isfinite(base.s), base.s, jnp.linspace(0.0, 1.0, n, dtype=base.s.dtype))
+    s = jnp.where(jnp.all(jnp.isfinite(base.s)), base.s, jnp.linspace(0, 0.1, n, dtype=s.dtype))
+    p = jnp.zeros_like(base.p).at[:, 2].set(s)
+    R = jnp.broadcast_to(jnp.eye(3, dtype=base.p.dtype), base.R.shape)
+    return Centreline(s=s, p=p, R=R, u=jnp.zeros_like(base.u), rho=jnp.zeros_like(base.rho))
+
+
+def _tube_area(tube: TubeImage, camera: Camera) -> Float[Array, ""]:
+    """Approximate projected area (px) of the in-image part of the capsules (overlaps
+    counted twice, joints ignored): a scale for normalising the energy."""
+    mx, my = 0.5 * (tube.ax + tube.bx), 0.5 * (tube.ay + tube.by)
+    inside = (mx > -0.5) & (mx < camera.width - 0.5) & (my > -0.5) & (my < camera.height - 0.5)
+    length = jnp.hypot(tube.bx - tube.ax, tube.by - tube.ay)
+    a = (tube.ra + tube.rb) * length
+    return jnp.sum(jnp.where(inside & tube.valid, a, 0.0))
+
+
+def _hard_terms(tube: TubeImage, band: Band, data: RegionData, local: bool, robust: float):
+    m = band_margin(tube, data.grid, band)
+    return region_terms((m > 0).astype(m.dtype), band, data, local, robust)
+
+
+STEP0_PX = 1.0  # image motion (px of the level) of the first trial step of each solve
+CAM_ROT_UNIT = 0.01  # rad per unit of the camera-correction rotation parameters
+CAM_T_UNIT = 0.01  # fraction of the robot's depth per unit of the translation parameters
+
+
+def _corrected_camera(camera: Camera, p6: Float[Array, "6"], z_ref) -> Camera:
+    """``camera`` with X_cam' = exp(w) X_cam + d, w = CAM_ROT_UNIT p6[:3] (rad) and
+    d = CAM_T_UNIT z_ref p6[3:] (m)."""
+    E = so3_exp(CAM_ROT_UNIT * p6[:3])
+    d = CAM_T_UNIT * z_ref * p6[3:]
+    T = camera.T_cam_robot
+    top = jnp.concatenate([E @ T[:3, :3], (E @ T[:3, 3] + d)[:, None]], axis=1)
+    return eqx.tree_at(lambda c: c.T_cam_robot, camera, jnp.concatenate([top, T[3:]], axis=0))
+
+
+def _rigid_inv(T: Float[Array, "4 4"]) -> Float[Array, "4 4"]:
+    R, t = T[:3, :3], T[:3, 3]
+    top = jnp.concatenate([R.T, (-R.T @ t)[:, None]], axis=1)
+    return jnp.concatenate([top, T[3:]], axis=0)
+
+
+def _rig_cameras(cameras: tuple[Camera, ...], p, z_ref, residual: bool) -> tuple[Camera, ...]:
+    """The ``"rig"`` correction (:class:`RefineConfig`): camera 0 gets E = ``p[0]``
+    (:func:`_corrected_camera`), camera i ``T_i' = T_i + (T_i T_0^-1)(T_0' - T_0)``, which is
+    ``(T_i T_0^-1) E T_0`` and exactly ``T_i`` at E = I; then, if ``residual``, its own
+    correction ``p[i]`` in its frame."""
+    cam0 = _corrected_camera(cameras[0], p[0], z_ref[0])
+    T0 = cameras[0].T_cam_robot
+    dT0 = cam0.T_cam_robot - T0
+    out = [cam0]
+    for i, cam in enumerate(cameras[1:], start=1):
+        Ti = cam.T_cam_robot + (cam.T_cam_robot @ _rigid_inv(T0)) @ dT0
+        ci = eqx.tree_at(lambda c: c.T_cam_robot, cam, Ti)
+        out.append(_corrected_camera(ci, p[i], z_ref[i]) if residual else ci)
+    return tuple(out)
+
+
+def _phys_to_params(p6: Float[Array, "... 6"], z_ref) -> Float[Array, "... 6"]:
+    """Physical correction (rad, m) -> parameter units of :func:`_corrected_camera`."""
+    return jnp.concatenate([p6[..., :3] / CAM_ROT_UNIT, p6[..., 3:] / (CAM_T_UNIT * z_ref)], -1)
+
+
+def _pose_delta(T_new: Float[Array, "4 4"], T: Float[Array, "4 4"]) -> Float[Array, "6"]:
+    """Correction (rotation vector (rad), translation (m)) with ``T_new = E T``."""
+    E = T_new @ _rigid_inv(T)
+    return jnp.concatenate([so3_log(E[:3, :3]), E[:3, 3]])
+
+
+def _rig_corrections_to_params(cameras, corr, z_ref, residual: bool) -> Float[Array, "r 6"]:
+    """Inverse of the ``"rig"`` mode's output: effective per-camera corrections ``corr``
+    (n_cameras, 6) (physical units, :attr:`RefineResult.camera_correction`) -> parameters of
+    :func:`_rig_cameras`: row 0 is E = camera 0's correction; with ``residual``, row i is what
+    is left of camera i's correction after the rig's motion (``T_i'' (A E T_0)^-1``)."""
+    p0 = _phys_to_params(corr[:1], z_ref[0])
+    if not residual:
+        return p0
+    shared = _rig_cameras(cameras, p0, z_ref, False)
+    rows = [p0]
+    for i in range(1, len(cameras)):
+        target = _corrected_camera(cameras[i], _phys_to_params(corr[i], z_ref[i]), z_ref[i])
+        res = _pose_delta(target.T_cam_robot, shared[i].T_cam_robot)
+        rows.append(_phys_to_params(res, z_ref[i])[None])
+    return jnp.concatenate(rows, axis=0)
+
+
+def _mask(tube: TubeImage, band: Band, data: RegionData) -> Bool[Array, "h w"]:
+    grid = data.grid
+    m = band_margin(tube, grid, band)
+    tiles = jnp.broadcast_to(band.inside[:, None], (grid.n_tiles, grid.n_pix))
+    return grid.from_tiles(tiles.at[band.tiles].set(m > 0))
+
+
+def _image_space_stop(solver, y, state, new, options):
+    """Replace ``new.terminate`` by the image-space test of :class:`ImageSpaceBFGS`."""
+    jac = options["motion_jac"]
+    d = jax.flatten_util.ravel_pytree(state.y_eval)[0] - jax.flatten_util.ravel_pytree(y)[0]
+    uv = jac @ d  # (P, 2): displacement of each projected point by the trial step
+    small_step = jnp.max(jnp.hypot(uv[:, 0], uv[:, 1])) < solver.xtol
+    f_scale = options.get("f_scale", 1.0)
+    small_df = jnp.abs(new.f_info.f - state.f_info.f) * f_scale < solver.ftol
+    # the linear model's decrease for the trial: what the line search was asked to find
+    g = jax.flatten_util.ravel_pytree(state.f_info.grad)[0]
+    small_pred = jnp.abs(jnp.dot(g, d)) * f_scale < solver.ftol
+    accepted = new.num_accepted_steps > state.num_accepted_steps
+    converged = jnp.where(
+        accepted, small_step & small_df & ~state.first_step, small_step & small_pred
+    )
+    return eqx.tree_at(lambda s: s.terminate, new, converged)
+
+
+class ImageSpaceBFGS(optx.BFGS):
+    """Optimistix BFGS whose convergence test measures a step by the image motion it causes.
+
+    Optimistix's own test (Cauchy: every parameter moved by less than ``atol + rtol |y|`` *and*
+    ``|df| < atol + rtol |f|``) works in parameter units. Ours mixes dimensionless curvature
+    coefficients (1 unit ~ 1 rad of bending, ~100 px of tip motion) with camera-pose
+    corrections, several of whose combinations barely move the image (a small rotation about
+    the optical centre against a sideways shift); those drift under the regulariser alone.
+    With ``rtol = atol = 1e-4`` a step had to move the silhouette by ~0.01 px, below the
+    resolution of a region energy on a pixel grid in float32, so no solve ever stopped
+    (steps at the end of a solve still moved coefficients by 2e-3 to 7e-3 while the tube
+    moved 0.005-0.2 px and J changed by its float32 rounding; measured with
+    ``experiments/segmentation/refine_convergence_diag.py``).
+
+    Here a step ``dy`` is measured as ``max_p |J_p dy|``: the largest displacement (pixels of
+    the current pyramid level) of any projected centreline point p, with ``J_p`` the Jacobian
+    of the projected points w.r.t. the flattened parameters at the start of the solve, passed
+    as ``options["motion_jac"]`` with shape (P, 2, n). A solve stops (status successful) when
+
+    * an accepted step (not the first evaluation) moved the tube by less than ``xtol`` px and
+      changed J by less than ``ftol`` (the Cauchy test, in image space), or
+    * a trial step moving the tube by less than ``xtol`` px, for which the gradient predicted
+      a decrease of J below ``ftol``, was rejected by the Armijo line search: what is left to
+      gain within the tolerance is below ``ftol`` even by the linear model (the line search
+      otherwise halves the step until ``max_steps``, as it did at the end of every solve).
+
+    Everything else (BFGS update, Newton descent, backtracking Armijo search) is
+    ``optx.BFGS``.
+    """
+
+    xtol: float
+    ftol: float
+
+    def __init__(self, xtol: float, ftol: float):
+        # the inherited Cauchy test is replaced in `step`; these values are never used
+        super().__init__(rtol=0.0, atol=1.0)
+        self.xtol = xtol
+        self.ftol = ftol
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        """Optimistix's init, starting from ``options["hessian_inv0"]`` ((n, n), the inverse
+        Hessian in the solver's units, for a flat ``y`` of n) instead of the identity when
+        given: the first BFGS direction is then ``-H0 g`` (a quasi-Newton step from what an
+        earlier solve learnt) rather than steepest descent."""
+        state = super().init(fn, y, args, options, f_struct, aux_struct, tags)
+        h0 = options.get("hessian_inv0")
+        if h0 is None:
+            return state
+        return eqx.tree_at(lambda s: s.f_info.hessian_inv.pytree, state, h0.astype(y.dtype))
+
+    def step(self, fn, y, args, options, state, tags):
+        y_new, new, aux = super().step(fn, y, args, options, state, tags)
+        return y_new, _image_space_stop(self, y, state, new, options), aux
+
+
+class ImageSpaceLBFGS(optx.LBFGS):
+    """:class:`ImageSpaceBFGS`'s stopping test on Optimistix L-BFGS, whose initial inverse
+    Hessian at every step is ``gamma I`` with ``gamma = s.y / y.y`` from the last step
+    (Nocedal & Wright eq. 7.20) instead of BFGS's fixed identity."""
+
+    xtol: float
+    ftol: float
+
+    def __init__(self, xtol: float, ftol: float, history_length: int = 10):
+        super().__init__(rtol=0.0, atol=1.0, history_length=history_length)
+        self.xtol = xtol
+        self.ftol = ftol
+
+    def step(self, fn, y, args, options, state, tags):
+        y_new, new, aux = super().step(fn, y, args, options, state, tags)
+        return y_new, _image_space_stop(self, y, state, new, options), aux
+
+
+def _pow2(x: Array) -> Array:
+    """Nearest power of two (in log scale) of positive ``x``."""
+    return jnp.exp2(jnp.round(jnp.log2(x)))
+
+
+def _result_int(result) -> Int[Array, ""]:
+    return jnp.asarray(result._value, jnp.int32)
+
+
+def refine_frame(
+    base: Centreline,
+    cameras: Camera | tuple[Camera, ...],
+    images: Float[Array, "h w 3"] | tuple[Float[Array, "h w 3"], ...],
+    backgrounds: Bool[Array, "h w"] | tuple[Bool[Array, "h w"], ...],
+    config: RefineConfig = DEFAULT_CONFIG,
+    init: Float[Array, "a k"] | None = None,
+    valid: Bool[Array, ""] | bool = True,
+    init_cam: Float[Array, "c 6"] | None = None,
+    init_hessian: Float[Array, "n n"] | None = None,
+) -> RefineResult:
+    """Refine one frame (pure; jit it, or use :func:`refine_batch` / :func:`refine_frame_jit`).
+
+    Args:
+        base: nominal centreline from the robot model (robot frame, metres), N samples.
+        cameras: one :class:`Camera` or a tuple (one per view).
+        images: background-subtracted images I' (h, w, 3) in [0, 1], one per camera.
+        backgrounds: B masks (h, w) bool, True on background, one per camera.
+        config: :class:`RefineConfig`.
+        init: warm-start coefficients (a, k) (e.g. the previous frame's); zeros if None.
+        valid: False marks a frame known to be bad (e.g. missing image): it is skipped and
+            reported with ``failure = 1``.
+        init_cam: warm-start camera pose corrections (n_cameras, 6), in the physical units
+            of :attr:`RefineResult.camera_correction` (e.g. the previous frame's; a
+            calibration error persists across frames); zeros if None. Ignored unless
+            ``config.camera_correction``.
+        init_hessian: warm-start inverse Hessian (n, n) for the first solve (the previous
+            frame's :attr:`RefineResult.hessian_inv`); identity if None or non-finite. Used
+            only with ``config.hessian_memory`` and BFGS.
+
+    Returns:
+        :class:`RefineResult` (see there).
+    """
+    cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
+    if not (len(cameras) == len(images) == len(backgrounds)):
+        raise InputError("need one image and one background mask per camera", field="images")
+    dtype = base.p.dtype
+    finite_in = jnp.all(jnp.isfinite(base.p)) & jnp.all(jnp.isfinite(base.u))
+    finite_in = finite_in & jnp.all(jnp.isfinite(base.R)) & jnp.all(jnp.isfinite(base.rho))
+    finite_in = finite_in & jnp.asarray(valid)
+    for im in images:
+        finite_in = finite_in & jnp.all(jnp.isfinite(im))
+    base = jax.tree.map(lambda a, b: jnp.where(finite_in, a, b), base, _straight(base))
+    images = tuple(jnp.where(jnp.isfinite(im), im, 0.0).astype(dtype) for im in images)
+
+    shape = config.coeff_shape
+    n_cam = len(cameras)
+    c0 = jnp.zeros(shape, dtype) if init is None else jnp.asarray(init, dtype).reshape(shape)
+    c0 = jnp.where(jnp.all(jnp.isfinite(c0)), c0, 0.0)
+    weights = config.weights
+    z_ref = jax.lax.stop_gradient(tuple(jnp.mean(base.p @ cam.R[2] + cam.t[2]) for cam in cameras))
+
+    rig = config.camera_correction_mode == "rig"
+    residual = rig and config.g_cam_rel is not None and n_cam > 1
+
+    def cameras_of(params):
+        if not config.camera_correction:
+            return cameras
+        if rig:
+            return _rig_cameras(cameras, params["cam"], z_ref, residual)
+        return tuple(
+            _corrected_camera(cam, params["cam"][i], z_ref[i]) for i, cam in enumerate(cameras)
+        )
+
+    def tubes_of(params):
+        cl = perturbed_centreline(base, params["c"], config.torsion)
+        return cl, tuple(project_tube(cam, cl) for cam in cameras_of(params))
+
+    def reg_of(params):
+        r = weights.g_reg * regularisation(params["c"], base.s, config.torsion)
+        if config.camera_correction and residual:
+            pc = params["cam"]
+            r = r + config.g_cam * jnp.sum(pc[0] ** 2) + config.g_cam_rel * jnp.sum(pc[1:] ** 2)
+        elif config.camera_correction:
+            r = r + config.g_cam * jnp.sum(params["cam"] ** 2)
+        return r
+
+    def _motion_jacobian(params, level):
+        """(P, 2, n): d(projected centreline points, pixels of ``level``) / d(flat params);
+        rows of points behind a camera are zero (see :class:`ImageSpaceBFGS`)."""
+        flat, unravel = jax.flatten_util.ravel_pytree(jax.lax.stop_gradient(params))
+
+        def points(f):
+            _, tubes = tubes_of(unravel(f))
+            out = []
+            for t in tubes:
+                ok = jnp.concatenate([t.valid, t.valid[-1:]])[:, None]
+                xy = jnp.stack([jnp.append(t.ax, t.bx[-1]), jnp.append(t.ay, t.by[-1])], -1)
+                out.append(jnp.where(ok, xy, 0.0) / 2.0**level)
+            return jnp.concatenate(out, axis=0)
+
+        return jax.lax.stop_gradient(jax.jacfwd(points)(flat))
+
+    params0 = {"c": c0}
+    n_par = n_cam if (residual or not rig) else 1  # rows of params["cam"]
+    z_par = jnp.stack(z_ref[:n_par])[:, None]
+    if config.camera_correction:
+        params0["cam"] = jnp.zeros((n_par, 6), dtype)
+        if init_cam is not None:
+            ic = jnp.asarray(init_cam, dtype).reshape(n_cam, 6)
+            if rig:
+                ic = _rig_corrections_to_params(cameras, ic, z_ref, residual)
+            else:
+                ic = _phys_to_params(ic, z_par)
+            params0["cam"] = jnp.where(jnp.all(jnp.isfinite(ic)), ic, 0.0)
+    zeros = jax.tree.map(jnp.zeros_like, params0)
+
+    _, nominal_tubes = tubes_of(zeros)
+    area_ref = sum(_tube_area(t, cam) for t, cam in zip(nominal_tubes, cameras, strict=True))
+    area_ref = jax.lax.stop_gradient(jnp.maximum(area_ref, 1.0))
+    in_view = area_ref > 1.0
+
+    def objective(params, args):
+        bands, datas, level, tau, vars_, gathered = args
+        _, tubes = tubes_of(params)
+        J = reg_of(params)
+        for tube, band, data, var, gat in zip(tubes, bands, datas, vars_, gathered, strict=True):
+            Jc, _ = chan_vese_energy(
+                level_tube(tube, level, config.seg_merge),
+                band,
+                data,
+                0.0,
+                weights,
+                tau,
+                area_ref,
+                config.local,
+                config.robust,
+                var,
+                config.robust_envelope,
+                gat,
+            )
+            J = J + Jc
+        return J
+
+    if config.solver == "lbfgs":
+        solver = ImageSpaceLBFGS(config.xtol, config.ftol)
+    else:
+        solver = ImageSpaceBFGS(config.xtol, config.ftol)
+    params = params0
+    steps = []
+    status = jnp.asarray(0, jnp.int32)
+    n_flat = jax.flatten_util.ravel_pytree(params0)[0].shape[0]
+    memory = config.hessian_memory and config.solver == "bfgs"
+    eye = jnp.eye(n_flat, dtype=dtype)
+    if init_hessian is None:
+        hinv, have_h = eye, jnp.asarray(False)
+    else:
+        hinv = jnp.asarray(init_hessian, dtype).reshape(n_flat, n_flat)
+        have_h = jnp.all(jnp.isfinite(hinv))
+        hinv = jnp.where(have_h, hinv, eye)
+    n_levels = max(config.levels) + 1
+    pyramids = [pyramid(im, bg, n_levels) for im, bg in zip(images, backgrounds, strict=True)]
+    data_ok = sum(jnp.sum(p[0][1]) for p in pyramids) > 0.5
+    for li, level in enumerate(config.levels):
+        if li > 0:
+            # the coarse level's curvature (wider tau, coarser pixels) is not the fine one's
+            hinv, have_h = eye, jnp.asarray(False)
+        datas = tuple(region_data_from_level(*p[level], level, config.tile) for p in pyramids)
+        k_tiles = config.tiles_at(level)
+        tau = config.tau[li]
+
+        def solve(carry, _, datas=datas, level=level, k_tiles=k_tiles, tau=tau, li=li):
+            params, nsteps, _, hinv, have_h = carry
+            _, tubes = tubes_of(params)
+            bands = tuple(
+                select_band(level_tube(t, level, config.seg_merge), d.grid, k_tiles, config.k_seg)
+                for t, d in zip(tubes, datas, strict=True)
+            )
+            if config.data_var == "residual":
+                vars_ = tuple(
+                    residual_variance(
+                        chan_vese_energy(
+                            level_tube(t, level, config.seg_merge), bd, d, 0.0, weights, tau,
+                            area_ref, config.local, config.robust,
+                        )[1]
+                    )
+                    for t, bd, d in zip(tubes, bands, datas, strict=True)
+                )  # fmt: skip
+            else:
+                vars_ = (None,) * len(tubes)
+            # the band's pixels once per solve, not at every energy evaluation
+            gathered = tuple(d.gather(bd.tiles) for d, bd in zip(datas, bands, strict=True))
+            args = (bands, datas, level, tau, vars_, gathered)
+            # solve in image-motion units (see ImageSpaceBFGS): z_i = scale_i * y_i with
+            # scale_i the RMS motion (level px) of the projected points per unit of y_i, and
+            # J divided by kappa so that the first, steepest-descent step moves the tube by
+            # about STEP0_PX (quasi-Newton methods start from an identity Hessian, which in
+            # parameter units made the first trial move it by 30-50 px: 4-5 rejected trials
+            # per solve); L-BFGS is invariant to kappa after that first step
+            flat0, unravel = jax.flatten_util.ravel_pytree(params)
+            jac = _motion_jacobian(params, level)
+            # Both factors are rounded to powers of two: scaling is then exact in floating
+            # point, and rounding differences between compiled contexts (per frame, lax.map,
+            # vmap) in the gradient behind kappa almost never change it
+            scale = jnp.sqrt(jnp.mean(jnp.sum(jac * jac, axis=1), axis=0))
+            scale = _pow2(jnp.maximum(scale, 1e-3 * jnp.max(scale) + 1e-12))
+            g0 = jax.flatten_util.ravel_pytree(jax.grad(objective)(params, args))[0]
+            uv0 = jac @ (g0 / scale**2)
+            kappa = jnp.maximum(jnp.max(jnp.hypot(uv0[:, 0], uv0[:, 1])) / STEP0_PX, 1e-6)
+            kappa = jax.lax.stop_gradient(_pow2(kappa))
+
+            def scaled(z, args):
+                return objective(unravel(z / scale), args) / kappa
+
+            options = {"motion_jac": jac / scale, "f_scale": kappa}
+            # the inverse Hessian is carried in J per (parameter unit)^2 and moved into this
+            # solve's units (z = scale * y, J / kappa): H_z^-1 = kappa D H^-1 D, D = diag(scale)
+            outer_scale = scale[:, None] * scale[None, :]
+            if memory:
+                hz = kappa * outer_scale * hinv
+                use = have_h & jnp.all(jnp.isfinite(hz))
+                options["hessian_inv0"] = jnp.where(use, hz, eye)
+            sol = optx.minimise(
+                scaled,
+                solver,
+                flat0 * scale,
+                args=args,
+                options=options,
+                max_steps=config.steps[li],
+                throw=False,
+            )
+            value = unravel(sol.value / scale)
+            good = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(value)]))
+            new = jax.tree.map(lambda a, b: jnp.where(good, a, b), value, params)
+            if memory:
+                h_new = sol.state.f_info.hessian_inv.pytree / (kappa * outer_scale)
+                keep = good & jnp.all(jnp.isfinite(h_new))
+                hinv = jnp.where(keep, h_new, hinv)
+                have_h = have_h | keep
+            out = (new, nsteps + sol.stats["num_steps"], _result_int(sol.result), hinv, have_h)
+            return out, None
+
+        zero = jnp.asarray(0, jnp.int32)
+        (params, n, status, hinv, have_h), _ = jax.lax.scan(
+            solve, (params, zero, zero, hinv, have_h), None, length=config.outer[li]
+        )
+        steps.append(n)
+
+    # final outputs at full resolution
+    datas0 = tuple(region_data_from_level(*p[0], 0, config.tile) for p in pyramids)
+    k0 = config.tiles_at(0)
+
+    def outputs(params):
+        cl, tubes = tubes_of(params)
+        masks, exact = [], jnp.asarray(True)
+        e = {"e_in": 0.0, "e_out": 0.0, "e_pen": 0.0, "J": 0.0}
+        for tube, data in zip(tubes, datas0, strict=True):
+            band = select_band(tube, data.grid, k0, config.seg_merge * config.k_seg)
+            masks.append(_mask(tube, band, data))
+            exact = exact & band.exact
+            t = _hard_terms(tube, band, data, config.local, config.robust)
+            var = data.total_s2 / jnp.maximum(data.total_w, 1e-6)
+            e["e_in"] = e["e_in"] + t.e_in
+            e["e_out"] = e["e_out"] + t.e_out
+            e["e_pen"] = e["e_pen"] + t.e_pen
+            e["J"] = (
+                e["J"]
+                + (weights.g_in * t.e_in + weights.g_out * (t.e_out - t.e_out_empty))
+                / (area_ref * jnp.maximum(var, 1e-8))
+                + weights.g_pen * t.e_pen / area_ref
+            )
+        e["e_reg"] = regularisation(params["c"], base.s, config.torsion)
+        e["J"] = e["J"] + reg_of(params)
+        return cl, tuple(masks), exact, e
+
+    finite_out = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(params)]))
+    params = jax.tree.map(lambda x: jnp.where(finite_out, x, 0.0), params)
+    cl, masks, exact, e = outputs(params)
+    _, nominal_masks, _, e_nom = outputs(zeros)
+
+    failure = jnp.where(
+        ~finite_in,
+        1,
+        jnp.where(~in_view, 2, jnp.where(~data_ok, 3, jnp.where(~finite_out, 4, 0))),
+    ).astype(jnp.int32)
+    ok = failure == 0
+    energy = RefineEnergy(
+        e_in=e["e_in"],
+        e_out=e["e_out"],
+        e_reg=e["e_reg"],
+        e_pen=e["e_pen"],
+        total=e["J"],
+        total_nominal=e_nom["J"],
+    )
+    if config.camera_correction and rig:
+        # effective per-camera correction T_i' T_i^-1
+        cams_c = cameras_of(params)
+        cam_corr = jnp.stack(
+            [
+                _pose_delta(cc.T_cam_robot, cam.T_cam_robot)
+                for cc, cam in zip(cams_c, cameras, strict=True)
+            ]
+        )
+    elif config.camera_correction:
+        cam_corr = jnp.concatenate(
+            [
+                CAM_ROT_UNIT * params["cam"][:, :3],
+                CAM_T_UNIT * jnp.stack(z_ref)[:, None] * params["cam"][:, 3:],
+            ],
+            axis=1,
+        )
+    else:
+        cam_corr = jnp.zeros((n_cam, 6), dtype)
+    c = params["c"]
+    return RefineResult(
+        masks=masks,
+        nominal_masks=nominal_masks,
+        centreline=cl,
+        coeffs=c,
+        delta_u=delta_u_steps(c, base.s, config.torsion),
+        energy=energy,
+        status=status,
+        num_steps=sum(steps),
+        steps_per_level=jnp.stack(steps),
+        ok=ok,
+        failure=failure,
+        band_exact=exact,
+        camera_correction=cam_corr,
+        hessian_inv=hinv,
+        time_s=jnp.asarray(0.0, dtype),
+    )
+
+
+@eqx.filter_jit
+def _refine_frame_jit(base, cameras, images, backgrounds, config, init, valid, init_cam, init_h):
+    return refine_frame(base, cameras, images, backgrounds, config, init, valid, init_cam, init_h)
+
+
+def _direct(fn, *args):
+    return fn(*args)
+
+
+def _cam_rows(config: RefineConfig, n_cam: int) -> int:
+    """Rows of the camera-correction parameters (:func:`refine_frame`'s ``params["cam"]``)."""
+    rig = config.camera_correction_mode == "rig"
+    residual = rig and config.g_cam_rel is not None and n_cam > 1
+    return n_cam if (residual or not rig) else 1
+
+
+def _cam_init(init_cam, lead: tuple[int, ...], n_cam: int, dtype):
+    return jnp.zeros(lead + (n_cam, 6), dtype) if init_cam is None else jnp.asarray(init_cam)
+
+
+def refine_frame_jit(
+    base: Centreline,
+    cameras,
+    images,
+    backgrounds,
+    config: RefineConfig = DEFAULT_CONFIG,
+    init=None,
+    valid=True,
+    init_cam=None,
+    init_hessian=None,
+) -> RefineResult:
+    """Jit-compiled :func:`refine_frame` (compiled once per shape/config) with wall time."""
+    cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
+    init = jnp.zeros(config.coeff_shape, base.p.dtype) if init is None else init
+    init_cam = _cam_init(init_cam, (), len(cameras), base.p.dtype)
+    t0 = time.perf_counter()
+    out = _refine_frame_jit(
+        base, cameras, images, backgrounds, config, init, jnp.asarray(valid, bool), init_cam,
+        init_hessian,
+    )  # fmt: skip
+    jax.block_until_ready(out)
+    return eqx.tree_at(lambda r: r.time_s, out, jnp.asarray(time.perf_counter() - t0))
+
+
+@eqx.filter_jit
+def _refine_batch_jit(bases, cameras, images, backgrounds, config, inits, valid, mode, cams0):
+    def one(args):
+        base, ims, bgs, init, v, cam0 = args
+        return refine_frame(base, cameras, ims, bgs, config, init, v, cam0)
+
+    args = (bases, images, backgrounds, inits, valid, cams0)
+    if mode == "vmap":
+        return jax.vmap(one)(args)
+    return jax.lax.map(one, args)
+
+
+def refine_batch(
+    bases: Centreline,
+    cameras,
+    images,
+    backgrounds,
+    config: RefineConfig = DEFAULT_CONFIG,
+    inits: Float[Array, "f a k"] | None = None,
+    valid: Bool[Array, " f"] | None = None,
+    mode: str = "map",
+    init_cams: Float[Array, "f c 6"] | None = None,
+    devices: int | None = None,
+    jit_call: Callable | None = None,
+) -> RefineResult:
+    """Refine F independent frames in one compiled call.
+
+    Args:
+        bases: :class:`Centreline` with a leading frame axis F (e.g. ``jax.vmap(robot.forward)
+            (qs).centreline``).
+        cameras: one :class:`Camera` or a tuple, shared by all frames.
+        images: per camera, (F, h, w, 3) background-subtracted images.
+        backgrounds: per camera, (F, h, w) bool B masks.
+        config: :class:`RefineConfig`.
+        inits: optional (F, a, k) warm starts.
+        valid: optional (F,) bool; False frames are skipped and reported failed.
+        mode: ``"map"`` (``lax.map``: frames one after another inside the compiled call,
+            fastest on CPU) or ``"vmap"`` (all frames in lock step; better on accelerators).
+            Both give the per-frame result up to float32 rounding, which can only matter
+            where the energy has several minima within reach (``tests/segmentation/test_refine_convergence.py``).
+        init_cams: optional (F, n_cameras, 6) warm-start camera corrections
+            (:func:`refine_frame`'s ``init_cam``).
+        devices: local devices to spread the frames over (a 1-D mesh over frames,
+            :func:`jaxcr.scale.devices.map_frames`; bit-identical per frame to one device).
+            None: all local devices of the default backend (one on a usual machine: no
+            sharding); 1: one device.
+        jit_call: how the compiled function is called, ``jit_call(fn, *args)``; None calls
+            ``fn(*args)``. ``jaxcr.io.exported.cached_call`` reuses the traced program of an
+            earlier process (what ``jaxcr segment`` does).
+
+    Returns:
+        :class:`RefineResult` with a leading frame axis; ``time_s`` is the batch wall time
+        divided by F.
+    """
+    cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
+    if mode not in ("map", "vmap"):
+        raise InputError(f"mode must be 'map' or 'vmap', got {mode!r}", field="mode")
+    f = bases.p.shape[0]
+    for im, bg in zip(images, backgrounds, strict=True):
+        if im.shape[0] != f or bg.shape[0] != f:
+            raise InputError(
+                f"images/backgrounds need {f} frames, got {im.shape[0]}/{bg.shape[0]}",
+                field="images",
+            )
+    dtype = bases.p.dtype
+    inits = jnp.zeros((f,) + config.coeff_shape, dtype) if inits is None else inits
+    valid = jnp.ones(f, bool) if valid is None else jnp.asarray(valid, bool)
+    cams0 = _cam_init(init_cams, (f,), len(cameras), dtype)
+    from jaxcr.scale.devices import map_frames
+
+    t0 = time.perf_counter()
+    call = _direct if jit_call is None else jit_call
+
+    def body(batched, cameras, config, mode):
+        bases, images, backgrounds, inits, valid, cams0 = batched
+        args = (bases, cameras, images, backgrounds, config, inits, valid, mode, cams0)
+        return call(_refine_batch_jit, *args)
+
+    batched = (bases, images, backgrounds, inits, valid, cams0)
+    out = map_frames(body, batched, cameras, config, mode, devices=devices)
+    jax.block_until_ready(out)
+    dt = (time.perf_counter() - t0) / max(f, 1)
+    return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))
+
+
+@eqx.filter_jit
+def _refine_sequence_jit(
+    bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0, cold_first
+):
+    n_levels = len(config.levels)
+
+    def one(cfg, c_prev, cam_prev, h_prev, base, ims, bgs, v):
+        r = refine_frame(base, cameras, ims, bgs, cfg, c_prev, v, cam_prev, h_prev)
+        # steps_per_level follows config's levels: levels a warm frame skips count 0 steps
+        spl = r.steps_per_level
+        pad = jnp.zeros((max(n_levels - spl.shape[0], 0),), spl.dtype)
+        r = eqx.tree_at(lambda x: x.steps_per_level, r, jnp.concatenate([pad, spl]))
+        c_next = jnp.where(r.ok, r.coeffs, c_prev)
+        cam_next = jnp.where(r.ok, r.camera_correction, cam_prev)
+        h_next = jnp.where(r.ok, r.hessian_inv, h_prev)
+        return (c_next, cam_next, h_next), r
+
+    def step(prev, args):
+        return one(warm_config, *prev, *args)
+
+    seq = (bases, images, backgrounds, valid)
+    if not cold_first:
+        _, out = jax.lax.scan(step, (init, cam0, h0), seq)
+        return out
+    # the first frame has no previous answer: the full (coarse-to-fine) schedule
+    first = jax.tree.map(lambda x: x[0], seq)
+    prev, r0 = one(config, init, cam0, h0, *first)
+    _, rest = jax.lax.scan(step, prev, jax.tree.map(lambda x: x[1:], seq))
+    return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), r0, rest)
+
+
+def refine_sequence(
+    bases: Centreline,
+    cameras,
+    images,
+    backgrounds,
+    config: RefineConfig = DEFAULT_CONFIG,
+    init: Float[Array, "a k"] | None = None,
+    valid: Bool[Array, " f"] | None = None,
+    init_cam: Float[Array, "c 6"] | None = None,
+    warm_config: RefineConfig | None = None,
+    init_hessian: Float[Array, "n n"] | None = None,
+    jit_call: Callable | None = None,
+) -> RefineResult:
+    """Refine a sequence, warm-starting frame t from frame t-1's delta-u and camera
+    correction (in one compiled ``lax.scan``). A failed frame passes the last good values on.
+    Arguments as :func:`refine_batch`; ``init`` and ``init_cam`` (:func:`refine_frame`)
+    warm-start the first frame, with ``init_hessian`` (the last frame's
+    :attr:`RefineResult.hessian_inv`; NaN = identity). ``jit_call`` as :func:`refine_batch`.
+
+    Warm-started frames use ``warm_config`` (default ``config.warm()``: the finest pyramid
+    level only, see :meth:`RefineConfig.warm`); the first frame uses ``config`` unless
+    ``init`` is given (e.g. the last answer of the previous chunk of a long sequence)."""
+    cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
+    f = bases.p.shape[0]
+    dtype = bases.p.dtype
+    cold_first = init is None
+    init = jnp.zeros(config.coeff_shape, dtype) if init is None else init
+    valid = jnp.ones(f, bool) if valid is None else jnp.asarray(valid, bool)
+    cam0 = _cam_init(init_cam, (), len(cameras), dtype)
+    warm_config = config.warm() if warm_config is None else warm_config
+    n_flat = config.coeff_shape[0] * config.coeff_shape[1] + (
+        6 * _cam_rows(config, len(cameras)) if config.camera_correction else 0
+    )
+    # NaN = no Hessian yet (refine_frame falls back to the identity): one compiled shape
+    h0 = jnp.full((n_flat, n_flat), jnp.nan, dtype) if init_hessian is None else init_hessian
+    t0 = time.perf_counter()
+    call = _direct if jit_call is None else jit_call
+    out = call(
+        _refine_sequence_jit, bases, cameras, images, backgrounds, config, warm_config, init,
+        valid, cam0, h0, cold_first,
+    )  # fmt: skip
+    jax.block_until_ready(out)
+    dt = (time.perf_counter() - t0) / max(f, 1)
+    return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))

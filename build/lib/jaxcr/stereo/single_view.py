@@ -1,0 +1,120 @@
+"""One camera: the 2-D results alone (no triangulation).
+
+A stereo dataset with one camera gives, per frame, that view's tip pixel and backbone
+polyline (:mod:`jaxcr.stereo.view2d`) from the same per-view steps as
+:func:`jaxcr.stereo.pipeline.reconstruct_pair`: foreground alpha (chroma key and/or
+background plate), closing, base localisation and flood fill from the base pixel, Zhang-Suen
+thinning, ordering from the base and the shadow cut. Nothing 3-D is measured: no depth,
+diameters in metres, segments or plane/arc fits. The base pixel is the dataset's entry
+pixel, or the projection of the base point through a given ``T_cam_base``.
+"""
+
+from __future__ import annotations
+
+import cv2
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcr.camera import Camera
+from jaxcr.stereo.base_locate import flood_component, locate_base
+from jaxcr.stereo.ordering import order_skeleton
+from jaxcr.stereo.pipeline import (
+    StereoConfig,
+    StereoFailure,
+    _f32,
+    _image_stack,
+    _now,
+    _segment_views,
+    _smooth_path,
+    _thin_cropped_views,
+    _tick,
+)
+from jaxcr.stereo.shadow import shadow_cut
+from jaxcr.stereo.view2d import view_record
+
+__all__ = ["base_pixel", "reconstruct_view"]
+
+
+def base_pixel(cam: Camera, config: StereoConfig) -> tuple[float, float]:
+    """The pixel (u, v) where the robot enters the one view: ``entry_px[0]``, or the base
+    point (``robot_base``, default the origin) projected through ``T_cam1_base``."""
+    spec = config.base
+    if spec.mode == "entry_px":
+        return tuple(float(x) for x in spec.entry_px[0])
+    if spec.mode != "T_cam_base":
+        raise ValueError("one camera needs base mode 'entry_px' or 'T_cam_base'")
+    T = np.asarray(spec.T_cam1_base, np.float64)
+    X = np.zeros(3) if config.robot_base is None else np.asarray(config.robot_base, np.float64)
+    uv, _ = cv2.projectPoints(
+        X.reshape(1, 1, 3), cv2.Rodrigues(T[:3, :3])[0], T[:3, 3],
+        np.asarray(cam.K, np.float64), np.asarray(cam.dist, np.float64),
+    )  # fmt: skip
+    return tuple(float(x) for x in uv.reshape(2))
+
+
+def reconstruct_view(
+    image: np.ndarray,
+    cam: Camera,
+    *,
+    config: StereoConfig | None = None,
+    plate: np.ndarray | None = None,
+) -> dict:
+    """The 2-D backbone of one view (module docstring). ``image``: RGB (H, W, 3) uint8 or
+    float [0, 1]; ``plate``: the empty scene (for plate segmentations). Returns
+    ``{"views_px": [{"tip_px", "backbone_px"}], "skeleton_rc", "robot_mask", "base_px",
+    "timings"}``. Per-frame problems raise :class:`StereoFailure`."""
+    cfg = config or StereoConfig()
+    timings: dict = {}
+    t0 = _now()
+    im = np.asarray(image)
+    if im.ndim != 3 or (im.shape[1], im.shape[0]) != (cam.width, cam.height):
+        raise StereoFailure(
+            "calibration_size",
+            f"view 1 image is {im.shape[1]}x{im.shape[0]} but its calibration is "
+            f"{cam.width}x{cam.height}",
+        )
+    if cfg.segmentation != "chroma" and plate is None:
+        raise StereoFailure("plate", "segmentation needs a background plate, none given")
+    stack = _image_stack([im])
+    plates = _image_stack([plate]) if cfg.segmentation != "chroma" else stack
+    _, _, mask_j = _segment_views(
+        jnp.asarray(stack), jnp.asarray(plates), _f32(cfg.key_rgb), cfg.tol_lo, cfg.tol_hi,
+        cfg.plate_lo, cfg.plate_hi, mode=cfg.segmentation,
+    )  # fmt: skip
+    t0 = _tick(timings, "segmentation", t0)
+    mask = cv2.morphologyEx(
+        np.ascontiguousarray(np.asarray(mask_j)[0]), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)
+    ) > 0  # fmt: skip
+    buv = base_pixel(cam, cfg)
+    loc = locate_base(mask, buv, cfg.roi_half_px)
+    if not loc.found:
+        raise StereoFailure("robot_not_found", "no robot pixels near the base in view 1")
+    robot = flood_component(mask, loc.seed)
+    if np.count_nonzero(robot) < cfg.min_robot_pixels:
+        raise StereoFailure("robot_not_found", "robot region too small in view 1")
+    frac = np.count_nonzero(robot) / robot.size
+    if frac > cfg.max_robot_fraction:
+        raise StereoFailure(
+            "robot_not_found",
+            f"robot region covers {frac:.0%} of view 1: the background does not match the key "
+            "colour",
+        )
+    t0 = _tick(timings, "base_floodfill", t0)
+    ((sk, (r0, c0)),) = _thin_cropped_views([robot])
+    t0 = _tick(timings, "thinning", t0)
+    try:
+        rc = order_skeleton(sk, (loc.seed[0] - r0, loc.seed[1] - c0)) + np.array([r0, c0])
+    except ValueError:
+        raise StereoFailure("robot_not_found", "empty skeleton in view 1") from None
+    if cfg.shadow_tolerance_deg is not None:
+        uv_seed = np.array([loc.seed[1], loc.seed[0]], float)
+        rc = rc[shadow_cut(_smooth_path(rc), uv_seed, cfg.shadow_tolerance_deg) :]
+    uv = _smooth_path(rc)
+    _tick(timings, "ordering", t0)
+    return {
+        "views_px": [view_record(uv, robot, search_px=cfg.tip_search_px)],
+        "skeleton_rc": rc,
+        "robot_mask": robot,
+        "base_px": list(buv),
+        "timings": timings,
+    }

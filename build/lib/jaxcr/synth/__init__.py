@@ -1,0 +1,1 @@
+"""Synthetic scene generator: independent ray-casting renderer, textures, occluders, model error, presets."""
