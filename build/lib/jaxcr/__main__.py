@@ -1,5 +1,0 @@
-import sys
-
-from jaxcr.cli import main
-
-sys.exit(main())

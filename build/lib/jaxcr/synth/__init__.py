@@ -1,1 +1,0 @@
-"""Synthetic scene generator: independent ray-casting renderer, textures, occluders, model error, presets."""
