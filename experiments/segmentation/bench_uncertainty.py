@@ -24,13 +24,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import uncertainty_calibration as uc  # noqa: E402
+# the sibling script: `python experiments/segmentation/bench_uncertainty.py` puts this folder
+# first on sys.path, so it imports without editing sys.path
+import uncertainty_calibration as uc
 
-from jaxcr.segmentation.background import no_mask  # noqa: E402
-from jaxcr.segmentation.refine import RefineConfig, refine_batch  # noqa: E402
-from jaxcr.segmentation.shape import perturbed_centreline  # noqa: E402
-from jaxcr.segmentation.uncertainty import shape_uncertainty_batch  # noqa: E402
+from jaxcr.segmentation.background import no_mask
+from jaxcr.segmentation.refine import RefineConfig, refine_batch
+from jaxcr.segmentation.shape import perturbed_centreline
+from jaxcr.segmentation.uncertainty import shape_uncertainty_batch
 
 ROOT = Path(__file__).resolve().parents[2]
 OUT = ROOT / "experiments" / "results" / "segmentation" / "bench_uncertainty"

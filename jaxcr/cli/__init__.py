@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import logging
 import os
 import re
 import signal
@@ -181,9 +182,25 @@ def _quiet_warnings(state: dict) -> None:
     warnings.showwarning = one_line  # restored by the caller's catch_warnings
 
 
+class _StderrLines(logging.Handler):
+    """The library's warnings (the ``jaxcr`` logger: a stale lock taken over, an unwritable
+    compile cache) as plain lines on stderr: the library logs, the CLI prints. ``sys.stderr``
+    is looked up per line, so a redirected stderr (pytest's capsys) receives them."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            print(self.format(record), file=sys.stderr, flush=True)
+        except Exception:  # noqa: BLE001  (logging's contract: a handler never raises)
+            self.handleError(record)
+
+
 def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
     from jaxcr.io import outdir
+
+    library_log = logging.getLogger("jaxcr")
+    printer = _StderrLines(logging.WARNING)
+    library_log.addHandler(printer)
 
     # installed first: importing the commands (JAX, OpenCV) takes seconds, and a Ctrl-C then
     # must end the process too
@@ -203,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
             state["command"] = args.command
             return _run(args)
     finally:
+        library_log.removeHandler(printer)
         outdir.release_all(state["lock_base"])
         for sig, old in old_handlers.items():
             signal.signal(sig, old)

@@ -148,8 +148,43 @@ def idw_weights(d: Float[Array, " b"]) -> Float[Array, " b"]:
 
 
 def query(manifold: Manifold, x: Float[Array, " k"], *, b: int = 3) -> Float[Array, " d"]:
-    """Parameters of one eigen-feature x: IDW mean of the b nearest manifold points
-    (Reiter et al. eqs. 7-8)."""
+    """Parameters of one eigen-feature vector (``jcr.eigen.query``; Reiter et al. eqs. 7-8).
+
+    The inverse-distance weighted mean of the parameters of the ``b`` manifold points
+    nearest to ``x`` (brute force; jit- and vmap-able, :func:`query_batch` for many).
+
+    Parameters
+    ----------
+    manifold : Manifold
+        The resampled manifold: ``features`` (m, k) eigen-features on the grid and ``psi``
+        (m, d) their parameters (``EigenModel.manifold``, :func:`build_manifold`).
+    x : (k,) array
+        One eigen-feature vector, L = E^T (H - c) (eq. 5) of a view's descriptor H.
+    b : int, optional
+        Neighbours averaged (default 3, as the paper).
+
+    Returns
+    -------
+    (d,) array
+        psi = (theta_L, delta) in radians, or the tip (x, y, z) in metres, as the manifold
+        is parametrised.
+
+    Examples
+    --------
+    A manifold of three points on a line, parametrised by one angle:
+
+    >>> import jax.numpy as jnp
+    >>> import jaxcr as jcr
+    >>> manifold = jcr.eigen.Manifold(psi=jnp.array([[0.0], [0.1], [0.2]]),
+    ...                               features=jnp.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]))
+    >>> print(f"{float(jcr.eigen.query(manifold, jnp.array([1.0, 0.0]), b=1)[0]):.3f}")
+    0.100
+
+    Two neighbours at distances 0.25 and 0.75 weigh 3 : 1:
+
+    >>> print(f"{float(jcr.eigen.query(manifold, jnp.array([0.25, 0.0]), b=2)[0]):.4f}")
+    0.0250
+    """
     d, idx = knn(manifold.features, x, b)
     return idw_weights(d) @ manifold.psi[idx]
 

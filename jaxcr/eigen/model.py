@@ -105,12 +105,73 @@ def train(
     *,
     view_centres: np.ndarray | None = None,
 ) -> EigenModel:
-    """PCA of the stereo descriptors (n, 2 n_bins), keep ``config.variance``, fit the
-    spline ``params`` (n, d) -> eigen-features and resample it (Reiter et al. Sec. III-D).
+    """Train an eigen-feature pose estimator (``jcr.eigen.train``; Reiter et al. Sec. III).
 
-    ``view_centres`` (2, 2): the fixed histogram centres the descriptors were computed
-    with (:func:`jaxcr.eigen.pipeline.view_centres`); required iff config.centre is
-    "fixed", stored in the model so that queries use the same points."""
+    PCA of the stereo descriptors keeps ``config.variance`` of their variance (eq. 5: the
+    eigen-features L = E^T (H - c)); a thin-plate spline maps the parameters to the
+    eigen-features and is resampled on a grid of spacing ``config.step`` (Sec. III-D), the
+    manifold that :func:`estimate` and :func:`jaxcr.eigen.query` search.
+
+    Parameters
+    ----------
+    descriptors : (n, 2 * n_bins) array
+        Stereo descriptors of the n training views: the left and right angular histograms
+        side by side (:func:`jaxcr.eigen.pipeline.stereo_histograms`), float32.
+    params : (n, d) array
+        What each view shows: psi = (theta_L, delta) in radians (d = 2,
+        ``config.params="angles"``) or the tip (x, y, z) in metres, robot frame (d = 3,
+        ``"position"``). At least d + 3 views.
+    colour : ColourModel
+        The colour model the views were segmented with
+        (:func:`jaxcr.eigen.colour.fit_colour_model`); stored in the model for queries.
+    config : TrainConfig
+        Bins, PCA variance kept, spline smoothing, grid step, neighbours b, ...
+    view_centres : (2, 2) array, optional
+        The fixed histogram centres (x, y pixels per view) the descriptors were computed with
+        (:func:`jaxcr.eigen.pipeline.view_centres`); required iff ``config.centre`` is
+        ``"fixed"``, stored so that queries use the same points.
+
+    Returns
+    -------
+    EigenModel
+        ``pca`` (truncated to the kept components), ``manifold`` (``features`` (m, k)
+        eigen-features on the grid, ``psi`` (m, d) their parameters), ``colour``,
+        ``config``, ``n_train`` and ``timings`` (seconds per stage). Save it with
+        :func:`jaxcr.io.eigen_model.save_model`.
+
+    Raises
+    ------
+    InputError
+        Shapes that disagree with each other or with ``config``, too few views, a bad
+        config value (the field is named).
+
+    Examples
+    --------
+    A toy appearance: 25 views on a 5 x 5 grid of psi, with 8-bin histograms per view that
+    move smoothly with psi (real descriptors come from images,
+    :func:`jaxcr.eigen.pipeline.stereo_histograms`):
+
+    >>> import jax.numpy as jnp
+    >>> import numpy as np
+    >>> import jaxcr as jcr
+    >>> t, d = np.meshgrid(np.linspace(0.2, 1.0, 5), np.linspace(-0.4, 0.4, 5))
+    >>> psi = np.stack([t.ravel(), d.ravel()], 1)  # (25, 2): theta_L, delta (rad)
+    >>> def histograms(psi):
+    ...     bins = np.arange(8)
+    ...     left = np.exp(-((bins - 2 - 4 * psi[:, :1]) ** 2) / 2)
+    ...     right = np.exp(-((bins - 3.5 - 6 * psi[:, 1:]) ** 2) / 2)
+    ...     return np.concatenate([left, right], 1)  # (n, 2 * 8)
+    >>> colour = jcr.eigen.ColourModel(jnp.zeros((2, 2)), jnp.int32(0))
+    >>> config = jcr.eigen.TrainConfig(n_bins=8, centre="region", step=0.05)
+    >>> model = jcr.eigen.train(histograms(psi), psi, colour, config)
+    >>> model.n_train, model.manifold.psi.shape
+    (25, (289, 2))
+
+    An unseen configuration is recovered (:func:`estimate`):
+
+    >>> np.round(jcr.eigen.estimate(model, histograms(np.array([[0.5, 0.1]]))), 2)
+    array([[0.5, 0.1]], dtype=float32)
+    """
     config.check()
     H = np.asarray(descriptors, np.float32)
     P = np.asarray(params, np.float64)
@@ -171,7 +232,50 @@ def eigen_features(model: EigenModel, descriptors: np.ndarray) -> np.ndarray:
 
 
 def estimate(model: EigenModel, descriptors: np.ndarray) -> np.ndarray:
-    """Parameters (n, d) for stereo descriptors (n, m) (eqs. 5, 7, 8); the k-NN by the
-    exact pruned search of :mod:`jaxcr.eigen.knn_index`."""
+    """Estimate the parameters of new views (Reiter et al. eqs. 5, 7, 8).
+
+    Projects the descriptors on the model's principal components (eq. 5) and takes the
+    inverse-distance weighted mean of the ``model.config.b`` nearest manifold points
+    (eqs. 7-8; exact pruned k-NN search, :mod:`jaxcr.eigen.knn_index`): the batch form of
+    :func:`jaxcr.eigen.query`.
+
+    Parameters
+    ----------
+    model : EigenModel
+        A trained model (:func:`train`, or :func:`jaxcr.io.eigen_model.load_model`).
+    descriptors : (n, 2 * n_bins) array
+        Stereo descriptors of the n views, computed as the training ones were.
+
+    Returns
+    -------
+    (n, d) array
+        psi = (theta_L, delta) in radians, or the tip (x, y, z) in metres (robot frame), as
+        the model was trained (``model.config.params``).
+
+    Raises
+    ------
+    InputError
+        Descriptors whose width is not the model's.
+
+    Examples
+    --------
+    With the toy model of :func:`train`'s example, the training views themselves:
+
+    >>> import jax.numpy as jnp
+    >>> import numpy as np
+    >>> import jaxcr as jcr
+    >>> t, d = np.meshgrid(np.linspace(0.2, 1.0, 5), np.linspace(-0.4, 0.4, 5))
+    >>> psi = np.stack([t.ravel(), d.ravel()], 1)
+    >>> bins = np.arange(8)
+    >>> H = np.concatenate([np.exp(-((bins - 2 - 4 * psi[:, :1]) ** 2) / 2),
+    ...                     np.exp(-((bins - 3.5 - 6 * psi[:, 1:]) ** 2) / 2)], 1)
+    >>> colour = jcr.eigen.ColourModel(jnp.zeros((2, 2)), jnp.int32(0))
+    >>> model = jcr.eigen.train(H, psi, colour,
+    ...                         jcr.eigen.TrainConfig(n_bins=8, centre="region", step=0.05))
+    >>> np.round(jcr.eigen.estimate(model, H[[6, 18]]), 2), psi[[6, 18]]
+    (array([[ 0.4, -0.2],
+           [ 0.8,  0.2]], dtype=float32), array([[ 0.4, -0.2],
+           [ 0.8,  0.2]]))
+    """
     L = eigen_features(model, descriptors)
     return query_batch_indexed(model.manifold, model.knn_index(), np.asarray(L), model.config.b)

@@ -14,17 +14,21 @@ Where and whether (first match wins):
   ``JAXCR_JAX_CACHE``, still honoured when ``JAXCR_CACHE_DIR`` is unset);
 - default: ``$XDG_CACHE_HOME/jaxcr/jax``, else ``~/.cache/jaxcr/jax``.
 
-A folder that cannot be created or written is not an error: one warning on stderr, and the
-command runs on without the cache (it only costs compile time).
+A folder that cannot be created or written is not an error: one warning (on the ``jaxcr``
+logger, printed on stderr), and the command runs on without the cache (it only costs compile time).
 """
 
 from __future__ import annotations
 
+import logging
 import os
-import sys
 import tempfile
 
 from jaxcr.errors import InputError
+
+# warnings go to the "jaxcr" logger: the CLI prints them on stderr (jaxcr.cli.main), and a
+# library user without logging configured sees them on stderr too (logging.lastResort)
+_log = logging.getLogger(__name__)
 
 ENV_SWITCH = "JAXCR_COMPILE_CACHE"
 ENV_DIR = "JAXCR_CACHE_DIR"
@@ -82,11 +86,11 @@ def _warn_once(path: str, why: str) -> None:
     if path in _warned:
         return
     _warned.add(path)
-    print(
-        f"jaxcr: warning: compilation cache {path}: {why}; running without it "
-        f"(set {ENV_DIR} to a writable folder, or {ENV_SWITCH}=0 to silence this)",
-        file=sys.stderr,
-    )
+    _log.warning(
+        "jaxcr: warning: compilation cache %s: %s; running without it "
+        "(set %s to a writable folder, or %s=0 to silence this)",
+        path, why, ENV_DIR, ENV_SWITCH,
+    )  # fmt: skip
 
 
 def _writable(path: str) -> str | None:

@@ -14,8 +14,8 @@ One rule for every command that writes a folder (``segment``, ``synth``, ``stere
   includes ``--overwrite``, which therefore cannot wipe a run while another process holds it.
 - **Stale locks.** A lock whose process is gone (same host, and the pid no longer runs, or
   now belongs to a process started at another time) is stale, and so is an unreadable
-  (empty, cut) lock older than :data:`UNREADABLE_STALE_S`: the next run reports it on
-  stderr and takes it over. A lock from another host cannot be checked and is never taken
+  (empty, cut) lock older than :data:`UNREADABLE_STALE_S`: the next run reports it (a
+  warning on the ``jaxcr`` logger, printed on stderr) and takes it over. A lock from another host cannot be checked and is never taken
   over; the refusal says so and which file to delete.
 - **Leftovers.** Once the lock is held, temporary files left by a killed run (``.NAME.*.tmp``
   from :func:`jaxcr.io.results.atomic_write_bytes`, and ``NAME.tmp``) are removed: no other
@@ -47,6 +47,7 @@ from __future__ import annotations
 import atexit
 import datetime as _dt
 import json
+import logging
 import os
 import socket
 import sys
@@ -54,6 +55,10 @@ import time
 from pathlib import Path
 
 from jaxcr.errors import InputError
+
+# warnings go to the "jaxcr" logger: the CLI prints them on stderr (jaxcr.cli.main), and a
+# library user without logging configured sees them on stderr too (logging.lastResort)
+_log = logging.getLogger(__name__)
 
 LOCK_FILE = ".jaxcr.lock"
 OWNER_FILE = ".jaxcr-out.json"
@@ -192,11 +197,10 @@ def acquire(out: str | os.PathLike, command: str) -> Path:
             except FileNotFoundError:
                 continue
             os.unlink(aside)
-            print(
-                f"jaxcr {command}: {out}: taking over a stale lock of {describe(info)}, "
-                "which is no longer running",
-                file=sys.stderr,
-            )
+            _log.warning(
+                "jaxcr %s: %s: taking over a stale lock of %s, which is no longer running",
+                command, out, describe(info),
+            )  # fmt: skip
             continue
         try:
             os.write(fd, data)

@@ -71,18 +71,77 @@ def reconstruct(
     config: StereoConfig | None = None,
     plates: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> StereoReconstruction:
-    """Reconstruct the backbone of one stereo pair (Shape Sensing of Tubular Continuum Robots
-    using Stereo Vision).
+    """Reconstruct the backbone of one stereo pair (``jcr.stereo.reconstruct``; Shape Sensing
+    of Tubular Continuum Robots using Stereo Vision).
 
-    Parameters:
-        image1, image2: RGB (H, W, 3) uint8 or float in [0, 1].
-        cam1, cam2: the stereo calibration (:class:`~jaxcr.camera.Camera`).
-        config: :class:`~jaxcr.stereo.pipeline.StereoConfig` (default ``StereoConfig()``).
-        plates: background images of the empty scene (for ``segmentation="plate"``).
+    Segmentation (chroma key or background plate), Zhang-Suen thinning, base-to-tip
+    ordering, matching along epipolar lines and triangulation, the base frame from the ArUco
+    markers (or ``config.base``), then the tube diameter and its segments. Host-side numpy
+    and OpenCV around jitted JAX stages (thinning, matching).
 
-    Returns:
-        :class:`StereoReconstruction`. Raises :class:`~jaxcr.stereo.pipeline.StereoFailure`
-        (with a reason code) when a stage cannot proceed.
+    Parameters
+    ----------
+    image1, image2 : (H, W, 3) array
+        RGB images of cameras 1 and 2, uint8 or float in [0, 1], the sizes of ``cam1`` and
+        ``cam2``.
+    cam1, cam2 : Camera
+        The stereo calibration (:class:`~jaxcr.camera.Camera`: K (3, 3) pixels, dist (5,),
+        T_cam_robot (4, 4) in metres, in any common frame; the base frame comes from the
+        markers). :func:`jaxcr.io.calibration.load_stereo` reads an OpenCV stereo file.
+    config : StereoConfig, optional
+        :class:`~jaxcr.stereo.pipeline.StereoConfig` (default ``StereoConfig()``: chroma key
+        on green, ArUco base frame; lengths in metres).
+    plates : tuple of two (H, W, 3) arrays, optional
+        Background images of the empty scene, needed for ``config.segmentation`` ``"plate"``,
+        ``"plate_shadow"``, ``"both"`` and ``"trace"``.
+
+    Returns
+    -------
+    StereoReconstruction
+        numpy arrays in the base frame, metres: ``s`` (n,) arc length from the base, ``p``
+        (n, 3) backbone points, ``diameter`` (n,), ``segments``, the base pose in each camera
+        ``T_cam1_base`` (4, 4), per-view 2-D results ``views_px`` and ``timings`` (seconds
+        per stage); see :class:`StereoReconstruction`.
+
+    Raises
+    ------
+    StereoFailure
+        A stage cannot proceed; ``reason`` is a short code (``"calibration_size"``,
+        ``"plate"``, ``"markers"``, ``"robot_not_found"``, ``"correspondence"``, ...) and
+        the message says why.
+
+    Examples
+    --------
+    A stage that cannot proceed raises :class:`~jaxcr.stereo.pipeline.StereoFailure` with a
+    reason code (here: blank images, so no base-frame markers):
+
+    >>> import numpy as np
+    >>> import jaxcr as jcr
+    >>> cam1 = jcr.Camera.look_at((-0.02, 0, -0.3), (0, 0, 0), (0, -1, 0), 200.0, (160, 120))
+    >>> cam2 = jcr.Camera.look_at((0.02, 0, -0.3), (0, 0, 0), (0, -1, 0), 200.0, (160, 120))
+    >>> blank = np.full((120, 160, 3), 128, np.uint8)
+    >>> try:
+    ...     jcr.stereo.reconstruct(blank, blank, cam1, cam2)
+    ... except jcr.stereo.StereoFailure as err:
+    ...     print(err.reason)
+    markers
+
+    A synthetic pair with its true backbone (``jaxcr stereo synth``). The reconstruction
+    compiles the JAX stages (a minute on a loaded machine), so it is skipped here;
+    examples/stereo.py runs these steps and checks the result against the truth
+    (tests/core/test_examples.py):
+
+    >>> import tempfile
+    >>> import jaxcr.io.stereo_dataset, jaxcr.synth.stereo_ctr
+    >>> folder = jcr.synth.stereo_ctr.generate_stereo_set(
+    ...     tempfile.mkdtemp(), n_frames=1, seed=4, size=(320, 240))  # doctest: +SKIP
+    >>> ds = jcr.io.stereo_dataset.load_stereo_dataset(folder)  # doctest: +SKIP
+    >>> image1, image2 = (jcr.io.stereo_dataset.read_rgb(ds["root"] / ds["frames"][0]["images"][c])
+    ...                   for c in ("cam1", "cam2"))  # doctest: +SKIP
+    >>> rec = jcr.stereo.reconstruct(image1, image2, ds["cam1"], ds["cam2"],
+    ...                              config=ds["config"])  # doctest: +SKIP
+    >>> rec.p.shape[1], len(rec.segments) >= 1  # doctest: +SKIP
+    (3, True)
     """
     out = reconstruct_pair(image1, image2, cam1, cam2, config=config, plates=plates)
     known = {f.name for f in dataclasses.fields(StereoReconstruction)} - {"extra"}

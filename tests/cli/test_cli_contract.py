@@ -172,21 +172,27 @@ def test_second_run_and_overwrite_are_refused_while_the_holder_lives(tmp_path, c
         holder.wait()
 
 
-def test_stale_lock_is_reported_and_taken_over(tmp_path, capsys):
+def _logged(caplog) -> str:
+    """What the library warned on the ``jaxcr`` logger (the CLI prints it on stderr)."""
+    return "\n".join(r.getMessage() for r in caplog.records if r.name.startswith("jaxcr"))
+
+
+def test_stale_lock_is_reported_and_taken_over(tmp_path, capsys, caplog):
     out = tmp_path / "out"
     out.mkdir()
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()  # its pid runs nothing now (reaped)
     _write_lock(out, dead.pid, pid_start=1)
     lock = outdir.claim(out, "segment")
-    err = capsys.readouterr().err
+    err = _logged(caplog)
     assert "taking over a stale lock" in err and f"pid {dead.pid}" in err
+    assert capsys.readouterr().err == ""  # the library logs; printing is the CLI's
     assert outdir.read_lock(lock)["pid"] == os.getpid()
     outdir.release(lock)
     assert not lock.exists()
 
 
-def test_empty_lock_is_in_use_while_fresh_and_stale_once_old(tmp_path, capsys):
+def test_empty_lock_is_in_use_while_fresh_and_stale_once_old(tmp_path, caplog):
     """A holder killed between creating the lock and writing it leaves an empty file."""
     out = tmp_path / "out"
     out.mkdir()
@@ -197,7 +203,7 @@ def test_empty_lock_is_in_use_while_fresh_and_stale_once_old(tmp_path, capsys):
     old = time.time() - 2 * outdir.UNREADABLE_STALE_S
     os.utime(lock, (old, old))
     outdir.release(outdir.claim(out, "segment"))
-    assert "taking over a stale lock of an unknown process" in capsys.readouterr().err
+    assert "taking over a stale lock of an unknown process" in _logged(caplog)
 
 
 @pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="needs /proc")
@@ -457,3 +463,20 @@ def test_pickled_npy_is_refused_with_one_line(tmp_path, capsys):
     with pytest.raises(InputError, match="allow_pickle") as exc:
         fr.load_truth("centreline")
     assert "000000.npy" in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_cli_prints_the_library_warnings_on_stderr(monkeypatch, capsys):
+    """The library warns on the ``jaxcr`` logger (a stale lock, an unwritable compile cache);
+    jaxcr.cli.main prints each as one stderr line, and stops printing when it returns."""
+    import logging
+
+    import jaxcr.cli as cli
+
+    def warn_and_succeed(args):
+        logging.getLogger("jaxcr.io.outdir").warning("jaxcr %s: a warning %d", args.command, 7)
+        return 0
+
+    monkeypatch.setattr(cli, "_run", warn_and_succeed)
+    assert cli.main(["validate", "no-such-dataset"]) == 0
+    assert capsys.readouterr().err.splitlines() == ["jaxcr validate: a warning 7"]
+    assert not any(isinstance(h, cli._StderrLines) for h in logging.getLogger("jaxcr").handlers)

@@ -9,6 +9,10 @@ and calls count too):
    every file format live in jaxcr/io/ (and the CLI); drivers that read or write (the batch
    segmenter, the per-video motion driver, synth's dataset writers) are not core.
 
+3. No library module prints (``print``, ``sys.stdout/stderr.write``, ``pprint``): results are
+   returned as data and warnings go to the ``jaxcr`` logger, which the CLI prints on stderr
+   (jaxcr.cli.main). The one exception is the progress reporter (:data:`PRINTS`).
+
 Which modules are core is decided per package below; a module outside core is listed with the
 reason, so a new module is core by default and this test fails if it does I/O.
 """
@@ -55,6 +59,15 @@ FILE_METHODS = {"read_text", "read_bytes", "write_text", "write_bytes", "mkdir",
                 "iterdir", "glob", "rglob", "imread", "imwrite", "VideoCapture"}  # fmt: skip
 
 
+# library modules allowed to write to the terminal, with the reason
+PRINTS = {
+    "progress.py": "the progress reporter: the progress lines on stderr (or the caller's "
+    "file; JAXCR_PROGRESS=off or silent=True turns them off), as tqdm does",
+}
+PRINT_CALLS = {"print", "pprint", "pprint.pprint", "sys.stdout.write", "sys.stderr.write",
+               "sys.__stdout__.write", "sys.__stderr__.write"}  # fmt: skip
+
+
 def _dotted(node):
     if isinstance(node, ast.Name):
         return node.id
@@ -80,6 +93,12 @@ def _file_access(tree):
                 yield name
             elif isinstance(n.func, ast.Attribute) and n.func.attr in FILE_METHODS:
                 yield f".{n.func.attr}()"
+
+
+def _prints(tree):
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Call) and _dotted(n.func) in PRINT_CALLS:
+            yield f"{_dotted(n.func)}() line {n.lineno}"
 
 
 def _modules():
@@ -117,6 +136,20 @@ def test_core_has_no_cv2_io_or_file_access(rel):
     assert not bad, f"jaxcr/{rel} (core) uses {sorted(set(bad))}; move it to jaxcr/io/"
 
 
+@pytest.mark.parametrize(
+    "rel", [m for m in _modules() if not m.startswith("cli/") and m != "__main__.py"]
+)
+def test_library_does_not_print(rel):
+    if rel in PRINTS:
+        assert list(_prints(_parse(rel))), f"{rel} prints nothing now: remove it from PRINTS"
+        return
+    found = list(_prints(_parse(rel)))
+    assert not found, (
+        f"jaxcr/{rel} prints ({found}): return the data, or warn on the jaxcr logger "
+        "(logging.getLogger(__name__)); the CLI prints"
+    )
+
+
 def test_exception_list_is_current():
     """Every NOT_CORE entry exists and really needs its exception (a module that became clean
     leaves the list, so the list only shrinks)."""
@@ -139,3 +172,5 @@ def test_checker_finds_violations():
         "jaxcr.io.images",
     ]
     assert sorted(_file_access(snippet)) == [".read_text()", "json.load", "np.load", "open"]
+    printing = ast.parse("import sys\nprint(1)\nsys.stderr.write('x')\nlog.warning('y')\n")
+    assert [p.split("(")[0] for p in _prints(printing)] == ["print", "sys.stderr.write"]

@@ -59,14 +59,18 @@ def test_bad_switch_is_input_error(clean_env):
         cc.resolve_cache_dir()
 
 
-def test_unwritable_folder_warns_once(clean_env, tmp_path, capsys):
+def test_unwritable_folder_warns_once(clean_env, tmp_path, capsys, caplog):
+    """The library logs the warning (logger jaxcr.io.compile_cache) and prints nothing; the
+    CLI prints it on stderr (test_unwritable_cache_runs_on, below)."""
     blocker = tmp_path / "file"
     blocker.write_text("x")  # a folder below a regular file cannot be made, even by root
     bad = blocker / "cache"
     assert cc.enable_compile_cache(path=bad) is None
     assert cc.enable_compile_cache(path=bad) is None
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(bad) in err[0] and "warning" in err[0]
+    warned = [r for r in caplog.records if r.name == "jaxcr.io.compile_cache"]
+    assert len(warned) == 1 and warned[0].levelname == "WARNING"
+    assert str(bad) in warned[0].getMessage() and "warning" in warned[0].getMessage()
+    assert capsys.readouterr().err == ""
 
 
 # ------------------------------------------------------------------ the CLI, in new processes
