@@ -51,6 +51,8 @@ __all__ = [
     "trace_tube",
     "border_entry",
     "refine_tip",
+    "measure_tube_width",
+    "downsample",
     "plate_foreground",
 ]
 
@@ -93,6 +95,15 @@ class PlateForegroundConfig:
     against the plate on more than this fraction of the gap (the tube would have been
     seen there, so it ended; 1 = off); ``start_spread_deg`` (20) a given
     entry direction is also tried turned by this much either way, the longest trace kept.
+    Scale: every length above (``blur_px``, ``close_px``, ``step_px``, ``look_px``,
+    ``max_gap_px``, ``max_width_px``, ``min_seed_px`` (an area), ``max_shift_px`` excepted: the
+    plate is aligned at full resolution) is in pixels of a view where the tube is about
+    ``tube_width_px`` (7) pixels wide, the width they were set at (the ``real_like`` preset at
+    640x360). :func:`plate_foreground` measures the tube's width near the entry
+    (:func:`measure_tube_width`) and, where it is ``k = round(width / tube_width_px) >= 2``
+    times that, finds and traces the tube on the frame and plate reduced by ``k`` (area
+    average), then maps the path back and refines the tip on the full-resolution score.
+    ``scale`` (0 = that automatic choice) forces the factor ``k`` (1 = full resolution).
     """
 
     dark: float = 0.3
@@ -121,6 +132,8 @@ class PlateForegroundConfig:
     tip_cap: float = 1.0
     refine: bool = True
     start_spread_deg: float = 20.0
+    tube_width_px: float = 7.0
+    scale: int = 0
 
 
 @dataclass
@@ -138,6 +151,8 @@ class TubeTrace:
         width_px: median tube width across the traced path (pixels).
         reason: None, or why tracing stopped early (e.g. "no foreground at the entry").
         cap_px: length of the end face's half-ellipse removed by :func:`refine_tip` (px).
+        scale: the factor ``k`` the tube was traced at (1 = full resolution; see
+            :class:`PlateForegroundConfig`); ``measured_width_px``: the width that chose it.
     """
 
     mask: np.ndarray
@@ -151,6 +166,8 @@ class TubeTrace:
     width_px: float = 0.0
     reason: str | None = None
     cap_px: float = 0.0
+    scale: int = 1
+    measured_width_px: float = 0.0
 
 
 # ----------------------------------------------------------------------------- alignment
@@ -788,6 +805,62 @@ def _path_mask(mask, bb, gaps, width):
     return out
 
 
+def downsample(image: np.ndarray, k: int) -> np.ndarray:
+    """``image`` (H, W[, C]) reduced by the integer factor ``k`` (mean over k x k blocks;
+    the last ``H % k`` rows and ``W % k`` columns are dropped). Pixel ``i`` of the result
+    covers pixels ``k i .. k i + k - 1``, so its centre is at full-resolution coordinate
+    ``k i + (k - 1)/2`` (:func:`_to_full`)."""
+    im = np.asarray(image, np.float64)
+    if k <= 1:
+        return im
+    h, w = im.shape[0] // k, im.shape[1] // k
+    im = im[: h * k, : w * k]
+    return im.reshape(h, k, w, k, *im.shape[2:]).mean(axis=(1, 3))
+
+
+def _to_full(uv: np.ndarray, k: int) -> np.ndarray:
+    return np.asarray(uv, np.float64) * k + (k - 1) / 2.0
+
+
+def _to_low(uv: np.ndarray, k: int) -> np.ndarray:
+    return (np.asarray(uv, np.float64) - (k - 1) / 2.0) / k
+
+
+def measure_tube_width(mask: np.ndarray, entry_uv, *, search_px: float = 20.0) -> float:
+    """Width (px) of the tube on ``mask`` (H, W) bool that starts near ``entry_uv`` (u, v):
+    the median of ``2 d - 1/2`` over the ridge of the distance transform ``d`` (pixels
+    whose distance to the background is a local maximum over their 8 neighbours, ``d >=
+    1``) of the mask component nearest the entry (within ``search_px``). Across a band
+    of ``w`` pixels the centre pixel lies ``(w + 1)/2`` from the first background pixel
+    (``w`` odd; ``w/2`` for its two centre pixels when ``w`` is even), so the estimate is
+    within 1/2 px of ``w`` on a clean band; the median ignores the short ridges of a blob
+    or a noisy edge. 0 when no component is near the entry."""
+    mask = np.asarray(mask, bool)
+    h, w = mask.shape
+    e = np.asarray(entry_uv, np.float64)
+    r0, r1 = int(max(e[1] - search_px, 0)), int(min(e[1] + search_px + 1, h))
+    c0, c1 = int(max(e[0] - search_px, 0)), int(min(e[0] + search_px + 1, w))
+    rr, cc = np.nonzero(mask[r0:r1, c0:c1])
+    if not len(rr):
+        return 0.0
+    k = int(np.argmin((cc + c0 - e[0]) ** 2 + (rr + r0 - e[1]) ** 2))
+    lab, _ = ndi.label(mask, structure=np.ones((3, 3), bool))
+    comp = lab == lab[rr[k] + r0, cc[k] + c0]
+    sl = ndi.find_objects(comp.astype(np.int32))[0]
+    sub = np.pad(comp[sl], 1)
+    d = ndi.distance_transform_edt(sub)
+    ridge = (d >= 1.0) & (d >= ndi.maximum_filter(d, size=3))
+    return float(np.median(2.0 * d[ridge] - 0.5))
+
+
+def _scaled(cfg: PlateForegroundConfig, k: int) -> PlateForegroundConfig:
+    """``cfg`` with its lengths multiplied by ``k`` (for the full-resolution steps)."""
+    from dataclasses import replace
+
+    return replace(cfg, close_px=cfg.close_px * k, look_px=cfg.look_px * k,
+                   step_px=cfg.step_px * k, max_width_px=cfg.max_width_px * k)  # fmt: skip
+
+
 def plate_foreground(
     frame: np.ndarray,
     plate: np.ndarray,
@@ -797,7 +870,16 @@ def plate_foreground(
 ) -> TubeTrace:
     """Steps 1-4 of the module docstring on one view: ``frame``, ``plate`` RGB (H, W, 3)
     (uint8 or float [0, 1]); ``entry_uv`` the pixel where the robot enters the view (None:
-    found at the image border, :func:`border_entry`)."""
+    found at the image border, :func:`border_entry`).
+
+    The plate is aligned and the cues computed at full resolution; the tube's width near
+    the entry (:func:`measure_tube_width` on the hysteresis mask) chooses the factor ``k``
+    (``cfg.scale``, see :class:`PlateForegroundConfig`). With ``k >= 2`` the cues,
+    hysteresis and tracing run again on frame and aligned plate reduced by ``k``
+    (:func:`downsample`), where the tube is about ``cfg.tube_width_px`` wide as the
+    lengths assume; the path is mapped back to full-resolution pixels, the mask is the
+    full-resolution hysteresis mask near the path (closing ``k close_px``), and the tip is
+    refined on the full-resolution score (with ``k look_px``)."""
     f = np.asarray(frame)
     p = np.asarray(plate)
     f = f.astype(np.float64) / 255.0 if f.dtype == np.uint8 else f.astype(np.float64)
@@ -805,26 +887,47 @@ def plate_foreground(
     shift = align_plate(f, p, max_shift_px=cfg.max_shift_px) if cfg.align else np.zeros(2)
     pa = shift_image(p, shift) if cfg.align else p
     cues = foreground_cues(f, pa, cfg)
-    if cfg.close_px > 0:
-        cues["score"] = close_score(cues["score"], cfg.close_px)
-    seeds = hysteresis(cues["score"], cfg.low, cfg.high)
+    raw = cues["score"]
+    score = close_score(raw, cfg.close_px) if cfg.close_px > 0 else raw
+    seeds = hysteresis(score, cfg.low, cfg.high)
     if entry_uv is None:
         be = border_entry(seeds)
         if be is None:
             tr = TubeTrace(np.zeros(seeds.shape, bool), np.zeros((0, 2)), np.full(2, np.nan),
                            np.full(2, np.nan), reason="no foreground touches the image border")  # fmt: skip
-            tr.score, tr.seed_mask, tr.shift = cues["score"], seeds, shift
+            tr.score, tr.seed_mask, tr.shift = score, seeds, shift
             return tr
         entry_uv, d0 = be
         direction_uv = d0 if direction_uv is None else direction_uv
-    fs, ps = f, pa
+    entry_uv = np.asarray(entry_uv, np.float64)
+    width0 = measure_tube_width(seeds, entry_uv)
+    k = int(cfg.scale) if cfg.scale > 0 else max(1, int(round(width0 / cfg.tube_width_px)))
+    k = max(1, min(k, min(f.shape[:2]) // 32))  # keep at least 32 px across the reduced view
+    if k > 1:
+        fl, pl = downsample(f, k), downsample(pa, k)
+        sl = foreground_cues(fl, pl, cfg)["score"]
+        if cfg.close_px > 0:
+            sl = close_score(sl, cfg.close_px)
+        seeds_l = hysteresis(sl, cfg.low, cfg.high)
+        if cfg.close_px > 0:  # the full-resolution score, closed across the wider tube
+            score = close_score(raw, cfg.close_px * k)
+            seeds = hysteresis(score, cfg.low, cfg.high)
+    else:
+        fl, pl, seeds_l = f, pa, seeds
+    fs, ps = fl, pl
     if cfg.blur_px > 0:
-        fs = ndi.gaussian_filter(f, (cfg.blur_px, cfg.blur_px, 0))
-        ps = ndi.gaussian_filter(pa, (cfg.blur_px, cfg.blur_px, 0))
-    tr = trace_tube(seeds, entry_uv, direction_uv, cfg, frame=fs, plate=ps)
+        fs = ndi.gaussian_filter(fl, (cfg.blur_px, cfg.blur_px, 0))
+        ps = ndi.gaussian_filter(pl, (cfg.blur_px, cfg.blur_px, 0))
+    tr = trace_tube(seeds_l, _to_low(entry_uv, k), direction_uv, cfg, frame=fs, plate=ps)
+    if k > 1:
+        tr.backbone = _to_full(tr.backbone, k)
+        tr.tip, tr.entry = _to_full(tr.tip, k), _to_full(tr.entry, k)
+        tr.width_px = tr.width_px * k
+        tr.mask = _path_mask(seeds, tr.backbone, tr.gaps, tr.width_px)
     if cfg.refine and len(tr.backbone) >= 3:
-        tip, tr.cap_px = refine_tip(cues["score"], tr.backbone, tr.width_px, cfg)
+        tip, tr.cap_px = refine_tip(score, tr.backbone, tr.width_px, _scaled(cfg, k))
         tr.backbone = np.vstack([tr.backbone[:-1], tip])
         tr.tip = tip
-    tr.shift, tr.score, tr.seed_mask = shift, cues["score"], seeds
+    tr.shift, tr.score, tr.seed_mask = shift, score, seeds
+    tr.scale, tr.measured_width_px = k, width0
     return tr
