@@ -7,8 +7,15 @@ white circle-grid board with black tape crossed by the tube in view 1, drifted p
 webcam noise, lens distortion, entry pixel with model error). Methods per view:
 
 * ``trace`` -- :func:`jaxcr.segmentation.foreground.plate_foreground` (aligned plate, cues, hysteresis,
-  tracing with gap bridging) from the entry pixel and the projected base axis (both with
-  model error); tip = its ``tip``;
+  tracing with gap bridging; a view where the tube is k >= 2 times ``tube_width_px`` wide is
+  traced reduced k times, the tip refined at full resolution) from the entry pixel and the
+  projected base axis (both with model error); tip = its ``tip``;
+* ``trace_stereo`` -- the same two traces, each tip moved to its silhouette's end minus the
+  end face's foreshortening computed from the tube's 3-D direction, which the two calibrated
+  views give (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`; the view's own estimate
+  where the two end directions leave the axis undetermined). The epipolar distance of each
+  method's two tips is recorded per frame (a frame over 5 px is flagged);
+* ``trace_r1`` -- the first round's foreground (commit cf4b1bb, from git);
 * ``plate`` -- the stereo pipeline's old plate mode: ``plate_alpha > 0.5`` (unaligned plate,
   lo/hi 0.06/0.15), 3x3 closing, the component at the entry;
 * ``gmm`` -- ``--background gmm``: :func:`jaxcr.segmentation.background.fit_background_model` on the
@@ -23,6 +30,10 @@ from the base as the stereo pipeline does. Success: tip within 5 px of the truth
 
     python experiments/segmentation/real_like_tip.py --seeds 1000-1023 --size 640x360 \
         --out experiments/results/segmentation/real_like_tip
+
+``--methods`` picks the methods (default ``trace,trace_stereo``; the baselines cost a minute
+a frame at 1280x720); ``--merge A.json B.json`` writes one report from runs of seed subsets
+run in parallel processes.
 """
 
 from __future__ import annotations

@@ -29,6 +29,11 @@ scipy on float RGB in [0, 1] (no cv2, no file I/O):
    Output: the robot mask (mask pixels near the path plus the bridges drawn at the tube's
    width), the ordered 2-D backbone and the tip pixel.
 
+The tracing lengths are in pixels of a view where the tube is about ``tube_width_px`` wide;
+:func:`plate_foreground` measures the tube's width near the entry and traces a view where it
+is ``k >= 2`` times wider on the frame and plate reduced ``k`` times, refining the tip at full
+resolution (:class:`PlateForegroundConfig`, "Scale").
+
 Pixel convention: OpenCV's (u, v) = (column, row), pixel centres at integers.
 """
 
@@ -714,44 +719,6 @@ def trace_tube(
     return TubeTrace(out, bb, tip, entry, gaps, width_px=width)
 
 
-def _half_run(row: np.ndarray, tt: np.ndarray, c: int, half: float) -> tuple[float, float]:
-    """Ends (t_left, t_right) of the run of ``row > half`` through index ``c``, at the half
-    level by linear interpolation; (nan, nan) if ``row[c] <= half``."""
-    if not row[c] > half:
-        return np.nan, np.nan
-    below = np.flatnonzero(row[:c] <= half)
-    if len(below):
-        i = below[-1]
-        f = (half - row[i]) / max(row[i + 1] - row[i], 1e-12)
-        lo = tt[i] + f * (tt[i + 1] - tt[i])
-    else:
-        lo = tt[0]
-    above = np.flatnonzero(row[c:] <= half)
-    if len(above):
-        i = c + above[0]
-        f = (row[i - 1] - half) / max(row[i - 1] - row[i], 1e-12)
-        hi = tt[i - 1] + f * (tt[i] - tt[i - 1])
-    else:
-        hi = tt[-1]
-    return float(lo), float(hi)
-
-
-def _edge_sigma(rows: np.ndarray, tt: np.ndarray, runs: np.ndarray, step: float) -> float:
-    """Blur (px, Gaussian sigma) of the edges at ``runs`` (n, 2) half-level crossings of
-    ``rows`` (n, len(tt)): ``step / (slope sqrt(2 pi))`` with the median slope over both
-    edges, taken over +-1 px (0 if no slope)."""
-    slopes = []
-    for row, (lo, hi) in zip(rows, runs, strict=True):
-        for t0, sign in ((lo, 1.0), (hi, -1.0)):
-            if np.isfinite(t0) and tt[0] + 1 <= t0 <= tt[-1] - 1:
-                a, b = np.interp([t0 - 0.5, t0 + 0.5], tt, row)
-                slopes.append(sign * (b - a))
-    if not slopes:
-        return 0.0
-    sl = float(np.median(slopes))
-    return step / (sl * np.sqrt(2 * np.pi)) if sl > 1e-9 else 0.0
-
-
 def refine_tip(
     score: np.ndarray,
     backbone: np.ndarray,
@@ -775,23 +742,23 @@ def refine_tip_details(
     The score is sampled (bilinear) on a grid aligned with the end direction ``d`` (the
     quadratic fit of the last ``max(24, 3 w)`` px of the backbone), at 0.25 px steps.
     Levels: inside ``S_in`` (median on the centre line 1-3 widths behind the end) and
-    background ``S_bg`` (median beside the tube); the silhouette is where the score exceeds
-    the half level ``(S_in + S_bg)/2`` (a blurred step's half level is its edge, whatever
-    the blur). Across each grid row the run through the centre gives the silhouette's width
-    and centre (half-level crossings). The grid is re-centred on the median run centre of
-    the rows 1.2-3 half widths behind the end (the traced path may sit off the tube's axis,
-    by up to a pixel of the resolution it was traced at), and the tube's width ``2 R`` is
-    their median run width. Along the centre line the silhouette's end ``s_end`` is where
-    the score falls to the half level. The tube's end face is a disc: seen at an angle, the
-    silhouette ends in a half-ellipse of half width ``R`` and length ``a`` beyond the end
-    point (``a = R |sin|`` of the axis' tilt out of the image plane), so the end point is
-    ``s_end - a``. The rows from ``s_end - 1.2 R`` to ``s_end`` miss, against the full
-    width, the area ``sum (2 R - width) ds = 2 R a (1 - pi/4)`` (the half-ellipse's
-    complement), which gives ``a``, clipped to ``[0, tip_cap R]``; ``cfg.tip_cap`` (1.0)
-    scales the largest correction (0 = the silhouette's end). Returns (tip (u, v), a, the
-    end direction d (2,), the half width R (px; 0 if not measured)): the silhouette's end
-    is ``tip + a d`` (a stereo rig can replace ``a`` by the foreshortening seen from the
-    other view, :func:`jaxcr.stereo.tip_geometry.end_face_lengths`)."""
+    background ``S_bg`` (median beside the tube). Along the centre line the silhouette's
+    end ``s_end`` is where the score falls to the half level ``(S_in + S_bg)/2`` (a blurred
+    step's half level is its edge, whatever the blur). The tube's end face is a disc: seen
+    at an angle, the silhouette ends in a half-ellipse of width ``w`` and length ``a``
+    beyond the end point (``a = r |sin|`` of the axis' tilt out of the image plane), so the
+    end point is ``s_end - a``. ``a`` follows from the soft area ``T`` (the score
+    normalised to background 0 and inside 1, clipped at 1, integrated) of the stretch from
+    one width behind the end: ``T = w (s_end - a + w) + (pi/4) w a``, so
+    ``a = (s_end + w - T/w) / (1 - pi/4)``, clipped to ``[0, tip_cap * w/2]``, with ``w``
+    the median soft width behind the end. ``cfg.tip_cap`` (1.0) scales the largest
+    correction (0 = the silhouette's end).
+
+    Returns (tip (u, v), a, the end direction d (2,), the half width ``w/2`` (px; 0 if not
+    measured)): the silhouette's end is ``tip + a d``. One view cannot tell ``a`` from a
+    longer tube; a calibrated stereo rig can replace it by the foreshortening of the end
+    face seen from the tube's 3-D direction
+    (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`)."""
     bb = np.asarray(backbone, np.float64)
     w = float(max(width_px, 2.0))
     arc = _local_arc(list(bb), window_px=max(24.0, 3 * w))
@@ -800,67 +767,39 @@ def refine_tip_details(
     theta = arc[0]
     d = np.array([np.cos(theta), np.sin(theta)])
     n = np.array([-d[1], d[0]])
+    p0 = bb[-1]
     ss = np.arange(-3 * w, w + cfg.look_px + 0.01, 0.25)
     tt = np.arange(-1.5 * w, 1.5 * w + 0.01, 0.25)
-    c0 = int(np.argmin(np.abs(tt)))
-
-    def grid(p0):
-        pts = p0[None, None] + ss[:, None, None] * d[None, None] + tt[None, :, None] * n[None, None]
-        return ndi.map_coordinates(score, [pts[..., 1], pts[..., 0]], order=1, mode="nearest")
-
-    def end_on_centre(g, half):
-        prof = g[:, np.abs(tt) <= 0.5].mean(1)
-        k0 = int(np.searchsorted(ss, -w))
-        below = np.flatnonzero(prof[k0:] < half)
-        if not len(below) or k0 + int(below[0]) == 0:
-            return None
-        k = k0 + int(below[0])
-        f = (prof[k - 1] - half) / max(prof[k - 1] - prof[k], 1e-12)
-        return float(ss[k - 1] + f * (ss[k] - ss[k - 1]))
-
-    p0 = bb[-1].copy()
-    g = grid(p0)
+    pts = p0[None, None] + ss[:, None, None] * d[None, None] + tt[None, :, None] * n[None, None]
+    g = ndi.map_coordinates(score, [pts[..., 1], pts[..., 0]], order=1, mode="nearest")
+    centre = np.abs(tt) <= 0.5
     behind = (ss >= -3 * w) & (ss <= -w)
-    s_in = float(np.median(g[behind][:, np.abs(tt) <= 0.5]))
+    s_in = float(np.median(g[behind][:, centre]))
     s_bg = float(np.median(g[behind][:, np.abs(tt) >= w]))
     if not s_in > s_bg:
-        return p0, 0.0, d, 0.0
+        return p0.copy(), 0.0, d, 0.0
     half = 0.5 * (s_in + s_bg)
-    s_end = end_on_centre(g, half)
-    if s_end is None:
-        return p0, 0.0, d, 0.0
-    runs = np.array([_half_run(g[i], tt, c0, half) for i in range(len(ss))])
-    ref = (ss >= s_end - 1.5 * w) & (ss <= s_end - 0.6 * w) & np.isfinite(runs[:, 0])
-    if ref.sum() >= 4:
-        t_c = float(np.median(runs[ref].mean(1)))
-        if 0.05 < abs(t_c) <= 0.5 * w:  # re-centre on the tube's axis and measure again
-            p0 = p0 + t_c * n
-            g = grid(p0)
-            s_new = end_on_centre(g, half)
-            if s_new is not None:
-                s_end = s_new
-                runs = np.array([_half_run(g[i], tt, c0, half) for i in range(len(ss))])
-    wid = np.nan_to_num(runs[:, 1] - runs[:, 0], nan=0.0)
-    ref = (ss >= s_end - 1.5 * w) & (ss <= s_end - 0.6 * w)
-    if ref.sum() < 4:
-        return p0 + s_end * d, 0.0, d, 0.0
-    R = 0.5 * float(np.median(wid[ref]))
-    if not R > 0.5:
-        return p0 + s_end * d, 0.0, d, 0.0
-    if cfg.tip_cap <= 0:
-        return p0 + s_end * d, 0.0, d, R
-    cap = (ss >= s_end - 1.2 * R) & (ss <= s_end)
-    deficit = float(np.sum(2 * R - wid[cap]) * 0.25)
-    # Blur rounds the half-level contour of any end inwards: by sigma^2 kappa / 2 along a
-    # curve turning through pi in all (a half-ellipse), i.e. an area (pi/2) sigma^2 (a flat
-    # end's two right-angled corners lose 2 x 0.89 sigma^2, numerically). sigma from the
-    # slope of the rows' edges at the half level (a blurred step of height S_in - S_bg has
-    # slope (S_in - S_bg) / (sigma sqrt(2 pi)) there).
-    sigma = _edge_sigma(g[ref], tt, runs[ref], s_in - s_bg)
-    deficit -= 0.5 * np.pi * sigma**2
-    a = deficit / (2 * R * (1 - np.pi / 4))
-    a = float(np.clip(a, 0.0, cfg.tip_cap * R))
-    return p0 + (s_end - a) * d, a, d, R
+    prof = g[:, centre].mean(1)
+    # First crossing below the half level after the end region starts (s >= -w).
+    k0 = int(np.searchsorted(ss, -w))
+    below = np.flatnonzero(prof[k0:] < half)
+    if not len(below):
+        return p0.copy(), 0.0, d, 0.0
+    k = k0 + int(below[0])
+    if k == 0:
+        return p0.copy(), 0.0, d, 0.0
+    f = (prof[k - 1] - half) / max(prof[k - 1] - prof[k], 1e-12)
+    s_end = float(ss[k - 1] + f * (ss[k] - ss[k - 1]))
+    soft = np.clip((g - s_bg) / (s_in - s_bg), None, 1.0)
+    band = np.abs(tt) <= 0.75 * w
+    w_full = float(np.median(soft[behind][:, band].sum(1) * 0.25))
+    if cfg.tip_cap <= 0 or not w_full > 0:
+        return p0 + s_end * d, 0.0, d, max(w_full, 0.0) / 2.0
+    region = (ss >= -w) & (ss <= s_end + 0.5 * w)
+    T = float(soft[region][:, band].sum() * 0.25 * 0.25)
+    a = (s_end + w - T / w_full) / (1.0 - np.pi / 4.0)
+    a = float(np.clip(a, 0.0, cfg.tip_cap * w_full / 2.0))
+    return p0 + (s_end - a) * d, a, d, w_full / 2.0
 
 
 def _path_mask(mask, bb, gaps, width):
