@@ -780,14 +780,21 @@ def refine_tip_details(
         return p0.copy(), 0.0, d, 0.0
     half = 0.5 * (s_in + s_bg)
     prof = g[:, centre].mean(1)
-    # First crossing below the half level after the end region starts (s >= -w).
+    # First crossing below the half level after the end region starts (s >= -w); if the
+    # centre line is below it there already (the path overshot the silhouette's end), the
+    # last crossing behind: interpolate only between a sample at or above the half level
+    # and the next one below it.
     k0 = int(np.searchsorted(ss, -w))
-    below = np.flatnonzero(prof[k0:] < half)
-    if not len(below):
-        return p0.copy(), 0.0, d, 0.0
-    k = k0 + int(below[0])
-    if k == 0:
-        return p0.copy(), 0.0, d, 0.0
+    if prof[k0] < half:
+        above = np.flatnonzero(prof[:k0] >= half)
+        if not len(above):
+            return p0.copy(), 0.0, d, 0.0
+        k = int(above[-1]) + 1
+    else:
+        below = np.flatnonzero(prof[k0:] < half)
+        if not len(below):
+            return p0.copy(), 0.0, d, 0.0
+        k = k0 + int(below[0])
     f = (prof[k - 1] - half) / max(prof[k - 1] - prof[k], 1e-12)
     s_end = float(ss[k - 1] + f * (ss[k] - ss[k - 1]))
     soft = np.clip((g - s_bg) / (s_in - s_bg), None, 1.0)
