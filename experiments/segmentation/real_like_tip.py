@@ -158,12 +158,14 @@ def stereo_step(fr, views: list[dict]) -> dict:
     cams = [v.camera for v in fr.views]
     tr = [v["trace"] for v in views]
     ends = [np.asarray(t["tip"]) + t["cap_px"] * np.asarray(t["end_dir"]) for t in tr]
-    ok = all(np.all(np.isfinite(e)) and t["end_half_width_px"] > 0 for e, t in zip(ends, tr))
+    ok = all(
+        np.all(np.isfinite(e)) and t["end_half_width_px"] > 0 for e, t in zip(ends, tr, strict=True)
+    )
     res = None
     if ok:
-        eu = [_undistort(c, e)[0] for c, e in zip(cams, ends)]
+        eu = [_undistort(c, e)[0] for c, e in zip(cams, ends, strict=True)]
         du = [_undistort(c, e + 5.0 * np.asarray(t["end_dir"]))[0] - x
-              for c, e, t, x in zip(cams, ends, tr, eu)]  # fmt: skip
+              for c, e, t, x in zip(cams, ends, tr, eu, strict=True)]  # fmt: skip
         res = end_face_lengths(cams[0].K, cams[0].T_cam_robot, cams[1].K, cams[1].T_cam_robot,
                                eu[0], du[0] / np.linalg.norm(du[0]), eu[1],
                                du[1] / np.linalg.norm(du[1]), tr[0]["end_half_width_px"],
@@ -236,9 +238,11 @@ def summarise(rows: list[dict], methods) -> dict:
         if m in ("trace", "trace_stereo") and rows and "epipolar_px" in rows[0]:
             flagged = [r["epipolar_px"][m] > EPIPOLAR_FLAG_PX for r in rows]
             s[m]["frames_flagged_epipolar"] = int(np.sum(flagged))
-            s[m]["flagged_frames_failing"] = int(sum(f and not ok for f, ok in zip(flagged, frames_ok)))
+            s[m]["flagged_frames_failing"] = int(
+                sum(f and not ok for f, ok in zip(flagged, frames_ok, strict=True))
+            )
             s[m]["unflagged_frames_failing"] = int(
-                sum((not f) and not ok for f, ok in zip(flagged, frames_ok))
+                sum((not f) and not ok for f, ok in zip(flagged, frames_ok, strict=True))
             )
     return s
 
@@ -353,7 +357,8 @@ def main(argv=None) -> int:
         "# Tip pixel error on the real_like preset (issue 16 item 2)",
         "",
         f"Command: `{cmd}` (commit {commit})"
-        + ("; rows from " + "; ".join(merged_from) if merged_from else "") + ".",
+        + ("; rows from " + "; ".join(merged_from) if merged_from else "")
+        + ".",
         "",
         f"Seeds ({args.role}): {', '.join(map(str, seeds))} ({len(seeds)} frames x 2 views), "
         f"image size {size[0]}x{size[1]}.",
@@ -391,7 +396,8 @@ def main(argv=None) -> int:
         "",
         "Per seed (px, view 1 / view 2):",
         "",
-        "| seed | " + " | ".join(methods)
+        "| seed | "
+        + " | ".join(methods)
         + " | epipolar px (trace / stereo) | trace scale | plate drift px | trace gaps |",
         "|---|" + "---|" * (len(methods) + 4),
     ]

@@ -105,8 +105,15 @@ def plate_config(args) -> PlateForegroundConfig:
             or (
                 v == 0
                 and name
-                not in ("blur_px", "min_chroma", "min_luma", "gap_visible", "close_px", "tip_cap",
-                         "scale")
+                not in (
+                    "blur_px",
+                    "min_chroma",
+                    "min_luma",
+                    "gap_visible",
+                    "close_px",
+                    "tip_cap",
+                    "scale",
+                )
             )
         ):
             raise InputError(f"{flag} must be a finite number > 0", field=flag[2:])

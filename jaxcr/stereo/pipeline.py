@@ -87,8 +87,8 @@ from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
-from jaxcr.stereo.triangulation import triangulate_points
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
+from jaxcr.stereo.triangulation import triangulate_points
 from jaxcr.stereo.view2d import tip_pixel, view_record
 
 __all__ = ["StereoConfig", "StereoFailure", "reconstruct_pair"]
