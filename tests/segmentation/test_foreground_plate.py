@@ -315,9 +315,13 @@ def test_plate_config_rejects_bad_values():
     cfg = plate_config(p.parse_args(["--plate-min-luma", "0", "--plate-gap-visible", "1",
                                      "--plate-close", "0"]))  # fmt: skip
     assert cfg.min_luma == 0.0 and cfg.gap_visible == 1.0 and cfg.close_px == 0.0
+    cfg = plate_config(p.parse_args(["--plate-scale", "0", "--plate-tube-width", "9"]))
+    assert cfg.scale == 0 and cfg.tube_width_px == 9.0
+    assert plate_config(p.parse_args(["--plate-scale", "2"])).scale == 2
     for bad in (["--plate-dark", "-1"], ["--plate-low", "2", "--plate-high", "1"],
                 ["--plate-support", "1.5"], ["--plate-diff", "nan"],
-                ["--plate-gap-visible", "1.5"]):  # fmt: skip
+                ["--plate-gap-visible", "1.5"], ["--plate-scale", "-1"],
+                ["--plate-tube-width", "0"]):  # fmt: skip
         with pytest.raises(InputError, match="--plate-"):
             plate_config(p.parse_args(bad))
 
