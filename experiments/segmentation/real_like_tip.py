@@ -7,8 +7,15 @@ white circle-grid board with black tape crossed by the tube in view 1, drifted p
 webcam noise, lens distortion, entry pixel with model error). Methods per view:
 
 * ``trace`` -- :func:`jaxcr.segmentation.foreground.plate_foreground` (aligned plate, cues, hysteresis,
-  tracing with gap bridging) from the entry pixel and the projected base axis (both with
-  model error); tip = its ``tip``;
+  tracing with gap bridging; a view where the tube is k >= 2 times ``tube_width_px`` wide is
+  traced reduced k times, the tip refined at full resolution) from the entry pixel and the
+  projected base axis (both with model error); tip = its ``tip``;
+* ``trace_stereo`` -- the same two traces, each tip moved to its silhouette's end minus the
+  end face's foreshortening computed from the tube's 3-D direction, which the two calibrated
+  views give (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`; the view's own estimate
+  where the two end directions leave the axis undetermined). The epipolar distance of each
+  method's two tips is recorded per frame (a frame over 5 px is flagged);
+* ``trace_r1`` -- the first round's foreground (commit cf4b1bb, from git);
 * ``plate`` -- the stereo pipeline's old plate mode: ``plate_alpha > 0.5`` (unaligned plate,
   lo/hi 0.06/0.15), 3x3 closing, the component at the entry;
 * ``gmm`` -- ``--background gmm``: :func:`jaxcr.segmentation.background.fit_background_model` on the
@@ -23,6 +30,10 @@ from the base as the stereo pipeline does. Success: tip within 5 px of the truth
 
     python experiments/segmentation/real_like_tip.py --seeds 1000-1023 --size 640x360 \
         --out experiments/results/segmentation/real_like_tip
+
+``--methods`` picks the methods (default ``trace,trace_stereo``; the baselines cost a minute
+a frame at 1280x720); ``--merge A.json B.json`` writes one report from runs of seed subsets
+run in parallel processes.
 """
 
 from __future__ import annotations
@@ -45,9 +56,12 @@ from jaxcr.segmentation import background as bgm
 from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foreground
 from jaxcr.stereo.base_locate import flood_component
 from jaxcr.stereo.chroma import plate_alpha
+from jaxcr.stereo.tip_geometry import end_face_lengths, epipolar_distances, fundamental_from_poses
 from jaxcr.synth.real_like import render_real_like_frame
 
-METHODS = ("trace", "trace_r1", "plate", "gmm", "colour")
+METHODS = ("trace", "trace_stereo", "trace_r1", "plate", "gmm", "colour")
+DEFAULT_METHODS = ("trace", "trace_stereo")
+EPIPOLAR_FLAG_PX = 5.0  # a frame whose two tips are farther from each other's epilines is flagged
 # The first round's foreground (results/segmentation/real_like_tip_round1.md), loaded from
 # git history so that it runs in the same process on the same frames.
 ROUND1_COMMIT = "cf4b1bb"
@@ -98,35 +112,81 @@ def _close(m: np.ndarray) -> np.ndarray:
     return cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
 
 
-def run_view(view, cfg: PlateForegroundConfig, r1) -> dict:
+def run_view(view, cfg: PlateForegroundConfig, r1, methods) -> dict:
     img = view.image.astype(np.float32) / 255.0
     plate = view.plate.astype(np.float32) / 255.0
     out = {}
     t = time.perf_counter()
     tr = plate_foreground(view.image, view.plate, view.entry_px, view.entry_dir_px, cfg=cfg)
     out["trace"] = {"tip": tr.tip.tolist(), "time_s": time.perf_counter() - t,
-                    "gaps": len(tr.gaps), "shift": tr.shift.tolist(), "cap_px": tr.cap_px}  # fmt: skip
-    t = time.perf_counter()
-    tr1 = r1.plate_foreground(view.image, view.plate, view.entry_px, view.entry_dir_px,
-                              cfg=r1.PlateForegroundConfig())  # fmt: skip
-    out["trace_r1"] = {"tip": tr1.tip.tolist(), "time_s": time.perf_counter() - t,
-                       "gaps": len(tr1.gaps)}  # fmt: skip
-    a = np.asarray(plate_alpha(img, plate))
-    out["plate"] = {"tip": geodesic_tip(_close(a > 0.5), view.entry_px).tolist()}
-    model = bgm.fit_background_model(plate[None], n_components=1)
-    bg, _ = bgm.background_model_mask(model, img)
-    out["gmm"] = {"tip": geodesic_tip(_close(~np.asarray(bg)), view.entry_px).tolist()}
-    bg, _ = bgm.colour_mask(img)
-    out["colour"] = {"tip": geodesic_tip(_close(~np.asarray(bg)), view.entry_px).tolist()}
-    for m in METHODS:
-        tip = np.asarray(out[m]["tip"])
-        out[m]["err_px"] = (
-            float(np.linalg.norm(tip - view.tip_px)) if np.all(np.isfinite(tip)) else float("inf")
-        )
+                    "gaps": len(tr.gaps), "shift": tr.shift.tolist(), "cap_px": tr.cap_px,
+                    "scale": tr.scale, "measured_width_px": tr.measured_width_px,
+                    "end_dir": tr.end_dir.tolist(),
+                    "end_half_width_px": tr.end_half_width_px}  # fmt: skip
+    if "trace_r1" in methods:
+        t = time.perf_counter()
+        tr1 = r1.plate_foreground(view.image, view.plate, view.entry_px, view.entry_dir_px,
+                                  cfg=r1.PlateForegroundConfig())  # fmt: skip
+        out["trace_r1"] = {"tip": tr1.tip.tolist(), "time_s": time.perf_counter() - t,
+                           "gaps": len(tr1.gaps)}  # fmt: skip
+    if "plate" in methods:
+        a = np.asarray(plate_alpha(img, plate))
+        out["plate"] = {"tip": geodesic_tip(_close(a > 0.5), view.entry_px).tolist()}
+    if "gmm" in methods:
+        model = bgm.fit_background_model(plate[None], n_components=1)
+        bg, _ = bgm.background_model_mask(model, img)
+        out["gmm"] = {"tip": geodesic_tip(_close(~np.asarray(bg)), view.entry_px).tolist()}
+    if "colour" in methods:
+        bg, _ = bgm.colour_mask(img)
+        out["colour"] = {"tip": geodesic_tip(_close(~np.asarray(bg)), view.entry_px).tolist()}
     out["truth_tip"] = view.tip_px.tolist()
     out["drift_px"] = view.drift_px.tolist()
     out["entry_error_px"] = float(np.linalg.norm(view.entry_px - view.entry_true_px))
     return out
+
+
+def _undistort(cam, uv) -> np.ndarray:
+    pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
+    return cv2.undistortPoints(pts, cam.K, cam.dist, P=cam.K).reshape(-1, 2)
+
+
+def stereo_step(fr, views: list[dict]) -> dict:
+    """``trace_stereo``: each view's tip from ``trace`` with the end face's foreshortening
+    taken from the tube's 3-D direction (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`,
+    both cameras known) instead of the end's shape in one view; and the epipolar distance
+    (px, undistorted) of both methods' tip pairs."""
+    cams = [v.camera for v in fr.views]
+    tr = [v["trace"] for v in views]
+    ends = [np.asarray(t["tip"]) + t["cap_px"] * np.asarray(t["end_dir"]) for t in tr]
+    ok = all(
+        np.all(np.isfinite(e)) and t["end_half_width_px"] > 0 for e, t in zip(ends, tr, strict=True)
+    )
+    res = None
+    if ok:
+        eu = [_undistort(c, e)[0] for c, e in zip(cams, ends, strict=True)]
+        du = [_undistort(c, e + 5.0 * np.asarray(t["end_dir"]))[0] - x
+              for c, e, t, x in zip(cams, ends, tr, eu, strict=True)]  # fmt: skip
+        res = end_face_lengths(cams[0].K, cams[0].T_cam_robot, cams[1].K, cams[1].T_cam_robot,
+                               eu[0], du[0] / np.linalg.norm(du[0]), eu[1],
+                               du[1] / np.linalg.norm(du[1]), tr[0]["end_half_width_px"],
+                               tr[1]["end_half_width_px"])  # fmt: skip
+    for k, v in enumerate(views):
+        if res is None:
+            v["trace_stereo"] = {"tip": list(tr[k]["tip"]), "cap_px": tr[k]["cap_px"],
+                                 "fallback": True}  # fmt: skip
+        else:
+            tip = ends[k] - res[k] * np.asarray(tr[k]["end_dir"])
+            v["trace_stereo"] = {"tip": tip.tolist(), "cap_px": res[k], "fallback": False}
+    F = fundamental_from_poses(cams[0].K, cams[0].T_cam_robot, cams[1].K, cams[1].T_cam_robot)
+    epi = {}
+    for m in ("trace", "trace_stereo"):
+        t1, t2 = (np.asarray(v[m]["tip"]) for v in views)
+        if np.all(np.isfinite(t1)) and np.all(np.isfinite(t2)):
+            epi[m] = max(epipolar_distances(F, _undistort(cams[0], t1)[0],
+                                            _undistort(cams[1], t2)[0]))  # fmt: skip
+        else:
+            epi[m] = float("inf")
+    return epi
 
 
 def _frame(seed: int, size: tuple, cache: str | None):
@@ -152,9 +212,18 @@ def _atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def summarise(rows: list[dict]) -> dict:
+def _errors(view: dict, methods) -> None:
+    for m in methods:
+        tip = np.asarray(view[m]["tip"])
+        view[m]["err_px"] = (
+            float(np.linalg.norm(tip - np.asarray(view["truth_tip"])))
+            if np.all(np.isfinite(tip)) else float("inf")
+        )  # fmt: skip
+
+
+def summarise(rows: list[dict], methods) -> dict:
     s = {}
-    for m in METHODS:
+    for m in methods:
         errs = np.array([v[m]["err_px"] for r in rows for v in r["views"]])
         frames_ok = [all(v[m]["err_px"] <= 5.0 for v in r["views"]) for r in rows]
         fin = errs[np.isfinite(errs)]
@@ -166,6 +235,15 @@ def summarise(rows: list[dict]) -> dict:
             "p90_px": float(np.percentile(fin, 90)) if len(fin) else float("nan"),
             "max_px": float(np.max(errs)) if len(errs) else float("nan"),
         }
+        if m in ("trace", "trace_stereo") and rows and "epipolar_px" in rows[0]:
+            flagged = [r["epipolar_px"][m] > EPIPOLAR_FLAG_PX for r in rows]
+            s[m]["frames_flagged_epipolar"] = int(np.sum(flagged))
+            s[m]["flagged_frames_failing"] = int(
+                sum(f and not ok for f, ok in zip(flagged, frames_ok, strict=True))
+            )
+            s[m]["unflagged_frames_failing"] = int(
+                sum((not f) and not ok for f, ok in zip(flagged, frames_ok, strict=True))
+            )
     return s
 
 
@@ -187,7 +265,24 @@ def main(argv=None) -> int:
         action="store_true",
         help="render the frames into --cache and stop (no method is run)",
     )
+    ap.add_argument(
+        "--methods",
+        default=",".join(DEFAULT_METHODS),
+        help=f"comma-separated, of {', '.join(METHODS)} (default "
+        f"{','.join(DEFAULT_METHODS)}; trace_stereo needs trace)",
+    )
+    ap.add_argument(
+        "--merge",
+        nargs="+",
+        default=None,
+        metavar="JSON",
+        help="write the report from these runs' JSON files (same size and config; e.g. the "
+        "halves of a seed range run in two processes) instead of running",
+    )
     args = ap.parse_args(argv)
+    methods = tuple(m for m in METHODS if m in args.methods.split(","))
+    if "trace_stereo" in methods and "trace" not in methods:
+        ap.error("trace_stereo needs trace")
     size = tuple(int(x) for x in args.size.lower().split("x"))
     cfg = PlateForegroundConfig()
     out = Path(args.out)
@@ -198,14 +293,24 @@ def main(argv=None) -> int:
         prev = json.loads(jpath.read_text())
         if prev.get("size") == list(size) and prev.get("config") == cfg.__dict__:
             rows = prev["rows"]
+    merged_from = []
+    if args.merge:
+        rows = []
+        for f in args.merge:
+            prev = json.loads(Path(f).read_text())
+            if prev.get("size") != list(size) or prev.get("config") != cfg.__dict__:
+                raise SystemExit(f"{f}: another size or configuration")
+            rows += prev["rows"]
+            merged_from.append(f"`{prev['command']}` (commit {prev['commit']})")
     done = {r["seed"] for r in rows}
-    r1 = None if args.render_only else _round1_module(ROUND1_COMMIT)
+    r1 = None if args.render_only or "trace_r1" not in methods else _round1_module(ROUND1_COMMIT)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
     cmd = "python experiments/segmentation/real_like_tip.py " + " ".join(
         argv if argv is not None else sys.argv[1:]
     )
-    for seed in _seeds(args.seeds):
+    load = os.getloadavg()
+    for seed in [] if args.merge else _seeds(args.seeds):
         if seed in done:
             continue
         t0 = time.perf_counter()
@@ -214,46 +319,75 @@ def main(argv=None) -> int:
         if args.render_only:
             print(f"seed {seed}: rendered", flush=True)
             continue
-        views = [run_view(v, cfg, r1) for v in fr.views]
-        rows.append({"seed": seed, "views": views, "render_s": t_render})
-        errs = " ".join(f"{m}={[round(v[m]['err_px'], 1) for v in views]}" for m in METHODS)
+        t1 = time.perf_counter()
+        views = [run_view(v, cfg, r1, methods) for v in fr.views]
+        row = {"seed": seed, "views": views, "render_s": t_render,
+               "methods_s": time.perf_counter() - t1, "load": os.getloadavg()[0]}  # fmt: skip
+        if "trace_stereo" in methods:
+            row["epipolar_px"] = stereo_step(fr, views)
+        for v in views:
+            _errors(v, methods)
+        rows.append(row)
+        errs = " ".join(f"{m}={[round(v[m]['err_px'], 1) for v in views]}" for m in methods)
         print(f"seed {seed}: {errs}", flush=True)
         meta = {
-            "format": "jaxcr.experiment.real_like_tip/1", "command": cmd, "commit": commit,
+            "format": "jaxcr.experiment.real_like_tip/2", "command": cmd, "commit": commit,
             "role": args.role, "size": list(size), "config": cfg.__dict__,
+            "methods": list(methods), "load_at_start": list(load),
             "python": platform.python_version(), "machine": platform.machine(),
-            "summary": summarise(rows), "rows": rows,
+            "summary": summarise(rows, methods), "rows": rows,
         }  # fmt: skip
         _atomic(jpath, json.dumps(meta, indent=1) + "\n")
     if args.render_only:
         return 0
-    summ = summarise(rows)
+    summ = summarise(rows, methods)
     seeds = sorted(r["seed"] for r in rows)
+    if args.merge:
+        meta = {
+            "format": "jaxcr.experiment.real_like_tip/2", "command": cmd, "commit": commit,
+            "merged_from": merged_from, "role": args.role, "size": list(size),
+            "config": cfg.__dict__, "methods": list(methods),
+            "python": platform.python_version(), "machine": platform.machine(),
+            "summary": summ, "rows": sorted(rows, key=lambda r: r["seed"]),
+        }  # fmt: skip
+        _atomic(jpath, json.dumps(meta, indent=1) + "\n")
+    loads = [r["load"] for r in rows if "load" in r]
+    per = [r["methods_s"] / len(r["views"]) for r in rows if "methods_s" in r]
     md = [
         "# Tip pixel error on the real_like preset (issue 16 item 2)",
         "",
-        f"Command: `{cmd}` (commit {commit}).",
+        f"Command: `{cmd}` (commit {commit})"
+        + ("; rows from " + "; ".join(merged_from) if merged_from else "")
+        + ".",
         "",
-        f"Seeds ({args.role}): {args.seeds} ({len(seeds)} frames x 2 views), "
+        f"Seeds ({args.role}): {', '.join(map(str, seeds))} ({len(seeds)} frames x 2 views), "
         f"image size {size[0]}x{size[1]}.",
         "",
         "Target: tip within 5 px per view in >= 95 % of frames.",
         "",
-        "Methods: `trace` this commit's plate foreground (defaults); `trace_r1` the first "
-        f"round's (commit {ROUND1_COMMIT}, loaded from git, its defaults); `plate`, `gmm`, "
-        "`colour` the older segmentations (module docstring).",
+        "Methods: `trace` this commit's plate foreground (defaults, one view at a time); "
+        "`trace_stereo` the same, with the end face's foreshortening from the tube's 3-D "
+        "direction seen by both calibrated cameras (jaxcr.stereo.tip_geometry); `trace_r1` "
+        f"the first round's (commit {ROUND1_COMMIT}); `plate`, `gmm`, `colour` the older "
+        "segmentations (module docstring). Run here: " + ", ".join(methods) + ".",
         "",
         "| method | views | views within 5 px | frames with both views within 5 px | median px "
-        "| p90 px | max px |",
-        "|---|---|---|---|---|---|---|",
+        "| p90 px | max px | frames flagged (epipolar > 5 px): failing / all; unflagged failing |",
+        "|---|---|---|---|---|---|---|---|",
     ]
-    for m in METHODS:
+    for m in methods:
         r = summ[m]
+        flag = (f"{r['flagged_frames_failing']} / {r['frames_flagged_epipolar']}; "
+                f"{r['unflagged_frames_failing']}" if "frames_flagged_epipolar" in r else "")  # fmt: skip
         md.append(
             f"| {m} | {r['views']} | {100 * r['views_within_5px']:.0f} % | "
             f"{100 * r['frames_within_5px_both_views']:.0f} % | {r['median_px']:.1f} | "
-            f"{r['p90_px']:.1f} | {r['max_px']:.1f} |"
+            f"{r['p90_px']:.1f} | {r['max_px']:.1f} | {flag} |"
         )
+    if per:
+        md += ["", f"Time of the methods: median {np.median(per):.0f} s per view (wall, "
+               f"single process) at a machine load of {np.median(loads):.1f} (1-min average, "
+               "2 cores shared with other jobs; not a benchmark)."]  # fmt: skip
     md += [
         "",
         "Real-rig numbers from the issue for comparison (not this preset): old plate mode "
@@ -262,15 +396,21 @@ def main(argv=None) -> int:
         "",
         "Per seed (px, view 1 / view 2):",
         "",
-        "| seed | " + " | ".join(METHODS) + " | plate drift px | trace gaps |",
-        "|---|" + "---|" * (len(METHODS) + 2),
+        "| seed | "
+        + " | ".join(methods)
+        + " | epipolar px (trace / stereo) | trace scale | plate drift px | trace gaps |",
+        "|---|" + "---|" * (len(methods) + 4),
     ]
     for r in sorted(rows, key=lambda r: r["seed"]):
         v = r["views"]
-        cells = [f"{v[0][m]['err_px']:.1f} / {v[1][m]['err_px']:.1f}" for m in METHODS]
+        cells = [f"{v[0][m]['err_px']:.1f} / {v[1][m]['err_px']:.1f}" for m in methods]
+        epi = r.get("epipolar_px", {})
+        epi_s = " / ".join(f"{epi[m]:.1f}" for m in ("trace", "trace_stereo") if m in epi)
+        scale = " / ".join(str(x["trace"].get("scale", 1)) for x in v)
         drift = " / ".join(f"{np.linalg.norm(x['drift_px']):.1f}" for x in v)
         gaps = " / ".join(str(x["trace"]["gaps"]) for x in v)
-        md.append(f"| {r['seed']} | " + " | ".join(cells) + f" | {drift} | {gaps} |")
+        md.append(f"| {r['seed']} | " + " | ".join(cells)
+                  + f" | {epi_s} | {scale} | {drift} | {gaps} |")  # fmt: skip
     _atomic(out.with_suffix(".md"), "\n".join(md) + "\n")
     print(json.dumps(summ, indent=1))
     return 0

@@ -49,6 +49,12 @@ _FLAGS = (
      "a gap is not bridged where the tube's colour would score above --plate-high against "
      "the plate on more than this fraction of it (the tube would have been seen: it ended; "
      "1 = off)"),
+    ("--plate-tube-width", "tube_width_px", float,
+     "tube width (px) that every length above is set for: a view where the tube measures "
+     "k = round(width / this) >= 2 times it (near the entry) is traced on the frame and plate "
+     "reduced k times, and its tip refined at full resolution"),
+    ("--plate-scale", "scale", int,
+     "force that reduction factor k (1 = full resolution; 0 = from the measured width)"),
 )  # fmt: skip
 
 
@@ -58,7 +64,9 @@ def add_plate_arguments(p: argparse.ArgumentParser, mode_flag: str) -> None:
     g = p.add_argument_group(
         "plate foreground (" + mode_flag + "; jaxcr.segmentation.foreground)",
         "aligned background plate, cues beyond the key colour with hysteresis, tracing "
-        "from the entry point with gap bridging. Each cue is 1 at its threshold.",
+        "from the entry point with gap bridging. Each cue is 1 at its threshold. Lengths "
+        "(px) are for a tube about --plate-tube-width px wide; wider tubes are traced at a "
+        "reduced resolution (--plate-scale).",
     )
     for flag, name, typ, text in _FLAGS:
         g.add_argument(
@@ -97,7 +105,15 @@ def plate_config(args) -> PlateForegroundConfig:
             or (
                 v == 0
                 and name
-                not in ("blur_px", "min_chroma", "min_luma", "gap_visible", "close_px", "tip_cap")
+                not in (
+                    "blur_px",
+                    "min_chroma",
+                    "min_luma",
+                    "gap_visible",
+                    "close_px",
+                    "tip_cap",
+                    "scale",
+                )
             )
         ):
             raise InputError(f"{flag} must be a finite number > 0", field=flag[2:])

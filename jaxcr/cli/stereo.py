@@ -382,7 +382,8 @@ class StereoWorker:
                            n_markers=list(r["n_markers"]),
                            entry_residual_px=r["entry_residual_px"],
                            n_segments=len(r["segments"]),
-                           single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]))  # fmt: skip
+                           single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]),
+                           tip_epipolar_px=r["tip_epipolar_px"])  # fmt: skip
             rec["timings"] = r["timings"]
         except StereoFailure as err:
             rec.update(ok=False, reason=err.reason, message=str(err))

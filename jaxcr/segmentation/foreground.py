@@ -29,6 +29,11 @@ scipy on float RGB in [0, 1] (no cv2, no file I/O):
    Output: the robot mask (mask pixels near the path plus the bridges drawn at the tube's
    width), the ordered 2-D backbone and the tip pixel.
 
+The tracing lengths are in pixels of a view where the tube is about ``tube_width_px`` wide;
+:func:`plate_foreground` measures the tube's width near the entry and traces a view where it
+is ``k >= 2`` times wider on the frame and plate reduced ``k`` times, refining the tip at full
+resolution (:class:`PlateForegroundConfig`, "Scale").
+
 Pixel convention: OpenCV's (u, v) = (column, row), pixel centres at integers.
 """
 
@@ -51,6 +56,9 @@ __all__ = [
     "trace_tube",
     "border_entry",
     "refine_tip",
+    "refine_tip_details",
+    "measure_tube_width",
+    "downsample",
     "plate_foreground",
 ]
 
@@ -93,6 +101,15 @@ class PlateForegroundConfig:
     against the plate on more than this fraction of the gap (the tube would have been
     seen there, so it ended; 1 = off); ``start_spread_deg`` (20) a given
     entry direction is also tried turned by this much either way, the longest trace kept.
+    Scale: every length above (``blur_px``, ``close_px``, ``step_px``, ``look_px``,
+    ``max_gap_px``, ``max_width_px``, ``min_seed_px`` (an area), ``max_shift_px`` excepted: the
+    plate is aligned at full resolution) is in pixels of a view where the tube is about
+    ``tube_width_px`` (7) pixels wide, the width they were set at (the ``real_like`` preset at
+    640x360). :func:`plate_foreground` measures the tube's width near the entry
+    (:func:`measure_tube_width`) and, where it is ``k = round(width / tube_width_px) >= 2``
+    times that, finds and traces the tube on the frame and plate reduced by ``k`` (area
+    average), then maps the path back and refines the tip on the full-resolution score.
+    ``scale`` (0 = that automatic choice) forces the factor ``k`` (1 = full resolution).
     """
 
     dark: float = 0.3
@@ -121,6 +138,8 @@ class PlateForegroundConfig:
     tip_cap: float = 1.0
     refine: bool = True
     start_spread_deg: float = 20.0
+    tube_width_px: float = 7.0
+    scale: int = 0
 
 
 @dataclass
@@ -138,6 +157,11 @@ class TubeTrace:
         width_px: median tube width across the traced path (pixels).
         reason: None, or why tracing stopped early (e.g. "no foreground at the entry").
         cap_px: length of the end face's half-ellipse removed by :func:`refine_tip` (px).
+        scale: the factor ``k`` the tube was traced at (1 = full resolution; see
+            :class:`PlateForegroundConfig`); ``measured_width_px``: the width that chose it.
+        end_dir, end_half_width_px: the tube's direction (unit (u, v)) and half width at
+            the tip (:func:`refine_tip_details`; the silhouette's end is
+            ``tip + cap_px * end_dir``).
     """
 
     mask: np.ndarray
@@ -151,6 +175,10 @@ class TubeTrace:
     width_px: float = 0.0
     reason: str | None = None
     cap_px: float = 0.0
+    scale: int = 1
+    measured_width_px: float = 0.0
+    end_dir: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    end_half_width_px: float = 0.0
 
 
 # ----------------------------------------------------------------------------- alignment
@@ -697,28 +725,45 @@ def refine_tip(
     width_px: float,
     cfg: PlateForegroundConfig = PlateForegroundConfig(),
 ) -> tuple[np.ndarray, float]:
+    """(tip (u, v), a) of :func:`refine_tip_details` (see there)."""
+    tip, a, _, _ = refine_tip_details(score, backbone, width_px, cfg)
+    return tip, a
+
+
+def refine_tip_details(
+    score: np.ndarray,
+    backbone: np.ndarray,
+    width_px: float,
+    cfg: PlateForegroundConfig = PlateForegroundConfig(),
+) -> tuple[np.ndarray, float, np.ndarray, float]:
     """Sub-pixel tip along the tube's end direction, from the cue ``score`` (H, W) near the
     end of ``backbone`` (n, 2) (u, v), for a tube of width ``width_px``.
 
     The score is sampled (bilinear) on a grid aligned with the end direction ``d`` (the
-    quadratic fit of the last 24 px of the backbone), at 0.25 px steps. Levels: inside
-    ``S_in`` (median on the centre line 1-3 widths behind the end) and background ``S_bg``
-    (median beside the tube). Along the centre line the silhouette's end ``s_end`` is where
-    the score falls to the half level ``(S_in + S_bg)/2`` (a blurred step's half level is
-    its edge, whatever the blur). The tube's end face is a disc: seen at an angle, the
-    silhouette ends in a half-ellipse of width ``w`` and length ``a`` beyond the end point
-    (``a = r |sin|`` of the axis' tilt out of the image plane), so the end point is
-    ``s_end - a``. ``a`` follows from the soft area ``T`` (the score normalised to
-    background 0 and inside 1, clipped at 1, integrated) of the stretch from one width
-    behind the end: ``T = w (s_end - a + w) + (pi/4) w a``, so
-    ``a = (s_end + w - T/w) / (1 - pi/4)``, clipped to ``[0, tip_cap * w/2]``.
-    ``cfg.tip_cap`` (1.0) scales the largest correction (0 = the silhouette's end).
-    Returns (tip (u, v), a)."""
+    quadratic fit of the last ``max(24, 3 w)`` px of the backbone), at 0.25 px steps.
+    Levels: inside ``S_in`` (median on the centre line 1-3 widths behind the end) and
+    background ``S_bg`` (median beside the tube). Along the centre line the silhouette's
+    end ``s_end`` is where the score falls to the half level ``(S_in + S_bg)/2`` (a blurred
+    step's half level is its edge, whatever the blur). The tube's end face is a disc: seen
+    at an angle, the silhouette ends in a half-ellipse of width ``w`` and length ``a``
+    beyond the end point (``a = r |sin|`` of the axis' tilt out of the image plane), so the
+    end point is ``s_end - a``. ``a`` follows from the soft area ``T`` (the score
+    normalised to background 0 and inside 1, clipped at 1, integrated) of the stretch from
+    one width behind the end: ``T = w (s_end - a + w) + (pi/4) w a``, so
+    ``a = (s_end + w - T/w) / (1 - pi/4)``, clipped to ``[0, tip_cap * w/2]``, with ``w``
+    the median soft width behind the end. ``cfg.tip_cap`` (1.0) scales the largest
+    correction (0 = the silhouette's end).
+
+    Returns (tip (u, v), a, the end direction d (2,), the half width ``w/2`` (px; 0 if not
+    measured)): the silhouette's end is ``tip + a d``. One view cannot tell ``a`` from a
+    longer tube; a calibrated stereo rig can replace it by the foreshortening of the end
+    face seen from the tube's 3-D direction
+    (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`)."""
     bb = np.asarray(backbone, np.float64)
     w = float(max(width_px, 2.0))
     arc = _local_arc(list(bb), window_px=max(24.0, 3 * w))
     if arc is None or len(bb) < 3:
-        return bb[-1].copy(), 0.0
+        return bb[-1].copy(), 0.0, np.zeros(2), 0.0
     theta = arc[0]
     d = np.array([np.cos(theta), np.sin(theta)])
     n = np.array([-d[1], d[0]])
@@ -732,31 +777,36 @@ def refine_tip(
     s_in = float(np.median(g[behind][:, centre]))
     s_bg = float(np.median(g[behind][:, np.abs(tt) >= w]))
     if not s_in > s_bg:
-        return p0.copy(), 0.0
+        return p0.copy(), 0.0, d, 0.0
     half = 0.5 * (s_in + s_bg)
     prof = g[:, centre].mean(1)
-    # First crossing below the half level after the end region starts (s >= -w).
+    # First crossing below the half level after the end region starts (s >= -w); if the
+    # centre line is below it there already (the path overshot the silhouette's end), the
+    # last crossing behind: interpolate only between a sample at or above the half level
+    # and the next one below it.
     k0 = int(np.searchsorted(ss, -w))
-    below = np.flatnonzero(prof[k0:] < half)
-    if not len(below):
-        return p0.copy(), 0.0
-    k = k0 + int(below[0])
-    if k == 0:
-        return p0.copy(), 0.0
+    if prof[k0] < half:
+        above = np.flatnonzero(prof[:k0] >= half)
+        if not len(above):
+            return p0.copy(), 0.0, d, 0.0
+        k = int(above[-1]) + 1
+    else:
+        below = np.flatnonzero(prof[k0:] < half)
+        if not len(below):
+            return p0.copy(), 0.0, d, 0.0
+        k = k0 + int(below[0])
     f = (prof[k - 1] - half) / max(prof[k - 1] - prof[k], 1e-12)
     s_end = float(ss[k - 1] + f * (ss[k] - ss[k - 1]))
-    if cfg.tip_cap <= 0:
-        return p0 + s_end * d, 0.0
     soft = np.clip((g - s_bg) / (s_in - s_bg), None, 1.0)
     band = np.abs(tt) <= 0.75 * w
     w_full = float(np.median(soft[behind][:, band].sum(1) * 0.25))
-    if not w_full > 0:
-        return p0 + s_end * d, 0.0
+    if cfg.tip_cap <= 0 or not w_full > 0:
+        return p0 + s_end * d, 0.0, d, max(w_full, 0.0) / 2.0
     region = (ss >= -w) & (ss <= s_end + 0.5 * w)
     T = float(soft[region][:, band].sum() * 0.25 * 0.25)
     a = (s_end + w - T / w_full) / (1.0 - np.pi / 4.0)
     a = float(np.clip(a, 0.0, cfg.tip_cap * w_full / 2.0))
-    return p0 + (s_end - a) * d, a
+    return p0 + (s_end - a) * d, a, d, w_full / 2.0
 
 
 def _path_mask(mask, bb, gaps, width):
@@ -788,6 +838,62 @@ def _path_mask(mask, bb, gaps, width):
     return out
 
 
+def downsample(image: np.ndarray, k: int) -> np.ndarray:
+    """``image`` (H, W[, C]) reduced by the integer factor ``k`` (mean over k x k blocks;
+    the last ``H % k`` rows and ``W % k`` columns are dropped). Pixel ``i`` of the result
+    covers pixels ``k i .. k i + k - 1``, so its centre is at full-resolution coordinate
+    ``k i + (k - 1)/2`` (:func:`_to_full`)."""
+    im = np.asarray(image, np.float64)
+    if k <= 1:
+        return im
+    h, w = im.shape[0] // k, im.shape[1] // k
+    im = im[: h * k, : w * k]
+    return im.reshape(h, k, w, k, *im.shape[2:]).mean(axis=(1, 3))
+
+
+def _to_full(uv: np.ndarray, k: int) -> np.ndarray:
+    return np.asarray(uv, np.float64) * k + (k - 1) / 2.0
+
+
+def _to_low(uv: np.ndarray, k: int) -> np.ndarray:
+    return (np.asarray(uv, np.float64) - (k - 1) / 2.0) / k
+
+
+def measure_tube_width(mask: np.ndarray, entry_uv, *, search_px: float = 20.0) -> float:
+    """Width (px) of the tube on ``mask`` (H, W) bool that starts near ``entry_uv`` (u, v):
+    the median of ``2 d - 1/2`` over the ridge of the distance transform ``d`` (pixels
+    whose distance to the background is a local maximum over their 8 neighbours, ``d >=
+    1``) of the mask component nearest the entry (within ``search_px``). Across a band
+    of ``w`` pixels the centre pixel lies ``(w + 1)/2`` from the first background pixel
+    (``w`` odd; ``w/2`` for its two centre pixels when ``w`` is even), so the estimate is
+    within 1/2 px of ``w`` on a clean band; the median ignores the short ridges of a blob
+    or a noisy edge. 0 when no component is near the entry."""
+    mask = np.asarray(mask, bool)
+    h, w = mask.shape
+    e = np.asarray(entry_uv, np.float64)
+    r0, r1 = int(max(e[1] - search_px, 0)), int(min(e[1] + search_px + 1, h))
+    c0, c1 = int(max(e[0] - search_px, 0)), int(min(e[0] + search_px + 1, w))
+    rr, cc = np.nonzero(mask[r0:r1, c0:c1])
+    if not len(rr):
+        return 0.0
+    k = int(np.argmin((cc + c0 - e[0]) ** 2 + (rr + r0 - e[1]) ** 2))
+    lab, _ = ndi.label(mask, structure=np.ones((3, 3), bool))
+    comp = lab == lab[rr[k] + r0, cc[k] + c0]
+    sl = ndi.find_objects(comp.astype(np.int32))[0]
+    sub = np.pad(comp[sl], 1)
+    d = ndi.distance_transform_edt(sub)
+    ridge = (d >= 1.0) & (d >= ndi.maximum_filter(d, size=3))
+    return float(np.median(2.0 * d[ridge] - 0.5))
+
+
+def _scaled(cfg: PlateForegroundConfig, k: int) -> PlateForegroundConfig:
+    """``cfg`` with its lengths multiplied by ``k`` (for the full-resolution steps)."""
+    from dataclasses import replace
+
+    return replace(cfg, close_px=cfg.close_px * k, look_px=cfg.look_px * k,
+                   step_px=cfg.step_px * k, max_width_px=cfg.max_width_px * k)  # fmt: skip
+
+
 def plate_foreground(
     frame: np.ndarray,
     plate: np.ndarray,
@@ -797,7 +903,16 @@ def plate_foreground(
 ) -> TubeTrace:
     """Steps 1-4 of the module docstring on one view: ``frame``, ``plate`` RGB (H, W, 3)
     (uint8 or float [0, 1]); ``entry_uv`` the pixel where the robot enters the view (None:
-    found at the image border, :func:`border_entry`)."""
+    found at the image border, :func:`border_entry`).
+
+    The plate is aligned and the cues computed at full resolution; the tube's width near
+    the entry (:func:`measure_tube_width` on the hysteresis mask) chooses the factor ``k``
+    (``cfg.scale``, see :class:`PlateForegroundConfig`). With ``k >= 2`` the cues,
+    hysteresis and tracing run again on frame and aligned plate reduced by ``k``
+    (:func:`downsample`), where the tube is about ``cfg.tube_width_px`` wide as the
+    lengths assume; the path is mapped back to full-resolution pixels, the mask is the
+    full-resolution hysteresis mask near the path (closing ``k close_px``), and the tip is
+    refined on the full-resolution score (with ``k look_px``)."""
     f = np.asarray(frame)
     p = np.asarray(plate)
     f = f.astype(np.float64) / 255.0 if f.dtype == np.uint8 else f.astype(np.float64)
@@ -805,26 +920,49 @@ def plate_foreground(
     shift = align_plate(f, p, max_shift_px=cfg.max_shift_px) if cfg.align else np.zeros(2)
     pa = shift_image(p, shift) if cfg.align else p
     cues = foreground_cues(f, pa, cfg)
-    if cfg.close_px > 0:
-        cues["score"] = close_score(cues["score"], cfg.close_px)
-    seeds = hysteresis(cues["score"], cfg.low, cfg.high)
+    raw = cues["score"]
+    score = close_score(raw, cfg.close_px) if cfg.close_px > 0 else raw
+    seeds = hysteresis(score, cfg.low, cfg.high)
     if entry_uv is None:
         be = border_entry(seeds)
         if be is None:
             tr = TubeTrace(np.zeros(seeds.shape, bool), np.zeros((0, 2)), np.full(2, np.nan),
                            np.full(2, np.nan), reason="no foreground touches the image border")  # fmt: skip
-            tr.score, tr.seed_mask, tr.shift = cues["score"], seeds, shift
+            tr.score, tr.seed_mask, tr.shift = score, seeds, shift
             return tr
         entry_uv, d0 = be
         direction_uv = d0 if direction_uv is None else direction_uv
-    fs, ps = f, pa
+    entry_uv = np.asarray(entry_uv, np.float64)
+    width0 = measure_tube_width(seeds, entry_uv)
+    k = int(cfg.scale) if cfg.scale > 0 else max(1, int(round(width0 / cfg.tube_width_px)))
+    k = max(1, min(k, min(f.shape[:2]) // 32))  # keep at least 32 px across the reduced view
+    if k > 1:
+        fl, pl = downsample(f, k), downsample(pa, k)
+        sl = foreground_cues(fl, pl, cfg)["score"]
+        if cfg.close_px > 0:
+            sl = close_score(sl, cfg.close_px)
+        seeds_l = hysteresis(sl, cfg.low, cfg.high)
+        if cfg.close_px > 0:  # the full-resolution score, closed across the wider tube
+            score = close_score(raw, cfg.close_px * k)
+            seeds = hysteresis(score, cfg.low, cfg.high)
+    else:
+        fl, pl, seeds_l = f, pa, seeds
+    fs, ps = fl, pl
     if cfg.blur_px > 0:
-        fs = ndi.gaussian_filter(f, (cfg.blur_px, cfg.blur_px, 0))
-        ps = ndi.gaussian_filter(pa, (cfg.blur_px, cfg.blur_px, 0))
-    tr = trace_tube(seeds, entry_uv, direction_uv, cfg, frame=fs, plate=ps)
+        fs = ndi.gaussian_filter(fl, (cfg.blur_px, cfg.blur_px, 0))
+        ps = ndi.gaussian_filter(pl, (cfg.blur_px, cfg.blur_px, 0))
+    tr = trace_tube(seeds_l, _to_low(entry_uv, k), direction_uv, cfg, frame=fs, plate=ps)
+    if k > 1:
+        tr.backbone = _to_full(tr.backbone, k)
+        tr.tip, tr.entry = _to_full(tr.tip, k), _to_full(tr.entry, k)
+        tr.width_px = tr.width_px * k
+        tr.mask = _path_mask(seeds, tr.backbone, tr.gaps, tr.width_px)
     if cfg.refine and len(tr.backbone) >= 3:
-        tip, tr.cap_px = refine_tip(cues["score"], tr.backbone, tr.width_px, cfg)
+        tip, tr.cap_px, tr.end_dir, tr.end_half_width_px = refine_tip_details(
+            score, tr.backbone, tr.width_px, _scaled(cfg, k)
+        )
         tr.backbone = np.vstack([tr.backbone[:-1], tip])
         tr.tip = tip
-    tr.shift, tr.score, tr.seed_mask = shift, cues["score"], seeds
+    tr.shift, tr.score, tr.seed_mask = shift, score, seeds
+    tr.scale, tr.measured_width_px = k, width0
     return tr

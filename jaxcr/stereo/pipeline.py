@@ -87,6 +87,7 @@ from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
+from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
 from jaxcr.stereo.triangulation import triangulate_points
 from jaxcr.stereo.view2d import tip_pixel, view_record
 
@@ -233,6 +234,21 @@ def _project_np(cam: Camera, pts: np.ndarray, T: np.ndarray | None = None) -> np
         np.asarray(cam.dist, np.float64),
     )
     return uv.reshape(-1, 2)
+
+
+def _tip_epipolar_px(cams, vrec) -> float:
+    """Epipolar consistency of the two views' ``tip_px``: the larger of the distances (px,
+    on undistorted pixels) of each tip to the epiline of the other
+    (:func:`jaxcr.stereo.tip_geometry.epipolar_distances`); a tip found on different points
+    of the tube in the two views is far from the other's epiline."""
+    und = []
+    for c, v in zip(cams, vrec, strict=True):
+        K = np.asarray(c.K, np.float64)
+        x = np.asarray(v["tip_px"], np.float64).reshape(1, 1, 2)
+        und.append(cv2.undistortPoints(x, K, np.asarray(c.dist, np.float64), P=K).reshape(2))
+    F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
+                               np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
+    return round(max(epipolar_distances(F, und[0], und[1])), 2)
 
 
 def _marker_mask(cam: Camera, layout: MarkerLayout, shape, margin: float = 0.003) -> np.ndarray:
@@ -925,6 +941,7 @@ def reconstruct_pair(
                 last["length_mm"] = last["s_end_mm"] - last["s_start_mm"]
                 last["single_view_mm"] = 1e3 * float(s[-1] - s[n0 - 1])
         _tick(timings, "single_view_tail", t0)
+    vrec = [view_record(v["uv"], v["robot"], search_px=cfg.tip_search_px) for v in views]
     return {
         "s": s,
         "p": p,
@@ -947,6 +964,7 @@ def reconstruct_pair(
         "s_stereo_end": float(s[~single_view][-1]),
         "base_mode": bspec.mode,
         "entry_residual_px": pose.get("entry_residual_px"),
-        "views_px": [view_record(v["uv"], v["robot"], search_px=cfg.tip_search_px) for v in views],
+        "views_px": vrec,
+        "tip_epipolar_px": _tip_epipolar_px(cams, vrec),
         "timings": timings,
     }

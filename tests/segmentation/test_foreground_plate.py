@@ -246,6 +246,24 @@ def test_refine_tip_on_drawn_ends(angle_deg, cap):
         assert -0.3 < along < 0.65 * cap and 0.35 * cap < a < cap + 0.3
 
 
+def test_refine_tip_when_the_path_overshoots_the_end():
+    """The traced path ends 1.5 tube widths beyond the silhouette's end (the score on the
+    centre line is already at background one width behind the path's end). Seen on fresh
+    seed 3217 at 1280x720: the crossing was interpolated between two background samples
+    (a near-zero difference) and the tip landed 7e11 px away. Reference: the drawn flat end
+    (8x8 supersampled, blur 1.2 px): within 0.5 px (the 0.3 px of
+    test_refine_tip_on_drawn_ends plus the end face's soft-area estimate, a < 0.2 px here)."""
+    h, w, ss = 80, 100, 8
+    end = np.array([45.3, 40.2])
+    yy, xx = (np.mgrid[0 : h * ss, 0 : w * ss] + 0.5) / ss - 0.5
+    body = (xx <= end[0]) & (xx >= end[0] - 40) & (np.abs(yy - end[1]) <= 4.0)
+    score = 3.0 * ndi.gaussian_filter(body.reshape(h, ss, w, ss).mean((1, 3)), 1.2)
+    backbone = np.stack([np.arange(end[0] - 36, end[0] + 12.01, 2.0),
+                         np.full(25, end[1])], 1)  # fmt: skip
+    tip, a = refine_tip(score, backbone, 8.0)
+    assert np.all(np.isfinite(tip)) and np.linalg.norm(tip - end) < 0.5, tip
+
+
 def test_trace_turns_at_a_projected_kink():
     """An L-shaped tube 7 px wide (an inner tube leaving the outer one at a right angle in
     projection) with a 2 px wide spur (a crease) leaving its far end at a right angle:
@@ -297,9 +315,13 @@ def test_plate_config_rejects_bad_values():
     cfg = plate_config(p.parse_args(["--plate-min-luma", "0", "--plate-gap-visible", "1",
                                      "--plate-close", "0"]))  # fmt: skip
     assert cfg.min_luma == 0.0 and cfg.gap_visible == 1.0 and cfg.close_px == 0.0
+    cfg = plate_config(p.parse_args(["--plate-scale", "0", "--plate-tube-width", "9"]))
+    assert cfg.scale == 0 and cfg.tube_width_px == 9.0
+    assert plate_config(p.parse_args(["--plate-scale", "2"])).scale == 2
     for bad in (["--plate-dark", "-1"], ["--plate-low", "2", "--plate-high", "1"],
                 ["--plate-support", "1.5"], ["--plate-diff", "nan"],
-                ["--plate-gap-visible", "1.5"]):  # fmt: skip
+                ["--plate-gap-visible", "1.5"], ["--plate-scale", "-1"],
+                ["--plate-tube-width", "0"]):  # fmt: skip
         with pytest.raises(InputError, match="--plate-"):
             plate_config(p.parse_args(bad))
 

@@ -71,6 +71,23 @@ def test_T_cam_base_mode_on_synth_scene(scene):
         tip_true = _px(cam, T[n], truth["p"][-1])[0]
         # thinning + tip search on a ~2 px wide tube: measured 0.5-0.6 px; 2 px bound.
         assert np.linalg.norm(np.array(r["views_px"][k]["tip_px"]) - tip_true) < 2.0
+    # The tips' epipolar consistency against OpenCV's epilines of the undistorted tips
+    # (rounded to 0.01 px in the record); both tips within 2 px of the truth: < 5 px.
+    und = []
+    for k, cam in enumerate((ds["cam1"], ds["cam2"])):
+        K = np.asarray(cam.K, np.float64)
+        x = np.asarray(r["views_px"][k]["tip_px"], np.float64).reshape(1, 1, 2)
+        und.append(cv2.undistortPoints(x, K, np.asarray(cam.dist, np.float64), P=K).reshape(2))
+    T1, T2 = r["T_cam1_base"], r["T_cam2_base"]
+    T21 = T2 @ np.linalg.inv(T1)
+    t = T21[:3, 3]
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ T21[:3, :3]
+    K1, K2 = (np.asarray(c.K, np.float64) for c in (ds["cam1"], ds["cam2"]))
+    F = np.linalg.inv(K2).T @ E @ np.linalg.inv(K1)
+    l2 = cv2.computeCorrespondEpilines(und[0].reshape(1, 1, 2), 1, F).reshape(3)
+    l1 = cv2.computeCorrespondEpilines(und[1].reshape(1, 1, 2), 2, F).reshape(3)
+    ref = max(abs(l2 @ np.r_[und[1], 1.0]), abs(l1 @ np.r_[und[0], 1.0]))
+    assert r["tip_epipolar_px"] == pytest.approx(ref, abs=0.006) and ref < 5.0
 
 
 def test_entry_px_mode_on_synth_scene(scene):
