@@ -11,6 +11,8 @@ prints and sets the exit code).
 A ``jaxcr stereo`` OUT (``--shard`` runs, docs/scale-out.md) is merged in place instead: the
 records of every shard, ``segments.csv``/``.md`` over all recorded frames and ``merge.json``
 (:func:`jaxcr.cli.stereo.merge_outputs`), the failed and the missing frames named.
+A ``jaxcr fk`` or ``jaxcr manifold query`` OUT: the rows/frames no shard recorded are named
+(exit 1); when all are, the command writes its whole-job files (``tips.csv``, ``estimates.csv``).
 Exit code 1 when the report counts failed frames (failed in the segment run, or outputs
 missing/damaged/mis-sized); they are listed in ``per_frame.csv`` with the reason.
 """
@@ -103,12 +105,78 @@ def _run_stereo(outs: list[Path]) -> int:
     return code
 
 
+def _run_jobs(outs: list[Path]) -> int:
+    """``fk`` / ``manifold query`` outputs (:mod:`jaxcr.scale.job`): name the items (rows,
+    frames) no run or shard has recorded and the shards without ``DONE``; when every item is
+    recorded, write the whole-job files (``tips.csv`` ..., by the command itself: it resumes,
+    computes nothing, and assembles them)."""
+    import json
+
+    from jaxcr.cli import main
+    from jaxcr.io import outdir
+    from jaxcr.scale import job as J
+    from jaxcr.scale import shards as S
+
+    code = 0
+    for o in outs:
+        command = outdir.owner(o)
+        runs = [f for f in [o / "run.json"] + [d / "run.json" for _, d in S.shard_dirs(o)]
+                if f.exists()]  # fmt: skip
+        if not runs:
+            raise InputError(f"no run.json: not a jaxcr {command} output", file=str(o))
+        try:
+            info = json.loads(runs[0].read_text(encoding="utf-8"))
+            inputs, options = info["inputs"], info["options"]
+        except (UnicodeDecodeError, ValueError, KeyError, TypeError):
+            raise InputError(f"not a {J.RUN_FORMAT} file", file=str(runs[0])) from None
+        key = "row" if command == "fk" else "id"
+        recorded = set()
+        for f in S.results_files(o, J.RESULTS):
+            recorded |= {str(r[key]) for r in J.read_keyed(f, key)}
+        if command == "fk":
+            items = [str(i) for i in range(int(inputs["rows"]))]
+            argv = ["fk", inputs["robot"], inputs["q"], "-o", str(o)]
+            if options.get("points") is not None:
+                argv += ["--points", str(options["points"])]
+        else:
+            from jaxcr.cli.manifold import QueryWorker
+
+            items = QueryWorker(inputs["model"], inputs["dataset"]).items
+            argv = ["manifold", "query", inputs["model"], inputs["dataset"], "-o", str(o)]
+        missing = [i for i in items if i not in recorded]
+        if missing:
+            dirs = S.shard_dirs(o)
+            done = {(s.count, s.index) for s, d in dirs if (d / J.DONE).exists()}
+            unfinished = ", ".join(str(S.Shard(i, n)) for n in sorted({s.count for s, _ in dirs})
+                                   for i in range(n) if (n, i) not in done)  # fmt: skip
+            shown = ", ".join(missing[:10]) + (f" (and {len(missing) - 10} more)"
+                                               if len(missing) > 10 else "")  # fmt: skip
+            print(f"jaxcr evaluate: {o}: {len(missing)} of {len(items)} {key}(s) missing (no "
+                  f"record in results.jsonl or its shards): {shown}"
+                  + (f"; shard(s) {unfinished} not finished" if unfinished else "")
+                  + f"; continue with jaxcr {command} (the missing --shard, or without --shard:"
+                  " it skips recorded items)", file=sys.stderr)  # fmt: skip
+            code = 1
+            continue
+        # every item recorded: the command assembles the whole-job files (exit 1: failed items)
+        code = max(code, main(argv))
+    return code
+
+
 def run(args) -> int:
     outs = [Path(o) for o in args.outs]
     for o in outs:
         if not o.exists():
             raise InputError("output folder not found", file=str(o))
     from jaxcr.cli.stereo import is_stereo_output
+    from jaxcr.io import outdir
+
+    jobs = [outdir.owner(o) in ("fk", "manifold query") for o in outs]
+    if any(jobs):
+        if not all(jobs) or args.out:
+            raise InputError("fk and manifold query outputs are merged in place, one kind at "
+                             "a time: no -o, no other outputs", field="outs")  # fmt: skip
+        return _run_jobs(outs)
 
     stereo = [is_stereo_output(o) for o in outs]
     if any(stereo):

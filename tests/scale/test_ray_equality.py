@@ -14,6 +14,8 @@ are tiny (a 9-point single-segment robot, 160x120 IREP frames, 320x240 stereo pa
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import shutil
 from pathlib import Path
@@ -62,6 +64,9 @@ def fk(ray_instance, tmp_path_factory):
         ("local", []), ("ray", RAY), ("shards", ["--shard", "1/2"]),
     ]}  # fmt: skip
     codes["shard1_alone"] = (root / "shards" / "tips.csv").exists()  # before shard 0 finishes
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        codes["evaluate_partial"] = (main(["evaluate", str(root / "shards")]), err.getvalue())
     codes["shards"] = (codes["shards"], main([*base, "-o", str(root / "shards"), "--shard", "0/2"]))
     return root, codes
 
@@ -102,6 +107,19 @@ def test_fk_shards_merge_into_the_local_output(fk):
     # chunks, so other positions in the batch: per-row results of a vmap do not depend on it)
     assert (s / "tips.csv").read_bytes() == (a / "tips.csv").read_bytes()
     _assert_npz_equal(s / "centrelines.npz", a / "centrelines.npz")
+
+
+def test_evaluate_names_missing_fk_rows_then_writes_the_job_files(fk, tmp_path):
+    root, codes = fk
+    code, err = codes["evaluate_partial"]  # after shard 1/2 alone
+    assert code == 1
+    assert "3 of 7 row(s) missing" in err and ": 0, 1, 2;" in err and "shard(s) 0/2" in err
+    out = tmp_path / "o"
+    shutil.copytree(root / "shards", out)
+    (out / "tips.csv").unlink()
+    (out / "centrelines.npz").unlink()
+    assert main(["evaluate", str(out)]) == 1  # complete: written again; row 3 failed: exit 1
+    assert (out / "tips.csv").read_bytes() == (root / "local" / "tips.csv").read_bytes()
 
 
 def test_fk_resume_skips_recorded_rows_and_new_input_starts_over(fk, tmp_path):
