@@ -13,6 +13,12 @@ position) of every frame and, where the dataset has the truth, the errors; frame
 marker pixels in a view are reported as failed. Both exit with code 1 when some frames
 failed (train still writes the model from the others and lists them on stderr and in the
 model's metadata).
+
+``query`` under ``--shard I/N`` / ``--executor ray`` (docs/scale-out.md): one record per frame
+in ``OUT/results.jsonl`` (or ``OUT/shards/I-of-N/``), appended as chunks of ``--chunk`` frames
+complete; a rerun with the same model and dataset skips recorded frames; ``estimates.csv``,
+``estimates.jsonl`` and ``summary.json``/``.md`` are written from the records once every frame
+has one (the same files as an unsharded local run).
 """
 
 from __future__ import annotations
