@@ -174,17 +174,28 @@ def run_frames(
     written: set[str] = set()
 
     def emit(recs: Iterable[dict]) -> None:
+        # a generator (segment, stereo) yields each frame as its files are written: appended
+        # one by one at once; a list (a whole chunk, e.g. fk's rows) is appended in one write
+        batch = [] if isinstance(recs, list) else None
         n = 0
         for rec in recs:
             fid = str(rec[key])
             if fid in written:  # a re-run chunk's duplicate: never written twice
                 continue
             written.add(fid)
-            log.append(rec)
+            if batch is None:
+                log.append(rec)
+            else:
+                batch.append(rec)
             stats.records.append(rec)
             n += 1
-            if on_record is not None:
+            if on_record is not None and batch is None:
                 on_record(rec)
+        if batch:
+            log.append_many(batch)
+            if on_record is not None:
+                for rec in batch:
+                    on_record(rec)
         if on_chunk is not None and n:
             on_chunk(n)
 
