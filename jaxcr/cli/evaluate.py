@@ -8,6 +8,11 @@ OUT (one run) or REPORT_DIR; a REPORT_DIR other than an OUT must be new, empty o
 evaluate report, and is locked while the command runs (:mod:`jaxcr.io.outdir`)
 (the evaluation itself is :mod:`jaxcr.segmentation.evaluate`; this module parses arguments,
 prints and sets the exit code).
+A ``jaxcr stereo`` OUT (``--shard`` runs, docs/scale-out.md) is merged in place instead: the
+records of every shard, ``segments.csv``/``.md`` over all recorded frames and ``merge.json``
+(:func:`jaxcr.cli.stereo.merge_outputs`), the failed and the missing frames named.
+A ``jaxcr fk`` or ``jaxcr manifold query`` OUT: the rows/frames no shard recorded are named
+(exit 1); when all are, the command writes its whole-job files (``tips.csv``, ``estimates.csv``).
 Exit code 1 when the report counts failed frames (failed in the segment run, or outputs
 missing/damaged/mis-sized); they are listed in ``per_frame.csv`` with the reason.
 """
@@ -37,7 +42,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "evaluate", help=HELP, description=__doc__.split("\n\n")[0].replace("``", "")
     )
-    p.add_argument("outs", nargs="+", metavar="OUT", help="output folder(s) of jaxcr segment")
+    p.add_argument("outs", nargs="+", metavar="OUT",
+                   help="output folder(s) of jaxcr segment, or of jaxcr stereo (merged in "
+                   "place: shards' records, segments.csv/.md over all frames, merge.json, the "
+                   "missing frames named)")  # fmt: skip
     p.add_argument(
         "-o", "--out", default=None, metavar="REPORT_DIR",
         help="report folder (default: OUT for one run, ./jaxcr-report for several)",
@@ -55,11 +63,129 @@ def _same_folder(a: Path, b: Path) -> bool:
         return False
 
 
+def _run_stereo(outs: list[Path]) -> int:
+    """Merge stereo outputs (shards and unsharded runs) in place: tables over every recorded
+    frame, the failed and the missing frames named (:func:`jaxcr.cli.stereo.merge_outputs`)."""
+    from jaxcr.cli.stereo import merge_outputs
+    from jaxcr.io import outdir
+
+    code = 0
+    for o in outs:
+        try:  # tables only while no run writes OUT (a live run or shard: report alone)
+            lock = outdir.claim(o, "stereo")
+        except InputError as err:
+            lock = None
+            print(f"jaxcr evaluate: warning: {o}: not writing the merged tables ({err})",
+                  file=sys.stderr)  # fmt: skip
+        try:
+            info = merge_outputs(o, write=lock is not None)
+        finally:
+            if lock is not None:
+                outdir.release(lock)
+        n_fail, miss = len(info["failed"]), info["missing"]
+        print(f"jaxcr evaluate: {o}: {info['ok']}/{info['frames']} frames reconstructed, "
+              f"{n_fail} failed, {len(miss)} missing"
+              + (f"; tables in {o / 'segments.csv'}, summary in {o / 'merge.json'}"
+                 if lock is not None else ""))  # fmt: skip
+        if info["failed"]:
+            first = next(iter(info["failed"].values()))
+            more = f" (and {n_fail - 1} more)" if n_fail > 1 else ""
+            print(f"jaxcr evaluate: {o}: failed: {first}{more}", file=sys.stderr)
+        if miss:
+            shown = ", ".join(miss[:10]) + (f" (and {len(miss) - 10} more)" if len(miss) > 10
+                                            else "")  # fmt: skip
+            shards = info["unfinished_shards"]
+            also = f"; shard(s) {', '.join(shards[:8])} not finished" if shards else ""
+            print(f"jaxcr evaluate: {o}: {len(miss)} of {info['frames']} frame(s) missing (no "
+                  f"record in results.jsonl or its shards): {shown}{also}; continue with jaxcr "
+                  "stereo (the missing --shard, or without --shard: it skips recorded frames)",
+                  file=sys.stderr)  # fmt: skip
+        if info["failed"] or miss:
+            code = 1
+    return code
+
+
+def _run_jobs(outs: list[Path]) -> int:
+    """``fk`` / ``manifold query`` outputs (:mod:`jaxcr.scale.job`): name the items (rows,
+    frames) no run or shard has recorded and the shards without ``DONE``; when every item is
+    recorded, write the whole-job files (``tips.csv`` ..., by the command itself: it resumes,
+    computes nothing, and assembles them)."""
+    import json
+
+    from jaxcr.cli import main
+    from jaxcr.io import outdir
+    from jaxcr.scale import job as J
+    from jaxcr.scale import shards as S
+
+    code = 0
+    for o in outs:
+        command = outdir.owner(o)
+        runs = [f for f in [o / "run.json"] + [d / "run.json" for _, d in S.shard_dirs(o)]
+                if f.exists()]  # fmt: skip
+        if not runs:
+            raise InputError(f"no run.json: not a jaxcr {command} output", file=str(o))
+        try:
+            info = json.loads(runs[0].read_text(encoding="utf-8"))
+            inputs, options = info["inputs"], info["options"]
+        except (UnicodeDecodeError, ValueError, KeyError, TypeError):
+            raise InputError(f"not a {J.RUN_FORMAT} file", file=str(runs[0])) from None
+        key = "row" if command == "fk" else "id"
+        recorded = set()
+        for f in S.results_files(o, J.RESULTS):
+            recorded |= {str(r[key]) for r in J.read_keyed(f, key)}
+        if command == "fk":
+            items = [str(i) for i in range(int(inputs["rows"]))]
+            argv = ["fk", inputs["robot"], inputs["q"], "-o", str(o)]
+            if options.get("points") is not None:
+                argv += ["--points", str(options["points"])]
+        else:
+            from jaxcr.cli.manifold import QueryWorker
+
+            items = QueryWorker(inputs["model"], inputs["dataset"]).items
+            argv = ["manifold", "query", inputs["model"], inputs["dataset"], "-o", str(o)]
+        missing = [i for i in items if i not in recorded]
+        if missing:
+            dirs = S.shard_dirs(o)
+            done = {(s.count, s.index) for s, d in dirs if (d / J.DONE).exists()}
+            unfinished = ", ".join(str(S.Shard(i, n)) for n in sorted({s.count for s, _ in dirs})
+                                   for i in range(n) if (n, i) not in done)  # fmt: skip
+            shown = ", ".join(missing[:10]) + (f" (and {len(missing) - 10} more)"
+                                               if len(missing) > 10 else "")  # fmt: skip
+            print(f"jaxcr evaluate: {o}: {len(missing)} of {len(items)} {key}(s) missing (no "
+                  f"record in results.jsonl or its shards): {shown}"
+                  + (f"; shard(s) {unfinished} not finished" if unfinished else "")
+                  + f"; continue with jaxcr {command} (the missing --shard, or without --shard:"
+                  " it skips recorded items)", file=sys.stderr)  # fmt: skip
+            code = 1
+            continue
+        # every item recorded: the command assembles the whole-job files (exit 1: failed items)
+        code = max(code, main(argv))
+    return code
+
+
 def run(args) -> int:
     outs = [Path(o) for o in args.outs]
     for o in outs:
         if not o.exists():
             raise InputError("output folder not found", file=str(o))
+    from jaxcr.cli.stereo import is_stereo_output
+    from jaxcr.io import outdir
+
+    jobs = [outdir.owner(o) in ("fk", "manifold query") for o in outs]
+    if any(jobs):
+        if not all(jobs) or args.out:
+            raise InputError("fk and manifold query outputs are merged in place, one kind at "
+                             "a time: no -o, no other outputs", field="outs")  # fmt: skip
+        return _run_jobs(outs)
+
+    stereo = [is_stereo_output(o) for o in outs]
+    if any(stereo):
+        if not all(stereo):
+            raise InputError("cannot evaluate stereo and segment outputs together",
+                             file=str(outs[stereo.index(False)]))  # fmt: skip
+        if args.out:
+            raise InputError("stereo outputs are merged in place: no -o", field="out")
+        return _run_stereo(outs)
     report_dir = Path(args.out) if args.out else (outs[0] if len(outs) == 1 else
                                                   Path("jaxcr-report"))  # fmt: skip
     if not any(_same_folder(report_dir, o) for o in outs):

@@ -13,6 +13,16 @@ Outputs (format ``jaxcr.fk/1``), written atomically (temp file, then rename):
 - ``OUT/tips.csv``: ``# format: jaxcr.fk/1`` then a header
   ``row,ok,x,y,z,rx,ry,rz,residual,energy`` (tip position in m, tip rotation vector in rad).
 
+Bookkeeping (docs/scale-out.md, :mod:`jaxcr.scale.job`): each task of ``--chunk`` rows (one
+compiled batch) writes ``OUT/parts/<first>-<last>.npz`` (the arrays above for its rows, plus
+``rows``) and one record per row to ``OUT/results.jsonl`` (format ``jaxcr.fk-row/1``:
+``row``, ``ok``, ``part``, ``reason`` when failed); ``centrelines.npz`` and ``tips.csv`` are
+assembled from them once every row has a record. A rerun with the same robot, Q.csv and
+``--points`` skips the rows already recorded (an interrupted run resumes); with other inputs
+it starts over. ``--shard I/N`` computes the I-th of N contiguous row blocks (records in
+``OUT/shards/I-of-N/``; the last shard to finish writes ``tips.csv``), ``--executor ray`` runs
+the chunks on a Ray cluster; the outputs are the same.
+
 Exit code 0 when every row succeeded, 1 when any row failed (the summary line gives each
 failed row's reason), 2 on bad input.
 """
@@ -25,6 +35,7 @@ import dataclasses
 import io
 import math
 import os
+from pathlib import Path
 
 import numpy as np
 
@@ -35,6 +46,9 @@ from jaxcr.kinematics.batch import CHUNK, batch_forward, failure_reasons
 __all__ = ["CHUNK", "FORMAT", "batch_forward", "failure_reasons", "read_q_csv", "run"]
 
 FORMAT = "jaxcr.fk/1"
+ROW_FORMAT = "jaxcr.fk-row/1"
+PARTS = "parts"
+ARRAYS = ("s", "p", "R", "rho", "ok", "residual", "energy", "num_steps", "tip_rotvec")
 
 
 def add_parser(subparsers) -> None:
@@ -54,9 +68,11 @@ def add_parser(subparsers) -> None:
         default=None,
         help="centreline samples N, 2..10000 (default: robot's)",
     )
-    p.add_argument(
-        "--chunk", type=int, default=CHUNK, help="rows per compiled batch (default %(default)s)"
-    )
+    from jaxcr.scale.executor import add_executor_arguments
+    from jaxcr.scale.shards import add_shard_argument
+
+    add_shard_argument(p)
+    add_executor_arguments(p, f"{CHUNK} rows, or all rows when fewer; a task is one compiled batch")
     p.set_defaults(func=run)
 
 
@@ -139,21 +155,87 @@ def _fmt(x: float) -> str:
     return "nan" if not math.isfinite(x) else f"{float(x):.9g}"
 
 
-def run(args) -> int:
-    from jaxcr.io.robot import load_robot
+class FkWorker:
+    """Forward kinematics of chunks of rows of Q.csv: writes ``OUT/parts/<first>-<last>.npz``
+    and returns one record per row (the worker of :func:`jaxcr.scale.executor.run_frames`).
+    Every chunk is padded to ``chunk`` rows: one compiled program, and each row's result the
+    same as in an unchunked ``batch_forward`` with that chunk."""
 
-    model = load_robot(args.robot)
-    if args.points is not None:
-        model = _with_points(model, args.points)
-    if args.chunk < 1:
-        raise InputError(f"--chunk must be >= 1, got {args.chunk}", field="--chunk")
-    q = read_q_csv(args.q_csv, model.n_joints)
-    from jaxcr.io import outdir
+    def __init__(self, robot: str, q_csv: str, points: int | None, out: str, chunk: int):
+        from jaxcr.io.robot import load_robot
 
-    # new, empty or an earlier fk output; an unwritable OUT fails now, not after the compile
-    outdir.claim(args.out, "fk", recognise=lambda o: (o / "tips.csv").exists())
-    out = batch_forward(model, q, chunk=args.chunk)
+        model = load_robot(robot)
+        self.model = _with_points(model, points) if points is not None else model
+        self.q = read_q_csv(q_csv, self.model.n_joints)
+        self.out, self.chunk = Path(out), chunk
+        self.compile_s = self.run_s = 0.0
 
+    def failed_record(self, row: str, reason: str) -> dict:
+        return {"format": ROW_FORMAT, "row": int(row), "ok": False, "reason": reason}
+
+    def process(self, ids: list[str]) -> list[dict]:
+        import time
+
+        from jaxcr.io.results import atomic_write_bytes
+
+        t0 = time.perf_counter()
+        rows = np.array([int(i) for i in ids])
+        q = self.q[rows]
+        pad = self.chunk - len(rows)
+        qp = np.concatenate([q, np.repeat(q[-1:], pad, axis=0)]) if pad > 0 else q
+        res = batch_forward(self.model, qp, chunk=self.chunk, progress=False)
+        res = {k: v[: len(rows)] for k, v in res.items()}
+        reasons = failure_reasons(self.model, q, res)
+        part = f"{PARTS}/{rows[0]:08d}-{rows[-1]:08d}.npz"
+        buf = io.BytesIO()
+        np.savez(buf, rows=rows, **{k: res[k] for k in ARRAYS})
+        atomic_write_bytes(self.out / part, buf.getvalue())
+        recs = []
+        for j, i in enumerate(rows):
+            rec = {"format": ROW_FORMAT, "row": int(i), "ok": bool(res["ok"][j]), "part": part}
+            if not rec["ok"]:
+                rec["reason"] = reasons.get(j, "kinematics reported failure")
+            recs.append(rec)
+        self.run_s += time.perf_counter() - t0
+        return recs
+
+
+def build_fk_worker(robot: str, q_csv: str, points: int | None, out: str,
+                    chunk: int) -> FkWorker:  # fmt: skip
+    return FkWorker(robot, q_csv, points, out, chunk)
+
+
+def assemble(out: Path, q: np.ndarray, records: dict[str, dict], n_points: int) -> dict:
+    """The whole-job arrays (as :func:`batch_forward` returns them) from the rows' parts; a
+    row without a part (its worker was lost) is NaN with ok False."""
+    B = q.shape[0]
+    arrays: dict[str, np.ndarray] = {}
+    by_part: dict[str, list[int]] = {}
+    for i in range(B):
+        part = records[str(i)].get("part")
+        if part:
+            by_part.setdefault(part, []).append(i)
+    for part, rows in by_part.items():
+        with np.load(out / part) as z:
+            where = {int(r): j for j, r in enumerate(z["rows"])}
+            for k in ARRAYS:
+                v = z[k]
+                if k not in arrays:
+                    fill = False if k == "ok" else (0 if v.dtype.kind in "iu" else np.nan)
+                    arrays[k] = np.full((B, *v.shape[1:]), fill, v.dtype)
+                arrays[k][rows] = v[[where[i] for i in rows]]
+    if not arrays:  # no row has a part: every worker was lost
+        N = n_points
+        shapes = {"s": (N,), "p": (N, 3), "R": (N, 3, 3), "rho": (N,), "tip_rotvec": (3,)}
+        for k in ARRAYS:
+            dt = bool if k == "ok" else (np.int32 if k == "num_steps" else np.float32)
+            fill = False if k == "ok" else (0 if k == "num_steps" else np.nan)
+            arrays[k] = np.full((B, *shapes.get(k, ())), fill, dt)
+    arrays["ok"] = np.array([bool(records[str(i)]["ok"]) for i in range(B)])
+    return arrays
+
+
+def _write_outputs(args, model, q, out: dict) -> None:
     npz_path = os.path.join(args.out, "centrelines.npz")
     csv_path = os.path.join(args.out, "tips.csv")
 
@@ -180,27 +262,78 @@ def run(args) -> int:
                     + [_fmt(out["residual"][i]), _fmt(out["energy"][i])]
                 )
 
-    # Remove stale outputs of an earlier run first: a crash below then leaves nothing that
-    # looks complete.
-    for path in (csv_path, npz_path):
-        if os.path.exists(path):
-            os.remove(path)
     _atomic_write_all({npz_path: write_npz, csv_path: write_csv})
 
-    failed = np.flatnonzero(~out["ok"])
+
+def _remove_outputs(out: str) -> None:
+    # stale whole-job outputs go first: a crash below then leaves nothing that looks complete
+    for name in ("tips.csv", "centrelines.npz"):
+        path = os.path.join(out, name)
+        if os.path.exists(path):
+            os.remove(path)
+
+
+def run(args) -> int:
+    import shutil
+
+    from jaxcr.io import outdir
+    from jaxcr.scale.executor import WorkerSpec, executor_config
+    from jaxcr.scale.job import Job, file_digest
+    from jaxcr.scale.shards import SHARDS_DIR, claim_shard, parse_shard
+
+    shard = parse_shard(args.shard)  # bad flags: one line, before reading anything
+    executor = executor_config(args)
+    worker = FkWorker(args.robot, args.q_csv, args.points, args.out, 1)  # validates the inputs
+    model, q = worker.model, worker.q
     B = q.shape[0]
-    if failed.size:
+    chunk = max(1, min(executor.chunk or CHUNK, B))
+    worker.chunk = chunk
+
+    def recognise(o):
+        return (o / "tips.csv").exists() or (o / SHARDS_DIR).is_dir()
+
+    # new, empty or an earlier fk output; an unwritable OUT fails now, not after the compile
+    if shard is None:
+        outdir.claim(args.out, "fk", recognise=recognise)
+    else:
+        claim_shard(args.out, "fk", shard, recognise=recognise)
+    out = Path(args.out)
+    _remove_outputs(args.out)
+    run_info = {
+        "inputs": {"robot": str(Path(args.robot).resolve()), "q": str(Path(args.q_csv).resolve()),
+                   "q_sha256": file_digest(args.q_csv), "rows": B},
+        "options": {"points": args.points, "n_points": int(model.n_points)},
+    }  # fmt: skip
+    job = Job(out, "fk", run_info, "row", shard,
+              start_over=lambda: shutil.rmtree(out / PARTS, ignore_errors=True))  # fmt: skip
+    spec = WorkerSpec(build_fk_worker, (str(Path(args.robot).resolve()),
+                                        str(Path(args.q_csv).resolve()), args.points,
+                                        str(out.resolve()), chunk))  # fmt: skip
+    items = [str(i) for i in range(B)]
+    mine = items if shard is None else shard.select(items)
+    records, _ = job.run(items, spec, executor, chunk=chunk, local_worker=worker,
+                         progress="fk" if len(mine) > chunk else None, unit="row")  # fmt: skip
+    complete = all(i in records for i in items)
+    if complete:
+        _write_outputs(args, model, q, assemble(out, q, records, int(model.n_points)))
+    failed = [int(i) for i in mine if not records[i]["ok"]]
+    n = len(mine)
+    where = f"shard {shard}: " if shard is not None else ""
+    wrote = (f"wrote {args.out}" if complete else
+             f"wrote {job.log_dir}; tips.csv is written when every row has a record "
+             "(the last shard to finish, or jaxcr fk without --shard)")  # fmt: skip
+    if failed:
         by_reason: dict[str, list[int]] = {}
-        for i, why in failure_reasons(model, q, out).items():
-            by_reason.setdefault(why, []).append(i)
+        for i in failed:
+            by_reason.setdefault(records[str(i)]["reason"], []).append(i)
         parts = []
         for why, rows in by_reason.items():
             shown = ", ".join(str(i) for i in rows[:10]) + (" ..." if len(rows) > 10 else "")
             parts.append(f"row{'s' if len(rows) > 1 else ''} {shown}: {why}")
         print(
-            f"jaxcr fk: {B - failed.size}/{B} rows ok, {failed.size} failed ({'; '.join(parts)}; "
-            f"ok = 0 in tips.csv); wrote {args.out}"
+            f"jaxcr fk: {where}{n - len(failed)}/{n} rows ok, {len(failed)} failed "
+            f"({'; '.join(parts)}; ok = 0 in tips.csv); {wrote}"
         )
         return 1
-    print(f"jaxcr fk: {B}/{B} rows ok; wrote {args.out}")
+    print(f"jaxcr fk: {where}{n}/{n} rows ok; {wrote}")
     return 0

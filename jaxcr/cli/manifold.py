@@ -13,6 +13,12 @@ position) of every frame and, where the dataset has the truth, the errors; frame
 marker pixels in a view are reported as failed. Both exit with code 1 when some frames
 failed (train still writes the model from the others and lists them on stderr and in the
 model's metadata).
+
+``query`` under ``--shard I/N`` / ``--executor ray`` (docs/scale-out.md): one record per frame
+in ``OUT/results.jsonl`` (or ``OUT/shards/I-of-N/``), appended as chunks of ``--chunk`` frames
+complete; a rerun with the same model and dataset skips recorded frames; ``estimates.csv``,
+``estimates.jsonl`` and ``summary.json``/``.md`` are written from the records once every frame
+has one (the same files as an unsharded local run).
 """
 
 from __future__ import annotations
@@ -28,6 +34,9 @@ import numpy as np
 
 from jaxcr.cli._common import seed as _seed
 from jaxcr.errors import InputError
+
+#: frames per task of ``manifold query`` (descriptors and one batched k-NN query per chunk)
+QUERY_CHUNK = 64
 
 
 def add_parser(subparsers) -> None:
@@ -97,6 +106,11 @@ def add_parser(subparsers) -> None:
     q.add_argument(
         "-o", "--out", required=True, help="output folder (estimates.csv/.jsonl, summary.json/.md)"
     )
+    from jaxcr.scale.executor import add_executor_arguments
+    from jaxcr.scale.shards import add_shard_argument
+
+    add_shard_argument(q)
+    add_executor_arguments(q, f"{QUERY_CHUNK} frames")
     q.set_defaults(func=run_query)
 
     s = sub.add_parser("synth", help="generate an IREP stereo dataset (jaxcr.synth.irep)")
@@ -284,111 +298,227 @@ def _atomic_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def run_query(args) -> int:
-    from jaxcr.eigen.model import PARAM_KINDS, estimate
-    from jaxcr.eigen.pipeline import check_cameras, dataset_contours, stereo_histograms
-    from jaxcr.io.eigen_model import load_model
+QUERY_FORMAT = "jaxcr.manifold-query-frame/1"
+#: keys of a results.jsonl record that estimates.jsonl leaves out (bookkeeping and timings)
+_INTERNAL = ("format", "stage", "descriptor_s", "query_s")
 
-    model = load_model(args.model)
-    cfg = model.config
-    ds = _load(args.dataset)
-    check_cameras(ds, cfg.cameras)
-    from jaxcr.io import outdir
 
-    # new, empty or an earlier query's folder, never another command's; locked until exit
-    outdir.claim(args.out, "manifold query", recognise=lambda o: (o / "estimates.csv").exists())
-    t0 = time.perf_counter()
-    sc = dataset_contours(ds, model.colour, cfg.cameras, cfg.spacing)
-    H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise, model.view_centres)
-    t1 = time.perf_counter()
-    names = PARAM_KINDS[cfg.params]
-    est = np.full((len(ok), len(names)), np.nan)
-    if ok.any():
-        est[ok] = estimate(model, H[ok])
-    t2 = time.perf_counter()
-    truth = None
-    by_id = {f.id: f for f in ds.frames}
-    try:
-        truth = _params(ds, cfg.params, [by_id[i] for i in sc.ids])
-    except InputError:
-        truth = None
+class QueryWorker:
+    """Estimates chunks of a dataset's frames with a model: one record per frame (the worker of
+    :func:`jaxcr.scale.executor.run_frames`; nothing is written but the records)."""
+
+    def __init__(self, model_path: str, dataset: str):
+        from jaxcr.eigen.pipeline import check_cameras
+        from jaxcr.io.eigen_model import load_model
+
+        self.model = load_model(model_path)
+        self.ds = _load(dataset)
+        check_cameras(self.ds, self.model.config.cameras)
+        self.by_id = {f.id: f for f in self.ds.frames}
+        # errors are reported for every frame or none: all loaded frames need the truth
+        try:
+            truth = _params(self.ds, self.model.config.params, self.ds.frames)
+            self.truth = {f.id: t for f, t in zip(self.ds.frames, truth, strict=True)}
+        except InputError:
+            self.truth = None
+        self.compile_s = self.run_s = 0.0
+
+    @property
+    def items(self) -> list[str]:
+        """Every frame id of the job: the loaded frames in order, then the loader's bad ones."""
+        return [f.id for f in self.ds.frames] + list(self.ds.bad_frames)
+
+    def failed_record(self, fid: str, reason: str) -> dict:
+        return {"format": QUERY_FORMAT, "id": fid, "ok": False, "error": reason,
+                "stage": "worker"}  # fmt: skip
+
+    def process(self, ids: list[str]) -> list[dict]:
+        from jaxcr.eigen.model import PARAM_KINDS, estimate
+        from jaxcr.eigen.pipeline import dataset_contours, stereo_histograms
+
+        cfg = self.model.config
+        t0 = time.perf_counter()
+        frames = [self.by_id[i] for i in ids if i in self.by_id]
+        recs: dict[str, dict] = {}
+        for fid in ids:
+            if fid in self.ds.bad_frames:
+                recs[fid] = {"format": QUERY_FORMAT, "id": fid, "ok": False,
+                             "error": self.ds.bad_frames[fid], "stage": "loader"}  # fmt: skip
+        try:
+            sc = dataset_contours(self.ds, self.model.colour, cfg.cameras, cfg.spacing,
+                                  progress=False, frames=frames) if frames else None  # fmt: skip
+        except InputError:  # no frame of this chunk could be read: each one's reason
+            sc = None
+            for f in frames:
+                try:
+                    for c in cfg.cameras:
+                        f.load_image(c)
+                    why = "image could not be read"
+                except InputError as err:
+                    why = err.format()
+                recs[f.id] = {"format": QUERY_FORMAT, "id": f.id, "ok": False, "error": why,
+                              "stage": "unreadable"}  # fmt: skip
+        if sc is not None:
+            for fid, msg in sc.unreadable.items():
+                recs[fid] = {"format": QUERY_FORMAT, "id": fid, "ok": False, "error": msg,
+                             "stage": "unreadable"}  # fmt: skip
+            H, ok = stereo_histograms(sc, cfg.n_bins, cfg.normalise, self.model.view_centres)
+            t1 = time.perf_counter()
+            names = PARAM_KINDS[cfg.params]
+            est = np.full((len(ok), len(names)), np.nan)
+            if ok.any():
+                est[ok] = estimate(self.model, H[ok])
+            t2 = time.perf_counter()
+            unit = "deg" if cfg.params == "angles" else "mm"
+            scale = np.rad2deg(1.0) if cfg.params == "angles" else 1e3
+            n_ok = max(int(ok.sum()), 1)
+            for i, fid in enumerate(sc.ids):
+                rec = {"format": QUERY_FORMAT, "id": fid, "ok": bool(ok[i])}
+                if ok[i]:
+                    rec.update({n: float(v) for n, v in zip(names, est[i], strict=True)})
+                    if self.truth is not None:
+                        e = np.abs(est[i] - self.truth[fid]) * scale
+                        rec["errors_" + unit] = {n: float(v) for n, v in zip(names, e,
+                                                                              strict=True)}  # fmt: skip
+                    rec["query_s"] = (t2 - t1) / n_ok
+                else:
+                    npx = (int(sc.views[0].marker_pixels[i]), int(sc.views[1].marker_pixels[i]))
+                    rec["error"] = f"too few marker pixels (left {npx[0]}, right {npx[1]})"
+                rec["stage"] = "estimate"
+                rec["descriptor_s"] = (t1 - t0) / len(sc.ids)
+                recs[fid] = rec
+        self.run_s += time.perf_counter() - t0
+        return [recs[i] for i in ids]
+
+
+def build_query_worker(model_path: str, dataset: str) -> QueryWorker:
+    return QueryWorker(model_path, dataset)
+
+
+def _write_query_outputs(args, worker: QueryWorker, records: dict[str, dict]) -> tuple:
+    """estimates.csv/.jsonl and summary.json/.md from every frame's record: the frames with
+    an estimate attempt in dataset order, then the loader's bad frames, then the unreadable
+    ones (the order of an unsharded local run). Returns (summary, failed records)."""
+    from jaxcr.eigen.model import PARAM_KINDS
+
+    cfg = worker.model.config
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    names = PARAM_KINDS[cfg.params]
     unit = "deg" if cfg.params == "angles" else "mm"
-    scale = np.rad2deg(1.0) if cfg.params == "angles" else 1e3
-    rows, lines = [], []
-    header = ["id", "ok", *names] + (
-        [f"err_{n}_{unit}" for n in names] if truth is not None else []
-    )
-    errs = []
-    for i, fid in enumerate(sc.ids):
-        rec = {"id": fid, "ok": bool(ok[i])}
-        if ok[i]:
-            rec.update({n: float(v) for n, v in zip(names, est[i], strict=True)})
+    items = worker.items
+    recs = [records[i] for i in items]
+    order = {"estimate": 0, "loader": 1, "unreadable": 2, "worker": 2}
+    recs.sort(key=lambda r: order.get(r.get("stage"), 2))  # stable: dataset order within
+    truth = worker.truth is not None
+    header = ["id", "ok", *names] + ([f"err_{n}_{unit}" for n in names] if truth else [])
+    rows, lines, errs = [], [], []
+    for r in recs:
+        ok = bool(r["ok"])
+        if r.get("stage") == "estimate":
+            row = [r["id"], int(ok)] + [f"{r[n]:.6g}" if ok else "" for n in names]
+            if truth:
+                row += [f"{r['errors_' + unit][n]:.6g}" if ok else "" for n in names]
+                if ok:
+                    errs.append([r["errors_" + unit][n] for n in names])
+            rows.append(",".join(str(x) for x in row))
         else:
-            npx = (int(sc.views[0].marker_pixels[i]), int(sc.views[1].marker_pixels[i]))
-            rec["error"] = f"too few marker pixels (left {npx[0]}, right {npx[1]})"
-        row = [fid, int(ok[i])] + [f"{v:.6g}" if ok[i] else "" for v in est[i]]
-        if truth is not None:
-            e = np.abs(est[i] - truth[i]) * scale
-            if ok[i]:
-                errs.append(e)
-                rec["errors_" + unit] = {n: float(v) for n, v in zip(names, e, strict=True)}
-            row += [f"{v:.6g}" if ok[i] else "" for v in e]
-        rows.append(",".join(str(x) for x in row))
-        lines.append(json.dumps(rec))
-    bad = {**ds.bad_frames, **sc.unreadable}
-    for fid, msg in bad.items():
-        lines.append(json.dumps({"id": fid, "ok": False, "error": msg}))
-        rows.append(",".join([fid, "0"] + [""] * (len(header) - 2)))
+            rows.append(",".join([r["id"], "0"] + [""] * (len(header) - 2)))
+        lines.append(json.dumps({k: v for k, v in r.items() if k not in _INTERNAL}))
     _atomic_text(out / "estimates.csv", ",".join(header) + "\n" + "\n".join(rows) + "\n")
     _atomic_text(out / "estimates.jsonl", "\n".join(lines) + "\n")
-    n_fail = int((~ok).sum()) + len(bad)
+    failed = [r for r in recs if not r["ok"]]
+    est = [r for r in recs if r.get("stage") == "estimate"]
+    n_ok = len(recs) - len(failed)
     summary = {
         "model": str(args.model),
         "dataset": str(args.dataset),
-        "frames": len(ok) + len(bad),
-        "failed": n_fail,
+        "frames": len(recs),
+        "failed": len(failed),
         "params": cfg.params,
-        "descriptor_s_per_frame": (t1 - t0) / max(len(ok), 1),
-        "query_s_per_frame": (t2 - t1) / max(int(ok.sum()), 1),
+        "descriptor_s_per_frame": sum(r.get("descriptor_s", 0.0) for r in est) / max(len(est), 1),
+        "query_s_per_frame": sum(r.get("query_s", 0.0) for r in est) / max(n_ok, 1),
     }
-    md = [
-        f"# jaxcr manifold query: {ds.name}",
-        "",
-        f"model `{args.model}`, {len(ok) + len(bad)} frames, {n_fail} failed",
-        "",
-    ]
+    md = [f"# jaxcr manifold query: {worker.ds.name}", "",
+          f"model `{args.model}`, {len(recs)} frames, {len(failed)} failed", ""]  # fmt: skip
     if errs:
         E = np.array(errs)
-        summary["median_error_" + unit] = {
-            n: float(np.median(E[:, j])) for j, n in enumerate(names)
-        }
-        summary["median_error_" + unit]["combined"] = float(np.median(E.ravel()))
+        med = {n: float(np.median(E[:, j])) for j, n in enumerate(names)}
+        med["combined"] = float(np.median(E.ravel()))
         if cfg.params == "position":
-            summary["median_error_" + unit]["euclidean"] = float(
-                np.median(np.linalg.norm(E, axis=1))
-            )
+            med["euclidean"] = float(np.median(np.linalg.norm(E, axis=1)))
+        summary["median_error_" + unit] = med
         md += [f"| quantity | median error ({unit}) |", "|---|---|"]
-        md += [f"| {k} | {v:.3f} |" for k, v in summary["median_error_" + unit].items()]
+        md += [f"| {k} | {v:.3f} |" for k, v in med.items()]
     _atomic_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     _atomic_text(out / "summary.md", "\n".join(md) + "\n")
-    msg = f"manifold query: {len(ok) + len(bad) - n_fail}/{len(ok) + len(bad)} frames estimated"
-    if errs:
-        msg += ", median errors " + ", ".join(
-            f"{k} {v:.3f} {unit}" for k, v in summary["median_error_" + unit].items()
-        )
-    print(msg + f" -> {out}")
-    if n_fail:
-        failed = [json.loads(x) for x in lines]
-        failed = [r for r in failed if not r["ok"]]
-        first = failed[0]
+    return summary, failed
+
+
+def _fail_line(rec: dict) -> str:
+    why = rec["error"]  # a loader message names the frame already
+    return why if f"frame {rec['id']}:" in why else f"frame {rec['id']}: {why}"
+
+
+def run_query(args) -> int:
+    import shutil
+
+    from jaxcr.io import outdir
+    from jaxcr.scale.executor import WorkerSpec, executor_config
+    from jaxcr.scale.job import Job, file_digest
+    from jaxcr.scale.shards import SHARDS_DIR, claim_shard, parse_shard
+
+    shard = parse_shard(args.shard)  # bad flags: one line, before reading anything
+    executor = executor_config(args)
+    worker = QueryWorker(args.model, args.dataset)  # bad model or dataset: exit 2 here
+
+    def recognise(o):
+        return (o / "estimates.csv").exists() or (o / SHARDS_DIR).is_dir()
+
+    # new, empty or an earlier query's folder, never another command's; locked until exit
+    if shard is None:
+        outdir.claim(args.out, "manifold query", recognise=recognise)
+    else:
+        claim_shard(args.out, "manifold query", shard, recognise=recognise)
+    out = Path(args.out)
+    whole = ("estimates.csv", "estimates.jsonl", "summary.json", "summary.md")
+    for name in whole:  # rewritten at the end: none is left over that looks like this run's
+        (out / name).unlink(missing_ok=True)
+    ds_root = Path(worker.ds.root).resolve()
+    run_info = {
+        "inputs": {"model": str(Path(args.model).resolve()),
+                   "model_sha256": file_digest(args.model), "dataset": str(ds_root)},
+        "options": {},
+    }  # fmt: skip
+    job = Job(out, "manifold query", run_info, "id", shard,
+              start_over=lambda: shutil.rmtree(out / SHARDS_DIR, ignore_errors=True))  # fmt: skip
+    spec = WorkerSpec(build_query_worker, (str(Path(args.model).resolve()), str(ds_root)))
+    items = worker.items
+    records, _ = job.run(items, spec, executor, chunk=QUERY_CHUNK, local_worker=worker,
+                         progress="manifold query", unit="frame")  # fmt: skip
+    mine = items if shard is None else shard.select(items)
+    complete = all(i in records for i in items)
+    failed = [records[i] for i in mine if not records[i]["ok"]]
+    where = f" (shard {shard})" if shard is not None else ""
+    if complete:
+        summary, _ = _write_query_outputs(args, worker, records)
+        unit = "deg" if worker.model.config.params == "angles" else "mm"
+        n = summary["frames"]
+        msg = f"manifold query: {n - summary['failed']}/{n} frames estimated"
+        if "median_error_" + unit in summary:
+            msg += ", median errors " + ", ".join(
+                f"{k} {v:.3f} {unit}" for k, v in summary["median_error_" + unit].items()
+            )
+        print(msg + f"{where} -> {out}")
+    else:
+        print(f"manifold query{where}: {len(mine) - len(failed)}/{len(mine)} frames estimated "
+              f"-> {job.log_dir}; estimates.csv is written when every frame has a record (the "
+              "last shard to finish, or jaxcr manifold query without --shard)")  # fmt: skip
+    if failed:
         more = f" (and {len(failed) - 1} more)" if len(failed) > 1 else ""
-        why = first["error"]  # a loader message names the frame already
-        why = why if f"frame {first['id']}:" in why else f"frame {first['id']}: {why}"
-        print(f"jaxcr manifold: {n_fail} frame(s) failed: {why}{more}; all listed in "
-              f"{out / 'estimates.jsonl'}", file=sys.stderr)  # fmt: skip
-    return 1 if n_fail else 0
+        where_all = out / "estimates.jsonl" if complete else job.log_dir / "results.jsonl"
+        print(f"jaxcr manifold: {len(failed)} frame(s) failed: {_fail_line(failed[0])}{more}; "
+              f"all listed in {where_all}", file=sys.stderr)  # fmt: skip
+    return 1 if failed else 0
 
 
 def _is_irep_dataset(out) -> bool:

@@ -458,6 +458,70 @@ def run_batch(
     return [done[str(fr["id"])] for fr in frames]
 
 
+MERGE_FORMAT = "jaxcr.stereo-merge/1"
+
+
+def is_stereo_output(out: str | os.PathLike) -> bool:
+    """True when OUT was written by ``jaxcr stereo`` (its owner file, or a stereo run.json in
+    OUT or one of its shards)."""
+    from jaxcr.io import outdir
+    from jaxcr.scale.shards import shard_dirs
+
+    out = Path(out)
+    if outdir.owner(out) is not None:
+        return outdir.owner(out) == "stereo"
+    for f in [out / "run.json"] + [d / "run.json" for _, d in shard_dirs(out)]:
+        try:
+            if json.loads(f.read_text(encoding="utf-8")).get("format") == RUN_FORMAT:
+                return True
+        except (OSError, ValueError, AttributeError):
+            continue
+    return False
+
+
+def merge_outputs(out: str | os.PathLike, write: bool = True) -> dict:
+    """Merge a stereo OUT written by shards (and/or unsharded runs): the records of
+    ``OUT/results.jsonl`` and every ``OUT/shards/*/results.jsonl`` (a later file's record of a
+    frame wins), the dataset's frames that have no record, and the shards without ``DONE``.
+    With ``write``, ``OUT/segments.csv``/``.md`` over every recorded frame and
+    ``OUT/merge.json`` (``jaxcr.stereo-merge/1``: ``frames``, ``ok``, ``failed`` (id ->
+    message), ``missing`` (ids), ``unfinished_shards``). Returns the merge.json content."""
+    from jaxcr.io import results as R
+    from jaxcr.scale.shards import read_all_records, shard_dirs
+
+    out = Path(out)
+    runs = [f for f in [out / "run.json"] + [d / "run.json" for _, d in shard_dirs(out)]
+            if f.exists()]  # fmt: skip
+    if not runs:
+        raise InputError("no run.json: not a jaxcr stereo output", file=str(out))
+    try:
+        dataset = json.loads(runs[0].read_text(encoding="utf-8"))["dataset"]
+    except (UnicodeDecodeError, ValueError, KeyError, TypeError):
+        raise InputError("not a jaxcr stereo run.json", file=str(runs[0])) from None
+    ids = [str(fr["id"]) for fr in load_stereo_dataset(dataset)["frames"]]
+    recs = {str(r["id"]): r for r in read_all_records(out, _read_log_list, key="id")}
+    recorded = [i for i in ids if i in recs]
+    # a shard is unfinished when it has no DONE-equivalent: its block of frames is incomplete
+    from jaxcr.scale.shards import Shard
+
+    counts = sorted({s.count for s, _ in shard_dirs(out)})
+    unfinished = [str(Shard(i, n)) for n in counts for i in range(n)
+                  if any(f not in recs for f in Shard(i, n).select(ids))]  # fmt: skip
+    info = {
+        "format": MERGE_FORMAT,
+        "dataset": dataset,
+        "frames": len(ids),
+        "ok": sum(1 for i in recorded if recs[i].get("ok")),
+        "failed": {i: failure_line(recs[i]) for i in recorded if not recs[i].get("ok")},
+        "missing": [i for i in ids if i not in recs],
+        "unfinished_shards": unfinished,
+    }
+    if write:
+        write_tables(out, recorded, out)
+        R.atomic_write_json(out / "merge.json", info)
+    return info
+
+
 def _parse_size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))

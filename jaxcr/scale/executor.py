@@ -154,6 +154,7 @@ def run_frames(
     key: str = "frame",
     local_worker: FrameWorker | None = None,
     on_record: Callable[[dict], None] | None = None,
+    on_chunk: Callable[[int], None] | None = None,
 ) -> RunStats:
     """Process ``frame_ids`` in chunks of ``config.chunk or chunk`` frames and append each
     frame's record to ``log`` (an open :class:`jaxcr.io.results.ResultsLog`) exactly once.
@@ -164,6 +165,8 @@ def run_frames(
             inputs): it runs the chunks for ``local``, and writes the failed records of
             chunks lost with their Ray worker.
         on_record: called with each appended record (a progress bar).
+        on_chunk: called with the number of records appended, after each chunk's (a progress
+            bar counting in chunks).
     """
     size = config.chunk or chunk
     parts = chunks_of(list(frame_ids), max(1, size))
@@ -171,15 +174,30 @@ def run_frames(
     written: set[str] = set()
 
     def emit(recs: Iterable[dict]) -> None:
+        # a generator (segment, stereo) yields each frame as its files are written: appended
+        # one by one at once; a list (a whole chunk, e.g. fk's rows) is appended in one write
+        batch = [] if isinstance(recs, list) else None
+        n = 0
         for rec in recs:
             fid = str(rec[key])
             if fid in written:  # a re-run chunk's duplicate: never written twice
                 continue
             written.add(fid)
-            log.append(rec)
+            if batch is None:
+                log.append(rec)
+            else:
+                batch.append(rec)
             stats.records.append(rec)
-            if on_record is not None:
+            n += 1
+            if on_record is not None and batch is None:
                 on_record(rec)
+        if batch:
+            log.append_many(batch)
+            if on_record is not None:
+                for rec in batch:
+                    on_record(rec)
+        if on_chunk is not None and n:
+            on_chunk(n)
 
     if config.kind == "local":
         worker = local_worker or spec.build()

@@ -49,3 +49,34 @@ def test_stereo_bad_shard_is_one_line(tmp_path, capsys):
     assert main(["stereo", str(tmp_path), "-o", str(tmp_path / "o"), "--shard", "1/1"]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and err[0].startswith("jaxcr stereo: error:") and "shard" in err[0]
+
+
+@pytest.mark.parametrize("executor", ["local", "ray"])
+@pytest.mark.parametrize(
+    "kind, extra, field",
+    [
+        ("fk_bad_q", [], "line 2"),  # a non-numeric joint value: the file, row and line
+        ("fk", ["--shard", "3/2"], "shard"),
+        ("fk", ["--chunk", "0"], "chunk"),
+        ("query_missing_model", [], "not found"),
+        ("query_missing_model", ["--shard", "x"], "shard"),
+    ],
+)
+def test_fk_and_manifold_query_bad_input_is_one_line_exit_2(tmp_path, capsys, executor, kind,
+                                                            extra, field):  # fmt: skip
+    import json
+
+    robot, q = tmp_path / "r.json", tmp_path / "q.csv"
+    robot.write_text(json.dumps({"kind": "single_segment", "length": 0.04, "radius": 0.002}))
+    q.write_text("0.3,1\nabc,1\n" if kind == "fk_bad_q" else "0.3,1\n")
+    out = tmp_path / "o"
+    if kind.startswith("fk"):
+        argv, cmd = ["fk", str(robot), str(q), "-o", str(out)], "fk"
+    else:
+        argv, cmd = ["manifold", "query", str(tmp_path / "m.npz"), str(tmp_path), "-o",
+                     str(out)], "manifold"  # fmt: skip
+    code = main([*argv, "--executor", executor, *extra])
+    assert code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].startswith(f"jaxcr {cmd}: error:") and field in err[0], err
+    assert not (out / "results.jsonl").exists()  # refused before any work
