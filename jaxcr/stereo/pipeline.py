@@ -307,6 +307,34 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
     return [ends[k] - res[k] * dirs[k] for k in range(2)], [res[0], res[1]]
 
 
+def _traced_tips(vrec: list[dict], cams, traces) -> None:
+    """``--segmentation trace``: each view's ``tip_px`` from the tracer instead of the
+    skeleton's end, with ``tip_source``: ``"trace_stereo"`` (:func:`trace_stereo_tips`),
+    else ``"trace"`` (the view's own traced tip, where the two views leave the end face's
+    length undetermined), else ``"skeleton"`` (no finite traced tip). The skeleton's end
+    stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
+    the tube's end direction) and ends at it."""
+    st = trace_stereo_tips(cams, traces)
+    for k, (v, t) in enumerate(zip(vrec, traces, strict=True)):
+        v["tip_skeleton_px"] = v["tip_px"]
+        if st is not None:
+            tip, src = st[0][k], "trace_stereo"
+        elif np.all(np.isfinite(t.tip)):
+            tip, src = np.asarray(t.tip, np.float64), "trace"
+        else:
+            v["tip_source"] = "skeleton"
+            continue
+        line = np.asarray(v["backbone_px"], np.float64)[:-1]  # the skeleton's end dropped
+        d = np.asarray(t.end_dir, np.float64)
+        beyond = (line - tip) @ d >= 0.0 if np.all(np.isfinite(d)) else np.zeros(len(line), bool)
+        n = len(line)
+        while n > 1 and beyond[n - 1]:
+            n -= 1
+        v["backbone_px"] = np.round(np.concatenate([line[:n], tip[None]]), 2).tolist()
+        v["tip_px"] = [round(float(x), 2) for x in tip]
+        v["tip_source"] = src
+
+
 def _marker_mask(cam: Camera, layout: MarkerLayout, shape, margin: float = 0.003) -> np.ndarray:
     """Projected white marker squares (+ margin) of the plate: True inside."""
     m = np.zeros(shape, np.uint8)
@@ -998,6 +1026,8 @@ def reconstruct_pair(
                 last["single_view_mm"] = 1e3 * float(s[-1] - s[n0 - 1])
         _tick(timings, "single_view_tail", t0)
     vrec = [view_record(v["uv"], v["robot"], search_px=cfg.tip_search_px) for v in views]
+    if cfg.segmentation == "trace":
+        _traced_tips(vrec, cams, tr)
     return {
         "s": s,
         "p": p,
