@@ -117,7 +117,8 @@ class StereoConfig:
     from the plate and not be the key colour), or ``"trace"`` (the plate foreground of
     :mod:`jaxcr.segmentation.foreground`, settings ``plate_foreground``: the plate aligned to the frame,
     cues beyond the key colour with hysteresis, the tube traced from the projected robot
-    base with gaps bridged; for real backgrounds).
+    base with gaps bridged; for real backgrounds; each view's ``tip_px`` is then the traced
+    tip corrected by :func:`trace_stereo_tips`, with ``tip_source``).
     ``robot_base``: where the robot leaves the plate, base frame (default: base centre).
     ``n_segments``: number of tubes if known (else chosen from the diameter profile).
     ``refine_iterations``: sub-pixel refinement passes (silhouette centres, re-triangulate).
