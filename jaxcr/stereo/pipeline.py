@@ -327,7 +327,10 @@ def _traced_tips(vrec: list[dict], cams, traces) -> None:
             continue
         line = np.asarray(v["backbone_px"], np.float64)[:-1]  # the skeleton's end dropped
         d = np.asarray(t.end_dir, np.float64)
-        beyond = (line - tip) @ d >= 0.0 if np.all(np.isfinite(d)) else np.zeros(len(line), bool)
+        if np.all(np.isfinite(d)) and np.linalg.norm(d) > 0:
+            beyond = (line - tip) @ d >= 0.0
+        else:  # no end direction (tip not refined): the polyline is kept whole
+            beyond = np.zeros(len(line), bool)
         n = len(line)
         while n > 1 and beyond[n - 1]:
             n -= 1
