@@ -13,7 +13,9 @@ webcam noise, lens distortion, entry pixel with model error). Methods per view:
 * ``trace_stereo`` -- the same two traces, each tip moved to its silhouette's end minus the
   end face's foreshortening computed from the tube's 3-D direction, which the two calibrated
   views give (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`; the view's own estimate
-  where the two end directions leave the axis undetermined). The epipolar distance of each
+  where the two end directions leave the axis undetermined;
+  :func:`jaxcr.stereo.pipeline.trace_stereo_tips`, what ``jaxcr stereo --segmentation
+  trace`` records). The epipolar distance of each
   method's two tips is recorded per frame (a frame over 5 px is flagged);
 * ``trace_r1`` -- the first round's foreground (commit cf4b1bb, from git);
 * ``plate`` -- the stereo pipeline's old plate mode: ``plate_alpha > 0.5`` (unaligned plate,
@@ -47,6 +49,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -56,7 +59,8 @@ from jaxcr.segmentation import background as bgm
 from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foreground
 from jaxcr.stereo.base_locate import flood_component
 from jaxcr.stereo.chroma import plate_alpha
-from jaxcr.stereo.tip_geometry import end_face_lengths, epipolar_distances, fundamental_from_poses
+from jaxcr.stereo.pipeline import trace_stereo_tips
+from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
 from jaxcr.synth.real_like import render_real_like_frame
 
 METHODS = ("trace", "trace_stereo", "trace_r1", "plate", "gmm", "colour")
@@ -152,31 +156,20 @@ def _undistort(cam, uv) -> np.ndarray:
 
 def stereo_step(fr, views: list[dict]) -> dict:
     """``trace_stereo``: each view's tip from ``trace`` with the end face's foreshortening
-    taken from the tube's 3-D direction (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`,
-    both cameras known) instead of the end's shape in one view; and the epipolar distance
-    (px, undistorted) of both methods' tip pairs."""
+    taken from the tube's 3-D direction, both cameras known
+    (:func:`jaxcr.stereo.pipeline.trace_stereo_tips`, which ``jaxcr stereo --segmentation
+    trace`` records as ``tip_px``) instead of the end's shape in one view; and the epipolar
+    distance (px, undistorted) of both methods' tip pairs."""
     cams = [v.camera for v in fr.views]
     tr = [v["trace"] for v in views]
-    ends = [np.asarray(t["tip"]) + t["cap_px"] * np.asarray(t["end_dir"]) for t in tr]
-    ok = all(
-        np.all(np.isfinite(e)) and t["end_half_width_px"] > 0 for e, t in zip(ends, tr, strict=True)
-    )
-    res = None
-    if ok:
-        eu = [_undistort(c, e)[0] for c, e in zip(cams, ends, strict=True)]
-        du = [_undistort(c, e + 5.0 * np.asarray(t["end_dir"]))[0] - x
-              for c, e, t, x in zip(cams, ends, tr, eu, strict=True)]  # fmt: skip
-        res = end_face_lengths(cams[0].K, cams[0].T_cam_robot, cams[1].K, cams[1].T_cam_robot,
-                               eu[0], du[0] / np.linalg.norm(du[0]), eu[1],
-                               du[1] / np.linalg.norm(du[1]), tr[0]["end_half_width_px"],
-                               tr[1]["end_half_width_px"])  # fmt: skip
+    res = trace_stereo_tips(cams, [SimpleNamespace(**t) for t in tr])
     for k, v in enumerate(views):
         if res is None:
             v["trace_stereo"] = {"tip": list(tr[k]["tip"]), "cap_px": tr[k]["cap_px"],
                                  "fallback": True}  # fmt: skip
         else:
-            tip = ends[k] - res[k] * np.asarray(tr[k]["end_dir"])
-            v["trace_stereo"] = {"tip": tip.tolist(), "cap_px": res[k], "fallback": False}
+            v["trace_stereo"] = {"tip": res[0][k].tolist(), "cap_px": res[1][k],
+                                 "fallback": False}  # fmt: skip
     F = fundamental_from_poses(cams[0].K, cams[0].T_cam_robot, cams[1].K, cams[1].T_cam_robot)
     epi = {}
     for m in ("trace", "trace_stereo"):

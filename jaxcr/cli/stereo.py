@@ -120,7 +120,8 @@ def add_parser(subparsers) -> None:
         help="chroma key (default), plate difference, plate after the best shadow gain, "
         "both, or trace: the plate foreground for real backgrounds (aligned plate, cues "
         "beyond the key colour, the tube traced from the robot base with gaps bridged; "
-        "see the --plate-... flags)",
+        "see the --plate-... flags; each view's tip_px is the traced tip corrected for the "
+        "end face with both views, its tip_source recorded: docs/stereo-format.md)",
     )
     p.add_argument("--tolerance", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                    help="chroma-key score ramp (default 0.5 0.8)")  # fmt: skip
