@@ -872,14 +872,8 @@ def refine_frame(
 
     finite_out = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(params)]))
     params = jax.tree.map(lambda x: jnp.where(finite_out, x, 0.0), params)
-    # the refined and the nominal (delta-u = 0) outputs in one pass: lax.map over the two
-    # parameter sets compiles ``outputs`` once instead of twice (it is the largest part of the
-    # program after the solves; a second inline copy cost ~1/4 of the compile time)
-    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), params, zeros)
-    cl, masks, exact, e = jax.lax.map(outputs, both)
-    nominal_masks = tuple(m[1] for m in masks)
-    e_nom = jax.tree.map(lambda x: x[1], e)
-    cl, masks, exact, e = jax.tree.map(lambda x: x[0], (cl, masks, exact, e))
+    cl, masks, exact, e = outputs(params)
+    _, nominal_masks, _, e_nom = outputs(zeros)
 
     failure = jnp.where(
         ~finite_in,
