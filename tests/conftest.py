@@ -54,15 +54,46 @@ SLOW_MODULES = (
 )
 
 
+# The longest modules, longest first (whole-module seconds of `pytest -n 2 --durations` runs
+# on this 2-core machine under load, experiments/results/suite_time.md; only the order
+# matters). With whole modules per worker the run ends when the last module does: starting
+# the longest first (LPT scheduling) keeps a long module from starting last and running
+# alone while the other worker idles, as the tutorial (one ~300 s test) did when it started
+# in collection order.
+LONGEST_FIRST = (
+    "tests/cli/test_tutorial.py",
+    "tests/segmentation/test_refine.py",  # five refinement programs
+    "tests/kinematics/test_kinematics_fit.py",
+    "tests/segmentation/test_refine_convergence.py",  # four
+    "tests/core/test_examples.py",
+    "tests/cli/test_cli_bench_wheel.py",
+    "tests/kinematics/test_ctr.py",
+    "tests/segmentation/test_segmentation_api.py",
+    "tests/cli/test_cli_warmup.py",
+    "tests/scale/test_ray_fault.py",
+    "tests/cli/test_cli_segment.py",
+    "tests/stereo/test_stereo_chain_fit.py",
+    "tests/segmentation/test_refine_multicam.py",
+    "tests/segmentation/test_uncertainty.py",
+)
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.nodeid.split("::")[0] in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
-    # Modules holding slow (compile-heavy) tests first, the rest in their usual order: with
-    # whole modules per worker (below) the long ones then overlap each other and the short
-    # ones fill in at the end, instead of one long module running alone after the others.
+    # The longest modules first (LONGEST_FIRST), then the other modules holding slow
+    # (compile-heavy) tests, then the rest in their usual order: with whole modules per
+    # worker (below) the long ones then overlap each other and the short ones fill in at the
+    # end, instead of one long module running alone after the others.
     heavy = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.nodeid.split("::")[0] not in heavy)
+    rank = {m: i for i, m in enumerate(LONGEST_FIRST)}
+
+    def order(item):
+        module = item.nodeid.split("::")[0]
+        return (rank.get(module, len(rank)), module not in heavy)
+
+    items.sort(key=order)
 
 
 @pytest.hookimpl(optionalhook=True)

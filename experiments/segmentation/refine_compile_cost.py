@@ -1,0 +1,122 @@
+"""Compile cost of one refinement program: the per-frame ``refine_frame`` of
+tests/segmentation/test_refine.py's configuration (160x120, levels (1, 0), one camera).
+
+Prints the jaxpr size (equations, nested jaxprs counted), the wall seconds of tracing, of
+lowering + XLA compilation, the *process CPU* seconds of lowering + compilation (the figure
+to compare on a loaded machine: the other engineers' processes inflate wall time, not the CPU
+time this process spends), and the CPU seconds of running two frames. With ``--save F.npz``
+it stores every output leaf of two refined frames, and ``--compare A.npz B.npz`` says which
+leaves differ between two such files (e.g. before and after a change to refine.py).
+
+    python experiments/segmentation/refine_compile_cost.py --save /tmp/after.npz
+    python experiments/segmentation/refine_compile_cost.py --compare /tmp/before.npz /tmp/after.npz
+
+The persistent compilation cache is switched off (``JAX_ENABLE_COMPILATION_CACHE=false``) so
+that XLA really compiles. Results: experiments/results/suite_time.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jax._src import core as jax_core  # noqa: E402
+
+from jaxcr.camera import Camera  # noqa: E402
+from jaxcr.kinematics.cosserat import integrate_centreline  # noqa: E402
+from jaxcr.segmentation.background import colour_mask  # noqa: E402
+from jaxcr.segmentation.refine import RefineConfig, refine_frame  # noqa: E402
+from jaxcr.segmentation.shape import perturbed_centreline  # noqa: E402
+from jaxcr.segmentation.silhouette import project_tube, rasterise_dense  # noqa: E402
+
+W, H = 160, 120
+CFG = RefineConfig(  # tests/segmentation/test_refine.py's CFG
+    n_coeffs=3, levels=(1, 0), steps=(30, 15), outer=(2, 1), tau=(1.0, 0.8), band_tiles=96,
+    min_tiles=24, g_reg=0.5, local=False, camera_correction=False,
+)  # fmt: skip
+TRUE = [
+    np.array([[0.35, -0.15, 0.05], [0.0, 0.0, 0.0]], np.float32),
+    np.array([[-0.3, 0.1, 0.0], [0.0, 0.0, 0.0]], np.float32),
+]
+
+
+def count_equations(jaxpr) -> int:
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += 1
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (list, tuple)) else [p]:
+                if isinstance(sub, jax_core.ClosedJaxpr):
+                    n += count_equations(sub.jaxpr)
+                elif isinstance(sub, jax_core.Jaxpr):
+                    n += count_equations(sub)
+    return n
+
+
+def scene():
+    """test_refine's arc and front camera; images drawn with jaxcr's exact rasteriser (grey
+    tube on a noisy red background), colour-masked."""
+    n = 41
+    s = jnp.linspace(0.0, 0.12, n)
+    u = jnp.tile(jnp.array([6.0, 0.0, 0.0]), (n - 1, 1))
+    R0 = jnp.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+    base = integrate_centreline(s, u, jnp.full(n, 2.5e-3), jnp.array([-0.06, 0.01, 0.0]), R0)
+    cam = Camera.look_at([0, 0, -0.3], [0, 0, 0], [0, -1, 0], fx=200.0, size=(W, H))
+    frames = []
+    for k, c in enumerate(TRUE):
+        mask = np.asarray(rasterise_dense(project_tube(cam, perturbed_centreline(base, c)), H, W))
+        rng = np.random.default_rng(k)
+        img = np.empty((H, W, 3), np.float32)
+        img[:] = [0.70, 0.25, 0.25]
+        img += rng.normal(0, 0.05, img.shape).astype(np.float32)
+        img[mask] = [0.6, 0.6, 0.62]
+        bg, ip = colour_mask(jnp.asarray(np.clip(img, 0, 1)))
+        frames.append((ip, bg))
+    return base, cam, frames
+
+
+def measure(save: str | None) -> None:
+    base, cam, frames = scene()
+
+    def f(b, i, g):
+        return refine_frame(b, cam, i, g, CFG)
+
+    args = (base, *frames[0])
+    t0 = time.perf_counter()
+    jaxpr = jax.make_jaxpr(f)(*args)
+    t1 = time.perf_counter()
+    print(f"jaxpr equations {count_equations(jaxpr.jaxpr)}, trace {t1 - t0:.1f} s wall")
+    t0, c0 = time.perf_counter(), time.process_time()
+    compiled = jax.jit(f).lower(*args).compile()
+    t1, c1 = time.perf_counter(), time.process_time()
+    print(f"lower + XLA compile {t1 - t0:.1f} s wall, {c1 - c0:.1f} s CPU")
+    c0 = time.process_time()
+    outs = jax.block_until_ready([compiled(base, *fr) for fr in frames])
+    print(f"run two frames {time.process_time() - c0:.2f} s CPU")
+    print(f"load average {os.getloadavg()[0]:.1f}")
+    if save:
+        np.savez(save, *[np.asarray(x) for o in outs for x in jax.tree.leaves(o)])
+
+
+def compare(a: str, b: str) -> None:
+    x, y = np.load(a), np.load(b)
+    diff = [k for k in x.files if not np.array_equal(x[k], y[k], equal_nan=True)]
+    print(f"{len(x.files)} output leaves, {len(diff)} differ: {diff}")
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--save", help="store the outputs of two refined frames (.npz)")
+    ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two --save files")
+    ns = ap.parse_args()
+    if ns.compare:
+        compare(*ns.compare)
+    else:
+        measure(ns.save)
