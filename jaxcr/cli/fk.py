@@ -276,10 +276,9 @@ def _remove_outputs(out: str) -> None:
 def run(args) -> int:
     import shutil
 
-    from jaxcr.io import outdir
     from jaxcr.scale.executor import WorkerSpec, executor_config
     from jaxcr.scale.job import Job, file_digest
-    from jaxcr.scale.shards import SHARDS_DIR, claim_shard, parse_shard
+    from jaxcr.scale.shards import claim_output, parse_shard
 
     shard = parse_shard(args.shard)  # bad flags: one line, before reading anything
     executor = executor_config(args)
@@ -289,14 +288,8 @@ def run(args) -> int:
     chunk = max(1, min(executor.chunk or CHUNK, B))
     worker.chunk = chunk
 
-    def recognise(o):
-        return (o / "tips.csv").exists() or (o / SHARDS_DIR).is_dir()
-
     # new, empty or an earlier fk output; an unwritable OUT fails now, not after the compile
-    if shard is None:
-        outdir.claim(args.out, "fk", recognise=recognise)
-    else:
-        claim_shard(args.out, "fk", shard, recognise=recognise)
+    claim_output(args.out, "fk", shard, marker="tips.csv")
     out = Path(args.out)
     _remove_outputs(args.out)
     run_info = {

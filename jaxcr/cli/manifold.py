@@ -462,23 +462,16 @@ def _fail_line(rec: dict) -> str:
 def run_query(args) -> int:
     import shutil
 
-    from jaxcr.io import outdir
     from jaxcr.scale.executor import WorkerSpec, executor_config
     from jaxcr.scale.job import Job, file_digest
-    from jaxcr.scale.shards import SHARDS_DIR, claim_shard, parse_shard
+    from jaxcr.scale.shards import SHARDS_DIR, claim_output, parse_shard
 
     shard = parse_shard(args.shard)  # bad flags: one line, before reading anything
     executor = executor_config(args)
     worker = QueryWorker(args.model, args.dataset)  # bad model or dataset: exit 2 here
 
-    def recognise(o):
-        return (o / "estimates.csv").exists() or (o / SHARDS_DIR).is_dir()
-
     # new, empty or an earlier query's folder, never another command's; locked until exit
-    if shard is None:
-        outdir.claim(args.out, "manifold query", recognise=recognise)
-    else:
-        claim_shard(args.out, "manifold query", shard, recognise=recognise)
+    claim_output(args.out, "manifold query", shard, marker="estimates.csv")
     out = Path(args.out)
     whole = ("estimates.csv", "estimates.jsonl", "summary.json", "summary.md")
     for name in whole:  # rewritten at the end: none is left over that looks like this run's

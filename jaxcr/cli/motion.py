@@ -380,15 +380,8 @@ def _prepare_batch(out: Path, shard, run_info: dict, resume: bool):
     from jaxcr.io import outdir
     from jaxcr.scale import shards as S
 
-    def recognise(o):
-        return (o / R.RUN_FILE).exists() or (o / S.SHARDS_DIR).is_dir()
-
-    if shard is None:
-        lock = outdir.claim(out, "motion", recognise=recognise)
-        log_dir = out
-    else:
-        lock = S.claim_shard(out, "motion", shard, recognise=recognise)
-        log_dir = S.shard_dir(out, shard)
+    lock = S.claim_output(out, "motion", shard, marker=R.RUN_FILE)
+    log_dir = out if shard is None else S.shard_dir(out, shard)
     try:
         if (out / "frames.jsonl").exists():
             raise InputError("output folder holds a single-video motion run; choose a new "

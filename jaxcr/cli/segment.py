@@ -462,13 +462,7 @@ def prepare_output(
     # Never write into (or --overwrite) a folder that holds something else, e.g. the dataset
     # itself: its masks/<cam>/<id>.png ground truth would be replaced by our predictions; and
     # never beside another process writing the same OUT (the lock, held until exit).
-    def recognise(o):
-        return (o / R.RUN_FILE).exists() or (o / S.SHARDS_DIR).is_dir()
-
-    if shard is None:
-        lock = outdir.claim(out, "segment", recognise=recognise)
-    else:
-        lock = S.claim_shard(out, "segment", shard, recognise=recognise)
+    lock = S.claim_output(out, "segment", shard, marker=R.RUN_FILE)
     try:
         return _prepare_claimed(out, layout, resume, overwrite, run_info, shard)
     except BaseException:

@@ -561,7 +561,7 @@ def run(args) -> int:
         print(f"wrote {path / 'stereo.json'}")
         return 0
     from jaxcr.scale.executor import executor_config
-    from jaxcr.scale.shards import SHARDS_DIR, claim_shard, parse_shard
+    from jaxcr.scale.shards import claim_output, parse_shard
 
     shard = parse_shard(args.shard)  # bad --shard: one line, before reading anything
     executor = executor_config(args)
@@ -589,13 +589,7 @@ def run(args) -> int:
             f"--segmentation {args.segmentation} needs background_plates in stereo.json"
         )
 
-    def recognise(o):
-        return (o / "run.json").exists() or (o / SHARDS_DIR).is_dir()
-
-    if shard is None:
-        _claim(args.out, "stereo", recognise=recognise)
-    else:
-        claim_shard(args.out, "stereo", shard, recognise=recognise)
+    claim_output(args.out, "stereo", shard, marker="run.json")
     recs = run_batch(ds, args.out, overlays=not args.no_overlays, shard=shard,
                      executor=executor)  # fmt: skip
     n_ok = sum(r["ok"] for r in recs)

@@ -157,6 +157,21 @@ def refuse_if_shards_run(out: str | os.PathLike) -> None:
         )
 
 
+def claim_output(out: str | os.PathLike, command: str, shard: Shard | None, marker: str) -> Path:
+    """Take OUT for ``command``, whole or one shard of it: :func:`jaxcr.io.outdir.claim` when
+    ``shard`` is None, else :func:`claim_shard`. OUT counts as an earlier run of ``command`` when
+    it holds ``marker`` (a file every run of the command writes) or a shards folder. Returns the
+    lock (released by :func:`jaxcr.io.outdir.release`, or at exit)."""
+    from jaxcr.io import outdir
+
+    def recognise(o):
+        return (Path(o) / marker).exists() or (Path(o) / SHARDS_DIR).is_dir()
+
+    if shard is None:
+        return outdir.claim(out, command, recognise=recognise)
+    return claim_shard(out, command, shard, recognise=recognise)
+
+
 def claim_shard(out: str | os.PathLike, command: str, shard: Shard, recognise=None) -> Path:
     """Take shard ``shard`` of OUT for ``command`` (see the module docstring): create OUT and
     the shard folder, take the shard's lock, and check that no unsharded run, no other process
