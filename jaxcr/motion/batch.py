@@ -385,19 +385,6 @@ def build_motion_worker(videos: dict[str, str], out: str, cfg: MotionConfig,
 def read_video_records(path: str | os.PathLike) -> list[dict]:
     """A batch's results.jsonl: one record per video (the last line of a video wins, in
     first-seen order); a truncated last line (a killed run) is ignored."""
-    path = Path(path)
-    if not path.exists():
-        return []
-    lines = path.read_bytes().split(b"\n")[:-1]
-    recs: dict[str, dict] = {}
-    for lineno, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError as err:
-            raise InputError(f"line {lineno}: malformed JSON ({err.msg})", file=str(path)) from None
-        if not isinstance(rec, dict) or "video" not in rec:
-            raise InputError(f"line {lineno}: not a {BATCH_FORMAT} record", file=str(path))
-        recs[str(rec["video"])] = rec
-    return list(recs.values())
+    from jaxcr.scale.job import read_keyed
+
+    return read_keyed(path, "video")
