@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxcr.registration.arm import ArmSpec
+from jaxcr.registration.pipeline import run_arm_spec
 from jaxcr.registration.planning import ArcPlanner, PlannerConfig
 from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task
 
@@ -35,15 +35,7 @@ OUT = Path(__file__).parent.parent / "results" / "registration"
 
 
 def route(sim, run: dict) -> dict:
-    a = sim.cfg["arm"]
-    spec = ArmSpec(
-        int(a["n_sections"]),
-        float(a["max_length"]),
-        float(a["radius"]),
-        float(a["height"]),
-        tuple(run["base"]),
-        float(a.get("max_kappa", 12.0)),
-    )
+    spec = run_arm_spec(sim, run)
     cfg = PlannerConfig(
         direction=int(run["direction"]),
         delta_s=float(run["delta_s"]),

@@ -185,11 +185,10 @@ def _winding(T: np.ndarray, centre: np.ndarray) -> float:
     return float(np.arctan2(T[1, 3] - centre[1], T[0, 3] - centre[0]))
 
 
-def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int = 0) -> RunLog:
-    """One winding run: Algorithm 1 with forward pairwise registration after every move."""
-    scfg = sim.cfg
-    a = scfg["arm"]
-    spec = ArmSpec(
+def run_arm_spec(sim, run: dict) -> ArmSpec:
+    """The arm of one winding run: the scene's ``arm`` settings on the run's ``base``."""
+    a = sim.cfg["arm"]
+    return ArmSpec(
         int(a["n_sections"]),
         float(a["max_length"]),
         float(a["radius"]),
@@ -197,6 +196,12 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
         tuple(run["base"]),
         float(a.get("max_kappa", 12.0)),
     )
+
+
+def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int = 0) -> RunLog:
+    """One winding run: Algorithm 1 with forward pairwise registration after every move."""
+    scfg = sim.cfg
+    spec = run_arm_spec(sim, run)
     model = spec.model()
     pcfg = PlannerConfig(
         direction=int(run["direction"]),
