@@ -33,6 +33,8 @@ class StereoReconstruction(eqx.Module):
             one camera only); s_stereo_end: arc length where the stereo backbone ends.
         base_mode: ``"markers"``, ``"T_cam_base"`` or ``"entry_px"``; entry_residual_px: the
             entry pixels' triangulation residual (``entry_px`` only, else None).
+        tip_epipolar_px: the larger of the two views' ``tip_px`` distances to the epipolar
+            line of the other view's (px, undistorted pixels; docs/stereo-format.md).
         extra: any further outputs of ``reconstruct_pair`` not listed above (empty today).
     """
 
@@ -59,6 +61,7 @@ class StereoReconstruction(eqx.Module):
     s_stereo_end: Any = None
     base_mode: Any = None
     entry_residual_px: Any = None
+    tip_epipolar_px: Any = None
     extra: dict = eqx.field(default_factory=dict)
 
 
