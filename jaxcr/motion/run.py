@@ -114,8 +114,8 @@ def run_motion(
     while the JAX likelihood and segmentation of the current pair run (they need only the
     two grey frames, not the tracker), so a frame costs about max(flow, JAX) instead of their
     sum where a second core is free. The results are identical either way (same functions on
-    the same inputs; tests/motion/test_motion_overlap.py); ``False`` runs them one after the
-    other."""
+    the same inputs; tests/motion/test_motion_pipeline.py,
+    ``test_overlapped_flow_equals_sequential``); ``False`` runs them one after the other."""
     cfg = cfg or MotionConfig()
     warnings = []
     t_touch = first_touch(ds)
