@@ -15,6 +15,7 @@ from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pairwise import PairResult
 from jaxcr.registration.pipeline import PipelineConfig, chained_closure, check_closure
 from jaxcr.registration.pose_graph import GraphEdge, optimize_pose_graph
+from tests.helpers.ring import ring_pose
 
 
 def _T(rotvec, t):
@@ -30,16 +31,7 @@ def _ring(m=13, seed=0, slide=0.015):
     Task 1 forward registrations on seeds 303/304), and a closure T_{0 <- m-1} that is
     exact but for a ``slide`` (m) along the first view's x axis."""
     rng = np.random.default_rng(seed)
-    world = []
-    for k in range(m):
-        a = 2 * np.pi * k / m * 0.9
-        c = np.array([0.3 * np.cos(a), 0.3 * np.sin(a), 0.0])
-        z = -c / np.linalg.norm(c)
-        x = np.array([-np.sin(a), np.cos(a), 0.0])
-        T = np.eye(4)
-        T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-        T[:3, 3] = c
-        world.append(T)
+    world = [ring_pose(2 * np.pi * k / m * 0.9) for k in range(m)]
     truth = [np.linalg.inv(world[-1]) @ W for W in world]
     fwd = []
     for k in range(m - 1):

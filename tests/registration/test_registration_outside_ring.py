@@ -30,6 +30,7 @@ from jaxcr.registration.pipeline import (
     chain,
     optimize_pose_graph_stage,
 )
+from tests.helpers.ring import ring_pose
 
 N, K0 = 12, 2  # captures; the loop closes on view 2, so views 0-1 are outside the ring
 SIGMA_R, SIGMA_T = np.deg2rad(0.1), 5e-4  # per-registration error (Task 1 forward RMS)
@@ -48,17 +49,7 @@ def _T(rotvec, t):
 def _world():
     """True world <- camera poses on a 0.3 m circle looking at its centre (the run winds
     330 deg, so the last views overlap the first ones)."""
-    out = []
-    for k in range(N):
-        a = np.deg2rad(330.0) * k / (N - 1)
-        c = np.array([0.3 * np.cos(a), 0.3 * np.sin(a), 0.0])
-        z = -c / np.linalg.norm(c)
-        x = np.array([-np.sin(a), np.cos(a), 0.0])
-        T = np.eye(4)
-        T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-        T[:3, 3] = c
-        out.append(T)
-    return out
+    return [ring_pose(np.deg2rad(330.0) * k / (N - 1)) for k in range(N)]
 
 
 def _noise(rng):

@@ -10,19 +10,11 @@ import numpy as np
 import pytest
 
 from jaxcr.stereo.tip_geometry import end_face_lengths, epipolar_distances, fundamental_from_poses
+from jaxcr.synth.scene import look_at_pose
 
 
 def _look_at(eye, target):
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = -R @ eye
-    return T
+    return look_at_pose(eye, target, up=(0.0, 0.0, 1.0))
 
 
 K1 = np.array([[900.0, 0, 640], [0, 900, 360], [0, 0, 1]])
