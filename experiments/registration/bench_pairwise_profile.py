@@ -30,8 +30,8 @@ import numpy as np
 
 from jaxcr.registration.keypoints import matched_points
 from jaxcr.registration.metrics import pose_error
-from jaxcr.registration.pairwise import _keypoint_arrays, geometric_sample, make_frame
-from jaxcr.registration.pipeline import PipelineConfig
+from jaxcr.registration.pairwise import _keypoint_arrays, geometric_sample
+from jaxcr.registration.pipeline import PipelineConfig, capture_frame
 from jaxcr.registration.projective import projective_icp_jit, projective_information_jit
 from jaxcr.registration.ransac import estimate_transform
 from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task
@@ -64,16 +64,7 @@ def frames(scratch: Path, n: int, step_deg: float, seed: int):
         a = np.deg2rad(step_deg * k)
         T = look_at(np.array([r * np.cos(a), r * np.sin(a), zt + 0.1]), target)
         rgb, depth = sim.capture(T)
-        f = make_frame(
-            rgb,
-            depth,
-            sim.K,
-            cfg.voxel,
-            cfg.cloud_size,
-            seed + k,
-            label=str(k),
-            sample_size=cfg.sample_size,
-        )
+        f = capture_frame(rgb, depth, sim.K, cfg, seed + k, str(k))
         out.append((f, T))
     return sim.K, out
 

@@ -185,6 +185,14 @@ def _winding(T: np.ndarray, centre: np.ndarray) -> float:
     return float(np.arctan2(T[1, 3] - centre[1], T[0, 3] - centre[0]))
 
 
+def capture_frame(rgb, depth, K, cfg: PipelineConfig, seed: int, label: str):
+    """One RGB-D capture as the pipeline registers it (:func:`make_frame` with ``cfg``'s voxel,
+    cloud and sample sizes)."""
+    return make_frame(
+        rgb, depth, K, cfg.voxel, cfg.cloud_size, seed, label=label, sample_size=cfg.sample_size
+    )
+
+
 def run_arm_spec(sim, run: dict) -> ArmSpec:
     """The arm of one winding run: the scene's ``arm`` settings on the run's ``base``."""
     a = sim.cfg["arm"]
@@ -236,16 +244,7 @@ def run_direction(sim, run: dict, cfg: PipelineConfig, progress=None, seed: int 
         T_nom, line = tip_camera_pose(spec, kap, lens, pan, tilt, model=model)
         T_true, _ = tip_camera_pose(spec, kap * kscale, lens, pan, tilt, mount=mount, model=model)
         rgb, depth = sim.capture(T_true)
-        frame = make_frame(
-            rgb,
-            depth,
-            K,
-            cfg.voxel,
-            cfg.cloud_size,
-            seed + step,
-            label=f"{log.name}:{step}",
-            sample_size=cfg.sample_size,
-        )
+        frame = capture_frame(rgb, depth, K, cfg, seed + step, f"{log.name}:{step}")
         cap = Capture(log.name, step, frame, T_nom, T_true, line)
         if log.captures:
             prev = log.captures[-1]
