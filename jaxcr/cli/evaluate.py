@@ -52,6 +52,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument("--no-plot", action="store_true", help="do not write iou.png")
     p.add_argument("--title", default=None, help="title of the Markdown report")
+    from jaxcr.scale.executor import add_executor_arguments
+    from jaxcr.segmentation.evaluate import EVALUATE_CHUNK
+
+    # segment outputs only: their frames' masks are read and scored as tasks (a long run on a
+    # shared filesystem); stereo, fk and manifold query outputs are merged from their records
+    add_executor_arguments(p, f"{EVALUATE_CHUNK} frames; segment outputs only")
     p.set_defaults(func=run)
     return p
 
@@ -170,15 +176,22 @@ def run(args) -> int:
             raise InputError("output folder not found", file=str(o))
     from jaxcr.cli.stereo import is_stereo_output
     from jaxcr.io import outdir
+    from jaxcr.scale.executor import executor_config
 
+    executor = executor_config(args)
     jobs = [outdir.owner(o) in ("fk", "manifold query") for o in outs]
+    stereo = [is_stereo_output(o) for o in outs]
+    if executor.kind != "local" and (any(jobs) or any(stereo)):
+        # those merges read only their records (no images): nothing to distribute
+        raise InputError("--executor ray evaluates segment outputs; stereo, fk and manifold "
+                         "query outputs are merged from their records in this process",
+                         field="executor")  # fmt: skip
     if any(jobs):
         if not all(jobs) or args.out:
             raise InputError("fk and manifold query outputs are merged in place, one kind at "
                              "a time: no -o, no other outputs", field="outs")  # fmt: skip
         return _run_jobs(outs)
 
-    stereo = [is_stereo_output(o) for o in outs]
     if any(stereo):
         if not all(stereo):
             raise InputError("cannot evaluate stereo and segment outputs together",
@@ -195,7 +208,7 @@ def run(args) -> int:
         from jaxcr.io import outdir
 
         outdir.claim(report_dir, "evaluate", recognise=lambda o: (o / "table2.md").exists())
-    rows, infos = evaluate_outputs(outs)
+    rows, infos = evaluate_outputs(outs, executor=executor)
     if not rows:
         raise InputError("no results to evaluate (empty results.jsonl)", file=str(outs[0]))
     from jaxcr.scale import shards as S

@@ -139,67 +139,68 @@ def _load_centreline(out: Path, rel: str) -> np.ndarray:
     return arr
 
 
-def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dict]:
-    """Per-frame, per-camera metric rows of one segment output folder (see
-    :mod:`jaxcr.io.report`), and its run.json with the evaluation's counts added
-    (``evaluate_expected``: frames in the dataset; ``evaluate_missing``: their ids without a
-    record; ``evaluate_failed``: {frame: reason} of frames whose outputs could not be
-    evaluated).
+class OutputEvaluator:
+    """The evaluation of one segment output folder, frame by frame: reads OUT's run.json and
+    records (every shard's merged), and the dataset's ground truth; :meth:`frame` gives one
+    record's per-camera metric rows. Built from paths only, so a Ray worker builds its own
+    (``jaxcr evaluate --executor ray``: OUT and the dataset on a filesystem the workers share).
 
     Args:
         group_by: ``"tags"`` (column = the frame's tags joined by spaces, or the dataset name
             when untagged) or ``"dataset"`` (column = dataset name).
     """
-    import jax.numpy as jnp
 
-    from jaxcr.io.dataset import load_dataset
-    from jaxcr.segmentation import metrics
+    def __init__(self, out: str | Path, group_by: str = "tags"):
+        from jaxcr.io.dataset import load_dataset
+        from jaxcr.scale import shards as S
 
-    out = Path(out)
-    layout = R.OutputLayout(out)
-    if not out.is_dir():
-        raise InputError("not a segment output folder", file=str(out))
-    from jaxcr.scale import shards as S
+        out = Path(out)
+        self.out, self.group_by = out, group_by
+        self.layout = R.OutputLayout(out)
+        if not out.is_dir():
+            raise InputError("not a segment output folder", file=str(out))
+        # a --shard run keeps run.json and results.jsonl in OUT/shards/I-of-N: merge them all
+        runs = [self.layout.run] + [d / R.RUN_FILE for _, d in S.shard_dirs(out)]
+        runs = [p for p in runs if p.exists()]
+        if not runs:
+            raise InputError("no run.json: not a jaxcr segment output folder", file=str(out))
+        self.run_info = R.read_run(runs[0])
+        try:
+            self.records = S.read_all_records(out)
+        except ValueError as err:
+            raise InputError(str(err)) from None
+        ds_path = Path(self.run_info["dataset"])
+        if not ds_path.exists():
+            raise InputError("the dataset of this run is gone", file=str(ds_path))
+        self.ds = load_dataset(ds_path)
+        self.name = self.run_info.get("dataset_name") or self.ds.name
+        self.cams = self.run_info.get("cameras") or list(self.ds.cameras)
+        self.frames = {f.id: f for f in self.ds.frames}
+        self.record_lines = _record_lines(self.layout.results)
 
-    # a --shard run keeps run.json and results.jsonl in OUT/shards/I-of-N: merge them all
-    runs = [layout.run] + [d / R.RUN_FILE for _, d in S.shard_dirs(out)]
-    runs = [p for p in runs if p.exists()]
-    if not runs:
-        raise InputError("no run.json: not a jaxcr segment output folder", file=str(out))
-    run_info = R.read_run(runs[0])
-    try:
-        records = S.read_all_records(out)
-    except ValueError as err:
-        raise InputError(str(err)) from None
-    ds_path = Path(run_info["dataset"])
-    if not ds_path.exists():
-        raise InputError("the dataset of this run is gone", file=str(ds_path))
-    ds = load_dataset(ds_path)
-    name = run_info.get("dataset_name") or ds.name
-    cams = run_info.get("cameras") or list(ds.cameras)
-    frames = {f.id: f for f in ds.frames}
+    def frame(self, rec: dict) -> tuple[list[dict], str | None]:
+        """One record's rows (one per camera) and None; or, when its outputs cannot be
+        compared with its ground truth (missing, damaged, mis-sized), failed rows (NaN
+        metrics, the reason) and the reason: that frame fails, the report goes on."""
+        import jax.numpy as jnp
 
-    def m(x):
-        return float(x) if x is not None else math.nan
+        from jaxcr.segmentation import metrics
 
-    from jaxcr.progress import progress
+        def m(x):
+            return float(x) if x is not None else math.nan
 
-    rows = []
-    eval_failed: dict[str, str] = {}
-    record_lines = _record_lines(layout.results)
-    # reading masks of long runs takes a while: a bar on a terminal, plain lines in a log
-    for rec in progress(records, desc=f"evaluate {out.name}", unit="frame", leave=False):
+        out, layout, ds, cams = self.out, self.layout, self.ds, self.cams
         fid = str(rec["frame"])
-        frame = frames.get(fid)
+        frame = self.frames.get(fid)
         tags = rec.get("tags") or (list(frame.tags) if frame is not None else [])
-        group = name if group_by == "dataset" or not tags else " ".join(tags)
+        group = self.name if self.group_by == "dataset" or not tags else " ".join(tags)
         files = rec.get("files") or {}
         truth_cl = frame.load_truth("centreline") if frame is not None else None
         e3 = {k: math.nan for k in _METRIC_FIELDS[5:]}
         bad = None  # set when this frame's outputs cannot be compared with its ground truth
-        first = len(rows)
+        rows: list[dict] = []
         try:  # a damaged output file of this frame fails this frame only
-            line = record_lines.get(fid)
+            line = self.record_lines.get(fid)
             if rec.get("ok") and frame is None:
                 where = f" (line {line})" if line is not None else ""
                 raise InputError(f"an ok record of a frame the dataset does not have{where}",
@@ -223,7 +224,7 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
             for cam in cams:
                 row = {
                     "out": str(out),
-                    "dataset": name,
+                    "dataset": self.name,
                     "group": group,
                     "frame": fid,
                     "camera": cam,
@@ -260,25 +261,124 @@ def frame_rows(out: str | Path, group_by: str = "tags") -> tuple[list[dict], dic
         except InputError as err:
             bad = f"evaluate: {err.format()}"
         if bad is not None:
-            # one frame's outputs are damaged or do not match its ground truth: that frame is
-            # failed (all its cameras, NaN metrics, the reason recorded), the report goes on
-            del rows[first:]
-            for cam in cams:
-                rows.append({
-                    "out": str(out), "dataset": name, "group": group, "frame": fid,
-                    "camera": cam, "ok": False, "reason": bad, "num_steps": rec.get("num_steps"),
-                    "time_s": rec.get("time_s"), **{k: math.nan for k in _METRIC_FIELDS},
-                })  # fmt: skip
-            eval_failed[fid] = bad
-    # frames of the dataset without a record (an interrupted or --limit run, or a dataset
-    # that grew since): the report covers fewer frames than the dataset has
-    expected = list(ds.bad_frames) + [f.id for f in ds.frames]
-    have = {str(r["frame"]) for r in records}
-    run_info = {**run_info, "evaluate_expected": len(expected),
-                "evaluate_missing": [f for f in expected if f not in have]}  # fmt: skip
-    # frames whose outputs could not be evaluated ({frame: reason}); the CLI warns about them
-    run_info["evaluate_failed"] = eval_failed
-    return rows, run_info
+            return self.failed_rows(rec, bad), bad
+        return rows, None
+
+    def failed_rows(self, rec: dict, reason: str) -> list[dict]:
+        """The rows of a frame that could not be evaluated: every camera, NaN metrics, the
+        reason."""
+        fid = str(rec["frame"])
+        frame = self.frames.get(fid)
+        tags = rec.get("tags") or (list(frame.tags) if frame is not None else [])
+        group = self.name if self.group_by == "dataset" or not tags else " ".join(tags)
+        return [{
+            "out": str(self.out), "dataset": self.name, "group": group, "frame": fid,
+            "camera": cam, "ok": False, "reason": reason, "num_steps": rec.get("num_steps"),
+            "time_s": rec.get("time_s"), **{k: math.nan for k in _METRIC_FIELDS},
+        } for cam in self.cams]  # fmt: skip
+
+    def info(self, failed: dict[str, str]) -> dict:
+        """run.json with the evaluation's counts added (``evaluate_expected``,
+        ``evaluate_missing``, ``evaluate_failed``: see :func:`frame_rows`)."""
+        # frames of the dataset without a record (an interrupted or --limit run, or a dataset
+        # that grew since): the report covers fewer frames than the dataset has
+        expected = list(self.ds.bad_frames) + [f.id for f in self.ds.frames]
+        have = {str(r["frame"]) for r in self.records}
+        return {**self.run_info, "evaluate_expected": len(expected),
+                "evaluate_missing": [f for f in expected if f not in have],
+                # frames whose outputs could not be evaluated ({frame: reason}); the CLI warns
+                "evaluate_failed": failed}  # fmt: skip
+
+
+#: frames per task of ``jaxcr evaluate --executor ray`` (each reads a few PNGs per camera)
+EVALUATE_CHUNK = 64
+
+
+class EvaluateWorker:
+    """The worker of ``jaxcr evaluate --executor ray`` (:mod:`jaxcr.scale.executor`): one
+    record per frame, ``{"frame", "rows", "bad"}`` (its metric rows, and the reason when its
+    outputs could not be evaluated). Nothing is written: the driver assembles the report."""
+
+    compile_s = 0.0
+
+    def __init__(self, out: str, group_by: str = "tags"):
+        self.evaluator = OutputEvaluator(out, group_by)
+        self.by_id = {str(r["frame"]): r for r in self.evaluator.records}
+        self.run_s = 0.0
+
+    def process(self, frame_ids: list[str]) -> list[dict]:
+        import time
+
+        t0 = time.perf_counter()
+        recs = []
+        for fid in frame_ids:
+            rows, bad = self.evaluator.frame(self.by_id[fid])
+            recs.append({"frame": fid, "rows": rows, "bad": bad})
+        self.run_s += time.perf_counter() - t0
+        return recs
+
+    def failed_record(self, frame_id: str, reason: str) -> dict:
+        bad = f"evaluate: {reason}"
+        return {"frame": frame_id, "rows": self.evaluator.failed_rows(self.by_id[frame_id], bad),
+                "bad": bad}  # fmt: skip
+
+
+class _Collect:
+    """A results log that keeps the records in memory (evaluate writes its report at the
+    end, not per frame)."""
+
+    def __init__(self):
+        self.records: list[dict] = []
+
+    def append(self, record: dict) -> None:
+        self.records.append(record)
+
+    def append_many(self, records: list[dict]) -> None:
+        self.records += records
+
+
+def frame_rows(out: str | Path, group_by: str = "tags",
+               executor=None) -> tuple[list[dict], dict]:  # fmt: skip
+    """Per-frame, per-camera metric rows of one segment output folder (see
+    :mod:`jaxcr.io.report`), and its run.json with the evaluation's counts added
+    (``evaluate_expected``: frames in the dataset; ``evaluate_missing``: their ids without a
+    record; ``evaluate_failed``: {frame: reason} of frames whose outputs could not be
+    evaluated).
+
+    Args:
+        group_by: ``"tags"`` (column = the frame's tags joined by spaces, or the dataset name
+            when untagged) or ``"dataset"`` (column = dataset name).
+        executor: None or a local :class:`jaxcr.scale.executor.ExecutorConfig`: in this
+            process, with a progress bar; ``kind="ray"``: the frames in chunks as Ray tasks
+            (the same rows, in the same order).
+    """
+    if executor is not None and executor.kind != "local":
+        from jaxcr.scale.executor import WorkerSpec, run_frames
+
+        worker = EvaluateWorker(str(out), group_by)
+        ids = [str(r["frame"]) for r in worker.evaluator.records]
+        log = _Collect()
+        spec = WorkerSpec(EvaluateWorker, (str(out), group_by))
+        run_frames(spec, ids, log, executor, chunk=EVALUATE_CHUNK, local_worker=worker)
+        by_id = {r["frame"]: r for r in log.records}
+        rows, failed = [], {}
+        for fid in ids:  # the local run's order
+            rows += by_id[fid]["rows"]
+            if by_id[fid]["bad"] is not None:
+                failed[fid] = by_id[fid]["bad"]
+        return rows, worker.evaluator.info(failed)
+    from jaxcr.progress import progress
+
+    ev = OutputEvaluator(out, group_by)
+    rows: list[dict] = []
+    failed: dict[str, str] = {}
+    # reading masks of long runs takes a while: a bar on a terminal, plain lines in a log
+    for rec in progress(ev.records, desc=f"evaluate {ev.out.name}", unit="frame", leave=False):
+        frame_rows_, bad = ev.frame(rec)
+        rows += frame_rows_
+        if bad is not None:
+            failed[str(rec["frame"])] = bad
+    return rows, ev.info(failed)
 
 
 def _uncertainty_fields(rec: dict, cam: str) -> dict:
@@ -338,14 +438,15 @@ def uncertainty_markdown(rows: list[dict]) -> list[str]:
     return lines + [""]
 
 
-def evaluate_outputs(outs: list[str | Path]) -> tuple[list[dict], list[dict]]:
+def evaluate_outputs(outs: list[str | Path], executor=None) -> tuple[list[dict], list[dict]]:
     """Rows of several output folders (grouped by dataset name when more than one; folder
-    names disambiguate equal dataset names) and their run.json dicts."""
+    names disambiguate equal dataset names) and their run.json dicts. ``executor``: as
+    :func:`frame_rows`."""
     all_rows, infos = [], []
     group_by = "tags" if len(outs) == 1 else "dataset"
     seen: dict[str, str] = {}
     for out in outs:
-        rows, info = frame_rows(out, group_by=group_by)
+        rows, info = frame_rows(out, group_by=group_by, executor=executor)
         if group_by == "dataset" and rows:
             nm = rows[0]["dataset"]
             if nm in seen and seen[nm] != str(out):

@@ -257,3 +257,73 @@ def test_evaluate_merges_stereo_shards_and_names_missing_frames(stereo, capsys):
     # the merged table equals the unsharded local run's (the reference)
     for name in ("segments.csv", "segments.md"):
         assert (out / name).read_bytes() == (root / "local" / name).read_bytes()
+
+
+# --------------------------------------------------------------------------- evaluate
+
+
+@pytest.fixture(scope="module")
+def segment_out(ray_instance, tmp_path_factory):
+    """A segment output folder written here from the dataset's ground truth (evaluate only
+    reads files; no refinement is run): frames 0-2 ok with the true mask shifted by k pixels
+    and the true centreline offset by k mm, frame 3 failed in the run, frame 4 ok with a
+    mis-sized mask (failed in evaluation)."""
+    from jaxcr.io import results as R
+    from jaxcr.io.dataset import load_dataset
+    from tests.helpers.scale_data import make_segment_dataset
+
+    root = tmp_path_factory.mktemp("evaluate")
+    ds_path = make_segment_dataset(root / "ds", 5)
+    ds = load_dataset(ds_path)
+    out = root / "out"
+    out.mkdir()
+    lay = R.OutputLayout(out)
+    R.atomic_write_json(lay.run, {"format": R.RUN_FORMAT, "dataset": str(ds_path),
+                                  "cameras": ["main"]})  # fmt: skip
+    log = R.ResultsLog(lay.results)
+    for k, frame in enumerate(ds.frames):
+        fid = frame.id
+        if k == 3:
+            log.append({"frame": fid, "ok": False, "reason": "diverged"})
+            continue
+        mask = np.roll(frame.load_mask("main"), k, axis=1)
+        if k == 4:
+            mask = mask[:-1]
+        R.atomic_write_png(lay.abs(lay.mask("main", fid)), mask.astype(np.uint8) * 255)
+        cl = np.asarray(frame.load_truth("centreline"), np.float64) + [1e-3 * k, 0.0, 0.0]
+        R.atomic_write_npy(lay.abs(lay.centreline(fid)), cl)
+        log.append({"frame": fid, "ok": True, "num_steps": 3, "time_s": 0.1,
+                    "files": {"masks": {"main": lay.mask("main", fid)},
+                              "centreline": lay.centreline(fid)}})  # fmt: skip
+    (out / R.DONE_FILE).write_text("done\n")
+    return root, ds, out
+
+
+def test_evaluate_ray_equals_local(segment_out, capsys):
+    import csv
+
+    root, ds, out = segment_out
+    codes = {name: main(["evaluate", str(out), "-o", str(root / name), "--no-plot", *extra])
+             for name, extra in [("local", []), ("ray", [*RAY, "--chunk", "2"])]}  # fmt: skip
+    # both: exit 1 (frame 3 failed in the run, frame 4 in evaluation), the same report
+    assert codes == {"local": 1, "ray": 1}
+    for name in ("per_frame.csv", "table2.csv", "table2.md"):
+        assert (root / "ray" / name).read_bytes() == (root / "local" / name).read_bytes(), name
+    rows = list(csv.DictReader((root / "local" / "per_frame.csv").open()))
+    assert [r["frame"] for r in rows] == [f.id for f in ds.frames]
+    assert "mask masks/main is (119, 160)" in rows[4]["reason"]
+    # the metrics themselves against numpy: IoU of the shifted mask, the tip 1 mm per shift
+    for k in range(3):
+        truth = ds.frames[k].load_mask("main")
+        shifted = np.roll(truth, k, axis=1)
+        iou = (truth & shifted).sum() / (truth | shifted).sum()
+        assert float(rows[k]["iou_refined"]) == pytest.approx(iou, abs=1e-6)
+        # float32 centrelines at ~0.1 m: 1e-7 relative -> ~1e-5 mm; 1e-3 mm tolerance
+        assert float(rows[k]["tip_refined_mm"]) == pytest.approx(k, abs=1e-3)
+
+
+def test_evaluate_ray_refuses_outputs_without_images(stereo, capsys):
+    root, _, _ = stereo
+    assert main(["evaluate", str(root / "local"), *RAY]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--executor ray evaluates segment outputs" in err[0]
