@@ -131,6 +131,31 @@ def photometric_channels(img: DepthImage, channels: str):
     )
 
 
+def masked_median(x: Float[Array, " n"], ok: Bool[Array, " n"], iters: int = 40):
+    """Median of the non-negative values ``x[ok]`` (the mean of the two middle ones for an
+    even count, as ``numpy.median``); NaN when nothing is selected. Found by bisection on
+    the value (``iters`` passes counting ``x <= t``, O(n iters)): on a CPU, XLA's sort of
+    8-16k values (``jnp.nanmedian``) cost ~15 ms, half of an ICP step; the bisection
+    ~0.4 ms. After ``iters`` = 40 halvings of [0, max] the bracket is below float32
+    resolution at the median for any median > max 2^-16, so the result is the order
+    statistic itself."""
+    x = jnp.where(ok, x, 0.0)
+    n = jnp.sum(ok)
+    k = jnp.stack([(n + 1) // 2, n // 2 + 1])  # equal for odd n
+    lo = jnp.full(2, -1e-30, x.dtype)  # count(x <= lo) = 0 < k
+    hi = jnp.full(2, jnp.max(x), x.dtype)  # count(x <= hi) = n >= k
+
+    def body(_, c):
+        lo, hi = c
+        mid = 0.5 * (lo + hi)
+        cnt = jnp.sum(ok[None, :] & (x[None, :] <= mid[:, None]), axis=1)
+        up = cnt >= k
+        return jnp.where(up, lo, mid), jnp.where(up, mid, hi)
+
+    _, hi = jax.lax.fori_loop(0, iters, body, (lo, hi))
+    return jnp.where(n > 0, 0.5 * (hi[0] + hi[1]), jnp.nan)
+
+
 def photometric_terms(ps, i_src, tgt: DepthImage, w, pl, keep, channels: str = "intensity"):
     """Normal equations (H (6, 6), g (6,)) of the dense photometric residuals
     ``r = I_t(pi(p)) - I_s`` (one per channel of :func:`photometric_channels`; ``i_src``
@@ -148,9 +173,9 @@ def photometric_terms(ps, i_src, tgt: DepthImage, w, pl, keep, channels: str = "
     mk, _ = bilinear(tgt.mask.astype(ps.dtype), u, v)
     ok = keep & front & inside & (mk > 0.999)
     r = it - i_src
-    nan = jnp.nan
-    s_i = 1.4826 * jnp.nanmedian(jnp.where(ok[:, None], jnp.abs(r), nan)) + 1e-4
-    s_g = 1.4826 * jnp.nanmedian(jnp.where(ok, jnp.abs(pl), nan)) + 1e-6
+    okc = jnp.broadcast_to(ok[:, None], r.shape).reshape(-1)
+    s_i = 1.4826 * masked_median(jnp.abs(r).reshape(-1), okc) + 1e-4
+    s_g = 1.4826 * masked_median(jnp.abs(pl), ok) + 1e-6
     s_i = jnp.where(jnp.isfinite(s_i), s_i, 1.0)
     s_g = jnp.where(jnp.isfinite(s_g), s_g, 1e-3)
     z = jnp.where(front, ps[:, 2], 1.0)[:, None]

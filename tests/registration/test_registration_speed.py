@@ -74,3 +74,26 @@ def test_planner_rejects_unknown_collision_check():
     spec = ArmSpec(3, 0.15, 0.01, 0.1, (0.3, -0.1, np.pi / 2), 12.0)
     with pytest.raises(ValueError, match="collision"):
         ArcPlanner(spec, PlannerConfig(direction=1, delta_s=0.02, view_radius=0.3, collision="x"))
+
+
+# ------------------------------------------------------------------ robust scale (ICP)
+@pytest.mark.parametrize("n", [1, 2, 7, 100, 8192])
+@pytest.mark.parametrize("scale", [1e-4, 1.0])
+def test_masked_median_equals_numpy_median(n, scale):
+    from jaxcr.registration.projective import masked_median
+
+    rng = np.random.default_rng(n)
+    x = (np.abs(rng.normal(size=n)) * scale).astype(np.float32)
+    ok = rng.random(n) < 0.7
+    ok[0] = True
+    got = float(masked_median(jnp.asarray(x), jnp.asarray(ok)))
+    ref = float(np.median(x[ok]))
+    # the bisection ends on the order statistics themselves (docstring); their mean in
+    # float32 vs numpy's float32 mean: 1 ulp
+    assert got == pytest.approx(ref, rel=2.4e-7, abs=0)
+
+
+def test_masked_median_of_nothing_is_nan():
+    from jaxcr.registration.projective import masked_median
+
+    assert np.isnan(float(masked_median(jnp.ones(5), jnp.zeros(5, bool))))
