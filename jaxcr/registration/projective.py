@@ -304,7 +304,10 @@ def projective_icp(
     """Register the source cloud ``src`` (any padded sample of a view, camera frame) to the
     organised target view ``tgt`` from ``T0`` (target <- source), optionally with matched
     keypoints: ``cfg.iterations`` steps with the correspondence radius shrinking
-    geometrically from ``cfg.max_dist`` to ``cfg.min_dist``, as :func:`icp`. Pure,
+    geometrically from ``cfg.max_dist`` to ``cfg.min_dist``, as :func:`icp`; with
+    ``cfg.tol_rotation`` / ``cfg.tol_translation`` > 0 (``DEFAULT_ICP``) it stops at
+    convergence instead (a step smaller than both jumps to the final radius; one there
+    ends the loop; at most ``cfg.iterations`` steps). Pure,
     jit-able (``window`` static). With ``src_image`` (the organised source view the
     points were sampled from) a dense photometric term (:func:`photometric_terms` on the
     ``photometric`` channels, "intensity" or "chromaticity") joins the point-to-plane and
@@ -329,15 +332,57 @@ def projective_icp(
         i_src, _ = bilinear(photometric_channels(src_image, photometric)[0], u, v)
     n = cfg.iterations
     ratio = (cfg.min_dist / cfg.max_dist) ** (1.0 / max(n - 1, 1))
+    T0 = T0.astype(src.points.dtype)
+    if cfg.tol_rotation <= 0 and cfg.tol_translation <= 0:
 
-    def body(k, T):
-        radius = cfg.max_dist * ratio ** jnp.minimum(k, n - 1)
-        return projective_icp_step(
+        def body(k, T):
+            radius = cfg.max_dist * ratio ** jnp.minimum(k, n - 1)
+            return projective_icp_step(
+                T, radius, src, tgt, cfg, kp, window, i_src, photometric, photo_points
+            )
+
+        T = jax.lax.fori_loop(0, n, body, T0)
+        return projective_evaluate(T, src, tgt, cfg, window)
+    T, _ = _converging_icp(T0, src, tgt, cfg, kp, window, i_src, photometric, photo_points)
+    return projective_evaluate(T, src, tgt, cfg, window)
+
+
+def pose_update(T_old: Mat4, T_new: Mat4) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """Size of the left update ``T_new T_old^-1``: (sin of its rotation angle (rad for
+    small angles; from the skew part, exact near 0 in float32 unlike arccos of the trace),
+    norm of its translation (m))."""
+    dR = T_new[:3, :3] @ T_old[:3, :3].T
+    w = jnp.stack([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])
+    dt = T_new[:3, 3] - dR @ T_old[:3, 3]
+    return 0.5 * jnp.sqrt(jnp.sum(w**2)), jnp.sqrt(jnp.sum(dt**2))
+
+
+def _converging_icp(T0, src, tgt, cfg, kp, window, i_src, photometric, photo_points):
+    """The ICP of :func:`projective_icp` with ``cfg``'s convergence stop
+    (:class:`jaxcr.registration.icp.IcpConfig`): the radius schedule in a ``while_loop``;
+    a converged step jumps to the final radius ``min_dist``, a converged step there ends
+    it, ``cfg.iterations`` steps at most. Returns (T, number of steps)."""
+    n = cfg.iterations
+    ratio = (cfg.min_dist / cfg.max_dist) ** (1.0 / max(n - 1, 1))
+
+    def cond(c):
+        k, it, T, done = c
+        return (~done) & (it < n)
+
+    def body(c):
+        k, it, T, _ = c
+        radius = cfg.max_dist * ratio**k
+        T1 = projective_icp_step(
             T, radius, src, tgt, cfg, kp, window, i_src, photometric, photo_points
         )
+        dr, dt = pose_update(T, T1)
+        conv = (dr <= cfg.tol_rotation) & (dt <= cfg.tol_translation)
+        done = conv & (k >= n - 1)
+        k = jnp.where(conv, n - 1, jnp.minimum(k + 1, n - 1))
+        return k, it + 1, T1, done
 
-    T = jax.lax.fori_loop(0, n, body, T0.astype(src.points.dtype))
-    return projective_evaluate(T, src, tgt, cfg, window)
+    _, steps, T, _ = jax.lax.while_loop(cond, body, (jnp.int32(0), jnp.int32(0), T0, False))
+    return T, steps
 
 
 projective_icp_jit = jax.jit(projective_icp, static_argnames=("window", "photometric"))
