@@ -36,7 +36,10 @@ from jaxcr.cli._common import seed as _seed
 from jaxcr.errors import InputError
 from jaxcr.io import results as R
 
-HELP = "benchmark segmentation or forward kinematics (medians, compile time, ratio vs reference)"
+HELP = (
+    "benchmark segmentation, kinematics, motion, registration or planning "
+    "(medians, compile time, ratio vs reference)"
+)
 
 #: where each benchmark function lives, searched in order (module, function); a module name
 #: ending in .py is a file path (absolute, or relative to the current folder), never a path
