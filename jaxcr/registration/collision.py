@@ -66,11 +66,14 @@ def batch_clearance_kdtree(
     mask: np.ndarray,
     height: float,
     n_samples: int = 24,
+    upper_bound: float = np.inf,
 ) -> np.ndarray:
     """:func:`batch_clearance` in numpy (float64): the smallest distance (m) between each of
     the ``b`` arcs' ``n_samples`` centreline samples (at arclengths
     ``linspace(0, 1, n_samples) * length``, as :func:`arc_clearance`) and the masked cloud
-    points, by a k-d tree query per sample. ``inf`` for an empty cloud. Returns (b,)."""
+    points, by a k-d tree query per sample. ``inf`` for an empty cloud, and where the
+    clearance is ``upper_bound`` or more (the tree prunes those searches: pass any bound
+    above the collision threshold and :func:`collision_free` is unchanged). Returns (b,)."""
     kappas = np.asarray(kappas, np.float64)
     lengths = np.asarray(lengths, np.float64)
     pts = np.asarray(cloud, np.float64)[np.asarray(mask, bool)]
@@ -89,7 +92,7 @@ def batch_clearance_kdtree(
     x = st[:, 0:1] + s * (c * sa - sn * ca)
     y = st[:, 1:2] + s * (sn * sa + c * ca)
     q = np.stack([x, y, np.full_like(x, float(height))], -1).reshape(-1, 3)
-    d, _ = cKDTree(pts).query(q, k=1)
+    d, _ = cKDTree(pts).query(q, k=1, distance_upper_bound=upper_bound)
     return d.reshape(b, n_samples).min(axis=1)
 
 

@@ -80,6 +80,18 @@ def _pad(cloud: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     return out, mask
 
 
+def _first_per_cell(points: np.ndarray, cell: float) -> np.ndarray:
+    """Indices of the first point in each ``cell``-sized voxel, ordered by voxel
+    (lexicographic in (x, y, z) cell index): ``np.unique(cells, axis=0,
+    return_index=True)[1]`` on one int64 key per point (a 1-D sort, ~10x cheaper than the
+    row-wise unique)."""
+    c = np.floor(points / cell).astype(np.int64)
+    c -= c.min(axis=0)
+    n = c.max(axis=0) + 1
+    key = (c[:, 0] * n[1] + c[:, 1]) * n[2] + c[:, 2]  # lexicographic order preserved
+    return np.unique(key, return_index=True)[1]
+
+
 class ArcPlanner:
     """Algorithm 1 (see module docstring). ``step(cloud, centre)`` plans and moves once."""
 
@@ -118,22 +130,24 @@ class ArcPlanner:
         # can collide; dropping the others keeps the batched check small.
         near = cloud[np.abs(cloud[:, 2] - spec.height) < spec.radius + cfg.clearance]
         if len(near):  # one point per 5 mm cell is plenty against a >= 25 mm margin
-            _, first = np.unique(np.floor(near / 0.005).astype(np.int64), axis=0, return_index=True)
-            near = near[first]
+            near = near[_first_per_cell(near, 0.005)]
         pts, mask = _pad(near, cfg.cloud_size)
         # numpy float32 arguments straight into the jitted check (converting with
         # jnp.asarray(x, jnp.float32) compiles a cast on first use, inside the timed T_mp).
-        check = batch_clearance_kdtree if cfg.collision == "kdtree" else batch_clearance
-        clear = np.asarray(
-            check(
-                np.ascontiguousarray(starts),
-                K.astype(np.float32),
-                L.astype(np.float32),
-                pts,
-                mask,
-                np.float32(spec.height),
-            )
+        args = (
+            np.ascontiguousarray(starts),
+            K.astype(np.float32),
+            L.astype(np.float32),
+            pts,
+            mask,
+            np.float32(spec.height),
         )
+        if cfg.collision == "kdtree":
+            # clearances beyond twice the threshold are not needed exactly (pruned searches)
+            bound = 2.0 * (spec.radius + cfg.clearance)
+            clear = batch_clearance_kdtree(*args, upper_bound=bound)
+        else:
+            clear = np.asarray(batch_clearance(*args))
         free = np.asarray(collision_free(clear, spec.radius, cfg.clearance))
         # Geometry of the candidates (planar, numpy-sized: b x 16 samples).
         s = np.linspace(0.0, 1.0, 16)[None, :] * L[:, None]

@@ -97,3 +97,30 @@ def test_masked_median_of_nothing_is_nan():
     from jaxcr.registration.projective import masked_median
 
     assert np.isnan(float(masked_median(jnp.ones(5), jnp.zeros(5, bool))))
+
+
+def test_first_per_cell_equals_rowwise_unique():
+    from jaxcr.registration.planning import _first_per_cell
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.4, 0.4, (3000, 3))
+    pts[1000:1500] = pts[:500] + 1e-4  # many points sharing cells
+    ref = np.unique(np.floor(pts / 0.005).astype(np.int64), axis=0, return_index=True)[1]
+    np.testing.assert_array_equal(_first_per_cell(pts, 0.005), ref)
+
+
+def test_kdtree_clearance_upper_bound_keeps_values_below_it():
+    rng = np.random.default_rng(4)
+    cloud = rng.uniform(-0.3, 0.3, (200, 3))
+    starts = rng.uniform(-0.1, 0.1, (50, 3))
+    ks = rng.uniform(-8, 8, 50)
+    ls = rng.uniform(0.05, 0.4, 50)
+    full = batch_clearance_kdtree(starts, ks, ls, cloud, np.ones(200, bool), 0.05)
+    bound = float(np.median(full))
+    cut = batch_clearance_kdtree(
+        starts, ks, ls, cloud, np.ones(200, bool), 0.05, upper_bound=bound
+    )
+    below = full < bound
+    assert below.any() and (~below).any()
+    np.testing.assert_array_equal(cut[below], full[below])  # the same exact search
+    assert np.all(np.isinf(cut[~below]))
