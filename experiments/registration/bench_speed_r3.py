@@ -113,7 +113,11 @@ def main(argv=None) -> int:
     for r in plan["rows"]:
         r["identical route"] = bool(r["identical route"])
     (out / "speed_r3.json").write_text(
-        json.dumps({"command": cmd, "commit": commit, "registration": reg, "planning": plan}, indent=1, default=float)
+        json.dumps(
+            {"command": cmd, "commit": commit, "registration": reg, "planning": plan},
+            indent=1,
+            default=float,
+        )
     )
     print("\n".join(md))
     return 0

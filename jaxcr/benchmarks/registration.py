@@ -87,7 +87,11 @@ def previous_icp():
 
 def _stats(x) -> dict:
     x = np.asarray(x, float)
-    return {"median": float(np.median(x)), "p90": float(np.percentile(x, 90)), "max": float(x.max())}
+    return {
+        "median": float(np.median(x)),
+        "p90": float(np.percentile(x, 90)),
+        "max": float(x.max()),
+    }
 
 
 def run_registration_benchmark(

@@ -15,11 +15,10 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-
-from jaxcr._types import Array, Bool, Float
 import numpy as np
 from scipy.spatial import cKDTree
 
+from jaxcr._types import Array, Bool, Float
 from jaxcr.registration.arm import arc_points
 
 

@@ -285,8 +285,12 @@ def test_projective_icp_convergence_stop_equals_fixed_schedule(scene, icp_runs):
     T0, fixed = icp_runs
     tol_r, tol_t = 1e-4, 2e-5
     cfg = IcpConfig(
-        iterations=25, max_dist=0.03, min_dist=0.004, keypoint_weight=0.0,
-        tol_rotation=tol_r, tol_translation=tol_t,
+        iterations=25,
+        max_dist=0.03,
+        min_dist=0.004,
+        keypoint_weight=0.0,
+        tol_rotation=tol_r,
+        tol_translation=tol_t,
     )
     # the stopping loop itself (what projective_icp_jit runs with these tolerances)
     T, steps = jax.jit(_converging_icp, static_argnums=(3, 5, 7))(

@@ -5,8 +5,8 @@
   small case: the same route.
 """
 
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from jaxcr.registration.arm import ArmSpec, arc_points_np
@@ -57,8 +57,13 @@ def test_planner_kdtree_plans_the_dense_checks_route():
     routes = {}
     for coll in ("jax", "kdtree"):
         cfg = PlannerConfig(
-            direction=1, delta_s=0.02, view_radius=0.3, n_kappa=5, n_length=4,
-            cloud_size=64, collision=coll,
+            direction=1,
+            delta_s=0.02,
+            view_radius=0.3,
+            n_kappa=5,
+            n_length=4,
+            cloud_size=64,
+            collision=coll,
         )
         planner = ArcPlanner(spec, cfg)
         for _ in range(8):
@@ -117,9 +122,7 @@ def test_kdtree_clearance_upper_bound_keeps_values_below_it():
     ls = rng.uniform(0.05, 0.4, 50)
     full = batch_clearance_kdtree(starts, ks, ls, cloud, np.ones(200, bool), 0.05)
     bound = float(np.median(full))
-    cut = batch_clearance_kdtree(
-        starts, ks, ls, cloud, np.ones(200, bool), 0.05, upper_bound=bound
-    )
+    cut = batch_clearance_kdtree(starts, ks, ls, cloud, np.ones(200, bool), 0.05, upper_bound=bound)
     below = full < bound
     assert below.any() and (~below).any()
     np.testing.assert_array_equal(cut[below], full[below])  # the same exact search
