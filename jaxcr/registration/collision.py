@@ -64,6 +64,7 @@ def batch_clearance_kdtree(
     cloud: np.ndarray,
     mask: np.ndarray,
     height: float,
+    *,
     n_samples: int = 24,
     upper_bound: float = np.inf,
 ) -> np.ndarray:

@@ -131,7 +131,7 @@ def photometric_channels(img: DepthImage, channels: str):
     )
 
 
-def masked_median(x: Float[Array, " n"], ok: Bool[Array, " n"], iters: int = 40):
+def masked_median(x: Float[Array, " n"], ok: Bool[Array, " n"], *, iters: int = 40):
     """Median of the non-negative values ``x[ok]`` (the mean of the two middle ones for an
     even count, as ``numpy.median``); NaN when nothing is selected. Found by bisection on
     the value (``iters`` passes counting ``x <= t``, O(n iters)): on a CPU, XLA's sort of
