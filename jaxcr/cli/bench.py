@@ -1,8 +1,9 @@
-"""``jaxcr bench segment|fk|motion``: run a benchmark and report it (console table + Markdown).
+"""``jaxcr bench segment|fk|motion|registration|planning``: run a benchmark and report it (console table + Markdown).
 
 The measurements live in the package, :mod:`jaxcr.benchmarks` (``segment.py``:
 ``run_segment_benchmark``, ``fk.py``: ``run_fk_benchmark``, ``motion.py``:
-``run_motion_benchmark``), so this command works from an
+``run_motion_benchmark``, ``registration.py``: ``run_registration_benchmark`` and
+``run_planning_benchmark``), so this command works from an
 installed wheel; it finds them (see :data:`PROVIDERS`), passes the options they accept, and
 prints and writes what they return.
 
@@ -35,7 +36,10 @@ from jaxcr.cli._common import seed as _seed
 from jaxcr.errors import InputError
 from jaxcr.io import results as R
 
-HELP = "benchmark segmentation or forward kinematics (medians, compile time, ratio vs reference)"
+HELP = (
+    "benchmark segmentation, kinematics, motion, registration or planning "
+    "(medians, compile time, ratio vs reference)"
+)
 
 #: where each benchmark function lives, searched in order (module, function); a module name
 #: ending in .py is a file path (absolute, or relative to the current folder), never a path
@@ -44,6 +48,8 @@ PROVIDERS = {
     "segment": [("jaxcr.benchmarks.segment", "run_segment_benchmark")],
     "fk": [("jaxcr.benchmarks.fk", "run_fk_benchmark")],
     "motion": [("jaxcr.benchmarks.motion", "run_motion_benchmark")],
+    "registration": [("jaxcr.benchmarks.registration", "run_registration_benchmark")],
+    "planning": [("jaxcr.benchmarks.registration", "run_planning_benchmark")],
 }
 
 
@@ -58,7 +64,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="Markdown report (default: bench_<what>.md in the current folder)",
     )
     p.add_argument("--repeats", type=int, default=None, help="timed repetitions")
-    p.add_argument("--frames", type=int, default=None, help="segment: frames per batch")
+    p.add_argument(
+        "--frames", type=int, default=None,
+        help="segment: frames per batch; registration: forward pairs per scene (default 4)",
+    )  # fmt: skip
     p.add_argument("--size", default=None, metavar="WxH", help="segment: image size")
     p.add_argument("--batch", type=int, default=None, help="fk: joint vectors per batch (<= 65536)")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")

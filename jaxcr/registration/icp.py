@@ -51,9 +51,23 @@ class IcpConfig(eqx.Module):
     # s_g^2 the weighted mean squared point-to-plane residual, s_k the keypoints' robust
     # scale; no hand-set share, like the photometric term's balance).
     keypoint_balance: str = eqx.field(static=True, default="fraction")
+    # Convergence stop of the projective ICP (:func:`jaxcr.registration.projective.
+    # projective_icp`; 0 = off: the fixed ``iterations`` schedule). A step whose pose update
+    # is below both tolerances (rotation rad, translation m) counts as converged: at a wide
+    # radius the schedule jumps to ``min_dist``; at ``min_dist`` the stage ends. The
+    # per-iteration updates of the dev pairs plateau at ~2e-5 rad / 5e-6 m (association
+    # jitter), so the tolerances sit above that floor and ~10x below the pose errors.
+    tol_rotation: float = eqx.field(static=True, default=0.0)
+    tol_translation: float = eqx.field(static=True, default=0.0)
 
 
-DEFAULT_ICP = IcpConfig(degeneracy_ratio=0.01, keypoint_weight=1.0, keypoint_balance="noise")
+DEFAULT_ICP = IcpConfig(
+    degeneracy_ratio=0.01,
+    keypoint_weight=1.0,
+    keypoint_balance="noise",
+    tol_rotation=1e-4,
+    tol_translation=2e-5,
+)
 
 
 class IcpResult(NamedTuple):

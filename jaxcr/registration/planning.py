@@ -12,8 +12,9 @@ arclength the tip has travelled on the current arc. After each sensing it
    need more sections than the arm has;
 5. otherwise moves the tip forward by ``delta_s`` along the (updated or new) arc.
 
-Candidate arcs come from a (kappa, length) grid, checked in one batched JAX call
-(:func:`jaxcr.registration.collision.batch_clearance`). An arc is admissible when it is
+Candidate arcs come from a (kappa, length) grid, checked in one batched call
+(:func:`jaxcr.registration.collision.batch_clearance_kdtree`, or the dense JAX
+:func:`jaxcr.registration.collision.batch_clearance` with ``PlannerConfig.collision="jax"``). An arc is admissible when it is
 collision-free, keeps at least ``min_range`` from the object centre, ends within
 ``band`` of the viewing radius ``view_radius`` and roughly tangent to the circle about the
 object in the winding direction; among admissible arcs the one whose end winds furthest
@@ -28,7 +29,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from jaxcr.registration.arm import Arc, ArmLimit, ArmSpec, arc_points_np, conform_sections
-from jaxcr.registration.collision import batch_clearance, collision_free
+from jaxcr.registration.collision import (
+    batch_clearance,
+    batch_clearance_kdtree,
+    collision_free,
+)
 
 
 @dataclass(frozen=True)
@@ -45,6 +50,9 @@ class PlannerConfig:
     n_kappa: int = 25
     n_length: int = 10
     cloud_size: int = 512
+    # Clearance check: "kdtree" (:func:`batch_clearance_kdtree`, numpy + scipy k-d tree,
+    # default) or "jax" (:func:`batch_clearance`, the dense batched check; the reference).
+    collision: str = "kdtree"
 
 
 @dataclass
@@ -72,6 +80,18 @@ def _pad(cloud: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     return out, mask
 
 
+def _first_per_cell(points: np.ndarray, cell: float) -> np.ndarray:
+    """Indices of the first point in each ``cell``-sized voxel, ordered by voxel
+    (lexicographic in (x, y, z) cell index): ``np.unique(cells, axis=0,
+    return_index=True)[1]`` on one int64 key per point (a 1-D sort, ~10x cheaper than the
+    row-wise unique)."""
+    c = np.floor(points / cell).astype(np.int64)
+    c -= c.min(axis=0)
+    n = c.max(axis=0) + 1
+    key = (c[:, 0] * n[1] + c[:, 1]) * n[2] + c[:, 2]  # lexicographic order preserved
+    return np.unique(key, return_index=True)[1]
+
+
 class ArcPlanner:
     """Algorithm 1 (see module docstring). ``step(cloud, centre)`` plans and moves once."""
 
@@ -79,6 +99,10 @@ class ArcPlanner:
         self.spec = spec
         self.cfg = cfg
         self.state = PlanState()
+        if cfg.collision not in ("kdtree", "jax"):
+            raise ValueError(f"collision must be 'kdtree' or 'jax', got {cfg.collision!r}")
+        if cfg.collision == "kdtree":
+            return
         # Compile the batched check once, outside the timed planning (Table I's T_mp).
         b = cfg.n_kappa * cfg.n_length
         batch_clearance(
@@ -106,21 +130,24 @@ class ArcPlanner:
         # can collide; dropping the others keeps the batched check small.
         near = cloud[np.abs(cloud[:, 2] - spec.height) < spec.radius + cfg.clearance]
         if len(near):  # one point per 5 mm cell is plenty against a >= 25 mm margin
-            _, first = np.unique(np.floor(near / 0.005).astype(np.int64), axis=0, return_index=True)
-            near = near[first]
+            near = near[_first_per_cell(near, 0.005)]
         pts, mask = _pad(near, cfg.cloud_size)
         # numpy float32 arguments straight into the jitted check (converting with
         # jnp.asarray(x, jnp.float32) compiles a cast on first use, inside the timed T_mp).
-        clear = np.asarray(
-            batch_clearance(
-                np.ascontiguousarray(starts),
-                K.astype(np.float32),
-                L.astype(np.float32),
-                pts,
-                mask,
-                np.float32(spec.height),
-            )
+        args = (
+            np.ascontiguousarray(starts),
+            K.astype(np.float32),
+            L.astype(np.float32),
+            pts,
+            mask,
+            np.float32(spec.height),
         )
+        if cfg.collision == "kdtree":
+            # clearances beyond twice the threshold are not needed exactly (pruned searches)
+            bound = 2.0 * (spec.radius + cfg.clearance)
+            clear = batch_clearance_kdtree(*args, upper_bound=bound)
+        else:
+            clear = np.asarray(batch_clearance(*args))
         free = np.asarray(collision_free(clear, spec.radius, cfg.clearance))
         # Geometry of the candidates (planar, numpy-sized: b x 16 samples).
         s = np.linspace(0.0, 1.0, 16)[None, :] * L[:, None]

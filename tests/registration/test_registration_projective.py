@@ -272,3 +272,31 @@ def test_photometric_term_fixes_the_direction_a_plane_leaves_free():
     r_pho, t_pho = pose_error(np.asarray(pho.T, np.float64), T_true)
     assert t_geo > 0.0025  # geometry alone leaves the in-plane shift
     assert t_pho < 2e-4 and r_pho < 0.05, (t_pho, r_pho)
+
+
+def test_projective_icp_convergence_stop_equals_fixed_schedule(scene, icp_runs):
+    # Issue 18: the ICP stops when a step moves the pose less than the tolerances (and jumps
+    # to the final radius when that happens early). Against the fixed 25-step schedule from
+    # the same start: a linearly converging iteration with rate rho stops with at most
+    # tol rho / (1 - rho) left to go; rho <= 0.9 gives 9 tol, so 10 tol each (rad, m).
+    from jaxcr.registration.icp import no_keypoints
+    from jaxcr.registration.projective import _converging_icp, pose_update
+
+    T0, fixed = icp_runs
+    tol_r, tol_t = 1e-4, 2e-5
+    cfg = IcpConfig(
+        iterations=25,
+        max_dist=0.03,
+        min_dist=0.004,
+        keypoint_weight=0.0,
+        tol_rotation=tol_r,
+        tol_translation=tol_t,
+    )
+    # the stopping loop itself (what projective_icp_jit runs with these tolerances)
+    T, steps = jax.jit(_converging_icp, static_argnums=(3, 5, 7))(
+        jnp.asarray(T0, jnp.float32), scene["src"], scene["tgt"], cfg, no_keypoints(), 0,
+        None, "intensity", None,
+    )  # fmt: skip
+    dr, dt = pose_update(fixed.T, T)
+    assert float(dr) <= 10 * tol_r and float(dt) <= 10 * tol_t, (float(dr), float(dt))
+    assert 3 <= int(steps) < 25  # it did stop early, and not before moving
