@@ -160,7 +160,8 @@ def stereo_step(fr, views: list[dict]) -> dict:
     (:func:`jaxcr.stereo.pipeline.trace_stereo_tips`, which ``jaxcr stereo --segmentation
     trace`` records as ``tip_px``) instead of the end's shape in one view; and the epipolar
     distance (px, undistorted) of both methods' tip pairs."""
-    cams = [v.camera for v in fr.views]
+    # The rig's calibration (with the preset's calibration error), not the rendering cameras.
+    cams = [getattr(v, "calib_camera", None) or v.camera for v in fr.views]
     tr = [v["trace"] for v in views]
     res = trace_stereo_tips(cams, [SimpleNamespace(**t) for t in tr])
     for k, v in enumerate(views):
