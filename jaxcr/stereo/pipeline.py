@@ -241,6 +241,18 @@ def _project_np(cam: Camera, pts: np.ndarray, T: np.ndarray | None = None) -> np
     return uv.reshape(-1, 2)
 
 
+def entry_direction_px(cam: Camera, base: np.ndarray, *, length: float = 5e-3) -> np.ndarray | None:
+    """Unit image direction (u, v) in which the robot leaves its base in ``cam``'s view: the
+    projections of ``base`` and of ``base + length * z`` (base frame, metres; z the
+    insertion axis), distorted pixels as the camera records them. None when the axis
+    runs within half a pixel of the viewing ray (no image direction)."""
+    base = np.asarray(base, np.float64)
+    uv = _project_np(cam, np.stack([base, base + np.array([0.0, 0.0, length])]))
+    d = uv[1] - uv[0]
+    n = float(np.linalg.norm(d))
+    return d / n if n > 0.5 else None
+
+
 def _tip_epipolar_px(cams, vrec) -> float:
     """Epipolar consistency of the two views' ``tip_px``: the larger of the distances (px,
     on undistorted pixels) of each tip to the epiline of the other
@@ -731,11 +743,16 @@ def reconstruct_pair(
     )
     masks = np.asarray(mask_j)
     if cfg.segmentation == "trace":
-        # The traced robot of each view (jaxcr.segmentation.foreground), entered at the projected base.
+        # The traced robot of each view (jaxcr.segmentation.foreground), entered at the
+        # projected base along the projected insertion axis (the base frame's z: known with
+        # markers or a given T_cam_base; in entry_px mode z is provisional until the
+        # backbone is triangulated, so the tracer finds the direction from the mask).
         tr = [
             plate_foreground(
-                imgs[k], plates[k], _project_np(cams[k], base[None])[0], cfg=cfg.plate_foreground
-            )
+                imgs[k], plates[k], _project_np(cams[k], base[None])[0],
+                None if bspec.mode == "entry_px" else entry_direction_px(cams[k], base),
+                cfg=cfg.plate_foreground,
+            )  # fmt: skip
             for k in range(2)
         ]
         masks = _image_stack([t.mask.astype(np.uint8) for t in tr])
