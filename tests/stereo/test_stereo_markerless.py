@@ -156,7 +156,7 @@ def test_trace_segmentation_records_the_two_view_tip(scene):
     import dataclasses
 
     from jaxcr.segmentation.foreground import plate_foreground
-    from jaxcr.stereo.pipeline import trace_stereo_tips
+    from jaxcr.stereo.pipeline import entry_direction_px, trace_stereo_tips
 
     d, ds, T, truth, ims = scene
     cams = (ds["cam1"], ds["cam2"])
@@ -175,9 +175,10 @@ def test_trace_segmentation_records_the_two_view_tip(scene):
         eqx.tree_at(lambda c: c.T_cam_robot, c, np.asarray(Tk, np.dtype(c.K.dtype)))
         for c, Tk in zip(cams, Ts, strict=True)
     ]
+    # ... along the projected insertion axis (the base's z: T_cam_base mode knows it).
     traces = [
         plate_foreground(im, pl, _px(c, np.asarray(c.T_cam_robot, np.float64), base)[0],
-                         cfg=cfg.plate_foreground)
+                         entry_direction_px(c, np.asarray(base)), cfg=cfg.plate_foreground)
         for im, pl, c in zip(ims, ds["plates"], posed, strict=True)
     ]  # fmt: skip
     ref = trace_stereo_tips(posed, traces)
