@@ -770,14 +770,38 @@ def refine_tip_details(
     p0 = bb[-1]
     ss = np.arange(-3 * w, w + cfg.look_px + 0.01, 0.25)
     tt = np.arange(-1.5 * w, 1.5 * w + 0.01, 0.25)
-    pts = p0[None, None] + ss[:, None, None] * d[None, None] + tt[None, :, None] * n[None, None]
+    # The grid runs straight back from the end along d where the traced path is straight
+    # there (within w/4 of that line over the 3 widths behind the end); where the tube
+    # curves near its end, the straight line behind it leaves the tube, and the grid is
+    # laid along the traced path instead (_end_frame). Where the one finds no end, the
+    # other is tried.
+    cen_c, nrm_c = _end_frame(bb, ss, d, w)
+    cen_s = p0[None] + ss[:, None] * d[None]
+    grids = [(cen_s, np.broadcast_to(n, cen_s.shape)), (cen_c, nrm_c)]
+    if np.max(np.linalg.norm((cen_c - cen_s)[ss >= -3 * w], axis=1)) > w / 4:
+        grids = grids[::-1]
+    for cen, nrm in grids:
+        out = _refine_on_grid(score, cen, nrm, ss, tt, d, w, cfg)
+        if out is not None:
+            return out
+    return p0.copy(), 0.0, d, 0.0
+
+
+def _refine_on_grid(score, cen, nrm, ss, tt, d, w, cfg):
+    """The body of :func:`refine_tip_details` on a sampling grid of centre points ``cen``
+    (m, 2) at signed distances ``ss`` (m,) from the end and normals ``nrm`` (m, 2); None
+    where the grid shows no end (centre line not on the tube, no half-level crossing, or no
+    width measured)."""
+    pts = cen[:, None] + tt[None, :, None] * nrm[:, None]
     g = ndi.map_coordinates(score, [pts[..., 1], pts[..., 0]], order=1, mode="nearest")
     centre = np.abs(tt) <= 0.5
     behind = (ss >= -3 * w) & (ss <= -w)
     s_in = float(np.median(g[behind][:, centre]))
     s_bg = float(np.median(g[behind][:, np.abs(tt) >= w]))
-    if not s_in > s_bg:
-        return p0.copy(), 0.0, d, 0.0
+    # The centre line behind the end must lie on the tube (score at least the hysteresis
+    # level ``low``) and above the background beside it.
+    if not (s_in > s_bg and s_in >= cfg.low):
+        return None
     half = 0.5 * (s_in + s_bg)
     prof = g[:, centre].mean(1)
     # First crossing below the half level after the end region starts (s >= -w); if the
@@ -788,25 +812,73 @@ def refine_tip_details(
     if prof[k0] < half:
         above = np.flatnonzero(prof[:k0] >= half)
         if not len(above):
-            return p0.copy(), 0.0, d, 0.0
+            return None
         k = int(above[-1]) + 1
     else:
         below = np.flatnonzero(prof[k0:] < half)
         if not len(below):
-            return p0.copy(), 0.0, d, 0.0
+            return None
         k = k0 + int(below[0])
+        # A dip below the half level that rises above it again within a width (the score
+        # varies along the tube: a highlight ending, a section's step) is not the end: the
+        # end is the outermost such crossing.
+        reach = int(round(w / 0.25))
+        while True:
+            again = np.flatnonzero(prof[k : k + reach] >= half)
+            if not len(again):
+                break
+            nxt = np.flatnonzero(prof[k + int(again[-1]) :] < half)
+            if not len(nxt):
+                break
+            k = k + int(again[-1]) + int(nxt[0])
     f = (prof[k - 1] - half) / max(prof[k - 1] - prof[k], 1e-12)
     s_end = float(ss[k - 1] + f * (ss[k] - ss[k - 1]))
+
+    def at(s_):
+        return np.array([np.interp(s_, ss, cen[:, 0]), np.interp(s_, ss, cen[:, 1])])
+
     soft = np.clip((g - s_bg) / (s_in - s_bg), None, 1.0)
     band = np.abs(tt) <= 0.75 * w
     w_full = float(np.median(soft[behind][:, band].sum(1) * 0.25))
-    if cfg.tip_cap <= 0 or not w_full > 0:
-        return p0 + s_end * d, 0.0, d, max(w_full, 0.0) / 2.0
+    if not w_full > 0:
+        return None
+    if cfg.tip_cap <= 0:
+        return at(s_end), 0.0, d, w_full / 2.0
     region = (ss >= -w) & (ss <= s_end + 0.5 * w)
     T = float(soft[region][:, band].sum() * 0.25 * 0.25)
     a = (s_end + w - T / w_full) / (1.0 - np.pi / 4.0)
     a = float(np.clip(a, 0.0, cfg.tip_cap * w_full / 2.0))
-    return p0 + (s_end - a) * d, a, d, w_full / 2.0
+    return at(s_end - a), a, d, w_full / 2.0
+
+
+def _end_frame(bb: np.ndarray, ss: np.ndarray, d: np.ndarray, w: float):
+    """Centre points (m, 2) and unit normals (m, 2) of the grid :func:`refine_tip_details`
+    samples: at ``s < 0`` on the traced backbone ``bb`` (n, 2), ``-s`` px back from its end
+    along it (a tube curving near its end leaves a straight line behind the end: seeds 3212
+    and 3220 of the third round, 4-8 px off the tube 2 widths back), the normal from the
+    backbone's direction over one width ``w``; at ``s >= 0`` straight on along ``d`` from the
+    end. A backbone shorter than ``-s`` is continued straight back along ``-d``."""
+    seg = np.linalg.norm(np.diff(bb, axis=0), axis=1)
+    keep = np.r_[True, seg > 1e-9]
+    bb = bb[keep]
+    cum = np.r_[0.0, np.cumsum(seg[seg > 1e-9])]
+    length = cum[-1]
+    n_end = np.array([-d[1], d[0]])
+
+    def at(a):
+        a = np.clip(a, 0.0, length)
+        return np.stack([np.interp(a, cum, bb[:, 0]), np.interp(a, cum, bb[:, 1])], -1)
+
+    back = np.minimum(ss, 0.0)
+    a = length + back
+    cen = np.where((ss >= 0)[:, None], bb[-1] + np.maximum(ss, 0.0)[:, None] * d,
+                   at(a) + np.minimum(a, 0.0)[:, None] * d)  # fmt: skip
+    tan = at(a + 0.5 * w) - at(a - 0.5 * w)
+    tn = np.linalg.norm(tan, axis=1, keepdims=True)
+    tan = np.where(tn > 1e-9, tan / np.maximum(tn, 1e-9), d[None])
+    # Behind the end the normal follows the backbone; beyond it stays the end's.
+    nrm = np.where((ss < 0)[:, None], np.stack([-tan[:, 1], tan[:, 0]], 1), n_end[None])
+    return cen, nrm
 
 
 def _path_mask(mask, bb, gaps, width):
