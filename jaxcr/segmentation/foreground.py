@@ -162,6 +162,10 @@ class TubeTrace:
         end_dir, end_half_width_px: the tube's direction (unit (u, v)) and half width at
             the tip (:func:`refine_tip_details`; the silhouette's end is
             ``tip + cap_px * end_dir``).
+        junctions: (backbone index, point (u, v), direction) where a second, separate
+            branch of the mask was supported ahead besides the one followed (a crossing
+            cable or tool, a shadow leaving the tube); :func:`plate_foreground` follows them
+            when the trace ran out of the image.
     """
 
     mask: np.ndarray
@@ -179,6 +183,7 @@ class TubeTrace:
     measured_width_px: float = 0.0
     end_dir: np.ndarray = field(default_factory=lambda: np.zeros(2))
     end_half_width_px: float = 0.0
+    junctions: list = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- alignment
@@ -574,6 +579,7 @@ def trace_tube(
 
     last_corner = -(10**9)
     on_old = 0
+    junctions: list = []
 
     def _visited(c, keep=30.0):
         """Whether pixel c (u, v) lies on the tube already traced, except its last ``keep``
@@ -597,6 +603,8 @@ def trace_tube(
         pref = sup - 0.02 * np.abs(cands - theta) / max(turn, 1e-9)
         j = int(np.argmax(pref))
         dvec = dirs[j] if sup[j] >= cfg.support else None
+        if dvec is not None and len(junctions) < 8:
+            _note_junction(junctions, sup, cands, j, cfg, len(path) - 1, p, dirs)
         since = len(path) - last_corner
         if (dvec is None and cfg.corner_deg > cfg.max_turn_deg and len(path) > 5
                 and since * cfg.step_px >= cfg.look_px):  # fmt: skip
@@ -716,7 +724,60 @@ def trace_tube(
         bb = np.vstack([bb, tip])
     width = float(np.median(widths)) if widths else 3.0
     out = _path_mask(mask, bb, gaps, width)
-    return TubeTrace(out, bb, tip, entry, gaps, width_px=width)
+    return TubeTrace(out, bb, tip, entry, gaps, width_px=width, junctions=junctions)
+
+
+def _note_junction(junctions, sup, cands, j, cfg, index, p, dirs) -> None:
+    """Record a second branch ahead (a local maximum of the support, at least ``support``,
+    20 deg or more from the chosen direction ``j``, with a direction below ``support``
+    between the two: a separate branch, not the same tube's plateau), once per look
+    length of path."""
+    if junctions and index - junctions[-1][0] < cfg.look_px / cfg.step_px:
+        return
+    for i in np.argsort(-sup):
+        if sup[i] < cfg.support:
+            return
+        if abs(cands[i] - cands[j]) < np.radians(20.0):
+            continue
+        lo, hi = sorted((int(i), int(j)))
+        if np.min(sup[lo : hi + 1]) >= cfg.support:
+            continue
+        if (i > 0 and sup[i - 1] > sup[i]) or (i + 1 < len(sup) and sup[i + 1] > sup[i]):
+            continue
+        junctions.append((index, p.copy(), dirs[i].copy()))
+        return
+
+
+def _at_border(uv: np.ndarray, shape, margin: float) -> bool:
+    h, w = shape[:2]
+    return bool(uv[0] < margin or uv[1] < margin or uv[0] > w - 1 - margin
+                or uv[1] > h - 1 - margin)  # fmt: skip
+
+
+def _retrace_off_border(tr: TubeTrace, mask, cfg, frame, plate) -> TubeTrace:
+    """A trace that ran out of the image followed something else at a junction (a robot
+    whose tip leaves the view has no tip to find in it): each recorded junction's other
+    branch is traced, and the longest trace that ends inside the image replaces it
+    (unchanged when none does)."""
+    margin = 2.0 * cfg.step_px
+    if not tr.junctions or not _at_border(tr.tip, mask.shape, margin):
+        return tr
+    best, best_len = None, -1.0
+    for i, pj, dj in tr.junctions:
+        sub = trace_tube(mask, pj, dj, cfg, frame=frame, plate=plate, _single=True)
+        if len(sub.backbone) < 2 or _at_border(sub.tip, mask.shape, margin):
+            continue
+        bb = np.vstack([tr.backbone[: i + 1], sub.backbone[1:]])
+        length = float(np.sum(np.linalg.norm(np.diff(bb, axis=0), axis=1)))
+        if length > best_len:
+            gaps = [g for g in tr.gaps if g[1] <= i] + [(a + i, b + i) for a, b in sub.gaps]
+            best, best_len = (bb, gaps, sub), length
+    if best is None:
+        return tr
+    bb, gaps, sub = best
+    width = tr.width_px
+    return TubeTrace(_path_mask(mask, bb, gaps, width), bb, bb[-1].copy(), tr.entry, gaps,
+                     width_px=width, junctions=tr.junctions)  # fmt: skip
 
 
 def refine_tip(
@@ -1024,6 +1085,7 @@ def plate_foreground(
         fs = ndi.gaussian_filter(fl, (cfg.blur_px, cfg.blur_px, 0))
         ps = ndi.gaussian_filter(pl, (cfg.blur_px, cfg.blur_px, 0))
     tr = trace_tube(seeds_l, _to_low(entry_uv, k), direction_uv, cfg, frame=fs, plate=ps)
+    tr = _retrace_off_border(tr, seeds_l, cfg, fs, ps)
     if k > 1:
         tr.backbone = _to_full(tr.backbone, k)
         tr.tip, tr.entry = _to_full(tr.tip, k), _to_full(tr.entry, k)

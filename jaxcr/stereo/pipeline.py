@@ -54,6 +54,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from jaxcr.camera import Camera, project_points
 from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foreground
+from jaxcr.stereo.tip_consistency import TipConsistency, reconcile_tips
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_frame import (
     BaseSpec,
@@ -320,23 +321,44 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
     return [ends[k] - res[k] * dirs[k] for k in range(2)], [res[0], res[1]]
 
 
+def traced_stereo_tips(cams, traces) -> tuple[list[np.ndarray], str, TipConsistency | None]:
+    """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
+    tips with the end face's length from both views (:func:`trace_stereo_tips`; each
+    view's own traced tip where the two views leave it undetermined), then, where the two
+    tips are over 5 px from each other's epipolar lines, re-searched along the traced
+    tubes (:func:`jaxcr.stereo.tip_consistency.reconcile_tips`). ``traces``: the two
+    :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
+    (u, v), source ``"trace_stereo"`` or ``"trace"``, the re-search's result or None when
+    a tip is not finite)."""
+    st = trace_stereo_tips(cams, traces)
+    if st is not None:
+        tips, src = [np.asarray(t, np.float64) for t in st[0]], "trace_stereo"
+    else:
+        tips, src = [np.asarray(t.tip, np.float64) for t in traces], "trace"
+    if not all(np.all(np.isfinite(t)) for t in tips):
+        return tips, src, None
+    res = reconcile_tips(cams, traces, tips)
+    return [np.asarray(t, np.float64) for t in res.tips], src, res
+
+
 def _traced_tips(vrec: list[dict], cams, traces) -> None:
     """``--segmentation trace``: each view's ``tip_px`` from the tracer instead of the
     skeleton's end, with ``tip_source``: ``"trace_stereo"`` (:func:`trace_stereo_tips`),
     else ``"trace"`` (the view's own traced tip, where the two views leave the end face's
-    length undetermined), else ``"skeleton"`` (no finite traced tip). The skeleton's end
-    stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
+    length undetermined), else ``"skeleton"`` (no finite traced tip); ``"+cut"`` or
+    ``"+extended"`` appended for the view :func:`traced_stereo_tips`' epipolar re-search
+    moved. The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
     the tube's end direction) and ends at it."""
-    st = trace_stereo_tips(cams, traces)
+    tips, source, recheck = traced_stereo_tips(cams, traces)
     for k, (v, t) in enumerate(zip(vrec, traces, strict=True)):
         v["tip_skeleton_px"] = v["tip_px"]
-        if st is not None:
-            tip, src = st[0][k], "trace_stereo"
-        elif np.all(np.isfinite(t.tip)):
-            tip, src = np.asarray(t.tip, np.float64), "trace"
+        if np.all(np.isfinite(tips[k])):
+            tip, src = tips[k], source
         else:
             v["tip_source"] = "skeleton"
             continue
+        if recheck is not None and recheck.view == k:
+            src = src + "+" + recheck.action
         line = np.asarray(v["backbone_px"], np.float64)[:-1]  # the skeleton's end dropped
         d = np.asarray(t.end_dir, np.float64)
         if np.all(np.isfinite(d)) and np.linalg.norm(d) > 0:

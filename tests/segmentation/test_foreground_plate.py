@@ -293,6 +293,37 @@ def test_refine_tip_on_a_tube_curving_into_its_end():
         assert abs(half - 4.0) < 1.0, half
 
 
+def test_trace_leaves_a_crossing_cable_that_runs_out_of_the_image():
+    """A tube 7 px wide going up, bending 30 deg left at v = 60 and ending 30 px on; a
+    cable as wide and as dark crosses it there, 12 deg right of the tube's heading, and
+    runs out of the top of the image (the real_like preset's occluder, seed 4003 view 1 at
+    1280x720: the tracer followed the cable to the border, 206 px off). The tracer is drawn
+    to the straighter cable; a trace that leaves the image is re-traced from the junction's
+    other branch. Reference: the tube's drawn end (cv2.line's round cap: 3.5 px beyond the
+    end point), within 2 px (test_trace_turns_at_a_projected_kink's bound)."""
+    import cv2
+
+    m = np.zeros((120, 160), np.uint8)
+    cv2.line(m, (60, 119), (60, 60), 1, 7)
+    a = np.radians(30.0)
+    end = np.array([60 - 30 * np.sin(a), 60 - 30 * np.cos(a)])
+    cv2.line(m, (60, 60), tuple(int(round(x)) for x in end), 1, 7)
+    b = np.radians(12.0)
+    c0 = (int(60 - 20 * np.sin(b)), int(60 + 20 * np.cos(b)))
+    c1 = (int(round(60 + 70 * np.sin(b))), int(round(60 - 70 * np.cos(b))))
+    cv2.line(m, c0, c1, 1, 7)
+    plate = np.broadcast_to(np.array([0.16, 0.50, 0.20]), (120, 160, 3)).copy()
+    frame = plate.copy()
+    frame[m > 0] = 0.1
+    cfg = PlateForegroundConfig(align=False, start_spread_deg=0.0, close_px=0.0, refine=False)
+    tr = plate_foreground(frame, plate, (60.0, 119.0), (0.0, -1.0), cfg=cfg)
+    tip_ref = end + 3.5 * np.array([-np.sin(a), -np.cos(a)])
+    assert np.linalg.norm(tr.tip - tip_ref) < 2.0, (tr.tip, tip_ref)
+    # The tracer alone does follow the cable (what the re-trace is for).
+    alone = trace_tube(m > 0, (60.0, 119.0), (0.0, -1.0), cfg)
+    assert alone.tip[1] < 2.0 and len(alone.junctions) >= 1
+
+
 def test_trace_turns_at_a_projected_kink():
     """An L-shaped tube 7 px wide (an inner tube leaving the outer one at a right angle in
     projection) with a 2 px wide spur (a crease) leaving its far end at a right angle:
