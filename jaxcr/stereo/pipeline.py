@@ -54,7 +54,6 @@ from scipy.ndimage import gaussian_filter1d
 
 from jaxcr.camera import Camera, project_points
 from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foreground
-from jaxcr.stereo.tip_consistency import TipConsistency, reconcile_tips
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_frame import (
     BaseSpec,
@@ -88,6 +87,7 @@ from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
+from jaxcr.stereo.tip_consistency import TipConsistency, reconcile_tips
 from jaxcr.stereo.tip_geometry import (
     end_face_lengths,
     epipolar_distances,
@@ -96,7 +96,14 @@ from jaxcr.stereo.tip_geometry import (
 from jaxcr.stereo.triangulation import triangulate_points
 from jaxcr.stereo.view2d import tip_pixel, view_record
 
-__all__ = ["StereoConfig", "StereoFailure", "reconstruct_pair", "trace_stereo_tips"]
+__all__ = [
+    "StereoConfig",
+    "StereoFailure",
+    "entry_direction_px",
+    "reconstruct_pair",
+    "trace_stereo_tips",
+    "traced_stereo_tips",
+]
 
 
 class StereoFailure(Exception):
@@ -771,7 +778,9 @@ def reconstruct_pair(
         # backbone is triangulated, so the tracer finds the direction from the mask).
         tr = [
             plate_foreground(
-                imgs[k], plates[k], _project_np(cams[k], base[None])[0],
+                imgs[k],
+                plates[k],
+                _project_np(cams[k], base[None])[0],
                 None if bspec.mode == "entry_px" else entry_direction_px(cams[k], base),
                 cfg=cfg.plate_foreground,
             )  # fmt: skip

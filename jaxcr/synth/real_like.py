@@ -417,8 +417,18 @@ def render_real_like_frame(
         occ_px = _project(cam, occ[0]) if occluder else np.zeros((0, 2))
         views.append(
             RealLikeView(
-                img, plate, bb_px[-1], entry, entry_true, direction, mask, bb_px, drift_meas,
-                cam, calib[k], occ_px,
+                img,
+                plate,
+                bb_px[-1],
+                entry,
+                entry_true,
+                direction,
+                mask,
+                bb_px,
+                drift_meas,
+                cam,
+                calib[k],
+                occ_px,
             )  # fmt: skip
         )
     return RealLikeFrame(views, seed)
