@@ -164,8 +164,9 @@ class TubeTrace:
             ``tip + cap_px * end_dir``).
         junctions: (backbone index, point (u, v), direction) where a second, separate
             branch of the mask was supported ahead besides the one followed (a crossing
-            cable or tool, a shadow leaving the tube); :func:`plate_foreground` follows them
-            when the trace ran out of the image.
+            cable or tool, a shadow leaving the tube), or direction None where the run
+            across the tube was over 1.6 times its width (something crossing it);
+            :func:`plate_foreground` follows them when the trace ran out of the image.
     """
 
     mask: np.ndarray
@@ -642,6 +643,11 @@ def trace_tube(
                 q = q0
             if wid > 0 and (ref is None or wid <= 1.6 * ref):
                 widths.append(wid)
+            elif ref is not None and wid > 1.6 * ref and len(junctions) < 8:
+                # A run across much wider than the tube: something crosses it here (a
+                # cable, a tool, a shadow); its branches are tried if the trace runs out.
+                if not junctions or len(path) - 1 - junctions[-1][0] >= cfg.look_px / cfg.step_px:
+                    junctions.append((len(path) - 1, p.copy(), None))
         else:
             # Gap: look on along the current arc (heading and curvature of the last few
             # steps) for the mask to resume in a big enough component, within
@@ -757,15 +763,40 @@ def _at_border(uv: np.ndarray, shape, margin: float) -> bool:
 def _retrace_off_border(tr: TubeTrace, mask, cfg, frame, plate) -> TubeTrace:
     """A trace that ran out of the image followed something else at a junction (a robot
     whose tip leaves the view has no tip to find in it): each recorded junction's other
-    branch is traced, and the longest trace that ends inside the image replaces it
-    (unchanged when none does)."""
+    branch (at a wide crossing: the heading turned by 15, 30 and 45 deg either way) is
+    traced, and the longest trace that ends inside the image replaces it (unchanged when
+    none does)."""
     margin = 2.0 * cfg.step_px
     if not tr.junctions or not _at_border(tr.tip, mask.shape, margin):
         return tr
     best, best_len = None, -1.0
+    tries = []
     for i, pj, dj in tr.junctions:
-        sub = trace_tube(mask, pj, dj, cfg, frame=frame, plate=plate, _single=True)
+        if dj is not None:
+            tries.append((i, pj, dj))
+            continue
+        # A wide crossing: the heading there turned by 15-45 deg either way.
+        hd = tr.backbone[min(i + 2, len(tr.backbone) - 1)] - tr.backbone[max(i - 2, 0)]
+        th = float(np.arctan2(hd[1], hd[0]))
+        for da in (15.0, -15.0, 30.0, -30.0, 45.0, -45.0):
+            tries.append((i, pj, _unit(th + np.radians(da))))
+    # The tube traced already, and the branch that ran out, are taken off the mask (but
+    # near the junction): a re-trace must neither walk back along them nor follow them.
+    bb_all = np.asarray(tr.backbone)
+    near_steps = int(np.ceil(cfg.look_px / cfg.step_px))
+    rad = 0.5 * tr.width_px + 1.0
+    for i, pj, dj in tries:
+        sub_mask = mask.copy()
+        for piece in (bb_all[: max(i - near_steps, 0)], bb_all[i + near_steps + 1 :]):
+            if len(piece) >= 2:
+                sub_mask &= ~_path_mask(np.ones_like(mask), piece, [], 2 * rad)
+        sub = trace_tube(sub_mask, pj, dj, cfg, frame=frame, plate=plate, _single=True)
         if len(sub.backbone) < 2 or _at_border(sub.tip, mask.shape, margin):
+            continue
+        # Onwards, not back: within 60 deg of the heading tried, two look lengths on.
+        seg = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(sub.backbone, axis=0), axis=1))]
+        far = sub.backbone[int(np.searchsorted(seg, min(2 * cfg.look_px, seg[-1])))]
+        if np.linalg.norm(far - pj) > 0 and (far - pj) @ dj < 0.5 * np.linalg.norm(far - pj):
             continue
         bb = np.vstack([tr.backbone[: i + 1], sub.backbone[1:]])
         length = float(np.sum(np.linalg.norm(np.diff(bb, axis=0), axis=1)))
