@@ -25,9 +25,9 @@ Scene (base frame, metres; the stereo preset's geometry, :mod:`jaxcr.synth.stere
 * model error: the entry pixel handed to a method is the projection of the base through a
   camera pose perturbed by ``entry_error_px`` (the calibration/base-frame error of a rig);
   and each view's ``calib_camera`` (what a method may use as the rig's calibration) differs
-  from the rendering camera by a calibration error: focal lengths by 0.1-0.3 %, the
-  principal point by up to 1.5 px, the pose by 0.03-0.08 deg and 0.1-0.4 mm (drawn as
-  ``U(0.5, 1) x`` the limit in a random direction), the distortion unchanged.
+  from the rendering camera by a calibration error: focal lengths by 0.15-0.3 %, the
+  principal point by 0.75-1.5 px, the pose by 0.04-0.08 deg and 0.2-0.4 mm (each drawn as
+  ``U(0.5, 1) x`` its limit, in a random direction or sign), the distortion unchanged.
 
 Truth per view: the tip pixel (projection of the backbone's end point through the rendering
 camera, OpenCV pixel convention), the visible robot mask at pixel centres (the occluder's
