@@ -14,7 +14,7 @@ webcam noise, lens distortion, entry pixel with model error). Methods per view:
   end face's foreshortening computed from the tube's 3-D direction, which the two calibrated
   views give (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`; the view's own estimate
   where the two end directions leave the axis undetermined;
-  :func:`jaxcr.stereo.pipeline.trace_stereo_tips`, what ``jaxcr stereo --segmentation
+  :func:`jaxcr.stereo.pipeline.traced_stereo_tips`, what ``jaxcr stereo --segmentation
   trace`` records). The epipolar distance of each
   method's two tips is recorded per frame (a frame over 5 px is flagged);
 * ``trace_r1`` -- the first round's foreground (commit cf4b1bb, from git);
@@ -49,7 +49,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -59,7 +58,7 @@ from jaxcr.segmentation import background as bgm
 from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foreground
 from jaxcr.stereo.base_locate import flood_component
 from jaxcr.stereo.chroma import plate_alpha
-from jaxcr.stereo.pipeline import trace_stereo_tips
+from jaxcr.stereo.pipeline import traced_stereo_tips
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
 from jaxcr.synth.real_like import render_real_like_frame
 
@@ -127,6 +126,7 @@ def run_view(view, cfg: PlateForegroundConfig, r1, methods) -> dict:
                     "scale": tr.scale, "measured_width_px": tr.measured_width_px,
                     "end_dir": tr.end_dir.tolist(),
                     "end_half_width_px": tr.end_half_width_px}  # fmt: skip
+    out["_trace_obj"] = tr  # for the two-view step (not written)
     if "trace_r1" in methods:
         t = time.perf_counter()
         tr1 = r1.plate_foreground(view.image, view.plate, view.entry_px, view.entry_dir_px,
@@ -157,23 +157,25 @@ def _undistort(cam, uv) -> np.ndarray:
 def stereo_step(fr, views: list[dict]) -> dict:
     """``trace_stereo``: each view's tip from ``trace`` with the end face's foreshortening
     taken from the tube's 3-D direction, both cameras known
-    (:func:`jaxcr.stereo.pipeline.trace_stereo_tips`, which ``jaxcr stereo --segmentation
+    (:func:`jaxcr.stereo.pipeline.traced_stereo_tips`, which ``jaxcr stereo --segmentation
     trace`` records as ``tip_px``) instead of the end's shape in one view; and the epipolar
     distance (px, undistorted) of both methods' tip pairs."""
-    cams = [v.camera for v in fr.views]
-    tr = [v["trace"] for v in views]
-    res = trace_stereo_tips(cams, [SimpleNamespace(**t) for t in tr])
+    # The rig's calibration (with the preset's calibration error), not the rendering cameras.
+    cams = [getattr(v, "calib_camera", None) or v.camera for v in fr.views]
+    objs = [v.pop("_trace_obj") for v in views]
+    tips, source, recheck = traced_stereo_tips(cams, objs)
     for k, v in enumerate(views):
-        if res is None:
-            v["trace_stereo"] = {"tip": list(tr[k]["tip"]), "cap_px": tr[k]["cap_px"],
-                                 "fallback": True}  # fmt: skip
-        else:
-            v["trace_stereo"] = {"tip": res[0][k].tolist(), "cap_px": res[1][k],
-                                 "fallback": False}  # fmt: skip
+        v["trace_stereo"] = {
+            "tip": [float(x) for x in tips[k]], "fallback": source != "trace_stereo",
+            "recheck": None if recheck is None else recheck.action,
+            "moved": recheck is not None and recheck.view == k,
+        }  # fmt: skip
     F = fundamental_from_poses(cams[0].K, cams[0].T_cam_robot, cams[1].K, cams[1].T_cam_robot)
     epi = {}
     for m in ("trace", "trace_stereo"):
         t1, t2 = (np.asarray(v[m]["tip"]) for v in views)
+        if m == "trace_stereo" and recheck is not None:
+            epi["trace_stereo_before_recheck"] = recheck.epipolar_before_px
         if np.all(np.isfinite(t1)) and np.all(np.isfinite(t2)):
             epi[m] = max(epipolar_distances(F, _undistort(cams[0], t1)[0],
                                             _undistort(cams[1], t2)[0]))  # fmt: skip
@@ -319,6 +321,8 @@ def main(argv=None) -> int:
         if "trace_stereo" in methods:
             row["epipolar_px"] = stereo_step(fr, views)
         for v in views:
+            v.pop("_trace_obj", None)
+        for v in views:
             _errors(v, methods)
         rows.append(row)
         errs = " ".join(f"{m}={[round(v[m]['err_px'], 1) for v in views]}" for m in methods)
@@ -360,7 +364,11 @@ def main(argv=None) -> int:
         "",
         "Methods: `trace` this commit's plate foreground (defaults, one view at a time); "
         "`trace_stereo` the same, with the end face's foreshortening from the tube's 3-D "
-        "direction seen by both calibrated cameras (jaxcr.stereo.tip_geometry); `trace_r1` "
+        "direction seen by both calibrated cameras (jaxcr.stereo.tip_geometry), and the "
+        "tips re-searched along the traced tubes where they are over 5 px from each other's "
+        "epipolar lines (jaxcr.stereo.tip_consistency; jaxcr.stereo.pipeline."
+        "traced_stereo_tips, what `jaxcr stereo --segmentation trace` records), with the "
+        "rig's calibration (`calib_camera`, with the preset's calibration error); `trace_r1` "
         f"the first round's (commit {ROUND1_COMMIT}); `plate`, `gmm`, `colour` the older "
         "segmentations (module docstring). Run here: " + ", ".join(methods) + ".",
         "",
@@ -391,8 +399,9 @@ def main(argv=None) -> int:
         "",
         "| seed | "
         + " | ".join(methods)
-        + " | epipolar px (trace / stereo) | trace scale | plate drift px | trace gaps |",
-        "|---|" + "---|" * (len(methods) + 4),
+        + " | epipolar px (trace / stereo) | trace scale | plate drift px | trace gaps "
+        "| re-search |",
+        "|---|" + "---|" * (len(methods) + 5),
     ]
     for r in sorted(rows, key=lambda r: r["seed"]):
         v = r["views"]
@@ -402,8 +411,11 @@ def main(argv=None) -> int:
         scale = " / ".join(str(x["trace"].get("scale", 1)) for x in v)
         drift = " / ".join(f"{np.linalg.norm(x['drift_px']):.1f}" for x in v)
         gaps = " / ".join(str(x["trace"]["gaps"]) for x in v)
+        ts = v[0].get("trace_stereo", {})
+        moved = [str(i + 1) for i, x in enumerate(v) if x.get("trace_stereo", {}).get("moved")]
+        rs = f"{ts.get('recheck')}" + (f" (view {moved[0]})" if moved else "")
         md.append(f"| {r['seed']} | " + " | ".join(cells)
-                  + f" | {epi_s} | {scale} | {drift} | {gaps} |")  # fmt: skip
+                  + f" | {epi_s} | {scale} | {drift} | {gaps} | {rs} |")  # fmt: skip
     _atomic(out.with_suffix(".md"), "\n".join(md) + "\n")
     print(json.dumps(summ, indent=1))
     return 0

@@ -162,6 +162,11 @@ class TubeTrace:
         end_dir, end_half_width_px: the tube's direction (unit (u, v)) and half width at
             the tip (:func:`refine_tip_details`; the silhouette's end is
             ``tip + cap_px * end_dir``).
+        junctions: (backbone index, point (u, v), direction) where a second, separate
+            branch of the mask was supported ahead besides the one followed (a crossing
+            cable or tool, a shadow leaving the tube), or direction None where the run
+            across the tube was over 1.6 times its width (something crossing it);
+            :func:`plate_foreground` follows them when the trace ran out of the image.
     """
 
     mask: np.ndarray
@@ -179,6 +184,7 @@ class TubeTrace:
     measured_width_px: float = 0.0
     end_dir: np.ndarray = field(default_factory=lambda: np.zeros(2))
     end_half_width_px: float = 0.0
+    junctions: list = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- alignment
@@ -574,6 +580,7 @@ def trace_tube(
 
     last_corner = -(10**9)
     on_old = 0
+    junctions: list = []
 
     def _visited(c, keep=30.0):
         """Whether pixel c (u, v) lies on the tube already traced, except its last ``keep``
@@ -597,6 +604,8 @@ def trace_tube(
         pref = sup - 0.02 * np.abs(cands - theta) / max(turn, 1e-9)
         j = int(np.argmax(pref))
         dvec = dirs[j] if sup[j] >= cfg.support else None
+        if dvec is not None and len(junctions) < 8:
+            _note_junction(junctions, sup, cands, j, cfg, len(path) - 1, p, dirs)
         since = len(path) - last_corner
         if (dvec is None and cfg.corner_deg > cfg.max_turn_deg and len(path) > 5
                 and since * cfg.step_px >= cfg.look_px):  # fmt: skip
@@ -634,6 +643,11 @@ def trace_tube(
                 q = q0
             if wid > 0 and (ref is None or wid <= 1.6 * ref):
                 widths.append(wid)
+            elif ref is not None and wid > 1.6 * ref and len(junctions) < 8:
+                # A run across much wider than the tube: something crosses it here (a
+                # cable, a tool, a shadow); its branches are tried if the trace runs out.
+                if not junctions or len(path) - 1 - junctions[-1][0] >= cfg.look_px / cfg.step_px:
+                    junctions.append((len(path) - 1, p.copy(), None))
         else:
             # Gap: look on along the current arc (heading and curvature of the last few
             # steps) for the mask to resume in a big enough component, within
@@ -716,7 +730,85 @@ def trace_tube(
         bb = np.vstack([bb, tip])
     width = float(np.median(widths)) if widths else 3.0
     out = _path_mask(mask, bb, gaps, width)
-    return TubeTrace(out, bb, tip, entry, gaps, width_px=width)
+    return TubeTrace(out, bb, tip, entry, gaps, width_px=width, junctions=junctions)
+
+
+def _note_junction(junctions, sup, cands, j, cfg, index, p, dirs) -> None:
+    """Record a second branch ahead (a local maximum of the support, at least ``support``,
+    20 deg or more from the chosen direction ``j``, with a direction below ``support``
+    between the two: a separate branch, not the same tube's plateau), once per look
+    length of path."""
+    if junctions and index - junctions[-1][0] < cfg.look_px / cfg.step_px:
+        return
+    for i in np.argsort(-sup):
+        if sup[i] < cfg.support:
+            return
+        if abs(cands[i] - cands[j]) < np.radians(20.0):
+            continue
+        lo, hi = sorted((int(i), int(j)))
+        if np.min(sup[lo : hi + 1]) >= cfg.support:
+            continue
+        if (i > 0 and sup[i - 1] > sup[i]) or (i + 1 < len(sup) and sup[i + 1] > sup[i]):
+            continue
+        junctions.append((index, p.copy(), dirs[i].copy()))
+        return
+
+
+def _at_border(uv: np.ndarray, shape, margin: float) -> bool:
+    h, w = shape[:2]
+    return bool(uv[0] < margin or uv[1] < margin or uv[0] > w - 1 - margin
+                or uv[1] > h - 1 - margin)  # fmt: skip
+
+
+def _retrace_off_border(tr: TubeTrace, mask, cfg, frame, plate) -> TubeTrace:
+    """A trace that ran out of the image followed something else at a junction (a robot
+    whose tip leaves the view has no tip to find in it): each recorded junction's other
+    branch (at a wide crossing: the heading turned by 15, 30 and 45 deg either way) is
+    traced, and the longest trace that ends inside the image replaces it (unchanged when
+    none does)."""
+    margin = 2.0 * cfg.step_px
+    if not tr.junctions or not _at_border(tr.tip, mask.shape, margin):
+        return tr
+    best, best_len = None, -1.0
+    tries = []
+    for i, pj, dj in tr.junctions:
+        if dj is not None:
+            tries.append((i, pj, dj))
+            continue
+        # A wide crossing: the heading there turned by 15-45 deg either way.
+        hd = tr.backbone[min(i + 2, len(tr.backbone) - 1)] - tr.backbone[max(i - 2, 0)]
+        th = float(np.arctan2(hd[1], hd[0]))
+        for da in (15.0, -15.0, 30.0, -30.0, 45.0, -45.0):
+            tries.append((i, pj, _unit(th + np.radians(da))))
+    # The tube traced already, and the branch that ran out, are taken off the mask (but
+    # near the junction): a re-trace must neither walk back along them nor follow them.
+    bb_all = np.asarray(tr.backbone)
+    near_steps = int(np.ceil(cfg.look_px / cfg.step_px))
+    rad = 0.5 * tr.width_px + 1.0
+    for i, pj, dj in tries:
+        sub_mask = mask.copy()
+        for piece in (bb_all[: max(i - near_steps, 0)], bb_all[i + near_steps + 1 :]):
+            if len(piece) >= 2:
+                sub_mask &= ~_path_mask(np.ones_like(mask), piece, [], 2 * rad)
+        sub = trace_tube(sub_mask, pj, dj, cfg, frame=frame, plate=plate, _single=True)
+        if len(sub.backbone) < 2 or _at_border(sub.tip, mask.shape, margin):
+            continue
+        # Onwards, not back: within 60 deg of the heading tried, two look lengths on.
+        seg = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(sub.backbone, axis=0), axis=1))]
+        far = sub.backbone[int(np.searchsorted(seg, min(2 * cfg.look_px, seg[-1])))]
+        if np.linalg.norm(far - pj) > 0 and (far - pj) @ dj < 0.5 * np.linalg.norm(far - pj):
+            continue
+        bb = np.vstack([tr.backbone[: i + 1], sub.backbone[1:]])
+        length = float(np.sum(np.linalg.norm(np.diff(bb, axis=0), axis=1)))
+        if length > best_len:
+            gaps = [g for g in tr.gaps if g[1] <= i] + [(a + i, b + i) for a, b in sub.gaps]
+            best, best_len = (bb, gaps, sub), length
+    if best is None:
+        return tr
+    bb, gaps, sub = best
+    width = tr.width_px
+    return TubeTrace(_path_mask(mask, bb, gaps, width), bb, bb[-1].copy(), tr.entry, gaps,
+                     width_px=width, junctions=tr.junctions)  # fmt: skip
 
 
 def refine_tip(
@@ -770,14 +862,38 @@ def refine_tip_details(
     p0 = bb[-1]
     ss = np.arange(-3 * w, w + cfg.look_px + 0.01, 0.25)
     tt = np.arange(-1.5 * w, 1.5 * w + 0.01, 0.25)
-    pts = p0[None, None] + ss[:, None, None] * d[None, None] + tt[None, :, None] * n[None, None]
+    # The grid runs straight back from the end along d where the traced path is straight
+    # there (within w/4 of that line over the 3 widths behind the end); where the tube
+    # curves near its end, the straight line behind it leaves the tube, and the grid is
+    # laid along the traced path instead (_end_frame). Where the one finds no end, the
+    # other is tried.
+    cen_c, nrm_c = _end_frame(bb, ss, d, w)
+    cen_s = p0[None] + ss[:, None] * d[None]
+    grids = [(cen_s, np.broadcast_to(n, cen_s.shape)), (cen_c, nrm_c)]
+    if np.max(np.linalg.norm((cen_c - cen_s)[ss >= -3 * w], axis=1)) > w / 4:
+        grids = grids[::-1]
+    for cen, nrm in grids:
+        out = _refine_on_grid(score, cen, nrm, ss, tt, d, w, cfg)
+        if out is not None:
+            return out
+    return p0.copy(), 0.0, d, 0.0
+
+
+def _refine_on_grid(score, cen, nrm, ss, tt, d, w, cfg):
+    """The body of :func:`refine_tip_details` on a sampling grid of centre points ``cen``
+    (m, 2) at signed distances ``ss`` (m,) from the end and normals ``nrm`` (m, 2); None
+    where the grid shows no end (centre line not on the tube, no half-level crossing, or no
+    width measured)."""
+    pts = cen[:, None] + tt[None, :, None] * nrm[:, None]
     g = ndi.map_coordinates(score, [pts[..., 1], pts[..., 0]], order=1, mode="nearest")
     centre = np.abs(tt) <= 0.5
     behind = (ss >= -3 * w) & (ss <= -w)
     s_in = float(np.median(g[behind][:, centre]))
     s_bg = float(np.median(g[behind][:, np.abs(tt) >= w]))
-    if not s_in > s_bg:
-        return p0.copy(), 0.0, d, 0.0
+    # The centre line behind the end must lie on the tube (score at least the hysteresis
+    # level ``low``) and above the background beside it.
+    if not (s_in > s_bg and s_in >= cfg.low):
+        return None
     half = 0.5 * (s_in + s_bg)
     prof = g[:, centre].mean(1)
     # First crossing below the half level after the end region starts (s >= -w); if the
@@ -788,25 +904,73 @@ def refine_tip_details(
     if prof[k0] < half:
         above = np.flatnonzero(prof[:k0] >= half)
         if not len(above):
-            return p0.copy(), 0.0, d, 0.0
+            return None
         k = int(above[-1]) + 1
     else:
         below = np.flatnonzero(prof[k0:] < half)
         if not len(below):
-            return p0.copy(), 0.0, d, 0.0
+            return None
         k = k0 + int(below[0])
+        # A dip below the half level that rises above it again within a width (the score
+        # varies along the tube: a highlight ending, a section's step) is not the end: the
+        # end is the outermost such crossing.
+        reach = int(round(w / 0.25))
+        while True:
+            again = np.flatnonzero(prof[k : k + reach] >= half)
+            if not len(again):
+                break
+            nxt = np.flatnonzero(prof[k + int(again[-1]) :] < half)
+            if not len(nxt):
+                break
+            k = k + int(again[-1]) + int(nxt[0])
     f = (prof[k - 1] - half) / max(prof[k - 1] - prof[k], 1e-12)
     s_end = float(ss[k - 1] + f * (ss[k] - ss[k - 1]))
+
+    def at(s_):
+        return np.array([np.interp(s_, ss, cen[:, 0]), np.interp(s_, ss, cen[:, 1])])
+
     soft = np.clip((g - s_bg) / (s_in - s_bg), None, 1.0)
     band = np.abs(tt) <= 0.75 * w
     w_full = float(np.median(soft[behind][:, band].sum(1) * 0.25))
-    if cfg.tip_cap <= 0 or not w_full > 0:
-        return p0 + s_end * d, 0.0, d, max(w_full, 0.0) / 2.0
+    if not w_full > 0:
+        return None
+    if cfg.tip_cap <= 0:
+        return at(s_end), 0.0, d, w_full / 2.0
     region = (ss >= -w) & (ss <= s_end + 0.5 * w)
     T = float(soft[region][:, band].sum() * 0.25 * 0.25)
     a = (s_end + w - T / w_full) / (1.0 - np.pi / 4.0)
     a = float(np.clip(a, 0.0, cfg.tip_cap * w_full / 2.0))
-    return p0 + (s_end - a) * d, a, d, w_full / 2.0
+    return at(s_end - a), a, d, w_full / 2.0
+
+
+def _end_frame(bb: np.ndarray, ss: np.ndarray, d: np.ndarray, w: float):
+    """Centre points (m, 2) and unit normals (m, 2) of the grid :func:`refine_tip_details`
+    samples: at ``s < 0`` on the traced backbone ``bb`` (n, 2), ``-s`` px back from its end
+    along it (a tube curving near its end leaves a straight line behind the end: seeds 3212
+    and 3220 of the third round, 4-8 px off the tube 2 widths back), the normal from the
+    backbone's direction over one width ``w``; at ``s >= 0`` straight on along ``d`` from the
+    end. A backbone shorter than ``-s`` is continued straight back along ``-d``."""
+    seg = np.linalg.norm(np.diff(bb, axis=0), axis=1)
+    keep = np.r_[True, seg > 1e-9]
+    bb = bb[keep]
+    cum = np.r_[0.0, np.cumsum(seg[seg > 1e-9])]
+    length = cum[-1]
+    n_end = np.array([-d[1], d[0]])
+
+    def at(a):
+        a = np.clip(a, 0.0, length)
+        return np.stack([np.interp(a, cum, bb[:, 0]), np.interp(a, cum, bb[:, 1])], -1)
+
+    back = np.minimum(ss, 0.0)
+    a = length + back
+    cen = np.where((ss >= 0)[:, None], bb[-1] + np.maximum(ss, 0.0)[:, None] * d,
+                   at(a) + np.minimum(a, 0.0)[:, None] * d)  # fmt: skip
+    tan = at(a + 0.5 * w) - at(a - 0.5 * w)
+    tn = np.linalg.norm(tan, axis=1, keepdims=True)
+    tan = np.where(tn > 1e-9, tan / np.maximum(tn, 1e-9), d[None])
+    # Behind the end the normal follows the backbone; beyond it stays the end's.
+    nrm = np.where((ss < 0)[:, None], np.stack([-tan[:, 1], tan[:, 0]], 1), n_end[None])
+    return cen, nrm
 
 
 def _path_mask(mask, bb, gaps, width):
@@ -952,6 +1116,7 @@ def plate_foreground(
         fs = ndi.gaussian_filter(fl, (cfg.blur_px, cfg.blur_px, 0))
         ps = ndi.gaussian_filter(pl, (cfg.blur_px, cfg.blur_px, 0))
     tr = trace_tube(seeds_l, _to_low(entry_uv, k), direction_uv, cfg, frame=fs, plate=ps)
+    tr = _retrace_off_border(tr, seeds_l, cfg, fs, ps)
     if k > 1:
         tr.backbone = _to_full(tr.backbone, k)
         tr.tip, tr.entry = _to_full(tr.tip, k), _to_full(tr.entry, k)

@@ -87,6 +87,7 @@ from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
+from jaxcr.stereo.tip_consistency import TipConsistency, reconcile_tips
 from jaxcr.stereo.tip_geometry import (
     end_face_lengths,
     epipolar_distances,
@@ -95,7 +96,14 @@ from jaxcr.stereo.tip_geometry import (
 from jaxcr.stereo.triangulation import triangulate_points
 from jaxcr.stereo.view2d import tip_pixel, view_record
 
-__all__ = ["StereoConfig", "StereoFailure", "reconstruct_pair", "trace_stereo_tips"]
+__all__ = [
+    "StereoConfig",
+    "StereoFailure",
+    "entry_direction_px",
+    "reconstruct_pair",
+    "trace_stereo_tips",
+    "traced_stereo_tips",
+]
 
 
 class StereoFailure(Exception):
@@ -241,6 +249,18 @@ def _project_np(cam: Camera, pts: np.ndarray, T: np.ndarray | None = None) -> np
     return uv.reshape(-1, 2)
 
 
+def entry_direction_px(cam: Camera, base: np.ndarray, *, length: float = 5e-3) -> np.ndarray | None:
+    """Unit image direction (u, v) in which the robot leaves its base in ``cam``'s view: the
+    projections of ``base`` and of ``base + length * z`` (base frame, metres; z the
+    insertion axis), distorted pixels as the camera records them. None when the axis
+    runs within half a pixel of the viewing ray (no image direction)."""
+    base = np.asarray(base, np.float64)
+    uv = _project_np(cam, np.stack([base, base + np.array([0.0, 0.0, length])]))
+    d = uv[1] - uv[0]
+    n = float(np.linalg.norm(d))
+    return d / n if n > 0.5 else None
+
+
 def _tip_epipolar_px(cams, vrec) -> float:
     """Epipolar consistency of the two views' ``tip_px``: the larger of the distances (px,
     on undistorted pixels) of each tip to the epiline of the other
@@ -308,23 +328,44 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
     return [ends[k] - res[k] * dirs[k] for k in range(2)], [res[0], res[1]]
 
 
+def traced_stereo_tips(cams, traces) -> tuple[list[np.ndarray], str, TipConsistency | None]:
+    """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
+    tips with the end face's length from both views (:func:`trace_stereo_tips`; each
+    view's own traced tip where the two views leave it undetermined), then, where the two
+    tips are over 5 px from each other's epipolar lines, re-searched along the traced
+    tubes (:func:`jaxcr.stereo.tip_consistency.reconcile_tips`). ``traces``: the two
+    :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
+    (u, v), source ``"trace_stereo"`` or ``"trace"``, the re-search's result or None when
+    a tip is not finite)."""
+    st = trace_stereo_tips(cams, traces)
+    if st is not None:
+        tips, src = [np.asarray(t, np.float64) for t in st[0]], "trace_stereo"
+    else:
+        tips, src = [np.asarray(t.tip, np.float64) for t in traces], "trace"
+    if not all(np.all(np.isfinite(t)) for t in tips):
+        return tips, src, None
+    res = reconcile_tips(cams, traces, tips)
+    return [np.asarray(t, np.float64) for t in res.tips], src, res
+
+
 def _traced_tips(vrec: list[dict], cams, traces) -> None:
     """``--segmentation trace``: each view's ``tip_px`` from the tracer instead of the
     skeleton's end, with ``tip_source``: ``"trace_stereo"`` (:func:`trace_stereo_tips`),
     else ``"trace"`` (the view's own traced tip, where the two views leave the end face's
-    length undetermined), else ``"skeleton"`` (no finite traced tip). The skeleton's end
-    stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
+    length undetermined), else ``"skeleton"`` (no finite traced tip); ``"+cut"`` or
+    ``"+extended"`` appended for the view :func:`traced_stereo_tips`' epipolar re-search
+    moved. The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
     the tube's end direction) and ends at it."""
-    st = trace_stereo_tips(cams, traces)
+    tips, source, recheck = traced_stereo_tips(cams, traces)
     for k, (v, t) in enumerate(zip(vrec, traces, strict=True)):
         v["tip_skeleton_px"] = v["tip_px"]
-        if st is not None:
-            tip, src = st[0][k], "trace_stereo"
-        elif np.all(np.isfinite(t.tip)):
-            tip, src = np.asarray(t.tip, np.float64), "trace"
+        if np.all(np.isfinite(tips[k])):
+            tip, src = tips[k], source
         else:
             v["tip_source"] = "skeleton"
             continue
+        if recheck is not None and recheck.view == k:
+            src = src + "+" + recheck.action
         line = np.asarray(v["backbone_px"], np.float64)[:-1]  # the skeleton's end dropped
         d = np.asarray(t.end_dir, np.float64)
         if np.all(np.isfinite(d)) and np.linalg.norm(d) > 0:
@@ -731,11 +772,18 @@ def reconstruct_pair(
     )
     masks = np.asarray(mask_j)
     if cfg.segmentation == "trace":
-        # The traced robot of each view (jaxcr.segmentation.foreground), entered at the projected base.
+        # The traced robot of each view (jaxcr.segmentation.foreground), entered at the
+        # projected base along the projected insertion axis (the base frame's z: known with
+        # markers or a given T_cam_base; in entry_px mode z is provisional until the
+        # backbone is triangulated, so the tracer finds the direction from the mask).
         tr = [
             plate_foreground(
-                imgs[k], plates[k], _project_np(cams[k], base[None])[0], cfg=cfg.plate_foreground
-            )
+                imgs[k],
+                plates[k],
+                _project_np(cams[k], base[None])[0],
+                None if bspec.mode == "entry_px" else entry_direction_px(cams[k], base),
+                cfg=cfg.plate_foreground,
+            )  # fmt: skip
             for k in range(2)
         ]
         masks = _image_stack([t.mask.astype(np.uint8) for t in tr])

@@ -17,11 +17,24 @@ Scene (base frame, metres; the stereo preset's geometry, :mod:`jaxcr.synth.stere
 * **no markers**; the **background plates** (empty scene) are rendered with the cameras
   at a slightly different orientation than the frames (a drift of ``drift_px`` pixels,
   sub-pixel to a few pixels, random direction per frame);
+* an **occluder** (``occluder=True``, the default): a thin cable or tool shaft (a sagging
+  chain of capsules, 0.6-1.6 mm radius, dark or grey) that crosses in front of the robot's
+  middle part (20-70 % of its length) 8-30 mm nearer to one of the cameras. It is in the
+  frames only, not in the plates (it moved into the scene), it casts no shadow, and it never
+  covers the tip (the labelled tip is visible, as a human labeller needs);
 * model error: the entry pixel handed to a method is the projection of the base through a
-  camera pose perturbed by ``entry_error_px`` (the calibration/base-frame error of a rig).
+  camera pose perturbed by ``entry_error_px`` (the calibration/base-frame error of a rig);
+  and each view's ``calib_camera`` (what a method may use as the rig's calibration) differs
+  from the rendering camera by a calibration error: focal lengths by 0.15-0.3 %, the
+  principal point by 0.75-1.5 px, the pose by 0.04-0.08 deg and 0.2-0.4 mm (each drawn as
+  ``U(0.5, 1) x`` its limit, in a random direction or sign), the distortion unchanged.
 
-Truth per view: the tip pixel (projection of the backbone's end point, OpenCV pixel
-convention), the robot mask at pixel centres, the projected backbone.
+Truth per view: the tip pixel (projection of the backbone's end point through the rendering
+camera, OpenCV pixel convention), the visible robot mask at pixel centres (the occluder's
+pixels excluded), the projected backbone.
+
+The occluder and the calibration error are drawn from their own random stream
+(``[seed, 18]``), so the rest of a seed's scene is the one rendered before they were added.
 """
 
 from __future__ import annotations
@@ -31,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from jaxcr.stereo.aruco import MarkerLayout
+from jaxcr.synth.raycast import ray_capsule
 from jaxcr.synth.render import apply_camera_effects, pixel_rays, subpixel_rays
 from jaxcr.synth.scene import RenderCamera
 from jaxcr.synth.stereo_ctr import (
@@ -60,7 +74,9 @@ class RealLikeView:
     projected nominal base axis, turned by a random error of ``dir_error_deg`` rms);
     ``mask`` (H, W) bool true robot pixels; ``backbone_px`` (n, 2); ``drift_px`` (2,) the
     plate's image shift relative to the frame's camera (approximate, at the image
-    centre); ``camera`` the frame's render camera."""
+    centre); ``camera`` the frame's render camera; ``calib_camera`` the same camera with
+    calibration error (what a method is given); ``occluder_px`` (m, 2) the projected
+    centre line of the occluder (empty without one)."""
 
     image: np.ndarray
     plate: np.ndarray
@@ -72,6 +88,8 @@ class RealLikeView:
     backbone_px: np.ndarray
     drift_px: np.ndarray
     camera: RenderCamera
+    calib_camera: RenderCamera | None = None
+    occluder_px: np.ndarray | None = None
 
 
 @dataclass
@@ -83,8 +101,10 @@ class RealLikeFrame:
 class _RealScene:
     """Cloth planes with creases and static shadows, the taped board, robot capsules."""
 
-    def __init__(self, layout: MarkerLayout, robot_p, robot_r, section, rng):
+    def __init__(self, layout: MarkerLayout, robot_p, robot_r, section, rng, occluder=None):
         self.p, self.r = robot_p, robot_r
+        # occluder: None or (points (n, 3), radius, albedo (3,)), a capsule chain.
+        self.occluder = occluder
         if robot_r is not None:
             r_next = np.r_[robot_r[1:], 0.0]
             self.flat_end = r_next < robot_r - 1e-12
@@ -155,12 +175,39 @@ class _RealScene:
         return alb
 
 
+def _occluder_hits(scene: _RealScene, C: np.ndarray, d: np.ndarray):
+    """First hits of base-frame rays from ``C`` with the occluder's capsule chain: distance
+    (M,) (inf on a miss) and unit normal (M, 3)."""
+    m = len(d)
+    t_occ = np.full(m, np.inf)
+    n_occ = np.zeros((m, 3))
+    if scene.occluder is None:
+        return t_occ, n_occ
+    pts, rad, _ = scene.occluder
+    o = np.broadcast_to(C, (m, 3))
+    for a, b in zip(pts[:-1], pts[1:], strict=True):
+        # Rays within the capsule's bounding sphere only (the exact test is per ray).
+        cen, half = (a + b) / 2, np.linalg.norm(b - a) / 2 + rad
+        oc = cen - C
+        proj = d @ oc
+        sel = np.nonzero(oc @ oc - proj**2 < half * half)[0]
+        if not len(sel):
+            continue
+        tt, n = ray_capsule(o[sel], d[sel], a, b, rad)
+        better = tt < t_occ[sel]
+        t_occ[sel[better]] = tt[better]
+        n_occ[sel[better]] = n[better]
+    return t_occ, n_occ
+
+
 def _shade_real(scene: _RealScene, cam: RenderCamera, d_cam: np.ndarray):
     C, d, tb, nb, pid, t_rob, n_rob, k_rob = trace_rays(scene, cam, d_cam)
     m = len(d)
     rgb = np.zeros((m, 3))
-    robot = t_rob < tb
-    cloth = ~robot & np.isfinite(tb)
+    t_occ, n_occ = _occluder_hits(scene, C, d)
+    occ = t_occ < np.minimum(tb, t_rob)
+    robot = (t_rob < tb) & ~occ
+    cloth = ~robot & ~occ & np.isfinite(tb)
     ci = np.nonzero(cloth)[0]
     P = C + tb[ci, None] * d[ci]
     alb = np.zeros((len(ci), 3))
@@ -186,7 +233,83 @@ def _shade_real(scene: _RealScene, cam: RenderCamera, d_cam: np.ndarray):
         to_cloth = np.clip(0.5 - 0.8 * refl[:, 2], 0, 1)[:, None]
         env = to_cloth * CLOTH_RGB * 0.5 + (1 - to_cloth) * 0.35
         rgb[ri] = base * (0.55 + 0.6 * ndl)[:, None] + spec[:, None] + 0.15 * env
+    oi = np.nonzero(occ)[0]
+    if len(oi):
+        n = n_occ[oi]
+        ndl = np.clip(n @ scene.light, 0, 1)
+        h = scene.light[None] - d[oi]
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+        spec = 0.3 * np.clip(np.einsum("ij,ij->i", n, h), 0, 1) ** 30
+        rgb[oi] = scene.occluder[2][None] * (0.55 + 0.6 * ndl)[:, None] + spec[:, None]
     return rgb, robot
+
+
+def _draw_occluder(rng: np.random.Generator, backbone: np.ndarray, cams) -> tuple:
+    """A thin cable or tool shaft crossing in front of the robot (module docstring):
+    (points (n, 3), radius, albedo (3,)), base frame, metres."""
+    seg = np.linalg.norm(np.diff(backbone, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    k = int(np.searchsorted(s, rng.uniform(0.2, 0.7) * s[-1]))
+    k = min(max(k, 1), len(backbone) - 2)
+    Q = backbone[k]
+    tangent = backbone[k + 1] - backbone[k - 1]
+    tangent /= np.linalg.norm(tangent)
+    cam = cams[int(rng.integers(len(cams)))]
+    R, t = cam.T_cam_robot[:3, :3], cam.T_cam_robot[:3, 3]
+    Cc = -R.T @ t
+    to_cam = (Cc - Q) / np.linalg.norm(Cc - Q)
+    centre = Q + rng.uniform(0.008, 0.03) * to_cam
+    # Across the tube as the camera sees it: perpendicular to the viewing ray, at 35-90 deg
+    # to the tube's tangent in that plane.
+    t_perp = tangent - (tangent @ to_cam) * to_cam
+    t_perp /= max(np.linalg.norm(t_perp), 1e-12)
+    other = np.cross(to_cam, t_perp)
+    ang = np.radians(rng.uniform(35, 90)) * rng.choice([-1.0, 1.0])
+    axis = np.cos(ang) * t_perp + np.sin(ang) * other
+    sag = rng.uniform(0.0, 0.01)  # a cable sags; a tool shaft is straight (sag 0)
+    u = np.linspace(-0.15, 0.15, 13)
+    pts = centre[None] + u[:, None] * axis[None]
+    pts[:, 2] += sag * (u / 0.15) ** 2  # through ``centre``, its middle lowest
+    radius = rng.uniform(0.6e-3, 1.6e-3)
+    albedo = np.full(3, rng.uniform(0.03, 0.35)) * rng.uniform(0.9, 1.1, 3)
+    return pts, radius, albedo
+
+
+def _covers_tip(occ: tuple, tip: np.ndarray, cams) -> bool:
+    """Whether the occluder passes within its own projected radius plus 8 px (at 1280 px
+    width; scaled with the width) of the tip's pixel in some view."""
+    pts, rad, _ = occ
+    for cam in cams:
+        uv = _project(cam, pts)
+        t = _project(cam, tip[None])[0]
+        depth = (cam.T_cam_robot[:3, :3] @ pts.T + cam.T_cam_robot[:3, 3:]).T[:, 2]
+        r_px = cam.K[0, 0] * rad / max(float(depth.min()), 1e-6)
+        a, b = uv[:-1], uv[1:]
+        ab = b - a
+        w = np.clip(np.einsum("ij,ij->i", t - a, ab) / np.maximum((ab**2).sum(1), 1e-12), 0, 1)
+        dist = np.linalg.norm(a + w[:, None] * ab - t, axis=1).min()
+        if dist < r_px + 8.0 * cam.width / 1280:
+            return True
+    return False
+
+
+def _calibrated(cam: RenderCamera, rng: np.random.Generator) -> RenderCamera:
+    """``cam`` with a calibration error (module docstring)."""
+    K = cam.K.copy()
+    K[0, 0] *= 1 + rng.choice([-1, 1]) * rng.uniform(0.5, 1) * 0.003
+    K[1, 1] *= 1 + rng.choice([-1, 1]) * rng.uniform(0.5, 1) * 0.003
+    pp = rng.normal(0, 1, 2)
+    K[:2, 2] += pp / np.linalg.norm(pp) * rng.uniform(0.5, 1) * 1.5
+    ax = rng.normal(0, 1, 3)
+    ax /= np.linalg.norm(ax)
+    ang = np.radians(rng.uniform(0.5, 1) * 0.08)
+    Kx = np.array([[0, -ax[2], ax[1]], [ax[2], 0, -ax[0]], [-ax[1], ax[0], 0]])
+    dR = np.eye(3) + np.sin(ang) * Kx + (1 - np.cos(ang)) * Kx @ Kx
+    tr = rng.normal(0, 1, 3)
+    T = cam.T_cam_robot.copy()
+    T[:3, :3] = dR @ T[:3, :3]
+    T[:3, 3] = dR @ T[:3, 3] + tr / np.linalg.norm(tr) * rng.uniform(0.5, 1) * 4e-4
+    return RenderCamera(K, cam.dist.copy(), T, cam.width, cam.height)
 
 
 def _render(scene: _RealScene, cam: RenderCamera, rays) -> tuple[np.ndarray, np.ndarray]:
@@ -248,8 +371,10 @@ def render_real_like_frame(
     entry_error_px: float = 3.0,
     dir_error_deg: float = 8.0,
     noise: float = 0.02,
+    occluder: bool = True,
 ) -> RealLikeFrame:
-    """One frame of the ``real_like`` preset (both views), deterministic for ``seed``."""
+    """One frame of the ``real_like`` preset (both views), deterministic for ``seed``;
+    ``occluder=False`` leaves the occluder out (the scene is otherwise the same)."""
     rng = np.random.default_rng([seed, 16])
     layout = MarkerLayout()
     cams = stereo_cameras(size, layout, rng)
@@ -259,7 +384,14 @@ def render_real_like_frame(
     fine = cc_backbone(robot, 1e-3)
     radius = fine["diameter"][1:] / 2
     section = fine["section"][1:]
-    scene = _RealScene(layout, fine["p"], radius, section, np.random.default_rng([seed, 17]))
+    rng_err = np.random.default_rng([seed, 18])
+    for _ in range(50):  # redraw an occluder that would cover the tip in a view
+        occ = _draw_occluder(rng_err, fine["p"], cams)
+        if not _covers_tip(occ, fine["p"][-1], cams):
+            break
+    calib = [_calibrated(c, rng_err) for c in cams]
+    scene = _RealScene(layout, fine["p"], radius, section, np.random.default_rng([seed, 17]),
+                       occ if occluder else None)  # fmt: skip
     empty = _RealScene(layout, None, None, None, np.random.default_rng([seed, 17]))
     views = []
     for k, cam in enumerate(cams):
@@ -282,9 +414,21 @@ def render_real_like_frame(
         axis = _project(cam, layout.base_centre[None] + np.array([[0.0, 0.0, 0.005]]))[0]
         a = np.arctan2(*(axis - entry_true)[::-1]) + np.radians(rng.normal(0, dir_error_deg))
         direction = np.array([np.cos(a), np.sin(a)])
+        occ_px = _project(cam, occ[0]) if occluder else np.zeros((0, 2))
         views.append(
             RealLikeView(
-                img, plate, bb_px[-1], entry, entry_true, direction, mask, bb_px, drift_meas, cam
-            )
+                img,
+                plate,
+                bb_px[-1],
+                entry,
+                entry_true,
+                direction,
+                mask,
+                bb_px,
+                drift_meas,
+                cam,
+                calib[k],
+                occ_px,
+            )  # fmt: skip
         )
     return RealLikeFrame(views, seed)

@@ -46,6 +46,7 @@ NOT_CORE = {
     "stereo/overlay.py": "drawing on images for the overlays (cv2 drawing primitives)",
     "stereo/pipeline.py": "end-to-end driver of one pair: cv2 morphology/projectPoints/fillPoly",
     "stereo/base_frame.py": "cv2.undistortPoints/projectPoints for the markerless base (host side)",
+    "stereo/tip_consistency.py": "cv2.undistortPoints/projectPoints for the two views' tips (host side)",
     "stereo/single_view.py": "one-camera driver: cv2 projectPoints/morphology (host side)",
 }
 

@@ -95,3 +95,27 @@ def test_end_face_lengths_refuses_an_axis_in_the_epipolar_plane():
         d = _proj(K, T, X + 1e-4 * u)[0] - c
         args += [c, d / np.linalg.norm(d)]
     assert end_face_lengths(K1, T1, K2, T2, *args, 5.0, 5.0) is None
+
+
+def test_entry_direction_px_is_the_projected_insertion_axis():
+    """The stereo pipeline hands the tracer the robot's entry direction (issue 16 item 2,
+    open item b): the image direction of the base's z axis. Reference: the tangent of the
+    hand-made pinhole projection along z (central differences of 1e-7 m, float64). The
+    function uses a 5 mm chord, which turns from the tangent by at most about
+    chord / depth = 0.005 / 0.3 ~ 0.017 rad: tolerance 0.02."""
+    from jaxcr.camera import Camera
+    from jaxcr.stereo.pipeline import entry_direction_px
+
+    def cam(T):
+        return Camera(K=K1.astype(np.float32), dist=np.zeros(5, np.float32),
+                      T_cam_robot=T.astype(np.float32), width=1280, height=720)  # fmt: skip
+
+    for base in (np.array([0.0, 0.0, 0.02]), np.array([0.01, -0.02, 0.0])):
+        d = entry_direction_px(cam(T1), base)
+        h = 1e-7
+        ref = (_proj(K1, T1, base + [0, 0, h]) - _proj(K1, T1, base - [0, 0, h]))[0]
+        ref /= np.linalg.norm(ref)
+        assert np.linalg.norm(d - ref) < 0.02
+    # An axis along the viewing ray has no image direction.
+    T_on = look_at_pose(np.array([0.0, 0.0, 0.4]), [0.0, 0.0, 0.0], up=(1.0, 0.0, 0.0))
+    assert entry_direction_px(cam(T_on), np.zeros(3)) is None

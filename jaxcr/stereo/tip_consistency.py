@@ -1,0 +1,219 @@
+"""Two views' tip pixels made epipolar-consistent by re-searching along the traced tubes
+(issue 16 item 2, open item a: what to do when ``tip_epipolar_px`` flags a frame).
+
+Each view's tracer (:func:`jaxcr.segmentation.foreground.plate_foreground`) follows the tube
+on its own. When the two tips are more than ``flag_px`` from each other's epipolar lines,
+one view's trace went past the tube's end (onto a shadow, a crease, a cable touching the
+tip) or stopped short of it (the tube matching the background at its end). Which one is
+decided by the images, not by a preference for either view:
+
+* the *longer* view ``k`` is the one whose traced backbone crosses the epipolar line of the
+  other view's tip (the last crossing along it, away from the end by more than
+  ``min_cut_px``); the shorter view ``j``'s backbone does not reach the epipolar line of
+  ``k``'s tip;
+* in view ``j`` the tube's path beyond its tip is predicted by the arc of its last traced
+  stretch (heading and curvature), up to where it meets the epipolar line of ``k``'s tip;
+  the fraction of that path (past 0.75 tube widths from the tip, where the silhouette's
+  rounded end lies; at least 3 px of it, else no decision) on which ``j``'s cue score is at
+  least ``low`` (the hysteresis level) is the evidence that the tube goes on there;
+* evidence below ``absent`` (0.3): the tube is absent beyond ``j``'s tip, so ``k``
+  overshot: ``k``'s tip moves back along its own backbone to the crossing; evidence at or
+  above ``present`` (0.6): ``j`` stopped short: ``j``'s tip moves on along the predicted
+  path to the epipolar line of ``k``'s tip; between the two the tips are kept (and stay
+  flagged).
+
+A crossing where the backbone runs within ``min_angle_deg`` of the epipolar line is not
+used (the tube lies near the epipolar plane there; the crossing is ill-conditioned).
+
+Pixels are distorted (as the camera records them) at the interface and undistorted
+inside. Numpy float64 and cv2 (undistortion) at the edge of the stereo pipeline, per frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage as ndi
+
+from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
+
+__all__ = ["TipConsistency", "reconcile_tips"]
+
+
+@dataclass
+class TipConsistency:
+    """Result of :func:`reconcile_tips`: ``tips`` [(2,), (2,)] distorted (u, v) pixels;
+    ``action`` one of ``"consistent"``, ``"cut"`` (the longer view moved back), ``"extended"``
+    (the shorter view moved on), ``"kept"`` (flagged, no decision), ``"no_crossing"``;
+    ``view`` the view (0 or 1) whose tip moved (None if none); ``evidence`` the fraction
+    of the shorter view's predicted path with tube score (NaN if not measured);
+    ``epipolar_px`` before and after."""
+
+    tips: list
+    action: str
+    view: int | None
+    evidence: float
+    epipolar_before_px: float
+    epipolar_after_px: float
+
+
+def _undistort(cam, uv) -> np.ndarray:
+    pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
+    K = np.asarray(cam.K, np.float64)
+    return cv2.undistortPoints(pts, K, np.asarray(cam.dist, np.float64), P=K).reshape(-1, 2)
+
+
+def _distort(cam, uv) -> np.ndarray:
+    """Distorted pixels of undistorted pixels ``uv`` (n, 2) through ``cam``."""
+    K = np.asarray(cam.K, np.float64)
+    x = np.linalg.solve(K, np.c_[np.asarray(uv, np.float64), np.ones(len(uv))].T).T
+    out, _ = cv2.projectPoints(x.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K,
+                               np.asarray(cam.dist, np.float64))  # fmt: skip
+    return out.reshape(-1, 2)
+
+
+def _densify(line: np.ndarray, step: float = 0.5) -> np.ndarray:
+    seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    if s[-1] <= 0:
+        return line[:1].copy()
+    t = np.arange(0.0, s[-1] + 1e-9, step)
+    t = np.r_[t, s[-1]] if t[-1] < s[-1] else t
+    return np.stack([np.interp(t, s, line[:, 0]), np.interp(t, s, line[:, 1])], 1)
+
+
+def _epiline(F: np.ndarray, x: np.ndarray, to_second: bool) -> np.ndarray:
+    """Normalised line (a, b, c) (a^2 + b^2 = 1) in the other image of undistorted ``x``."""
+    h = np.r_[x, 1.0]
+    ln = F @ h if to_second else F.T @ h
+    return ln / np.hypot(ln[0], ln[1])
+
+
+def _last_crossing(line_u: np.ndarray, ep: np.ndarray, min_angle: float):
+    """Index position (float) of the last crossing of the polyline ``line_u`` (n, 2) with
+    the line ``ep``, or None (none, or at a grazing angle)."""
+    sd = line_u @ ep[:2] + ep[2]
+    sign = np.sign(sd)
+    idx = np.flatnonzero(sign[:-1] * sign[1:] <= 0)
+    if not len(idx):
+        return None
+    i = int(idx[-1])
+    seg = line_u[i + 1] - line_u[i]
+    n = np.linalg.norm(seg)
+    if n == 0:
+        return float(i)
+    if abs(seg @ ep[:2]) / n < np.sin(min_angle):  # grazing: along the epipolar line
+        return None
+    f = sd[i] / (sd[i] - sd[i + 1]) if sd[i] != sd[i + 1] else 0.0
+    return i + float(np.clip(f, 0.0, 1.0))
+
+
+def _predicted_path(bb: np.ndarray, window_px: float, length: float, step: float = 0.5):
+    """Points (m, 2) continuing the polyline ``bb`` beyond its end on the circle fitted to its
+    last ``window_px`` (heading and curvature), ``length`` px long (distorted pixels)."""
+    d = _densify(bb, 0.5)
+    seg = np.linalg.norm(np.diff(d, axis=0), axis=1)
+    back = np.r_[np.cumsum(seg[::-1])[::-1], 0.0]
+    tail = d[back <= window_px]
+    if len(tail) < 3:
+        tail = d[-3:]
+    head = tail[-1] - tail[max(len(tail) - 5, 0)]
+    theta = float(np.arctan2(head[1], head[0]))
+    # Curvature from the turn of the tail's heading over its length.
+    h0 = tail[min(4, len(tail) - 1)] - tail[0]
+    turn = np.angle(np.exp(1j * (theta - np.arctan2(h0[1], h0[0]))))
+    span = max(float(np.sum(np.linalg.norm(np.diff(tail, axis=0), axis=1))), 1e-9)
+    kappa = turn / span
+    s = np.arange(step, length + 1e-9, step)
+    ang = theta + kappa * s
+    pts = tail[-1] + np.cumsum(step * np.stack([np.cos(ang), np.sin(ang)], 1), axis=0)
+    return pts
+
+
+def reconcile_tips(
+    cams, traces, tips, *, flag_px: float = 5.0, low: float = 0.4, absent: float = 0.3,
+    present: float = 0.6, min_cut_px: float = 3.0, min_angle_deg: float = 20.0,
+    max_extend_px: float = 80.0,
+) -> TipConsistency:  # fmt: skip
+    """Make the two views' tips epipolar-consistent (module docstring).
+
+    ``cams``: two calibrated cameras (``K``, ``dist``, ``T_cam_robot`` in one frame).
+    ``traces``: per view an object with ``backbone`` (n, 2) (u, v) from the entry to the tip
+    and ``score`` (H, W) the cue score (as :class:`jaxcr.segmentation.foreground.TubeTrace`).
+    ``tips``: the two current tips (distorted (u, v); e.g. :func:`jaxcr.stereo.pipeline.
+    trace_stereo_tips`). ``flag_px``: epipolar distance above which a frame is re-searched;
+    ``low``: the score level of tube pixels; ``absent``/``present``: evidence levels;
+    ``min_cut_px``: a crossing nearer the tip than this is no overshoot; ``max_extend_px``:
+    the longest extension searched."""
+    tips = [np.asarray(t, np.float64) for t in tips]
+    K0, K1 = (np.asarray(c.K, np.float64) for c in cams)
+    T0, T1 = (np.asarray(c.T_cam_robot, np.float64) for c in cams)
+    F = fundamental_from_poses(K0, T0, K1, T1)
+
+    def epi(ts):
+        if not all(np.all(np.isfinite(t)) for t in ts):
+            return float("inf")
+        a, b = (_undistort(c, t)[0] for c, t in zip(cams, ts, strict=True))
+        return max(epipolar_distances(F, a, b))
+
+    e0 = epi(tips)
+    if not np.isfinite(e0) or e0 <= flag_px:
+        return TipConsistency(tips, "consistent" if np.isfinite(e0) else "kept", None,
+                              float("nan"), e0, e0)  # fmt: skip
+    min_angle = np.radians(min_angle_deg)
+    tu = [_undistort(c, t)[0] for c, t in zip(cams, tips, strict=True)]
+    # Epiline in view k of the other view's tip.
+    lines = [_epiline(F, tu[1], to_second=False), _epiline(F, tu[0], to_second=True)]
+    cross = []
+    for k in range(2):
+        bb = _densify(np.asarray(traces[k].backbone, np.float64), 0.5)
+        bb = np.vstack([bb[:-1], tips[k]]) if len(bb) > 1 else tips[k][None]
+        pos = _last_crossing(_undistort(cams[k], bb), lines[k], min_angle)
+        if pos is not None:
+            i = int(np.floor(pos))
+            f = pos - i
+            pt = bb[i] if i + 1 >= len(bb) else (1 - f) * bb[i] + f * bb[i + 1]
+            seg = np.linalg.norm(np.diff(bb, axis=0), axis=1)
+            s_cross = float(np.sum(seg[:i]) + f * (seg[i] if i < len(seg) else 0.0))
+            cut = float(np.sum(seg)) - s_cross
+            cross.append((pt, cut) if cut > min_cut_px else None)
+        else:
+            cross.append(None)
+    longer = [k for k in range(2) if cross[k] is not None]
+    if len(longer) != 1:
+        return TipConsistency(tips, "no_crossing" if not longer else "kept", None,
+                              float("nan"), e0, e0)  # fmt: skip
+    k = longer[0]
+    j = 1 - k
+    # The shorter view's predicted continuation up to the epiline of k's tip.
+    bbj = np.asarray(traces[j].backbone, np.float64)
+    bbj = np.vstack([bbj[:-1], tips[j]]) if len(bbj) > 1 else tips[j][None]
+    w = 24.0
+    path = _predicted_path(bbj, w, max_extend_px)
+    sd = _undistort(cams[j], path) @ lines[j][:2] + lines[j][2]
+    s0 = float(_undistort(cams[j], tips[j][None])[0] @ lines[j][:2] + lines[j][2])
+    hit = np.flatnonzero(np.sign(sd) != np.sign(s0))
+    if not len(hit):  # the predicted path never reaches the line: no decision
+        return TipConsistency(tips, "kept", None, float("nan"), e0, e0)
+    path = path[: int(hit[0]) + 1]
+    # The silhouette's rounded end covers the first half width or so beyond the tip: the
+    # evidence is taken past 0.75 widths, on at least 3 px.
+    skip = int(np.ceil(0.75 * float(getattr(traces[j], "width_px", 5.0)) / 0.5))
+    probe = path[skip:]
+    if len(probe) < 6:
+        return TipConsistency(tips, "kept", None, float("nan"), e0, e0)
+    sc = ndi.map_coordinates(np.asarray(traces[j].score, np.float64),
+                             [probe[:, 1], probe[:, 0]], order=1, mode="nearest")  # fmt: skip
+    evidence = float(np.mean(sc >= low))
+    new = [t.copy() for t in tips]
+    if evidence < absent:
+        new[k] = cross[k][0]
+        action, view = "cut", k
+    elif evidence >= present:
+        new[j] = path[-1]
+        action, view = "extended", j
+    else:
+        return TipConsistency(tips, "kept", None, evidence, e0, e0)
+    return TipConsistency(new, action, view, evidence, e0, epi(new))
