@@ -169,6 +169,10 @@ class PipelineConfig:
     # denoised points, all its edges share that bias so no edge weighting can remove it).
     # False: only the outside-ring edges (the behaviour before 2026-12-02).
     far_source_all_edges: bool = True
+    # How such an edge enters the graph: "replace" (the raw registration only) or "both"
+    # (the denoised and the raw registration, each with half its information: the two
+    # estimates come from the same images, and their biases, of either sign, partly cancel).
+    far_source_mode: str = "both"
     # Cauchy-reweighted pose-graph solves after the calibrated one
     # (:func:`jaxcr.registration.pose_graph.optimize_pose_graph` ``robust_rounds``).
     robust_rounds: int = 0
@@ -538,7 +542,7 @@ def optimize_pose_graph_stage(
         # registrations) or by extra_edges (gap edges): a far source is registered again
         n_ring = len(ring_edges)
         fixed = far_source_edges(result, ring_edges + result.extra, K, cfg, seed=seed)
-        ring_edges, result.extra = fixed[:n_ring], fixed[n_ring:]
+        ring_edges, result.extra = fixed[:n_ring], fixed[n_ring:]  # "both": raw ones in extra
     graph = graph_edges(
         result,
         ring_edges + result.extra + result.outside_edges,
@@ -747,7 +751,8 @@ def register_views(
     than ``cfg.far_source_ratio`` farther from the scene (median depth) than ``fb`` (the
     plane fit behind the denoised points has a fixed pixel window, biased at depth: see
     ``PipelineConfig.far_source_ratio``)."""
-    if cfg.geometric_points == "plane" and median_depth(fa) > cfg.far_source_ratio * median_depth(fb):
+    far = median_depth(fa) > cfg.far_source_ratio * median_depth(fb)
+    if cfg.geometric_points == "plane" and far:
         cfg = dataclasses.replace(cfg, geometric_points="raw")
     return cfg.register(fa, fb, K, prior, seed, prior_gate=prior_gate)
 
@@ -765,24 +770,38 @@ def far_source_edges(
     with the raw source points (:func:`register_views`), seeded by its own estimate and
     kept when it agrees with it within the closure gate (else, or when it fails, the edge
     is unchanged). An edge whose registration has no matches (a nominal or chained stand-in)
-    is left alone. ``nodes``: the (run, capture) of every node number (default: the ring)."""
+    is left alone. ``cfg.far_source_mode == "both"``: such an edge is kept too, and the raw
+    one is appended, each with half its information (the same images twice, not two
+    independent measurements). ``nodes``: the (run, capture) of every node number (default:
+    the ring)."""
+    if cfg.far_source_mode not in ("replace", "both"):
+        raise ValueError(
+            f"far_source_mode must be 'replace' or 'both', got {cfg.far_source_mode!r}"
+        )
     if cfg.geometric_points != "plane":
         return list(edges)
     nodes = result.ring if nodes is None else nodes
     gate = (cfg.closure_gate_deg, cfg.closure_gate_m)
-    out = []
+    out, added = [], []
     for n, (i, j, pair) in enumerate(edges):
         fa, fb = _capture(result.runs, nodes[i]).frame, _capture(result.runs, nodes[j]).frame
         if pair.n_matches > 0 and median_depth(fa) > cfg.far_source_ratio * median_depth(fb):
             try:
                 cand = register_views(cfg, fa, fb, K, pair.T, seed + 4000 + n, gate)
-                r_err, t_err = pose_error(cand.T, pair.T)
-                if r_err <= gate[0] and t_err <= gate[1]:
-                    pair = cand
             except RegistrationFailed:
-                pass  # keep the registration as it was
+                cand = None  # keep the registration as it was
+            if cand is not None and all(
+                x <= g for x, g in zip(pose_error(cand.T, pair.T), gate, strict=True)
+            ):
+                if cfg.far_source_mode == "replace":
+                    pair = cand
+                elif pair.information is not None and cand.information is not None:
+                    pair = dataclasses.replace(pair, information=0.5 * pair.information)
+                    added.append(
+                        (i, j, dataclasses.replace(cand, information=0.5 * cand.information))
+                    )
         out.append((i, j, pair))
-    return out
+    return out + added
 
 
 def chained_view_pose(
