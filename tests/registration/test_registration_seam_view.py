@@ -6,6 +6,8 @@ ring 0.22-0.36 m), and its registrations as a source with the denoised (plane-fi
 share one bias (dev Task 1 seed 6: forward 0 -> 1 2.51 mm off). A bias shared by a view's
 edges moves its pose in all of them alike, so no cycle sees it and no edge weighting removes
 it; before the fix only the views outside the ring were registered with raw source points.
+Now every edge with a far source also enters with raw source points (default
+``far_source_mode='both'``: the denoised and the raw registration, half information each).
 
 Constructed here: a 12-view ring closing on view 0 (depth 0.6 m, view 1 0.47 m, the rest
 0.3 m). A registration oracle stands in for the images (transforms from the true poses with
@@ -129,3 +131,11 @@ def test_seam_view_far_source_edges_registered_raw(world):
     # >= 3 edges per view) plus the ring's drift (~0.5 mm) stay under 1 mm, where a
     # residue of a third of the bias would already be 1 mm.
     assert max(new.values()) < 1.0, (new, old)
+
+
+def test_far_source_mode_is_checked(world):
+    from jaxcr.registration.pipeline import far_source_edges
+
+    cfg = OracleConfig(world=world, far_source_mode="raw")
+    with pytest.raises(ValueError, match="far_source_mode"):
+        far_source_edges(_result(world, 0), [], np.eye(3), cfg)
