@@ -162,6 +162,20 @@ class PipelineConfig:
     # bias the denoising removes is that of views at similar depths). The run's forward
     # registration of such a pair is registered again this way.
     far_source_ratio: float = 1.15
+    # The same rule for every other pose-graph edge (ring edges, including the loop closure and
+    # the routes' seams, the routes' forward registrations, the extra gap edges): the loop
+    # seam's view is the first capture, the farthest from the object (Task 1 0.59 m against
+    # 0.22-0.36 m; dev Task 1 seed 6: its forward registration 0 -> 1 2.51 mm off with
+    # denoised points, all its edges share that bias so no edge weighting can remove it).
+    # False: only the outside-ring edges (the behaviour before 2026-12-02).
+    far_source_all_edges: bool = True
+    # How such an edge enters the graph: "replace" (the raw registration only) or "both"
+    # (the denoised and the raw registration, each with half its information: the two
+    # estimates come from the same images, and their biases, of either sign, partly cancel).
+    far_source_mode: str = "both"
+    # Cauchy-reweighted pose-graph solves after the calibrated one
+    # (:func:`jaxcr.registration.pose_graph.optimize_pose_graph` ``robust_rounds``).
+    robust_rounds: int = 0
 
     def register(self, src, tgt, K, prior, seed: int, prior_gate=None) -> PairResult:
         """:func:`register_pair` with this configuration's ICP, keypoint and colour options."""
@@ -523,6 +537,12 @@ def optimize_pose_graph_stage(
     result.extra_seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
     ring_edges = [(k, (k + 1) % len(ring), e) for k, e in enumerate(result.edges)]
+    if cfg.far_source_all_edges:
+        # registered with the denoised points by the run (ring edges, the routes' forward
+        # registrations) or by extra_edges (gap edges): a far source is registered again
+        n_ring = len(ring_edges)
+        fixed = far_source_edges(result, ring_edges + result.extra, K, cfg, seed=seed)
+        ring_edges, result.extra = fixed[:n_ring], fixed[n_ring:]  # "both": raw ones in extra
     graph = graph_edges(
         result,
         ring_edges + result.extra + result.outside_edges,
@@ -534,6 +554,7 @@ def optimize_pose_graph_stage(
         graph,
         anchor=len(ring) - 1,
         calibrate=cfg.edge_weights == "calibrated",
+        robust_rounds=cfg.robust_rounds,
     )
     result.pose_graph = pg
     # Frame O = the last ring view exactly (it is the anchor; re-anchor against float32).
@@ -723,6 +744,66 @@ def median_depth(frame: Frame) -> float:
     return float(np.median(d)) if len(d) else float("nan")
 
 
+def register_views(
+    cfg: PipelineConfig, fa: Frame, fb: Frame, K: np.ndarray, prior, seed: int, prior_gate=None
+) -> PairResult:
+    """``T_{b <- a}`` by ``cfg.register``, with the raw source points when ``fa`` is more
+    than ``cfg.far_source_ratio`` farther from the scene (median depth) than ``fb`` (the
+    plane fit behind the denoised points has a fixed pixel window, biased at depth: see
+    ``PipelineConfig.far_source_ratio``)."""
+    far = median_depth(fa) > cfg.far_source_ratio * median_depth(fb)
+    if cfg.geometric_points == "plane" and far:
+        cfg = dataclasses.replace(cfg, geometric_points="raw")
+    return cfg.register(fa, fb, K, prior, seed, prior_gate=prior_gate)
+
+
+def far_source_edges(
+    result: ModelResult,
+    edges: list[tuple[int, int, PairResult]],
+    K: np.ndarray,
+    cfg: PipelineConfig,
+    seed: int = 0,
+    nodes: list[tuple[int, int]] | None = None,
+) -> list[tuple[int, int, PairResult]]:
+    """``edges`` (i, j, pair) with every registration whose source view i is more than
+    ``cfg.far_source_ratio`` farther from the scene than its target j registered again
+    with the raw source points (:func:`register_views`), seeded by its own estimate and
+    kept when it agrees with it within the closure gate (else, or when it fails, the edge
+    is unchanged). An edge whose registration has no matches (a nominal or chained stand-in)
+    is left alone. ``cfg.far_source_mode == "both"``: such an edge is kept too, and the raw
+    one is appended, each with half its information (the same images twice, not two
+    independent measurements). ``nodes``: the (run, capture) of every node number (default:
+    the ring)."""
+    if cfg.far_source_mode not in ("replace", "both"):
+        raise ValueError(
+            f"far_source_mode must be 'replace' or 'both', got {cfg.far_source_mode!r}"
+        )
+    if cfg.geometric_points != "plane":
+        return list(edges)
+    nodes = result.ring if nodes is None else nodes
+    gate = (cfg.closure_gate_deg, cfg.closure_gate_m)
+    out, added = [], []
+    for n, (i, j, pair) in enumerate(edges):
+        fa, fb = _capture(result.runs, nodes[i]).frame, _capture(result.runs, nodes[j]).frame
+        if pair.n_matches > 0 and median_depth(fa) > cfg.far_source_ratio * median_depth(fb):
+            try:
+                cand = register_views(cfg, fa, fb, K, pair.T, seed + 4000 + n, gate)
+            except RegistrationFailed:
+                cand = None  # keep the registration as it was
+            if cand is not None and all(
+                x <= g for x, g in zip(pose_error(cand.T, pair.T), gate, strict=True)
+            ):
+                if cfg.far_source_mode == "replace":
+                    pair = cand
+                elif pair.information is not None and cand.information is not None:
+                    pair = dataclasses.replace(pair, information=0.5 * pair.information)
+                    added.append(
+                        (i, j, dataclasses.replace(cand, information=0.5 * cand.information))
+                    )
+        out.append((i, j, pair))
+    return out + added
+
+
 def chained_view_pose(
     result: ModelResult, ring_poses: list[np.ndarray], key: tuple[int, int]
 ) -> np.ndarray | None:
@@ -775,10 +856,7 @@ def outside_view_edges(
     def register(a, b, prior, seed_ab, gate=None):
         """T_{b <- a}: raw source points when a is much farther than b (see cfg)."""
         fa, fb = _capture(result.runs, a).frame, _capture(result.runs, b).frame
-        c = cfg
-        if median_depth(fa) > cfg.far_source_ratio * median_depth(fb):
-            c = dataclasses.replace(cfg, geometric_points="raw")
-        return c.register(fa, fb, K, prior, seed_ab, prior_gate=gate)
+        return register_views(cfg, fa, fb, K, prior, seed_ab, gate)
 
     node = dict(pos)
     node.update({k: m + n for n, k in enumerate(outside)})
