@@ -84,6 +84,8 @@ from jaxcr.kinematics.ctr_mechanics import (
     integrate_torsion,
     make_grid,
     second_moments,
+    shoot_torsion,
+    step_coefficients,
     telescoping_ok,
 )
 from jaxcr.kinematics.newton import chord_newton, fd_newton, implicit_root
@@ -320,19 +322,24 @@ class ConcentricTubeRobot(eqx.Module):
         psi0 = self._base_angles(beta, alpha, traj.uz0)
         return tubes, grid, traj, psi0
 
-    def _shooting(self, q: Array, n_points: int | None = None):
+    def _shooting(self, q: Array, n_points: int | None = None, with_energy: bool = True):
         """``x -> (residual, energy)`` for fixed q, its grid (``n_points`` samples, default
-        the model's) built once, so the solver loops do not rebuild it at every residual."""
+        the model's) and per-step constants built once, so the solver loops do not rebuild
+        them at every residual (:func:`shoot_torsion`). Without ``with_energy`` the energy
+        is 0 and not integrated (the warm iterations do not need it)."""
         beta, alpha = self._split(jax.lax.stop_gradient(q))
         tubes = self.mechanics(beta.dtype)
         grid = make_grid(tubes, beta, self.n_points if n_points is None else n_points)
+        coef = step_coefficients(tubes, grid)
 
         def fun(x):
-            theta_tip = jnp.concatenate([jnp.zeros(1, beta.dtype), x.astype(beta.dtype)])
-            traj = integrate_torsion(tubes, grid, theta_tip, with_centreline=False)
-            psi0 = self._base_angles(beta, alpha, traj.uz0)
-            d = traj.theta0[1:] - (psi0[1:] - psi0[0])
-            energy = traj.energy + self._transmission_energy(tubes, beta, traj.uz0)
+            uz0, theta0, energy, _ = shoot_torsion(
+                coef, grid.h, x.astype(beta.dtype), with_energy=with_energy
+            )
+            psi0 = self._base_angles(beta, alpha, uz0)
+            d = theta0[1:] - (psi0[1:] - psi0[0])
+            if with_energy:
+                energy = energy + self._transmission_energy(tubes, beta, uz0)
             return jnp.arctan2(jnp.sin(d), jnp.cos(d)), energy
 
         return fun
