@@ -205,7 +205,9 @@ def main(argv=None) -> int:
 
     try:
         commit = subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT).decode()
-        dirty = subprocess.check_output(["git", "status", "--porcelain", "jaxcr"], cwd=ROOT).decode()
+        dirty = subprocess.check_output(
+            ["git", "status", "--porcelain", "jaxcr"], cwd=ROOT
+        ).decode()
     except Exception:  # noqa: BLE001
         commit, dirty = "unknown", ""
     cmd = "python experiments/kinematics/ctr_speed_r3.py " + " ".join(
@@ -237,8 +239,10 @@ def _stages(name, m, cq, qw, states, first):
         fdj = eqx.filter_jit(
             lambda m, q, x, n=n_pts: jax.vmap(lambda a, z: fd_jacobian(m._shooting(a, n), z, 1e-3))(q, x)
         )  # fmt: skip
-        first((name, f"residual ({n_pts} samples)"), lambda: res(m, qw, states), nb)
-        first((name, f"difference Jacobian ({n_pts} samples)"), lambda: fdj(m, qw, states), nb)
+        # default arguments bind this iteration's functions (the repeats call the thunks later)
+        first((name, f"residual ({n_pts} samples)"), lambda f=res: f(m, qw, states), nb)
+        first((name, f"difference Jacobian ({n_pts} samples)"),
+              lambda f=fdj: f(m, qw, states), nb)  # fmt: skip
     ws = eqx.filter_jit(lambda m, q, x: jax.vmap(m._warm_solve)(q, x))
     rs = eqx.filter_jit(lambda m, q, x: jax.vmap(lambda a, z: m._result(a, z, 0, True))(q, x))
     sc = eqx.filter_jit(lambda m, q: jax.vmap(m.initial_guesses)(q))
