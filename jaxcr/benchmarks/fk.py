@@ -6,7 +6,7 @@ Measures, for jit(vmap(forward)) over a batch of seeded random joint vectors:
 * cold start (guess=None: residual scan and fixed difference-Newton iterations from 6 starts
   on a coarse grid, least energy, chord polish on the full grid);
 * warm start (guess = the solution state of a nearby q, i.e. tracking a trajectory; chord
-  iterations that stop at convergence);
+  iterations on the coarse grid that stop at convergence, one chord step on the full grid);
 
 compile time separately, then the median and spread over repeats (block_until_ready).
 The previous implementation (:mod:`jaxcr.benchmarks.ctr_previous`: optimistix LM cold path,
@@ -292,8 +292,9 @@ def markdown(res: dict, command: str) -> str:
         f"- model: n_points {m['n_points']}, scan {m['scan_points']}^2 tip angles on a "
         f"{m['scan_n_points']}-sample grid, {m['n_starts']} starts x {m['cold_steps']} "
         "difference-Newton iterations on that grid + chord polish (cold); chord iterations "
-        f"that stop at convergence, at most {m['warm_steps']} (warm); steps shared among "
-        "pieces in proportion to their lengths",
+        f"on that grid that stop at convergence, at most {m['warm_steps']}, then one chord "
+        "step on the full grid (warm); steps shared among pieces in proportion to their "
+        "lengths; angles integrated as (cos, sin) pairs",
         "",
         "| path | batch | compile (s) | compile CPU (s) | median batch time (s) | spread (min-max) "
         "| per q (ms) | vs scipy per q | ok |",

@@ -14,7 +14,9 @@ leaves s = 0 along +z, ``R(s)`` is the innermost tube's material frame and
   and ``R(0) = Rz(psi_1(0))`` (the innermost tube's material frame where it leaves the unit).
 
 Mechanics and the integration grid: :mod:`jaxcr.kinematics.ctr_mechanics` (the ``N - 1`` RK4
-steps are shared among the pieces between discontinuities in proportion to their lengths).
+steps are shared among the pieces between discontinuities in proportion to their lengths; the
+relative angles are integrated as ``(cos, sin)`` pairs, so the loop has no trigonometric
+function: :func:`jaxcr.kinematics.ctr_mechanics.shoot_torsion`).
 Shooting unknowns: ``x`` = the ``n - 1`` tip angles of tubes 2..n relative to tube 1; the torsion
 ODE is integrated from the free distal ends (``u_iz = 0``) to the base, and the residual is the
 mismatch of the base angles with the joint values (:meth:`ConcentricTubeRobot.shooting_residual`).
@@ -30,10 +32,12 @@ per q; the warm path stops at convergence).
   from each of the ``n_starts`` starts, vmapped over the starts; the least-energy start whose
   residual is within ``tol`` is then polished on the full grid by the warm path. No while loop
   over the starts, no Jacobian by automatic differentiation: the compiled function is small.
-* Warm start (``guess``) and that polish: quasi-Newton iterations
+* Warm start (``guess``) and that polish: quasi-Newton iterations on the coarse grid
   (:func:`jaxcr.kinematics.newton.chord_newton`: one difference Jacobian at the guess, then
   one residual per iteration with Broyden updates, a ``while_loop`` that stops once the
-  residual is within the solver tolerance, at most ``warm_steps`` iterations), with the implicit-function derivative
+  residual is within the solver tolerance, at most ``warm_steps`` iterations), then one
+  chord step on the full grid (it removes the coarse grid's RK4 error, ~1e-5 rad, to
+  rounding), with the implicit-function derivative
   (:func:`jaxcr.kinematics.newton.implicit_root`, exact Jacobian formed only when
   differentiated, tested against finite differences), so ``forward`` is differentiable in q.
 
@@ -84,9 +88,11 @@ from jaxcr.kinematics.ctr_mechanics import (
     integrate_torsion,
     make_grid,
     second_moments,
+    shoot_torsion,
+    step_coefficients,
     telescoping_ok,
 )
-from jaxcr.kinematics.newton import chord_newton, fd_newton, implicit_root
+from jaxcr.kinematics.newton import chord_newton, clipped_newton_step, fd_newton, implicit_root
 
 #: Public 3-tube test robot (innermost first), SI units, in the dataset robot schema.
 TEST_CTR: dict[str, Any] = {
@@ -320,19 +326,24 @@ class ConcentricTubeRobot(eqx.Module):
         psi0 = self._base_angles(beta, alpha, traj.uz0)
         return tubes, grid, traj, psi0
 
-    def _shooting(self, q: Array, n_points: int | None = None):
+    def _shooting(self, q: Array, n_points: int | None = None, with_energy: bool = True):
         """``x -> (residual, energy)`` for fixed q, its grid (``n_points`` samples, default
-        the model's) built once, so the solver loops do not rebuild it at every residual."""
+        the model's) and per-step constants built once, so the solver loops do not rebuild
+        them at every residual (:func:`shoot_torsion`). Without ``with_energy`` the energy
+        is 0 and not integrated (the warm iterations do not need it)."""
         beta, alpha = self._split(jax.lax.stop_gradient(q))
         tubes = self.mechanics(beta.dtype)
         grid = make_grid(tubes, beta, self.n_points if n_points is None else n_points)
+        coef = step_coefficients(tubes, grid)
 
         def fun(x):
-            theta_tip = jnp.concatenate([jnp.zeros(1, beta.dtype), x.astype(beta.dtype)])
-            traj = integrate_torsion(tubes, grid, theta_tip, with_centreline=False)
-            psi0 = self._base_angles(beta, alpha, traj.uz0)
-            d = traj.theta0[1:] - (psi0[1:] - psi0[0])
-            energy = traj.energy + self._transmission_energy(tubes, beta, traj.uz0)
+            uz0, theta0, energy, _ = shoot_torsion(
+                coef, grid.h, x.astype(beta.dtype), with_energy=with_energy
+            )
+            psi0 = self._base_angles(beta, alpha, uz0)
+            d = theta0[1:] - (psi0[1:] - psi0[0])
+            if with_energy:
+                energy = energy + self._transmission_energy(tubes, beta, uz0)
             return jnp.arctan2(jnp.sin(d), jnp.cos(d)), energy
 
         return fun
@@ -428,23 +439,46 @@ class ConcentricTubeRobot(eqx.Module):
         return jax.vmap(one)(guesses)
 
     def _warm_solve(self, q: Array, guess: Array) -> tuple[Array, Array, Array]:
-        """Quasi-Newton iterations from ``guess`` that stop at convergence; differentiable in q.
+        """Quasi-Newton iterations from ``guess`` that stop at convergence, on the coarse grid
+        (``scan_n_points`` samples), then one chord step on the full grid; differentiable in q.
 
-        The derivative is the implicit-function one (:func:`implicit_root`: the exact Jacobian
-        at the solution, formed only when differentiated, no derivative through the
-        iterations). Returns ``(x, num_steps, True)``; convergence is judged by the residual
-        in :meth:`_result`.
+        The coarse and full-grid roots differ by the RK4 error of the coarse grid (~1e-5 rad
+        for TEST_CTR at 25 samples); one chord step with the coarse iterations' Jacobian (whose
+        relative error is ~1e-3, the difference step's) reduces that difference ~1000-fold, to
+        the float32 rounding of the residual (in float64 the full-grid steps are iterated to
+        the float64 tolerance). Each coarse iteration costs a quarter of a
+        full-grid one. The derivative is the implicit-function one (:func:`implicit_root`: the
+        exact Jacobian at the solution, formed only when differentiated, no derivative through
+        the iterations). Returns ``(x, num_steps, True)`` (``num_steps`` counts the coarse
+        iterations and the final step); convergence is judged by the residual in
+        :meth:`_result`.
         """
+        guess = jax.lax.stop_gradient(guess)
         res = chord_newton(
-            self._shooting(q),
-            jax.lax.stop_gradient(guess),
+            self._shooting(q, self._coarse_points, with_energy=False),
+            guess,
             max_steps=self.warm_steps,
             tol=self._solver_tol(guess.dtype),
             fd_step=self._fd_step(guess.dtype),
             max_step=0.5,  # rad: a fraction of the branch spacing on the tip-angle torus
         )
-        x = implicit_root(lambda p, z: p[0].shooting_residual(p[1], z), (self, q), res.x)
-        return x, res.num_steps, jnp.asarray(True)
+        x, steps = res.x, res.num_steps
+        if self._coarse_points < self.n_points:
+            fine = self._shooting(q, with_energy=False)
+            if guess.dtype == jnp.float64:
+                # x64 asks for a residual near 1e-12: iterate the full-grid chord steps
+                # (linear rate ~1e-5, the coarse Jacobian's error) until it is reached
+                res = chord_newton(
+                    fine, x, max_steps=self.warm_steps, tol=self._solver_tol(guess.dtype),
+                    fd_step=self._fd_step(guess.dtype), max_step=0.5, jac0=res.jac,
+                )  # fmt: skip
+                x, steps = res.x, steps + res.num_steps
+            else:
+                r, _ = fine(x)
+                x = x - clipped_newton_step(res.jac, r, 0.5)
+                steps = steps + 1
+        x = implicit_root(lambda p, z: p[0].shooting_residual(p[1], z), (self, q), x)
+        return x, steps, jnp.asarray(True)
 
     def _result(self, q: Array, x: Array, num_steps: Array, solved: Array) -> FkResult:
         """Centreline, energy and flags at the solved tip angles ``x`` (differentiable in q)."""

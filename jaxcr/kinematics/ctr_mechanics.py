@@ -201,40 +201,10 @@ def integrate_torsion(
     step's end states (fourth-order accurate), for
     :func:`jaxcr.kinematics.cosserat.integrate_centreline`.
     """
-    dtype = theta_tip.dtype
-    n = theta_tip.shape[0]
-    y_tip = (jnp.zeros(n, dtype), theta_tip, jnp.zeros((), dtype))
-
-    def step(y, inp):
-        h_pos, pres, curv = inp
-        h = -h_pos  # towards the base
-
-        def f(yy):
-            return torsion_rhs(tubes, yy, pres, curv)
-
-        def axpy(a, d, yy):
-            return jax.tree.map(lambda v, dv: v + a * dv, yy, d)
-
-        k1 = f(y)
-        k2 = f(axpy(0.5 * h, k1, y))
-        k3 = f(axpy(0.5 * h, k2, y))
-        k4 = f(axpy(h, k3, y))
-        y_next = jax.tree.map(
-            lambda v, a, b, c, d: v + (h / 6.0) * (a + 2.0 * b + 2.0 * c + d), y, k1, k2, k3, k4
-        )
-        if not with_centreline:
-            return y_next, None
-        k_end = f(y_next)
-        uz_mid, th_mid, _ = jax.tree.map(
-            lambda a, b, da, db: 0.5 * (a + b) + (h / 8.0) * (da - db), y, y_next, k1, k_end
-        )
-        ux1, uy1 = bending_curvature(tubes, th_mid, pres, curv)
-        u_mid = jnp.stack([ux1, uy1, uz_mid[0]])
-        return y_next, (u_mid, y[0])
-
-    y_base, out = jax.lax.scan(step, y_tip, (grid.h, grid.present, grid.curved), reverse=True)
-    uz0, theta0, energy_neg = y_base
-    energy = -energy_neg  # integrated towards decreasing s
+    coef = step_coefficients(tubes, grid)
+    uz0, theta0, energy, out = shoot_torsion(
+        coef, grid.h, theta_tip[1:], with_energy=True, with_centreline=with_centreline
+    )
     if not with_centreline:
         return Trajectory(uz0=uz0, theta0=theta0, energy=energy, u_steps=None, uz_samples=None)
     u_steps, uz_after = out  # uz_after[k] = u_z at s[k + 1]
@@ -245,6 +215,139 @@ def integrate_torsion(
         u_steps=u_steps,
         uz_samples=jnp.concatenate([uz0[None], uz_after]),
     )
+
+
+class StepCoefficients(NamedTuple):
+    """Per-step constants of the torsion ODE (all (N - 1, n), SI units), so that one step of
+    the shooting integration is elementwise arithmetic on the state (see
+    :func:`shoot_torsion`)."""
+
+    w: Float[Array, "N-1 n"]  # EI_i kappa_i / sum_j EI_j over the tubes present, 0 if straight
+    b: Float[Array, "N-1 n"]  # (EI_i / GJ_i) kappa_i on the curved part, else 0
+    p: Float[Array, "N-1 n"]  # 1 where tube i is present, else 0
+    ei: Float[Array, "N-1 n"]  # EI_i where present, else 0 (energy only)
+    gj: Float[Array, "N-1 n"]  # GJ_i where present, else 0 (energy only)
+    kappa: Float[Array, "N-1 n"]  # kappa_i on the curved part, else 0 (energy only)
+
+
+def step_coefficients(tubes: TubeMechanics, grid: Grid) -> StepCoefficients:
+    """The masks and stiffness ratios of :func:`torsion_rhs` folded into per-step constants."""
+    present, curved = grid.present, grid.curved
+    ei = jnp.where(present, tubes.EI, 0.0)
+    kappa = jnp.where(curved, tubes.kappa, 0.0)
+    inv_k = _safe_inverse(jnp.sum(ei, axis=-1, keepdims=True))
+    return StepCoefficients(
+        w=ei * kappa * inv_k,
+        b=jnp.where(present, tubes.EI / tubes.GJ, 0.0) * kappa,
+        p=present.astype(ei.dtype),
+        ei=ei,
+        gj=jnp.where(present, tubes.GJ, 0.0),
+        kappa=kappa,
+    )
+
+
+def _fast_rhs(c: tuple, y: tuple, with_energy: bool):
+    """:func:`torsion_rhs` in the variables ``(u_z, cos theta, sin theta)`` with the tube axis
+    unrolled (``n`` static): polynomial arithmetic, no trigonometric function, elementwise
+    under ``vmap``. ``y = (uz (n), cos (n-1), sin (n-1), energy)`` for tubes 2..n (tube 1's
+    relative angle is 0 by definition); ``(cos, sin)' = (-sin, cos) theta'``."""
+    w, b, p = c[0], c[1], c[2]
+    uz, cs, sn = y[0], y[1], y[2]
+    n = len(uz)
+    cos = (1.0, *cs)
+    sin = (0.0, *sn)
+    ux = w[0]
+    uy = 0.0
+    for i in range(1, n):
+        ux = ux + w[i] * cos[i]
+        uy = uy + w[i] * sin[i]
+    duz = tuple(b[i] * (sin[i] * ux - cos[i] * uy) for i in range(n))  # -b u_iy
+    om = tuple(p[i] * (uz[i] - uz[0]) for i in range(1, n))  # theta_i'
+    dcs = tuple(-sn[i] * om[i] for i in range(n - 1))
+    dsn = tuple(cs[i] * om[i] for i in range(n - 1))
+    if not with_energy:
+        return duz, dcs, dsn, 0.0
+    ei, gj, kappa = c[3], c[4], c[5]
+    u2 = ux * ux + uy * uy
+    de = 0.0
+    for i in range(n):
+        uix = cos[i] * ux + sin[i] * uy
+        de = de + ei[i] * (u2 - 2.0 * kappa[i] * uix + kappa[i] * kappa[i]) + gj[i] * uz[i] ** 2
+    return duz, dcs, dsn, 0.5 * de
+
+
+def shoot_torsion(
+    coef: StepCoefficients,
+    h: Float[Array, " N-1"],
+    theta_tip: Float[Array, " n-1"],
+    with_energy: bool = True,
+    with_centreline: bool = False,
+):
+    """The shooting map: classical RK4 from the distal end (``u_z = 0``, relative tip angles
+    ``theta_tip`` of tubes 2..n) to ``s = 0`` over the steps ``h`` (towards the base), with
+    the per-step constants ``coef`` (:func:`step_coefficients`).
+
+    The relative angles are carried as ``(cos theta, sin theta)``, which makes every RK4 stage
+    polynomial: no sine or cosine inside the loop. With the angles themselves as the state
+    (the form of :func:`torsion_rhs`) the trigonometric functions dominated the cost, as XLA's
+    CPU fusion recomputes them once per state component they feed (8x more CPU time per
+    residual, experiments/results/kinematics/ctr_speed_r3.md). Same equations and step sizes,
+    a different fourth-order discretisation of the angles.
+
+    Returns ``(u_z(0) (n,), theta(0) (n,) with theta_1 = 0, energy, extras)``; the energy is 0
+    unless ``with_energy``; ``extras`` is None, or with ``with_centreline`` the tube-1
+    curvature ``(u1x, u1y, u1z)`` at each step's midpoint ((N-1, 3), cubic Hermite
+    interpolation of the step's end states, fourth-order accurate) and ``u_z`` at the samples
+    1..N-1 ((N-1, n)).
+    """
+    dtype = theta_tip.dtype
+    n = theta_tip.shape[0] + 1
+    cols = coef if (with_energy or with_centreline) else coef[:3]
+    xs = (h,) + tuple(tuple(a[:, i] for i in range(n)) for a in cols)
+    zero = jnp.zeros((), dtype)
+    y_tip = (
+        tuple(zero for _ in range(n)),
+        tuple(jnp.cos(theta_tip[i]) for i in range(n - 1)),
+        tuple(jnp.sin(theta_tip[i]) for i in range(n - 1)),
+        zero,
+    )
+
+    def step(y, inp):
+        hk, c = -inp[0], inp[1:]  # towards the base
+
+        def f(yy):
+            return _fast_rhs(c, yy, with_energy)
+
+        def axpy(a, d, yy):
+            return jax.tree.map(lambda v, dv: v + a * dv, yy, d)
+
+        k1 = f(y)
+        k2 = f(axpy(0.5 * hk, k1, y))
+        k3 = f(axpy(0.5 * hk, k2, y))
+        k4 = f(axpy(hk, k3, y))
+        y_next = jax.tree.map(
+            lambda v, a, b, c_, d: v + (hk / 6.0) * (a + 2.0 * b + 2.0 * c_ + d),
+            y, k1, k2, k3, k4,
+        )  # fmt: skip
+        if not with_centreline:
+            return y_next, None
+        k_end = f(y_next)
+        uz_m, cs_m, sn_m, _ = jax.tree.map(
+            lambda a, b_, da, db: 0.5 * (a + b_) + (hk / 8.0) * (da - db), y, y_next, k1, k_end
+        )
+        w = c[0]
+        ux = w[0]
+        uy = zero
+        for i in range(1, n):
+            ux = ux + w[i] * cs_m[i - 1]
+            uy = uy + w[i] * sn_m[i - 1]
+        return y_next, (jnp.stack([ux, uy, uz_m[0]]), jnp.stack(list(y[0])))
+
+    (uz0, cs0, sn0, e_neg), out = jax.lax.scan(step, y_tip, xs, reverse=True)
+    th0 = [jnp.arctan2(sn0[i], cs0[i]) for i in range(n - 1)]
+    theta0 = jnp.stack([zero, *th0]).astype(dtype)
+    energy = (-e_neg) * jnp.ones((), dtype)  # integrated towards decreasing s
+    return jnp.stack(list(uz0)).astype(dtype), theta0, energy, out
 
 
 def telescoping_ok(
@@ -267,6 +370,9 @@ def static_counts(n_tubes: int, n_points: int) -> tuple[int, ...]:
 
 __all__ = [
     "Grid",
+    "StepCoefficients",
+    "shoot_torsion",
+    "step_coefficients",
     "allocate_steps",
     "TubeMechanics",
     "Trajectory",

@@ -96,7 +96,8 @@ def fd_jacobian(
     return r, J, aux_all[0]
 
 
-def _clipped_step(J, r, max_step):
+def clipped_newton_step(J: Array, r: Array, max_step: float) -> Array:
+    """``J^{-1} r``, scaled so that no component exceeds ``max_step``; 0 if not finite."""
     dx = jnp.linalg.solve(J, r)
     dx = jnp.where(jnp.all(jnp.isfinite(dx)), dx, 0.0)
     big = jnp.max(jnp.abs(dx), initial=0.0)
@@ -124,7 +125,7 @@ def fd_newton(
         x, k, _, _ = state
         r, J, _ = fd_jacobian(fun, x, fd_step)
         done = jnp.sqrt(jnp.sum(r**2)) <= tol
-        x = jnp.where(done, x, x - _clipped_step(J, r, max_step))
+        x = jnp.where(done, x, x - clipped_newton_step(J, r, max_step))
         return x, k + jnp.where(done, 0, 1).astype(jnp.int32), J, done
 
     n = x0.shape[0]
@@ -144,6 +145,7 @@ def chord_newton(
     tol: float,
     fd_step: float,
     max_step: float = jnp.inf,
+    jac0: Array | None = None,
 ) -> NewtonResult:
     """Quasi-Newton iterations that stop at convergence, for warm starts.
 
@@ -154,11 +156,15 @@ def chord_newton(
     needing 8 chord iterations made the whole vmapped loop run 8, see
     experiments/results/kinematics/profile_ctr.md). A ``while_loop`` stops as soon as
     ``||r|| <= tol`` or after ``max_steps`` iterations (inside ``vmap``: when every member has
-    stopped). ``num_steps`` = iterations taken; ``jac`` = the last J.
+    stopped). ``num_steps`` = iterations taken; ``jac`` = the last J. ``jac0``: a Jacobian
+    to start from instead of the difference one (e.g. from iterations on a coarser model).
     """
     x0 = jax.lax.stop_gradient(x0)
     dtype = x0.dtype
-    r0, J0, aux0 = fd_jacobian(fun, x0, fd_step)
+    if jac0 is None:
+        r0, J0, aux0 = fd_jacobian(fun, x0, fd_step)
+    else:
+        (r0, aux0), J0 = fun(x0), jax.lax.stop_gradient(jac0)
 
     def norm(r):
         return jnp.sqrt(jnp.sum(r**2))
@@ -169,7 +175,7 @@ def chord_newton(
 
     def body(state):
         x, r, J, _, k = state
-        dx = -_clipped_step(J, r, max_step)
+        dx = -clipped_newton_step(J, r, max_step)
         x = x + dx
         r_new, aux = fun(x)
         dx2 = jnp.sum(dx**2)
@@ -234,6 +240,7 @@ def _implicit_solution_jvp(fun, primals, tangents):
 __all__ = [
     "NewtonResult",
     "chord_newton",
+    "clipped_newton_step",
     "fd_jacobian",
     "fd_newton",
     "fixed_newton",

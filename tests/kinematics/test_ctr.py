@@ -478,3 +478,19 @@ def test_missing_key_raises_input_error():
     with pytest.raises(InputError) as err:
         ConcentricTubeRobot.from_dict(d)
     assert err.value.field == "tubes[1].G"
+
+
+def test_shooting_map_is_fourth_order_x64():
+    """The RK4 shooting map on (cos, sin) of the angles (:func:`shoot_torsion`) converges at
+    fourth order: doubling the steps divides the base-angle error against an 8x finer grid by
+    ~16. The steps are shared among the pieces by rounding, so the ratio is not exactly 16:
+    the bound 8 (third order would give at most ~8) tells the orders apart."""
+    with jax.enable_x64(True):
+        model = make_test_ctr(dtype=jnp.float64)
+        q = jnp.asarray(Q0, jnp.float64)
+        x = jnp.asarray([0.7, -1.2], jnp.float64)
+        r = {n: np.asarray(model._shooting(q, n)(x)[0]) for n in (49, 97, 769)}
+    e49, e97 = (np.max(np.abs(r[n] - r[769])) for n in (49, 97))
+    print(f"base-angle error: N=49 {e49:.2e}, N=97 {e97:.2e} rad, ratio {e49 / e97:.1f}")
+    assert e97 < 1e-5  # the float32 solver tolerance (tol / 10): the default grid resolves it
+    assert e49 / e97 > 8.0
