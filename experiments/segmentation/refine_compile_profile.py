@@ -25,13 +25,10 @@ import argparse
 import dataclasses
 import os
 import re
-import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"
-sys.path.insert(0, str(Path(__file__).parent))
 
 import jax  # noqa: E402
 import jax.flatten_util  # noqa: E402
