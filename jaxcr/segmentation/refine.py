@@ -682,21 +682,31 @@ def refine_frame(
             r = r + config.g_cam * jnp.sum(params["cam"] ** 2)
         return r
 
-    def _motion_jacobian(params, level):
-        """(P, 2, n): d(projected centreline points, pixels of ``level``) / d(flat params);
-        rows of points behind a camera are zero (see :class:`ImageSpaceBFGS`)."""
+    def _tube_jacobian(params):
+        """The projected tubes and their Jacobian (forward mode) w.r.t. the flat params:
+        per camera a TubeImage of values and one whose float fields are (m, n) Jacobians.
+        One jacfwd serves both the motion Jacobian and the first gradient of each solve
+        (:func:`_motion_jacobian`, ``g0``), so the centreline is differentiated once per
+        solve set-up instead of twice (forward for the motion, reverse for ``g0``)."""
         flat, unravel = jax.flatten_util.ravel_pytree(jax.lax.stop_gradient(params))
 
-        def points(f):
+        def fields(f):
             _, tubes = tubes_of(unravel(f))
-            out = []
-            for t in tubes:
-                ok = jnp.concatenate([t.valid, t.valid[-1:]])[:, None]
-                xy = jnp.stack([jnp.append(t.ax, t.bx[-1]), jnp.append(t.ay, t.by[-1])], -1)
-                out.append(jnp.where(ok, xy, 0.0) / 2.0**level)
-            return jnp.concatenate(out, axis=0)
+            return tuple((t.ax, t.ay, t.bx, t.by, t.ra, t.rb) for t in tubes), tubes
 
-        return jax.lax.stop_gradient(jax.jacfwd(points)(flat))
+        jacs, tubes = jax.jacfwd(fields, has_aux=True)(flat)
+        return jax.lax.stop_gradient(tubes), jax.lax.stop_gradient(jacs)
+
+    def _motion_jacobian(tubes, jacs, level):
+        """(P, 2, n): d(projected centreline points, pixels of ``level``) / d(flat params);
+        rows of points behind a camera are zero (see :class:`ImageSpaceBFGS`)."""
+        out = []
+        for t, (dax, day, dbx, dby, _, _) in zip(tubes, jacs, strict=True):
+            ok = jnp.concatenate([t.valid, t.valid[-1:]])[:, None, None]
+            jx = jnp.concatenate([dax, dbx[-1:]], axis=0)
+            jy = jnp.concatenate([day, dby[-1:]], axis=0)
+            out.append(jnp.where(ok, jnp.stack([jx, jy], axis=1), 0.0) / 2.0**level)
+        return jax.lax.stop_gradient(jnp.concatenate(out, axis=0))
 
     params0 = {"c": c0}
     n_par = n_cam if (residual or not rig) else 1  # rows of params["cam"]
@@ -717,10 +727,11 @@ def refine_frame(
     area_ref = jax.lax.stop_gradient(jnp.maximum(area_ref, 1.0))
     in_view = area_ref > 1.0
 
-    def objective(params, args):
+    def image_energy(tubes, args):
+        """The data and penalty terms of J (everything but the regulariser) for the
+        projected tubes of each camera."""
         bands, datas, level, tau, vars_, gathered = args
-        _, tubes = tubes_of(params)
-        J = reg_of(params)
+        J = 0.0
         for tube, band, data, var, gat in zip(tubes, bands, datas, vars_, gathered, strict=True):
             Jc, _ = chan_vese_energy(
                 level_tube(tube, level, config.seg_merge),
@@ -738,6 +749,26 @@ def refine_frame(
             )
             J = J + Jc
         return J
+
+    def objective(params, args):
+        _, tubes = tubes_of(params)
+        return reg_of(params) + image_energy(tubes, args)
+
+    def first_gradient(params, tubes, jacs, args):
+        """grad J at ``params`` by the chain rule through the tube Jacobian ``jacs``
+        (:func:`_tube_jacobian`): the reverse pass runs through the image terms only, not
+        through the centreline integration and projection again."""
+
+        def of_fields(fs):
+            ts = tuple(TubeImage(*f, t.valid) for f, t in zip(fs, tubes, strict=True))
+            return image_energy(ts, args)
+
+        fs = tuple((t.ax, t.ay, t.bx, t.by, t.ra, t.rb) for t in tubes)
+        g_fields = jax.grad(of_fields)(fs)
+        g = jax.flatten_util.ravel_pytree(jax.grad(reg_of)(params))[0]
+        for gf, jf in zip(jax.tree.leaves(g_fields), jax.tree.leaves(jacs), strict=True):
+            g = g + gf @ jf
+        return g
 
     if config.solver == "lbfgs":
         solver = ImageSpaceLBFGS(config.xtol, config.ftol)
@@ -768,7 +799,7 @@ def refine_frame(
 
         def solve(carry, _, datas=datas, level=level, k_tiles=k_tiles, tau=tau, li=li):
             params, nsteps, _, hinv, have_h = carry
-            _, tubes = tubes_of(params)
+            tubes, tube_jacs = _tube_jacobian(params)
             bands = tuple(
                 select_band(level_tube(t, level, config.seg_merge), d.grid, k_tiles, config.k_seg)
                 for t, d in zip(tubes, datas, strict=True)
@@ -795,13 +826,13 @@ def refine_frame(
             # parameter units made the first trial move it by 30-50 px: 4-5 rejected trials
             # per solve); L-BFGS is invariant to kappa after that first step
             flat0, unravel = jax.flatten_util.ravel_pytree(params)
-            jac = _motion_jacobian(params, level)
+            jac = _motion_jacobian(tubes, tube_jacs, level)
             # Both factors are rounded to powers of two: scaling is then exact in floating
             # point, and rounding differences between compiled contexts (per frame, lax.map,
             # vmap) in the gradient behind kappa almost never change it
             scale = jnp.sqrt(jnp.mean(jnp.sum(jac * jac, axis=1), axis=0))
             scale = _pow2(jnp.maximum(scale, 1e-3 * jnp.max(scale) + 1e-12))
-            g0 = jax.flatten_util.ravel_pytree(jax.grad(objective)(params, args))[0]
+            g0 = first_gradient(jax.lax.stop_gradient(params), tubes, tube_jacs, args)
             uv0 = jac @ (g0 / scale**2)
             kappa = jnp.maximum(jnp.max(jnp.hypot(uv0[:, 0], uv0[:, 1])) / STEP0_PX, 1e-6)
             kappa = jax.lax.stop_gradient(_pow2(kappa))
