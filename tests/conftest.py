@@ -112,6 +112,19 @@ def pytest_xdist_make_scheduler(config, log):
     return LoadFileScheduling(config, log)
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _run_compile_cache_module():
+    """The run's cache before a module's own module-scoped fixtures (autouse fixtures come first
+    in their scope), which is where the suite compiles most: without it they ran with whatever
+    the previous test left (test_api points the cache at a tmp folder, test_cli_warmup and
+    test_io_compile_cache switch it off), or, in a process whose JAX was imported before this
+    file set JAX_COMPILATION_CACHE_DIR (a plugin importing jax), with no cache at all, so their
+    programs were neither loaded nor stored. Measured: a module-scoped fixture's program
+    compiled in one module and again in the next without a cache hit, in that case."""
+    _use_run_cache()
+    yield
+
+
 @pytest.fixture(autouse=True)
 def _run_compile_cache():
     _use_run_cache()
