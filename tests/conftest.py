@@ -54,27 +54,32 @@ SLOW_MODULES = (
 )
 
 
-# The longest modules, longest first (whole-module seconds of `pytest -n 2 --durations` runs
-# on this 2-core machine under load, experiments/results/suite_time.md; only the order
-# matters). With whole modules per worker the run ends when the last module does: starting
-# the longest first (LPT scheduling) keeps a long module from starting last and running
-# alone while the other worker idles, as the tutorial (one ~300 s test) did when it started
-# in collection order.
+# The longest modules, longest first: whole-module seconds of the lead's `pytest -n 2
+# --durations=80` run of the merged tree at load ~4 (2 December 2026 04:53-05:19 UTC, the sum
+# of each module's listed calls and setups; experiments/results/suite_time.md), in brackets.
+# Only the order matters. With whole modules per worker the run ends when the last module
+# does: starting the longest first (LPT scheduling) keeps a long module from starting last
+# and running alone while the other worker idles. A module that loads programs another one
+# compiles (tests/helpers/refine_scene.py) comes after it.
 LONGEST_FIRST = (
-    "tests/cli/test_tutorial.py",
-    "tests/segmentation/test_refine.py",  # five refinement programs
-    "tests/kinematics/test_kinematics_fit.py",
-    "tests/segmentation/test_refine_convergence.py",  # four
-    "tests/core/test_examples.py",
-    "tests/cli/test_cli_bench_wheel.py",
-    "tests/kinematics/test_ctr.py",
-    "tests/segmentation/test_segmentation_api.py",
-    "tests/cli/test_cli_warmup.py",
-    "tests/scale/test_ray_fault.py",
-    "tests/cli/test_cli_segment.py",
-    "tests/stereo/test_stereo_chain_fit.py",
-    "tests/segmentation/test_refine_multicam.py",
-    "tests/segmentation/test_uncertainty.py",
+    "tests/segmentation/test_refine.py",  # (226) five refinement programs
+    "tests/kinematics/test_kinematics_fit.py",  # (208)
+    "tests/cli/test_tutorial.py",  # (172) one test
+    "tests/segmentation/test_refine_convergence.py",  # (160) four
+    "tests/core/test_examples.py",  # (148)
+    "tests/cli/test_cli_segment.py",  # (145)
+    "tests/scale/test_devices.py",  # (97) one test, a subprocess with 2 host devices
+    "tests/stereo/test_stereo_chain_fit.py",  # (79)
+    "tests/scale/test_ray_fault.py",  # (64)
+    "tests/cli/test_cli_contract.py",  # (61)
+    "tests/kinematics/test_ctr.py",  # (59)
+    "tests/cli/test_cli_warmup.py",  # (70 before its smaller program)
+    "tests/segmentation/test_energy.py",  # (48)
+    "tests/scale/test_ray_equality.py",  # (48)
+    "tests/segmentation/test_refine_multicam.py",  # (45)
+    "tests/cli/test_cli_bench_wheel.py",  # (38)
+    "tests/segmentation/test_uncertainty.py",  # (23)
+    "tests/segmentation/test_segmentation_api.py",  # (65 before; loads test_refine's programs)
 )
 
 
@@ -110,6 +115,19 @@ def pytest_xdist_make_scheduler(config, log):
     # leaving the few-test, compile-heavy refinement modules for the end)
     config.option.loadscopereorder = False
     return LoadFileScheduling(config, log)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _run_compile_cache_module():
+    """The run's cache before a module's own module-scoped fixtures (autouse fixtures come first
+    in their scope), which is where the suite compiles most: without it they ran with whatever
+    the previous test left (test_api points the cache at a tmp folder, test_cli_warmup and
+    test_io_compile_cache switch it off), or, in a process whose JAX was imported before this
+    file set JAX_COMPILATION_CACHE_DIR (a plugin importing jax), with no cache at all, so their
+    programs were neither loaded nor stored. Measured: a module-scoped fixture's program
+    compiled in one module and again in the next without a cache hit, in that case."""
+    _use_run_cache()
+    yield
 
 
 @pytest.fixture(autouse=True)

@@ -1,0 +1,43 @@
+"""The canonical refinement setup of the suite: one image size, one camera, one nominal arc and
+one :class:`RefineConfig`, imported by every module that does not need a setup of its own.
+
+Why shared: compiling a refinement program costs ~40 s of CPU here (two pyramid levels), and
+the run-wide persistent compilation cache (tests/conftest.py) serves a program to every later
+process and module only when it is the very same program: same image size, config, camera
+count, batch size F and the same jitted function. tests/segmentation/test_refine.py compiles
+:func:`jaxcr.segmentation.refine.refine_frame_jit` and ``refine_batch(..., mode="map")`` on
+F = 2 frames with this setup; tests/segmentation/test_segmentation_api.py calls the public
+front doors on the same shapes, so it loads both programs instead of compiling two more.
+Change nothing here without re-deriving the thresholds of the modules that import it.
+"""
+
+from jaxcr.segmentation.refine import RefineConfig
+from tests.helpers.tube_render import arc_base, front_camera
+
+W, H = 160, 120
+#: two pyramid levels, 3 Chebyshev coefficients, no camera correction (the scenes have an
+#: exact camera and a uniform background; the correction has its own tests)
+CFG = RefineConfig(
+    n_coeffs=3,
+    levels=(1, 0),
+    steps=(30, 15),
+    outer=(2, 1),
+    tau=(1.0, 0.8),
+    band_tiles=96,
+    min_tiles=24,
+    g_reg=0.5,
+    local=False,
+    camera_correction=False,
+)
+#: the batch size of the shared ``refine_batch`` program
+BATCH = 2
+
+
+def base():
+    """The nominal arc (radius 2.5 mm) of tests/helpers/tube_render.py."""
+    return arc_base(2.5e-3)
+
+
+def camera():
+    """The front camera, fx = 200 px, W x H."""
+    return front_camera(200.0, (W, H))
