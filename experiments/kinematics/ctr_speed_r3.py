@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import json
 import os
 import platform
@@ -55,7 +56,13 @@ def load_reference(rev: str):
             src = src.replace(f"jaxcr.kinematics.{mod} ", f"{pkg}.{mod} ")
         with open(os.path.join(tmp, pkg, name), "w") as fh:
             fh.write(src)
-    sys.path.insert(0, tmp)
+    # the package from its folder (no sys.path edit): its submodules resolve through __path__
+    spec = importlib.util.spec_from_file_location(
+        pkg, os.path.join(tmp, pkg, "__init__.py"),
+        submodule_search_locations=[os.path.join(tmp, pkg)],
+    )  # fmt: skip
+    sys.modules[pkg] = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sys.modules[pkg])
     return importlib.import_module(f"{pkg}.ctr")
 
 

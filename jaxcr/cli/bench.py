@@ -55,7 +55,8 @@ PROVIDERS = {
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser("bench", help=HELP, description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=sorted(PROVIDERS), help="which benchmark")
+    p.add_argument("what", choices=sorted(PROVIDERS), metavar="WHAT",
+                   help="which benchmark: " + ", ".join(sorted(PROVIDERS)))  # fmt: skip
     p.add_argument(
         "-o",
         "--out",
