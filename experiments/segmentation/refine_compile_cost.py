@@ -11,7 +11,7 @@ leaves differ between two such files (e.g. before and after a change to refine.p
     python experiments/segmentation/refine_compile_cost.py --save /tmp/after.npz
     python experiments/segmentation/refine_compile_cost.py --compare /tmp/before.npz /tmp/after.npz
 
-The persistent compilation cache is switched off (``JAX_ENABLE_COMPILATION_CACHE=false``) so
+The persistent compilation cache is switched off (``jax_enable_compilation_cache``, when run) so
 that XLA really compiles. Results: experiments/results/suite_time.md.
 """
 
@@ -22,7 +22,6 @@ import os
 import time
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -139,6 +138,10 @@ def compare(a: str, b: str) -> None:
 
 
 if __name__ == "__main__":
+    # XLA really compiles: no persistent cache (set here, not at import: importing this
+    # module, as test_experiments_imports and refine_compile_profile do, must not change
+    # the importing process's or its subprocesses' environment)
+    jax.config.update("jax_enable_compilation_cache", False)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--save", help="store the outputs of two refined frames (.npz)")
     ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two --save files")

@@ -28,7 +28,6 @@ import re
 import time
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-os.environ["JAX_ENABLE_COMPILATION_CACHE"] = "false"
 
 import jax  # noqa: E402
 import jax.flatten_util  # noqa: E402
@@ -154,6 +153,10 @@ def whole(base, cam, ip, bg) -> None:
 
 
 if __name__ == "__main__":
+    # XLA really compiles: no persistent cache (set here, not at import: importing this
+    # module, as test_experiments_imports and refine_compile_profile do, must not change
+    # the importing process's or its subprocesses' environment)
+    jax.config.update("jax_enable_compilation_cache", False)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pieces", action="store_true", help="only the pieces")
     ap.add_argument("--whole", action="store_true", help="only the whole refine_frame programs")
