@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcr.benchmarks.registration import look_at
 from jaxcr.registration.keypoints import matched_points
 from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pairwise import _keypoint_arrays, geometric_sample
@@ -37,19 +38,6 @@ from jaxcr.registration.ransac import estimate_transform
 from jaxcr.synth.rgbd_tasks import RgbdSimulator, generate_task
 
 OUT = Path(__file__).parent.parent / "results" / "registration"
-
-
-def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """world <- camera (OpenCV axes: x right, y down, z forward) at ``centre`` facing
-    ``target``, world z up."""
-    z = target - centre
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    T[:3, 3] = centre
-    return T
 
 
 def frames(scratch: Path, n: int, step_deg: float, seed: int):

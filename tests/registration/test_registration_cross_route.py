@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pairwise import PairResult
 from jaxcr.registration.pipeline import PipelineConfig, chain, cross_route_edge, route_estimates
+from tests.helpers.ring import ring_pose
 
 N = 10  # captures per route
 DRIFT_DEG = 6.0  # nominal rotation error of each route's last view about the vertical
@@ -31,16 +32,6 @@ def _T(rotvec, t):
     return T
 
 
-def _view(a, r=0.3):
-    c = np.array([r * np.cos(a), r * np.sin(a), 0.0])
-    z = -c / np.linalg.norm(c)
-    x = np.array([-np.sin(a), np.cos(a), 0.0])
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    T[:3, 3] = c
-    return T
-
-
 def _routes(seed=0):
     """True and nominal world <- camera poses of routes A (+ direction) and B (-), and the
     noisy forward registrations of each."""
@@ -48,7 +39,7 @@ def _routes(seed=0):
     out = []
     for sign in (1.0, -1.0):
         angles = sign * np.deg2rad(np.linspace(0.0, 175.0, N))
-        truth = [_view(a) for a in angles]
+        truth = [ring_pose(a) for a in angles]
         # the nominal kinematics drift: a rotation about the vertical through the start
         # growing along the route (curvature error), plus a tilt
         nominal = [
