@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcr.registration import keypoints
 from jaxcr.registration.clouds import (
     Cloud,
     organised_cloud,
@@ -28,7 +29,6 @@ from jaxcr.registration.clouds import (
     voxel_downsample,
 )
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, IcpConfig, Keypoints, icp_jit
-from jaxcr.registration import keypoints
 from jaxcr.registration.keypoints import FrameFeatures, matched_features
 from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pose_graph import inverted_edge
