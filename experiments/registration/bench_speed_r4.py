@@ -85,13 +85,18 @@ def main(argv=None) -> int:
         "(before this round).",
         "- **previous**: before issue 18 (31765ad projective ICP, no cache).",
         "",
-        "| | median ms/pair | IQR ms | p90 ms |",
-        "|---|---|---|---|",
+        "| | median ms/pair | IQR ms | p90 ms | median CPU ms/pair (process, all threads) |",
+        "|---|---|---|---|---|",
     ]
-    for name, t in (("now", now), ("uncached", unc), ("previous (31765ad)", prev)):
+    cpu = reg["cpu_median_s"]
+    for name, key, t in (
+        ("now", "now", now),
+        ("uncached", "uncached", unc),
+        ("previous (31765ad)", "previous", prev),
+    ):
         md.append(
             f"| {name} | {ms(np.median(t))} | {ms(np.percentile(t, 25))}-"
-            f"{ms(np.percentile(t, 75))} | {ms(np.percentile(t, 90))} |"
+            f"{ms(np.percentile(t, 75))} | {ms(np.percentile(t, 90))} | {ms(cpu[key])} |"
         )
     md += [
         "",

@@ -150,9 +150,11 @@ def run_registration_benchmark(
         cfg.register(fa, fb, K, truth, k)
         comp["previous"] = time.perf_counter() - t0
     now_s, prev_s, unc_s, same_pose, err = [], [], [], [], {"now": [], "previous": []}
+    cpu = {"now": [], "uncached": [], "previous": []}  # process CPU s (all threads)
     rows = []
     for i, (label, fa, fb, K, truth, k) in enumerate(pairs):
         tn, tp, tu = [], [], []
+        cn, cp, cu = [], [], []
         for _ in range(repeats):  # alternate, so all variants see the same load
             # "now" as in a run's chain of forward registrations: the source's keypoint
             # features come from the previous pair (where it was the target), the target's
@@ -160,19 +162,25 @@ def run_registration_benchmark(
             fb.features.clear()
             if k == 0:
                 fa.features.clear()
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             pn = cfg.register(fa, fb, K, truth, k)
             tn.append(time.perf_counter() - t0)
+            cn.append(time.process_time() - c0)
             if uncached_reference:
                 with uncached_features():
-                    t0 = time.perf_counter()
+                    c0, t0 = time.process_time(), time.perf_counter()
                     pu = cfg.register(fa, fb, K, truth, k)
                     tu.append(time.perf_counter() - t0)
+                    cu.append(time.process_time() - c0)
                 same_pose.append(bool(np.array_equal(pu.T, pn.T)))
             with previous_icp():
-                t0 = time.perf_counter()
+                c0, t0 = time.process_time(), time.perf_counter()
                 pp = cfg.register(fa, fb, K, truth, k)
                 tp.append(time.perf_counter() - t0)
+                cp.append(time.process_time() - c0)
+        for name, v in (("now", cn), ("uncached", cu), ("previous", cp)):
+            if v:
+                cpu[name].append(float(np.median(v)))
         now_s.append(float(np.median(tn)))
         prev_s.append(float(np.median(tp)))
         if tu:
@@ -211,6 +219,8 @@ def run_registration_benchmark(
         "pairs": len(pairs),
         "median_ratio_per_pair": float(np.median(np.array(prev_s) / np.array(now_s))),
         "seconds_uncached": unc_s,
+        "cpu_seconds": cpu,
+        "cpu_median_s": {k: float(np.median(v)) for k, v in cpu.items() if v},
         "uncached_pose_identical": f"{sum(same_pose)} of {len(same_pose)}",
         "uncached_median_s": float(np.median(unc_s)) if unc_s else None,
         "cache_ratio_per_pair": (
