@@ -126,7 +126,7 @@ class FrameFeatures:
     z: np.ndarray
 
 
-def frame_features(rgb, depth, asift: bool = False, smooth: int = 5) -> FrameFeatures:
+def frame_features(rgb, depth, *, asift: bool = False, smooth: int = 5) -> FrameFeatures:
     """:class:`FrameFeatures` of one RGB-D frame (RGB in [0, 1], depth in metres)."""
     valid = np.isfinite(depth) & (depth > 0)
     uv, desc = detect(rgb, valid, asift)
@@ -151,7 +151,7 @@ def matched_points(rgb_a, depth_a, rgb_b, depth_b, K, asift: bool = False, smoot
     """3-D keypoint correspondences (k, 3), (k, 3) between two RGB-D frames (each in its own
     camera frame); :func:`frame_features` of both, then :func:`matched_features`."""
     return matched_features(
-        frame_features(rgb_a, depth_a, asift, smooth),
-        frame_features(rgb_b, depth_b, asift, smooth),
+        frame_features(rgb_a, depth_a, asift=asift, smooth=smooth),
+        frame_features(rgb_b, depth_b, asift=asift, smooth=smooth),
         K,
     )

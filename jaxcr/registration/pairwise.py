@@ -98,7 +98,7 @@ def make_frame(
     )
 
 
-def frame_features(frame: Frame, asift: bool = False) -> FrameFeatures:
+def frame_features(frame: Frame, *, asift: bool = False) -> FrameFeatures:
     """The frame's SIFT keypoints, descriptors and smoothed depth
     (:func:`jaxcr.registration.keypoints.frame_features`), computed once per frame and
     ``asift`` setting and kept in ``frame.features``.
@@ -111,7 +111,7 @@ def frame_features(frame: Frame, asift: bool = False) -> FrameFeatures:
     is replaced by another array (arrays are not expected to be modified in place)."""
     entry = frame.features.get(bool(asift))
     if entry is None or entry[0] is not frame.rgb or entry[1] is not frame.depth:
-        feats = keypoints.frame_features(frame.rgb, frame.depth, asift)
+        feats = keypoints.frame_features(frame.rgb, frame.depth, asift=asift)
         entry = (frame.rgb, frame.depth, feats)
         frame.features[bool(asift)] = entry
     return entry[2]
@@ -337,7 +337,7 @@ def register_pair(
     for f in (src, tgt):
         if not bool(np.asarray(f.arrays.mask).any()):
             raise RegistrationFailed(f"frame {f.label or '?'} has an empty point cloud")
-    ka, kb = matched_features(frame_features(src, asift), frame_features(tgt, asift), K)
+    ka, kb = matched_features(frame_features(src, asift=asift), frame_features(tgt, asift=asift), K)
     T_kp, n_in = estimate_transform(ka, kb, seed=seed) if len(ka) else (None, 0)
     if T_kp is not None and prior is not None and prior_gate is not None:
         r_err, t_err = pose_error(T_kp, prior)
