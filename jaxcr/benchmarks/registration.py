@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxcr.registration import pairwise
+from jaxcr.registration import keypoints, pairwise
 from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pipeline import PipelineConfig, capture_frame, run_arm_spec
 from jaxcr.registration.planning import ArcPlanner, PlannerConfig
@@ -71,16 +71,34 @@ def forward_pairs(sim: RgbdSimulator, seed: int, n_pairs: int, step_deg: float, 
     ]
 
 
+def _uncached_features(frame, *, asift=False):
+    """Keypoint features computed at every registration (before the per-frame cache)."""
+    return keypoints.frame_features(frame.rgb, frame.depth, asift=asift)
+
+
+@contextlib.contextmanager
+def uncached_features():
+    """``register_pair`` without the per-frame keypoint cache (in this context only)."""
+    saved = pairwise.frame_features
+    pairwise.frame_features = _uncached_features
+    try:
+        yield
+    finally:
+        pairwise.frame_features = saved
+
+
 @contextlib.contextmanager
 def previous_icp():
-    """``register_pair`` with the projective ICP before issue 18 (in this context only)."""
+    """``register_pair`` as before issue 18 (in this context only): the projective ICP of
+    31765ad and keypoints detected at every registration (no per-frame cache)."""
     from jaxcr.benchmarks import registration_previous as prev
 
     saved = pairwise.projective_icp_jit, pairwise.projective_information_jit
     pairwise.projective_icp_jit = prev.projective_icp_jit
     pairwise.projective_information_jit = prev.projective_information_jit
     try:
-        yield
+        with uncached_features():
+            yield
     finally:
         pairwise.projective_icp_jit, pairwise.projective_information_jit = saved
 
@@ -103,10 +121,13 @@ def run_registration_benchmark(
     step_deg: float = 25.0,
     scratch: str | None = None,
     progress=None,
+    uncached_reference: bool = False,
 ) -> dict:
     """Seconds per ``register_pair`` (pipeline defaults) now and before issue 18, over
     ``frames`` forward pairs per scene of ``tasks`` x ``seeds`` (default: ``seed`` only),
-    ``repeats`` timings each; pose errors (deg, mm) of both against the truth."""
+    ``repeats`` timings each; pose errors (deg, mm) of both against the truth.
+    ``uncached_reference``: also time the current path without the per-frame keypoint
+    cache (and check that its pose equals the cached one exactly)."""
     seeds = [seed] if seeds is None else list(seeds)
     cfg = PipelineConfig()
     load0 = os.getloadavg()
@@ -128,20 +149,42 @@ def run_registration_benchmark(
         t0 = time.perf_counter()
         cfg.register(fa, fb, K, truth, k)
         comp["previous"] = time.perf_counter() - t0
-    now_s, prev_s, err = [], [], {"now": [], "previous": []}
+    now_s, prev_s, unc_s, same_pose, err = [], [], [], [], {"now": [], "previous": []}
+    cpu = {"now": [], "uncached": [], "previous": []}  # process CPU s (all threads)
     rows = []
     for i, (label, fa, fb, K, truth, k) in enumerate(pairs):
-        tn, tp = [], []
-        for _ in range(repeats):  # alternate, so both see the same load
-            t0 = time.perf_counter()
+        tn, tp, tu = [], [], []
+        cn, cp, cu = [], [], []
+        for _ in range(repeats):  # alternate, so all variants see the same load
+            # "now" as in a run's chain of forward registrations: the source's keypoint
+            # features come from the previous pair (where it was the target), the target's
+            # are computed here; the scene's first pair computes both.
+            fb.features.clear()
+            if k == 0:
+                fa.features.clear()
+            c0, t0 = time.process_time(), time.perf_counter()
             pn = cfg.register(fa, fb, K, truth, k)
             tn.append(time.perf_counter() - t0)
+            cn.append(time.process_time() - c0)
+            if uncached_reference:
+                with uncached_features():
+                    c0, t0 = time.process_time(), time.perf_counter()
+                    pu = cfg.register(fa, fb, K, truth, k)
+                    tu.append(time.perf_counter() - t0)
+                    cu.append(time.process_time() - c0)
+                same_pose.append(bool(np.array_equal(pu.T, pn.T)))
             with previous_icp():
-                t0 = time.perf_counter()
+                c0, t0 = time.process_time(), time.perf_counter()
                 pp = cfg.register(fa, fb, K, truth, k)
                 tp.append(time.perf_counter() - t0)
+                cp.append(time.process_time() - c0)
+        for name, v in (("now", cn), ("uncached", cu), ("previous", cp)):
+            if v:
+                cpu[name].append(float(np.median(v)))
         now_s.append(float(np.median(tn)))
         prev_s.append(float(np.median(tp)))
+        if tu:
+            unc_s.append(float(np.median(tu)))
         en, ep = pose_error(pn.T, truth), pose_error(pp.T, truth)
         err["now"].append((en[0], 1000 * en[1]))
         err["previous"].append((ep[0], 1000 * ep[1]))
@@ -156,6 +199,8 @@ def run_registration_benchmark(
                 "previous trans mm": round(1000 * ep[1], 3),
             }
         )
+        if tu:
+            rows[-1]["uncached ms"] = round(1000 * unc_s[-1], 1)
         if progress is not None:
             progress(i + 1, len(pairs))
     if tmp is not None:
@@ -167,11 +212,20 @@ def run_registration_benchmark(
         "median_s": float(np.median(now_s)),
         "spread_s": float(np.percentile(now_s, 75) - np.percentile(now_s, 25)),
         "compile_s": comp["now"],
-        "reference": "previous projective ICP (31765ad: fixed 30 steps, nanmedian scales)",
+        "reference": "previous projective ICP (31765ad: fixed 30 steps, nanmedian scales) "
+        "and keypoints detected at every registration",
         "reference_median_s": float(np.median(prev_s)),
         "reference_compile_s": comp["previous"],
         "pairs": len(pairs),
         "median_ratio_per_pair": float(np.median(np.array(prev_s) / np.array(now_s))),
+        "seconds_uncached": unc_s,
+        "cpu_seconds": cpu,
+        "cpu_median_s": {k: float(np.median(v)) for k, v in cpu.items() if v},
+        "uncached_pose_identical": f"{sum(same_pose)} of {len(same_pose)}",
+        "uncached_median_s": float(np.median(unc_s)) if unc_s else None,
+        "cache_ratio_per_pair": (
+            float(np.median(np.array(unc_s) / np.array(now_s))) if unc_s else None
+        ),
         "rows": rows,
         "load_start": load0[0],
         "load_end": os.getloadavg()[0],

@@ -6,6 +6,8 @@ and mapped back to the original pixels. Keypoints are lifted to 3-D with the dep
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -110,20 +112,46 @@ def lift(uv: np.ndarray, depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, 
     return np.stack([x, y, z], axis=1), ok
 
 
-def matched_points(rgb_a, depth_a, rgb_b, depth_b, K, asift: bool = False, smooth: int = 5):
-    """3-D keypoint correspondences (k, 3), (k, 3) between two RGB-D frames (each in its own
-    camera frame)."""
-    va = np.isfinite(depth_a) & (depth_a > 0)
-    vb = np.isfinite(depth_b) & (depth_b > 0)
-    uva, da = detect(rgb_a, va, asift)
-    uvb, db = detect(rgb_b, vb, asift)
-    pairs = match(da, db)
+@dataclass(frozen=True)
+class FrameFeatures:
+    """The per-frame half of :func:`matched_points`: SIFT keypoint pixels ``uv`` (n, 2) and
+    descriptors ``desc`` (n, 128) detected on the valid depth, and the locally averaged
+    depth ``z`` (H, W, metres, NaN where invalid or across a discontinuity) the keypoints
+    are lifted with. A frame takes part in several pairs (target of one forward pair, source
+    of the next, loop closure, extra pose-graph edges): these depend on the frame only, so
+    they are computed once per frame (:func:`jaxcr.registration.pairwise.frame_features`)."""
+
+    uv: np.ndarray
+    desc: np.ndarray
+    z: np.ndarray
+
+
+def frame_features(rgb, depth, *, asift: bool = False, smooth: int = 5) -> FrameFeatures:
+    """:class:`FrameFeatures` of one RGB-D frame (RGB in [0, 1], depth in metres)."""
+    valid = np.isfinite(depth) & (depth > 0)
+    uv, desc = detect(rgb, valid, asift)
+    # Lift with locally averaged depth: a keypoint's depth is its noisiest coordinate.
+    z = smooth_depth(np.nan_to_num(depth), valid, smooth)
+    return FrameFeatures(uv, desc, z)
+
+
+def matched_features(fa: FrameFeatures, fb: FrameFeatures, K):
+    """3-D keypoint correspondences (k, 3), (k, 3) between two frames' features (each in its
+    own camera frame): mutual ratio-test matches lifted with the smoothed depth."""
+    pairs = match(fa.desc, fb.desc)
     if len(pairs) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    # Lift with locally averaged depth: a keypoint's depth is its noisiest coordinate.
-    za = smooth_depth(np.nan_to_num(depth_a), va, smooth)
-    zb = smooth_depth(np.nan_to_num(depth_b), vb, smooth)
-    pa, oka = lift(uva[pairs[:, 0]], za, K)
-    pb, okb = lift(uvb[pairs[:, 1]], zb, K)
+    pa, oka = lift(fa.uv[pairs[:, 0]], fa.z, K)
+    pb, okb = lift(fb.uv[pairs[:, 1]], fb.z, K)
     ok = oka & okb
     return pa[ok], pb[ok]
+
+
+def matched_points(rgb_a, depth_a, rgb_b, depth_b, K, asift: bool = False, smooth: int = 5):
+    """3-D keypoint correspondences (k, 3), (k, 3) between two RGB-D frames (each in its own
+    camera frame); :func:`frame_features` of both, then :func:`matched_features`."""
+    return matched_features(
+        frame_features(rgb_a, depth_a, asift=asift, smooth=smooth),
+        frame_features(rgb_b, depth_b, asift=asift, smooth=smooth),
+        K,
+    )

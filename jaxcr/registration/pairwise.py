@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcr.registration import keypoints
 from jaxcr.registration.clouds import (
     Cloud,
     organised_cloud,
@@ -28,7 +29,7 @@ from jaxcr.registration.clouds import (
     voxel_downsample,
 )
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, IcpConfig, Keypoints, icp_jit
-from jaxcr.registration.keypoints import matched_points
+from jaxcr.registration.keypoints import FrameFeatures, matched_features
 from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pose_graph import inverted_edge
 from jaxcr.registration.projective import (
@@ -60,6 +61,9 @@ class Frame:
     # Denoised positions of the sample's pixels (clouds.plane_points), same rows: where the
     # photometric term predicts each source pixel lands in the target image.
     sample_plane: jnp.ndarray | None = None
+    # Keypoint features of this frame by ``asift`` (:func:`frame_features`): computed at the
+    # first registration the frame takes part in, reused by the others.
+    features: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 def _arrays(p, c, n, m) -> CloudArrays:
@@ -92,6 +96,25 @@ def make_frame(
     return Frame(
         np.asarray(rgb), np.asarray(depth), full, arrays, label, image, sample, jnp.asarray(plane)
     )
+
+
+def frame_features(frame: Frame, *, asift: bool = False) -> FrameFeatures:
+    """The frame's SIFT keypoints, descriptors and smoothed depth
+    (:func:`jaxcr.registration.keypoints.frame_features`), computed once per frame and
+    ``asift`` setting and kept in ``frame.features``.
+
+    Each capture of a run is the target of one forward registration and the source of the
+    next, and the loop closure and the pose graph's extra edges register it again: without
+    the cache its SIFT ran once per registration (44 % of a pair's time,
+    experiments/results/registration/bench_pairwise_profile_r3.md). The entry remembers the
+    ``rgb`` and ``depth`` arrays it was computed from and is recomputed if either attribute
+    is replaced by another array (arrays are not expected to be modified in place)."""
+    entry = frame.features.get(bool(asift))
+    if entry is None or entry[0] is not frame.rgb or entry[1] is not frame.depth:
+        feats = keypoints.frame_features(frame.rgb, frame.depth, asift=asift)
+        entry = (frame.rgb, frame.depth, feats)
+        frame.features[bool(asift)] = entry
+    return entry[2]
 
 
 def keypoint_scale(ka, kb, T, upper: float) -> float:
@@ -314,7 +337,7 @@ def register_pair(
     for f in (src, tgt):
         if not bool(np.asarray(f.arrays.mask).any()):
             raise RegistrationFailed(f"frame {f.label or '?'} has an empty point cloud")
-    ka, kb = matched_points(src.rgb, src.depth, tgt.rgb, tgt.depth, K, asift=asift)
+    ka, kb = matched_features(frame_features(src, asift=asift), frame_features(tgt, asift=asift), K)
     T_kp, n_in = estimate_transform(ka, kb, seed=seed) if len(ka) else (None, 0)
     if T_kp is not None and prior is not None and prior_gate is not None:
         r_err, t_err = pose_error(T_kp, prior)

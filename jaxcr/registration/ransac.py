@@ -25,6 +25,22 @@ def _residuals(T, src, tgt):
     return jnp.linalg.norm(transform_points(T, src) - tgt, axis=-1)
 
 
+def sample_valid(key: Array, mask: Bool[Array, " n"], shape: tuple[int, ...]) -> Array:
+    """Indices of shape ``shape`` drawn independently and uniformly from the positions where
+    ``mask`` is True (with replacement).
+
+    One uniform number per index (position k of the valid ones, k = floor(u n_valid)),
+    instead of ``jax.random.categorical`` over masked logits, which draws a Gumbel number
+    per (index, position): 256 x 3 x 512 threefry draws were 31 of the 35 ms of a RANSAC
+    call on the 2-core CPU (load ~11). Same distribution, different draws."""
+    n = mask.shape[0]
+    valid = jnp.nonzero(mask, size=n, fill_value=0)[0]
+    count = jnp.sum(mask)
+    u = jax.random.uniform(key, shape)
+    k = jnp.minimum(jnp.floor(u * count).astype(jnp.int32), jnp.maximum(count - 1, 0))
+    return valid[k]
+
+
 def ransac_kabsch(
     src: Float[Array, "n 3"],
     tgt: Float[Array, "n 3"],
@@ -35,8 +51,7 @@ def ransac_kabsch(
 ) -> RansacResult:
     """Rigid ``T`` with ``tgt ~ T src`` from noisy correspondences with outliers. Minimal
     samples of 3 valid pairs; inlier = residual below ``threshold`` (m); two inlier refits."""
-    logits = jnp.where(mask, 0.0, -jnp.inf)
-    idx = jax.random.categorical(key, logits, shape=(n_hypotheses, 3))
+    idx = sample_valid(key, mask, (n_hypotheses, 3))
 
     def hyp(i):
         T = kabsch(src[i], tgt[i])

@@ -28,7 +28,7 @@ from jaxcr.registration.collision import arc_clearance, batch_clearance
 from jaxcr.registration.global_opt import chain_poses, global_optimize
 from jaxcr.registration.icp import CloudArrays, IcpConfig, icp_jit, no_keypoints
 from jaxcr.registration.metrics import knn_mean_distance, neighbour_counts, pose_error
-from jaxcr.registration.ransac import estimate_transform, ransac_kabsch
+from jaxcr.registration.ransac import estimate_transform, ransac_kabsch, sample_valid
 
 
 def _T(rotvec, t):
@@ -231,6 +231,20 @@ def test_ransac_recovers_transform_with_outliers():
     assert estimate_transform(src[:2], tgt[:2])[0] is None
     bad, k = estimate_transform(src, rng.uniform(-1, 1, (100, 3)), threshold=0.001)
     assert bad is None
+
+
+def test_ransac_sampling_is_uniform_over_the_valid_positions():
+    """:func:`sample_valid` (RANSAC's minimal samples) draws only valid positions, each with
+    probability 1 / n_valid: 30000 draws over 7 valid of 20 positions, counts within 5
+    binomial standard deviations (sqrt(30000 p (1 - p)) = 61) of 30000 / 7 = 4286."""
+    mask = np.zeros(20, bool)
+    mask[[0, 3, 4, 9, 12, 17, 19]] = True
+    idx = np.asarray(sample_valid(jax.random.PRNGKey(5), jnp.asarray(mask), (10000, 3)))
+    assert idx.shape == (10000, 3)
+    counts = np.bincount(idx.ravel(), minlength=20)
+    assert counts[~mask].sum() == 0
+    p = 1 / 7
+    np.testing.assert_allclose(counts[mask], 30000 * p, atol=5 * np.sqrt(30000 * p * (1 - p)))
 
 
 # ------------------------------------------------------------------ ICP

@@ -85,3 +85,51 @@ def test_smooth_depth_flags_windows_straddling_a_jump():
     z2 = np.where(v2, 0.5, 123.0)
     out2 = smooth_depth(z2, v2, 5)
     assert np.isnan(out2[20, 20]) and np.allclose(out2[19, 19], 0.5)
+
+
+def _textured_pair(shift: int = 4):
+    """Two 160x120 views of a blurred-noise texture on a fronto-parallel plane at 0.5 m,
+    the second shifted ``shift`` pixels (enough SIFT keypoints to match)."""
+    rng = np.random.default_rng(3)
+    tex = ndimage.gaussian_filter(rng.uniform(0, 1, (140, 190)), 1.5)
+    tex = (tex - tex.min()) / (tex.max() - tex.min())
+    a = tex[10:130, 10:170]
+    b = tex[10:130, 10 + shift : 170 + shift]
+    depth = np.full((120, 160), 0.5, np.float32)
+    depth[:, :3] = np.nan  # some invalid depth
+    return [np.repeat(x[..., None], 3, 2).astype(np.float32) for x in (a, b)], depth
+
+
+def test_frame_feature_cache_gives_the_uncached_correspondences(monkeypatch):
+    """The per-frame cache (:func:`jaxcr.registration.pairwise.frame_features`) returns what
+    the uncached :func:`matched_points` computes (same functions on the same arrays in one
+    process: equal exactly), detects each frame once across the pairs it takes part in, and
+    recomputes when the frame's image is replaced."""
+    from jaxcr.registration import keypoints
+    from jaxcr.registration.keypoints import matched_features, matched_points
+    from jaxcr.registration.pairwise import frame_features, make_frame
+
+    Kt = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
+    (ra, rb), depth = _textured_pair()
+    fa = make_frame(ra, depth, Kt, size=256, sample_size=256)
+    fb = make_frame(rb, depth, Kt, size=256, sample_size=256)
+    ka0, kb0 = matched_points(ra, depth, rb, depth, Kt)
+    assert len(ka0) >= 20  # the case matches: the comparison below is not vacuous
+    calls = []
+    detect = keypoints.detect
+    monkeypatch.setattr(keypoints, "detect", lambda *a: calls.append(1) or detect(*a))
+    ka, kb = matched_features(frame_features(fa), frame_features(fb), Kt)
+    np.testing.assert_array_equal(ka, ka0)
+    np.testing.assert_array_equal(kb, kb0)
+    # reversed pair (the pose graph's other direction) and a repeat: no new detection
+    kb1, ka1 = matched_features(frame_features(fb), frame_features(fa), Kt)
+    assert len(calls) == 2
+    ref = keypoints.frame_features(ra, depth)
+    np.testing.assert_array_equal(frame_features(fa).uv, ref.uv)
+    np.testing.assert_array_equal(frame_features(fa).desc, ref.desc)
+    assert len(calls) == 3  # ``ref`` itself
+    # a replaced image is detected again, and gives that image's features
+    fa.rgb = rb.copy()
+    assert len(frame_features(fa).uv) == len(frame_features(fb).uv)
+    np.testing.assert_array_equal(frame_features(fa).desc, frame_features(fb).desc)
+    assert len(calls) == 4
