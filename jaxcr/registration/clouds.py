@@ -172,6 +172,51 @@ def plane_points(
     return np.where(valid[..., None], out, 0.0)
 
 
+def depth_scaled_window(
+    z: np.ndarray, focal: float, footprint: float, smallest: int = 3, largest: int = 7
+) -> np.ndarray:
+    """Odd pixel window (int array, shape of ``z``) whose footprint on the surface is
+    ``footprint`` (m) at depth ``z`` (m) for a camera of focal length ``focal`` (px): the
+    odd integer nearest to ``footprint * focal / z``, clipped to [``smallest``,
+    ``largest``] (odd; invalid depths get ``largest``).
+
+    Why a metric footprint: a plane fit's model error is set by the surface it spans (a
+    crease or a curved patch of footprint s errs by ~s^2 / (8 R) or ~s/8 at a crease), so a
+    fixed pixel window errs more the farther the view (its footprint grows as z), and two
+    views at different depths get different biases that a registration between them cannot
+    remove. With the footprint fixed, both get the same model error."""
+    z = np.asarray(z, np.float64)
+    ok = np.isfinite(z) & (z > 0)
+    x = np.where(ok, footprint * focal / np.where(ok, z, 1.0), float(largest))
+    w = 2 * np.round((x - 1.0) / 2.0).astype(np.int64) + 1
+    return np.clip(w, smallest, largest)
+
+
+def plane_points_scaled(
+    P: np.ndarray,
+    normals: np.ndarray,
+    valid: np.ndarray,
+    focal: float,
+    footprint: float,
+    smallest: int = 3,
+    largest: int = 7,
+) -> np.ndarray:
+    """:func:`plane_points` with a per-pixel window of a fixed metric footprint
+    (:func:`depth_scaled_window` of the pixel's depth): each pixel takes the denoised point
+    of the window its own depth asks for. Same arguments as :func:`plane_points`, plus the
+    focal length ``focal`` (px) and ``footprint`` (m)."""
+    P = np.asarray(P, np.float64)
+    valid = np.asarray(valid, bool)
+    win = depth_scaled_window(
+        np.where(valid, P[..., 2], np.nan), focal, footprint, smallest, largest
+    )
+    out = np.zeros_like(P)
+    for w in np.unique(win[valid]):
+        sel = valid & (win == w)
+        out[sel] = plane_points(P, normals, valid, int(w))[sel]
+    return out
+
+
 def smooth_depth(
     z: np.ndarray, valid: np.ndarray, window: int, max_step: float = 0.02
 ) -> np.ndarray:

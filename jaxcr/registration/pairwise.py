@@ -26,6 +26,7 @@ from jaxcr.registration.clouds import (
     organised_cloud,
     pad_cloud,
     plane_points,
+    plane_points_scaled,
     voxel_downsample,
 )
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, IcpConfig, Keypoints, icp_jit
@@ -79,10 +80,13 @@ def make_frame(
     seed: int = 0,
     label: str = "",
     sample_size: int = 4096,
+    plane_footprint: float | None = None,
 ) -> Frame:
     """Build a :class:`Frame` (raises :class:`jaxcr.errors.InputError` for an all-invalid
     depth image). ``size``: padded voxel cloud; ``sample_size``: padded random sample of
-    the full-resolution pixels (the projective ICP source)."""
+    the full-resolution pixels (the projective ICP source); ``plane_footprint`` (m): the
+    denoised positions' plane fit spans this much of the surface at every depth
+    (:func:`jaxcr.registration.clouds.plane_points_scaled`), None: a fixed 7-pixel window."""
     P, C, N, ok = organised_cloud(rgb, depth, K, frame=label or None)
     full = Cloud(P[ok], C[ok], N[ok])
     down = voxel_downsample(full, voxel)
@@ -90,7 +94,11 @@ def make_frame(
     arrays = _arrays(*pad_cloud(down, size, rng))
     rng_sample = copy.deepcopy(rng)  # the same draw for the denoised positions
     sample = _arrays(*pad_cloud(full, sample_size, rng))
-    Pd = plane_points(P, N, ok)
+    if plane_footprint is None:
+        Pd = plane_points(P, N, ok)
+    else:
+        focal = float(np.sqrt(abs(K[0][0] * K[1][1])))
+        Pd = plane_points_scaled(P, N, ok, focal, plane_footprint)
     plane = pad_cloud(Cloud(Pd[ok], C[ok], N[ok]), sample_size, rng_sample)[0]
     image = depth_image(P, C, N, ok, K)
     return Frame(

@@ -148,6 +148,10 @@ class PipelineConfig:
     # the object on Task 1): worst pose after the pose graph over Task 1/2 seeds 0-4
     # 2.24 -> 1.39 mm, mean of the ten worst 1.35 -> 0.88 mm (8 of 10 lower).
     geometric_points: str = "plane"
+    # Footprint (m) of the plane fit behind "plane" (:func:`jaxcr.registration.clouds.
+    # plane_points_scaled`: a per-pixel window of this size on the surface, 3-7 px); None:
+    # a fixed 7-pixel window, whose footprint grows with depth.
+    plane_footprint: float | None = None
     # Views left out of the ring (Task 1: those before the loop's closing view) join the pose
     # graph as nodes with their forward registrations and registrations to this many ring
     # views (the nearest by nominal viewing direction), instead of being chained from the
@@ -203,7 +207,15 @@ def capture_frame(rgb, depth, K, cfg: PipelineConfig, seed: int, label: str):
     """One RGB-D capture as the pipeline registers it (:func:`make_frame` with ``cfg``'s voxel,
     cloud and sample sizes)."""
     return make_frame(
-        rgb, depth, K, cfg.voxel, cfg.cloud_size, seed, label=label, sample_size=cfg.sample_size
+        rgb,
+        depth,
+        K,
+        cfg.voxel,
+        cfg.cloud_size,
+        seed,
+        label=label,
+        sample_size=cfg.sample_size,
+        plane_footprint=cfg.plane_footprint,
     )
 
 

@@ -5,7 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcr.registration.clouds import organised_cloud, plane_points
+from jaxcr.registration.clouds import (
+    depth_scaled_window,
+    organised_cloud,
+    plane_points,
+    plane_points_scaled,
+)
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays
 from jaxcr.registration.projective import depth_image, projective_icp, projective_icp_jit
 
@@ -72,6 +77,60 @@ def test_plane_points_sphere_sagitta_and_invalid():
     assert np.all(np.abs(err_c) < s * s / (8 * R) * 2 + 1e-9)
     assert np.all(np.abs(err) < 0.01 + 1e-9)
     assert np.all(Pd[~ok] == 0)
+
+
+def test_depth_scaled_window_closed_form():
+    # nearest odd integer to footprint * f / z, clipped to [3, 7]; invalid depths -> 7
+    z = np.array([0.05, 0.2, 0.3, 0.45, 0.6, 0.9, 2.0, np.nan, 0.0])
+    f, s = 304.0, 0.007
+    got = depth_scaled_window(z, f, s)
+    odd = np.arange(1, 41, 2)
+    for zi, wi in zip(z, got, strict=True):
+        if not (np.isfinite(zi) and zi > 0):
+            assert wi == 7
+            continue
+        x = s * f / zi
+        assert wi == np.clip(odd[np.argmin(np.abs(odd - x))], 3, 7), (zi, x, wi)
+    assert got.dtype.kind == "i"
+
+
+def test_plane_points_scaled_matches_slow_loop():
+    # a noisy tilted plane spanning 0.25-0.45 m: windows of 7, 5 and 3 px; every checked
+    # pixel's point is the plane through its own window's mean (explicit loop) with its
+    # normal, met along its ray: z = (n . m) / (n . r)
+    rng = np.random.default_rng(3)
+    n = np.array([0.38, 0.0, -1.0])
+    n /= np.linalg.norm(n)
+    z, r = _plane_depth(n, -0.33)
+    zn = z + rng.normal(0, 1e-3, z.shape)
+    P, _, N, ok = organised_cloud(np.full((H, W, 3), 0.5), zn, K)
+    f, s = 120.0, 0.016
+    Pd = plane_points_scaled(P, N, ok, f, s)
+    win = depth_scaled_window(P[..., 2], f, s)
+    assert len(np.unique(win[ok])) >= 2
+    for y, x in zip(rng.integers(8, H - 8, 40), rng.integers(8, W - 8, 40), strict=True):
+        w = int(win[y, x])
+        h = w // 2
+        patch = P[y - h : y + h + 1, x - h : x + h + 1][ok[y - h : y + h + 1, x - h : x + h + 1]]
+        m = patch.mean(0)
+        ray = P[y, x] / P[y, x, 2]
+        zz = N[y, x] @ m / (N[y, x] @ ray)
+        np.testing.assert_allclose(Pd[y, x], ray * zz, rtol=0, atol=1e-9)
+
+
+def test_plane_points_scaled_smaller_crease_error_at_depth():
+    # a convex 90-degree roof (faces at 45 degrees) 0.6 m away, noise free: a window of
+    # footprint s centred on the crease sees depths z0 + |x|, |x| <= s/2, so the plane
+    # through their mean errs by up to ~s/4 (the fixed 7 px: s = 35 mm; 15 mm footprint at
+    # 0.6 m and f = 120 px: a 3 px window, s = 15 mm)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    rx = (u - K[0, 2]) / K[0, 0]
+    z = 0.6 / (1 - np.abs(rx))
+    P, _, N, ok = organised_cloud(np.full((H, W, 3), 0.5), z, K)
+    e7 = np.abs(plane_points(P, N, ok)[..., 2] - z)[ok]
+    es = np.abs(plane_points_scaled(P, N, ok, 120.0, 0.015)[..., 2] - z)[ok]
+    assert e7.max() <= 0.035 / 4 and es.max() <= 0.015 / 4
+    assert es.max() < 0.5 * e7.max() and es.mean() < 0.5 * e7.mean()
 
 
 def _textured_plane(rng, T):
