@@ -163,12 +163,13 @@ def stereo_step(fr, views: list[dict]) -> dict:
     # The rig's calibration (with the preset's calibration error), not the rendering cameras.
     cams = [getattr(v, "calib_camera", None) or v.camera for v in fr.views]
     objs = [v.pop("_trace_obj") for v in views]
-    tips, source, recheck = traced_stereo_tips(cams, objs)
+    tips, source, recheck, chosen = traced_stereo_tips(cams, objs)
     for k, v in enumerate(views):
         v["trace_stereo"] = {
             "tip": [float(x) for x in tips[k]], "fallback": source != "trace_stereo",
             "recheck": None if recheck is None else recheck.action,
             "moved": recheck is not None and recheck.view == k,
+            "branch": chosen[k] is not objs[k],
         }  # fmt: skip
     F = fundamental_from_poses(cams[0].K, cams[0].T_cam_robot, cams[1].K, cams[1].T_cam_robot)
     epi = {}
