@@ -68,7 +68,7 @@ def _smoother(alt, orig) -> bool:
 
 
 def choose_branches(
-    cams, candidates, tips_of=None, *, match_px: float = 15.0
+    cams, candidates, *, tips_of=None, match_px: float = 15.0
 ) -> BranchChoice | None:
     """The consistent pair of candidates with the smoothest paths (module docstring).
 

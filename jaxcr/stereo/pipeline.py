@@ -360,7 +360,7 @@ def traced_stereo_tips(
             choice = choose_branches(
                 cams,
                 cands,
-                lambda a, b: _stereo_or_own_tips(cams, [a, b])[0],
+                tips_of=lambda a, b: _stereo_or_own_tips(cams, [a, b])[0],
                 match_px=3.0 * flag_px,
             )
             if choice is not None and choice.indices != (0, 0):
