@@ -15,7 +15,10 @@ webcam noise, lens distortion, entry pixel with model error). Methods per view:
   views give (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`; the view's own estimate
   where the two end directions leave the axis undetermined;
   :func:`jaxcr.stereo.pipeline.traced_stereo_tips`, what ``jaxcr stereo --segmentation
-  trace`` records). The epipolar distance of each
+  trace`` records: where the two tips are over 5 px from each other's epipolar lines, the
+  branch a view took at a crossing is chosen again by both views,
+  :mod:`jaxcr.stereo.branch_choice`, then the tips are re-searched along the tubes,
+  :mod:`jaxcr.stereo.tip_consistency`). The epipolar distance of each
   method's two tips is recorded per frame (a frame over 5 px is flagged);
 * ``trace_r1`` -- the first round's foreground (commit cf4b1bb, from git);
 * ``plate`` -- the stereo pipeline's old plate mode: ``plate_alpha > 0.5`` (unaligned plate,
@@ -163,12 +166,13 @@ def stereo_step(fr, views: list[dict]) -> dict:
     # The rig's calibration (with the preset's calibration error), not the rendering cameras.
     cams = [getattr(v, "calib_camera", None) or v.camera for v in fr.views]
     objs = [v.pop("_trace_obj") for v in views]
-    tips, source, recheck = traced_stereo_tips(cams, objs)
+    tips, source, recheck, chosen = traced_stereo_tips(cams, objs)
     for k, v in enumerate(views):
         v["trace_stereo"] = {
             "tip": [float(x) for x in tips[k]], "fallback": source != "trace_stereo",
             "recheck": None if recheck is None else recheck.action,
             "moved": recheck is not None and recheck.view == k,
+            "branch": chosen[k] is not objs[k],
         }  # fmt: skip
     F = fundamental_from_poses(cams[0].K, cams[0].T_cam_robot, cams[1].K, cams[1].T_cam_robot)
     epi = {}
@@ -364,9 +368,11 @@ def main(argv=None) -> int:
         "",
         "Methods: `trace` this commit's plate foreground (defaults, one view at a time); "
         "`trace_stereo` the same, with the end face's foreshortening from the tube's 3-D "
-        "direction seen by both calibrated cameras (jaxcr.stereo.tip_geometry), and the "
-        "tips re-searched along the traced tubes where they are over 5 px from each other's "
-        "epipolar lines (jaxcr.stereo.tip_consistency; jaxcr.stereo.pipeline."
+        "direction seen by both calibrated cameras (jaxcr.stereo.tip_geometry); where the "
+        "two tips are over 5 px from each other's epipolar lines, the branch a view took at "
+        "a crossing chosen again by both views (jaxcr.stereo.branch_choice), then the "
+        "tips re-searched along the traced tubes "
+        "(jaxcr.stereo.tip_consistency; jaxcr.stereo.pipeline."
         "traced_stereo_tips, what `jaxcr stereo --segmentation trace` records), with the "
         "rig's calibration (`calib_camera`, with the preset's calibration error); `trace_r1` "
         f"the first round's (commit {ROUND1_COMMIT}); `plate`, `gmm`, `colour` the older "
@@ -414,6 +420,8 @@ def main(argv=None) -> int:
         ts = v[0].get("trace_stereo", {})
         moved = [str(i + 1) for i, x in enumerate(v) if x.get("trace_stereo", {}).get("moved")]
         rs = f"{ts.get('recheck')}" + (f" (view {moved[0]})" if moved else "")
+        branch = [str(i + 1) for i, x in enumerate(v) if x.get("trace_stereo", {}).get("branch")]
+        rs += f"; branch (view {', '.join(branch)})" if branch else ""
         md.append(f"| {r['seed']} | " + " | ".join(cells)
                   + f" | {epi_s} | {scale} | {drift} | {gaps} | {rs} |")  # fmt: skip
     _atomic(out.with_suffix(".md"), "\n".join(md) + "\n")

@@ -501,6 +501,9 @@ class Segmenter:
                 tr = plate_foreground(
                     imgs_np[k][i], self.plates[cname], entry, d, self.plate_config
                 )
+                # The re-trace state (the reduced frame and plate) is for the two-view
+                # branch choice of the stereo pipeline; a batch keeps every frame's trace.
+                tr.retrace = None
                 bk.append(~tr.mask)
                 tk.append(tr)
             bg = np.stack(bk)

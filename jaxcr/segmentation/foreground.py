@@ -60,6 +60,9 @@ __all__ = [
     "measure_tube_width",
     "downsample",
     "plate_foreground",
+    "trace_alternatives",
+    "crossing_turn",
+    "crosses_through",
 ]
 
 
@@ -166,7 +169,22 @@ class TubeTrace:
             branch of the mask was supported ahead besides the one followed (a crossing
             cable or tool, a shadow leaving the tube), or direction None where the run
             across the tube was over 1.6 times its width (something crossing it);
-            :func:`plate_foreground` follows them when the trace ran out of the image.
+            :func:`plate_foreground` follows them when the trace ran out of the image,
+            :func:`trace_alternatives` when a second view disagrees.
+        crossing_turn_deg: the largest turn of the path where it passes a junction (the
+            angle between the tube's heading arriving there and the chord to the path two
+            look lengths on, :func:`crossing_turn`): a tube passing behind a crossing
+            object goes on smoothly, a trace that turned onto the object turns by the
+            crossing angle.
+        crossings_followed: at how many junctions the path leaves along something that
+            crosses the tube there (:func:`crosses_through`: the line it leaves along is on
+            the mask behind the junction too).
+        departure: for an alternative of :func:`trace_alternatives`, the index into
+            ``backbone`` (at the traced scale) of the junction it leaves the original
+            trace at; None for a trace of :func:`plate_foreground`.
+        retrace: what :func:`trace_alternatives` needs (the traced view's mask and images,
+            the factor, the full-resolution score); None for traces from
+            :func:`trace_tube`.
     """
 
     mask: np.ndarray
@@ -185,6 +203,10 @@ class TubeTrace:
     end_dir: np.ndarray = field(default_factory=lambda: np.zeros(2))
     end_half_width_px: float = 0.0
     junctions: list = field(default_factory=list)
+    crossing_turn_deg: float = 0.0
+    departure: int | None = None
+    crossings_followed: int = 0
+    retrace: object | None = field(default=None, repr=False)
 
 
 # ----------------------------------------------------------------------------- alignment
@@ -1117,17 +1139,223 @@ def plate_foreground(
         ps = ndi.gaussian_filter(pl, (cfg.blur_px, cfg.blur_px, 0))
     tr = trace_tube(seeds_l, _to_low(entry_uv, k), direction_uv, cfg, frame=fs, plate=ps)
     tr = _retrace_off_border(tr, seeds_l, cfg, fs, ps)
+    tr.crossing_turn_deg = _path_turn(tr.backbone, [j[0] for j in tr.junctions], cfg)
+    tr.crossings_followed = _path_through(seeds_l, tr.backbone, [j[0] for j in tr.junctions],
+                                          cfg, tr.width_px)  # fmt: skip
+    ctx = _Retrace(seeds_l, fs, ps, k, score, seeds, shift, width0, cfg, tr)
+    return _finish(tr, ctx)
+
+
+@dataclass(frozen=True)
+class _Retrace:
+    """A :func:`plate_foreground` run's state that :func:`trace_alternatives` re-traces on:
+    the traced view's mask ``seeds_l`` and smoothed frame/plate ``fs``/``ps`` (reduced by
+    ``k``), the full-resolution ``score`` and hysteresis mask ``seeds``, the plate
+    ``shift``, the measured entry width, the config and the trace at the traced scale."""
+
+    seeds_l: np.ndarray
+    fs: np.ndarray
+    ps: np.ndarray
+    k: int
+    score: np.ndarray
+    seeds: np.ndarray
+    shift: np.ndarray
+    width0: float
+    cfg: PlateForegroundConfig
+    low: TubeTrace
+
+
+def _finish(low: TubeTrace, ctx: _Retrace) -> TubeTrace:
+    """A trace at the traced scale mapped to full-resolution pixels, its mask the
+    full-resolution hysteresis mask near the path, its tip refined on the full-resolution
+    score (the end of :func:`plate_foreground`)."""
+    from dataclasses import replace
+
+    k, cfg = ctx.k, ctx.cfg
+    tr = replace(low, backbone=low.backbone.copy(), tip=low.tip.copy(), gaps=list(low.gaps))
     if k > 1:
         tr.backbone = _to_full(tr.backbone, k)
         tr.tip, tr.entry = _to_full(tr.tip, k), _to_full(tr.entry, k)
         tr.width_px = tr.width_px * k
-        tr.mask = _path_mask(seeds, tr.backbone, tr.gaps, tr.width_px)
+        tr.mask = _path_mask(ctx.seeds, tr.backbone, tr.gaps, tr.width_px)
     if cfg.refine and len(tr.backbone) >= 3:
         tip, tr.cap_px, tr.end_dir, tr.end_half_width_px = refine_tip_details(
-            score, tr.backbone, tr.width_px, _scaled(cfg, k)
+            ctx.score, tr.backbone, tr.width_px, _scaled(cfg, k)
         )
         tr.backbone = np.vstack([tr.backbone[:-1], tip])
         tr.tip = tip
-    tr.shift, tr.score, tr.seed_mask = shift, score, seeds
-    tr.scale, tr.measured_width_px = k, width0
+    tr.shift, tr.score, tr.seed_mask = ctx.shift, ctx.score, ctx.seeds
+    tr.scale, tr.measured_width_px = k, ctx.width0
+    tr.retrace = ctx
     return tr
+
+
+def _heading_at(bb: np.ndarray, i: int) -> float:
+    """The tube's heading (rad) arriving at ``bb[i]``: the arc fitted to the path before it
+    (:func:`_local_arc`), else the chord from 5 points back."""
+    arc = _local_arc(list(bb[: i + 1]))
+    if arc is not None:
+        return arc[0]
+    d = bb[i] - bb[max(i - 5, 0)]
+    if np.linalg.norm(d) < 1e-9:
+        d = bb[min(i + 1, len(bb) - 1)] - bb[i]
+    return float(np.arctan2(d[1], d[0]))
+
+
+def crossing_turn(backbone: np.ndarray, index: int, ahead_px: float) -> float:
+    """Turn (deg, in [0, 180]) of the path ``backbone`` (n, 2) at point ``index``: the
+    angle between its heading arriving there (:func:`_heading_at`) and the chord from that
+    point to the path ``ahead_px`` further on (or to its end). 0 when the path ends within
+    ``ahead_px / 2`` (the tube's end, not a crossing: no direction to compare)."""
+    bb = np.asarray(backbone, np.float64)
+    if index >= len(bb) - 1:
+        return 0.0
+    rest = bb[index:]
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(rest, axis=0), axis=1))]
+    if s[-1] < ahead_px / 2:
+        return 0.0
+    j = int(min(np.searchsorted(s, ahead_px), len(rest) - 1))
+    chord = rest[j] - rest[0]
+    head = _heading_at(bb, index)
+    diff = np.arctan2(chord[1], chord[0]) - head
+    return float(abs(np.degrees(np.angle(np.exp(1j * diff)))))
+
+
+def _path_turn(bb: np.ndarray, indices, cfg: PlateForegroundConfig) -> float:
+    """The largest :func:`crossing_turn` (two look lengths on) over the junction indices."""
+    turns = [crossing_turn(bb, int(i), 2.0 * cfg.look_px) for i in indices if 0 < i < len(bb)]
+    return max(turns, default=0.0)
+
+
+def crosses_through(mask: np.ndarray, backbone: np.ndarray, index: int, ahead_px: float,
+                    width_px: float, *, support: float = 0.6) -> bool:  # fmt: skip
+    """Whether the path ``backbone`` (n, 2) leaves point ``index`` along something that
+    crosses the tube there: the line of its chord to the path ``ahead_px`` further on,
+    continued *behind* the point (from ``ahead_px / 2`` to ``1.5 ahead_px`` back), lies on
+    ``mask`` on at least ``support`` of its samples that are farther than a tube width
+    (``width_px``) plus 1 px from the path before the point. A tube goes on from its own
+    path; a cable or tool crossing it is seen on both sides of the crossing (an X, not a
+    Y), and the tube's own path is what lies behind a straight-on continuation. False
+    where fewer than a third of the samples are off the path before (no evidence)."""
+    bb = np.asarray(backbone, np.float64)
+    if not 0 < index < len(bb) - 1:
+        return False
+    rest = bb[index:]
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(rest, axis=0), axis=1))]
+    if s[-1] < ahead_px / 2:
+        return False
+    j = int(min(np.searchsorted(s, ahead_px), len(rest) - 1))
+    u = rest[j] - rest[0]
+    if np.linalg.norm(u) < 1e-9:
+        return False
+    u = u / np.linalg.norm(u)
+    t = np.arange(0.5 * ahead_px, 1.5 * ahead_px + 1e-9, 1.0)
+    pts = bb[index][None] - t[:, None] * u[None]
+    h, w = mask.shape
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
+    before = _densify_path(bb[: index + 1])
+    d2 = np.min(np.sum((pts[:, None] - before[None]) ** 2, axis=2), axis=1)
+    off = inside & (d2 > (width_px + 1.0) ** 2)
+    if off.sum() < len(t) / 3:
+        return False
+    return bool(np.mean(_sample(mask, pts[off]) > 0) >= support)
+
+
+def _densify_path(pts: np.ndarray, step: float = 1.0) -> np.ndarray:
+    out = [pts[:1]]
+    for a, b in zip(pts[:-1], pts[1:], strict=True):
+        n = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1)
+        out.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return np.concatenate(out)
+
+
+def _path_through(mask, bb, indices, cfg: PlateForegroundConfig, width_px: float) -> int:
+    """How many of the junction indices the path leaves along a crossing object
+    (:func:`crosses_through`, two look lengths on)."""
+    return int(sum(crosses_through(mask, bb, int(i), 2.0 * cfg.look_px, width_px)
+                   for i in indices if 0 < i < len(bb) - 1))  # fmt: skip
+
+
+def trace_alternatives(
+    tr: TubeTrace, *, turns_deg=(0.0, 15.0, -15.0, 30.0, -30.0, 45.0, -45.0)
+) -> list[TubeTrace]:
+    """Other ways the tube may go on at the junctions ``tr`` passed (crossing cables or
+    tools, shadows), each traced to its end and refined as :func:`plate_foreground` does:
+    the alternatives one view offers when another view disagrees with its tip
+    (:func:`jaxcr.stereo.branch_choice.choose_branches`).
+
+    At each junction the re-trace starts from the junction's point in the direction of its
+    second branch (where one was seen) and in the tube's heading arriving there
+    (:func:`_heading_at`) turned by each of ``turns_deg`` (0 first: straight on, behind the
+    crossing object), on the mask with the tube traced before the junction taken off (a
+    re-trace must not walk back) and the trace's own path after it taken off beyond a look
+    length and a width from the junction (so the re-trace neither follows the branch the
+    trace took nor is cut off from the crossing). Junctions fewer than two look lengths
+    before the trace's end are skipped (the end's jitter, not a branch). Kept: traces that
+    go on for two look lengths, onwards (within 60 deg of the start direction there), end
+    inside the image, and end more than 1.5 px (traced scale) from every tip kept before
+    (the original's included).
+    Each alternative's ``departure`` is its junction's index; its ``crossing_turn_deg`` the
+    largest turn at the junctions it passes. [] for a trace without ``retrace`` state or
+    junctions."""
+    ctx = tr.retrace
+    if ctx is None or not ctx.low.junctions:
+        return []
+    low, cfg = ctx.low, ctx.cfg
+    mask = ctx.seeds_l
+    bb_all = np.asarray(low.backbone, np.float64)
+    near_steps = int(np.ceil(cfg.look_px / cfg.step_px))
+    rad = 0.5 * low.width_px + 1.0
+    reach = cfg.look_px + low.width_px
+    margin = 2.0 * cfg.step_px
+    tips = [np.asarray(low.tip, np.float64)]
+    out = []
+    ones = np.ones_like(mask)
+    seg_all = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(bb_all, axis=0), axis=1))]
+    ahead_px = 2.0 * cfg.look_px
+    for i, pj, dj in low.junctions:
+        # A branch, not the end's jitter: the trace goes on two look lengths past the
+        # junction, and so must an alternative.
+        if not 0 < i < len(bb_all) or seg_all[-1] - seg_all[i] < ahead_px:
+            continue
+        head = _heading_at(bb_all, i)
+        dirs = [] if dj is None else [np.asarray(dj, np.float64)]
+        dirs += [_unit(head + np.radians(a)) for a in turns_deg]
+        sub_mask = mask.copy()
+        pre = bb_all[: max(i - near_steps, 0)]
+        if len(pre) >= 2:
+            sub_mask &= ~_path_mask(ones, pre, [], 2 * rad)
+        post = bb_all[i:]
+        far = np.linalg.norm(post - pj[None], axis=1) > reach
+        # Runs of far points (the path may come back near the junction).
+        idx = np.flatnonzero(far)
+        for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if len(idx) else []:
+            if len(run) >= 2:
+                sub_mask &= ~_path_mask(ones, post[run], [], 2 * rad)
+        for dv in dirs:
+            sub = trace_tube(sub_mask, pj, dv, cfg, frame=ctx.fs, plate=ctx.ps, _single=True)
+            if len(sub.backbone) < 2 or _at_border(sub.tip, mask.shape, margin):
+                continue
+            seg = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(sub.backbone, axis=0), axis=1))]
+            if seg[-1] < ahead_px:
+                continue
+            ahead = sub.backbone[int(np.searchsorted(seg, min(2 * cfg.look_px, seg[-1])))]
+            dn = np.linalg.norm(ahead - pj)
+            if dn > 0 and (ahead - pj) @ dv < 0.5 * dn:
+                continue
+            if min(np.linalg.norm(sub.tip - t) for t in tips) <= 1.5:
+                continue
+            tips.append(sub.tip.copy())
+            bb = np.vstack([bb_all[: i + 1], sub.backbone[1:]])
+            gaps = [g for g in low.gaps if g[1] <= i] + [(a + i, b + i) for a, b in sub.gaps]
+            juncs = [j for j in low.junctions if j[0] < i] + [(i, pj, dv)] + [
+                (a + i, b, c) for a, b, c in sub.junctions
+            ]  # fmt: skip
+            alt = TubeTrace(_path_mask(mask, bb, gaps, low.width_px), bb, bb[-1].copy(),
+                            low.entry, gaps, width_px=low.width_px, junctions=juncs)  # fmt: skip
+            alt.crossing_turn_deg = _path_turn(bb, [j[0] for j in juncs], cfg)
+            alt.crossings_followed = _path_through(mask, bb, [j[0] for j in juncs], cfg,
+                                                   low.width_px)  # fmt: skip
+            alt.departure = int(i)
+            out.append(_finish(alt, ctx))
+    return out

@@ -53,7 +53,11 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from jaxcr.camera import Camera, project_points
-from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foreground
+from jaxcr.segmentation.foreground import (
+    PlateForegroundConfig,
+    plate_foreground,
+    trace_alternatives,
+)
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
 from jaxcr.stereo.base_frame import (
     BaseSpec,
@@ -63,6 +67,7 @@ from jaxcr.stereo.base_frame import (
     triangulate_entry,
 )
 from jaxcr.stereo.base_locate import flood_component, locate_base
+from jaxcr.stereo.branch_choice import choose_branches
 from jaxcr.stereo.chain_fit import (
     chain_points,
     fit_segments_jointly,
@@ -328,45 +333,88 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
     return [ends[k] - res[k] * dirs[k] for k in range(2)], [res[0], res[1]]
 
 
-def traced_stereo_tips(cams, traces) -> tuple[list[np.ndarray], str, TipConsistency | None]:
+def traced_stereo_tips(
+    cams, traces, *, flag_px: float = 5.0
+) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
-    view's own traced tip where the two views leave it undetermined), then, where the two
-    tips are over 5 px from each other's epipolar lines, re-searched along the traced
-    tubes (:func:`jaxcr.stereo.tip_consistency.reconcile_tips`). ``traces``: the two
+    view's own traced tip where the two views leave it undetermined); where the two tips
+    are over ``flag_px`` from each other's epipolar lines, the branches the tracers took at
+    the junctions they passed are chosen again by both views together (each view's trace
+    and its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
+    trace_alternatives`; the consistent pair with the smoothest paths,
+    :func:`jaxcr.stereo.branch_choice.choose_branches`); then, still over ``flag_px``,
+    the tips are re-searched along the traced tubes
+    (:func:`jaxcr.stereo.tip_consistency.reconcile_tips`). ``traces``: the two
     :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
-    (u, v), source ``"trace_stereo"`` or ``"trace"``, the re-search's result or None when
-    a tip is not finite)."""
+    (u, v), source ``"trace_stereo"`` or ``"trace"`` (``"+branch"`` appended when a branch
+    choice replaced a view's trace), the re-search's result or None when a tip is not
+    finite, the two traces the tips belong to)."""
+    traces = list(traces)
+    tips, src = _stereo_or_own_tips(cams, traces)
+    if _epi_px(cams, tips) > flag_px and all(
+        getattr(t, "retrace", None) is not None for t in traces
+    ):
+        cands = [[t] + trace_alternatives(t) for t in traces]
+        if len(cands[0]) + len(cands[1]) > 2:
+            choice = choose_branches(
+                cams,
+                cands,
+                tips_of=lambda a, b: _stereo_or_own_tips(cams, [a, b])[0],
+                match_px=3.0 * flag_px,
+            )
+            if choice is not None and choice.indices != (0, 0):
+                traces = [cands[k][choice.indices[k]] for k in range(2)]
+                tips, src = _stereo_or_own_tips(cams, traces)
+                src = src + "+branch"
+    if not all(np.all(np.isfinite(t)) for t in tips):
+        return tips, src, None, traces
+    res = reconcile_tips(cams, traces, tips, flag_px=flag_px)
+    return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
+
+
+def _stereo_or_own_tips(cams, traces) -> tuple[list[np.ndarray], str]:
     st = trace_stereo_tips(cams, traces)
     if st is not None:
-        tips, src = [np.asarray(t, np.float64) for t in st[0]], "trace_stereo"
-    else:
-        tips, src = [np.asarray(t.tip, np.float64) for t in traces], "trace"
+        return [np.asarray(t, np.float64) for t in st[0]], "trace_stereo"
+    return [np.asarray(t.tip, np.float64) for t in traces], "trace"
+
+
+def _epi_px(cams, tips) -> float:
+    """Epipolar distance (px, undistorted) of two distorted tips; inf if one is not finite."""
     if not all(np.all(np.isfinite(t)) for t in tips):
-        return tips, src, None
-    res = reconcile_tips(cams, traces, tips)
-    return [np.asarray(t, np.float64) for t in res.tips], src, res
+        return float("inf")
+    und = [_undistort_px(c, t)[0] for c, t in zip(cams, tips, strict=True)]
+    F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
+                               np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
+    return float(max(epipolar_distances(F, und[0], und[1])))
 
 
 def _traced_tips(vrec: list[dict], cams, traces) -> None:
     """``--segmentation trace``: each view's ``tip_px`` from the tracer instead of the
     skeleton's end, with ``tip_source``: ``"trace_stereo"`` (:func:`trace_stereo_tips`),
     else ``"trace"`` (the view's own traced tip, where the two views leave the end face's
-    length undetermined), else ``"skeleton"`` (no finite traced tip); ``"+cut"`` or
-    ``"+extended"`` appended for the view :func:`traced_stereo_tips`' epipolar re-search
-    moved. The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
+    length undetermined), else ``"skeleton"`` (no finite traced tip); ``"+branch"``
+    appended for a view whose trace :func:`traced_stereo_tips` replaced by another branch
+    (its ``backbone_px`` is then that trace's path, not the mask's skeleton), ``"+cut"`` or
+    ``"+extended"`` for the view its epipolar re-search moved. The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
     the tube's end direction) and ends at it."""
-    tips, source, recheck = traced_stereo_tips(cams, traces)
-    for k, (v, t) in enumerate(zip(vrec, traces, strict=True)):
+    tips, source, recheck, chosen = traced_stereo_tips(cams, traces)
+    for k, (v, t) in enumerate(zip(vrec, chosen, strict=True)):
         v["tip_skeleton_px"] = v["tip_px"]
         if np.all(np.isfinite(tips[k])):
-            tip, src = tips[k], source
+            tip, src = tips[k], source.replace("+branch", "")
         else:
             v["tip_source"] = "skeleton"
             continue
+        if t is not traces[k]:
+            src = src + "+branch"
         if recheck is not None and recheck.view == k:
             src = src + "+" + recheck.action
         line = np.asarray(v["backbone_px"], np.float64)[:-1]  # the skeleton's end dropped
+        if t is not traces[k]:
+            # Another branch than the mask's skeleton followed: the chosen trace's path.
+            line = np.asarray(t.backbone, np.float64)[:-1]
         d = np.asarray(t.end_dir, np.float64)
         if np.all(np.isfinite(d)) and np.linalg.norm(d) > 0:
             beyond = (line - tip) @ d >= 0.0

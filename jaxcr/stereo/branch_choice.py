@@ -1,0 +1,114 @@
+"""Which branch each view's tube took at a crossing, chosen by the two views together
+(issue 16 item 2: the tracer turned onto a cable or tool crossing in front of the tube).
+
+One view's tracer (:func:`jaxcr.segmentation.foreground.plate_foreground`) decides at a
+crossing from that view alone; where it follows the crossing object, its tip lands on the
+object, and the two views' tips are far from each other's epipolar lines (the flag of
+:func:`jaxcr.stereo.pipeline.traced_stereo_tips`). Each view then offers candidates: its
+trace and the re-traces from the junctions it passed
+(:func:`jaxcr.segmentation.foreground.trace_alternatives`). A pair of candidates is
+*consistent* when its two tips (as ``tips_of`` places them) lie within ``match_px`` of each
+other's epipolar lines: the two tips may then be the images of one 3-D point, which the
+tube's end is and a random pair of ends is not.
+
+A tip's epipolar line crosses the whole other image, so a view's alternatives, ending here
+and there, meet it now and then by chance; the choice is therefore narrow. Only pairs in
+which one view keeps its own trace are considered (a view's tip that agrees with the other
+view's traced tip), and a view's trace is replaced only by an alternative that is
+*smoother* than it: one that follows fewer crossing objects (``crossings_followed``: the
+line it leaves a junction along lies on the mask behind the junction too, an X rather than
+a Y, :func:`jaxcr.segmentation.foreground.crosses_through`), or as many with a smaller
+largest turn at its junctions (``crossing_turn_deg``; a tube goes on behind a crossing
+object, a trace that followed the object turns by the crossing angle). Among those pairs
+(the two traces themselves included) the one with the fewest crossings followed, then the
+smallest sum of turns, then the smallest epipolar distance wins. No consistent pair:
+nothing is chosen (the caller keeps its traces; the frame stays flagged).
+
+Pixels are distorted (as the camera records them) at the interface and undistorted inside.
+Numpy float64 and cv2 (undistortion), per frame, at the edge of the stereo pipeline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
+
+__all__ = ["BranchChoice", "choose_branches"]
+
+
+@dataclass
+class BranchChoice:
+    """Result of :func:`choose_branches`: ``indices`` (i0, i1) the chosen candidate of each
+    view; ``tips`` [(2,), (2,)] their tips (distorted (u, v), from ``tips_of``);
+    ``epipolar_px`` their epipolar distance; ``turn_deg`` the sum of their
+    ``crossing_turn_deg``; ``consistent_pairs`` how many pairs were within ``match_px``."""
+
+    indices: tuple[int, int]
+    tips: list
+    epipolar_px: float
+    turn_deg: float
+    consistent_pairs: int
+
+
+def _undistort(cam, uv) -> np.ndarray:
+    K = np.asarray(cam.K, np.float64)
+    pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
+    return cv2.undistortPoints(pts, K, np.asarray(cam.dist, np.float64), P=K).reshape(-1, 2)
+
+
+def _smoother(alt, orig) -> bool:
+    """Whether ``alt`` follows fewer crossing objects than ``orig``, or as many with a
+    smaller largest turn at its junctions."""
+    fa, fo = int(getattr(alt, "crossings_followed", 0)), int(getattr(orig, "crossings_followed", 0))
+    return (fa, float(alt.crossing_turn_deg)) < (fo, float(orig.crossing_turn_deg))
+
+
+def choose_branches(
+    cams, candidates, *, tips_of=None, match_px: float = 15.0
+) -> BranchChoice | None:
+    """The consistent pair of candidates with the smoothest paths (module docstring).
+
+    ``cams``: two calibrated cameras (``K``, ``dist``, ``T_cam_robot`` in one frame).
+    ``candidates``: per view a list of objects with ``tip`` (2,) (distorted (u, v)) and
+    ``crossing_turn_deg`` (as :class:`jaxcr.segmentation.foreground.TubeTrace`).
+    ``tips_of(a, b)``: the two tips of a pair (e.g. corrected for the end face by
+    :func:`jaxcr.stereo.pipeline.trace_stereo_tips`), or None to use ``a.tip``, ``b.tip``;
+    a pair whose tips are not finite is skipped. ``match_px``: the largest epipolar
+    distance (px, undistorted) of a consistent pair (15: three times the flag of
+    :func:`jaxcr.stereo.pipeline.traced_stereo_tips`, because a tip that is on the right
+    branch but off along it, a trace stopped short or run on, is mended after the choice by
+    :func:`jaxcr.stereo.tip_consistency.reconcile_tips`). None when no pair is
+    consistent."""
+    F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
+                               np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
+    best, key, n_ok = None, None, 0
+    for i0, a in enumerate(candidates[0]):
+        for i1, b in enumerate(candidates[1]):
+            if i0 and i1:  # one view keeps its trace (the first candidate)
+                continue
+            if (i0 or i1) and not _smoother(candidates[0 if i0 else 1][i0 or i1],
+                                            candidates[0 if i0 else 1][0]):  # fmt: skip
+                continue
+            tips = tips_of(a, b) if tips_of is not None else (a.tip, b.tip)
+            tips = [np.asarray(t, np.float64) for t in tips]
+            if not all(np.all(np.isfinite(t)) for t in tips):
+                continue
+            x0, x1 = (_undistort(c, t)[0] for c, t in zip(cams, tips, strict=True))
+            e = float(max(epipolar_distances(F, x0, x1)))
+            if not e <= match_px:
+                continue
+            n_ok += 1
+            turn = float(a.crossing_turn_deg) + float(b.crossing_turn_deg)
+            followed = int(getattr(a, "crossings_followed", 0)) + int(
+                getattr(b, "crossings_followed", 0)
+            )
+            k = (followed, turn, e)
+            if key is None or k < key:
+                best, key = ((i0, i1), tips, e, turn), k
+    if best is None:
+        return None
+    return BranchChoice(best[0], best[1], best[2], best[3], n_ok)

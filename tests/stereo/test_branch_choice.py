@@ -1,0 +1,155 @@
+"""Choosing the branch each view's tracer took at a crossing with both views
+(:mod:`jaxcr.stereo.branch_choice`, issue 16 item 2): the ranking rules on hand-made
+candidates whose tips are projections of known 3-D points (closed form), and the whole chain
+(:func:`jaxcr.segmentation.foreground.trace_alternatives` on an X-junction mask, then
+:func:`jaxcr.stereo.pipeline.traced_stereo_tips`) on a rectified pair, where the epipolar
+lines are the image rows."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+
+from jaxcr.segmentation.foreground import (
+    PlateForegroundConfig,
+    plate_foreground,
+    trace_alternatives,
+)
+from jaxcr.stereo.branch_choice import choose_branches
+from jaxcr.stereo.pipeline import traced_stereo_tips
+from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
+from jaxcr.synth.scene import look_at_pose
+
+K = np.array([[220.0, 0.0, 80.0], [0.0, 220.0, 60.0], [0.0, 0.0, 1.0]])
+T0 = look_at_pose(np.array([0.30, -0.08, 0.06]), [0.0, 0.0, 0.04], up=(0.0, 0.0, 1.0))
+T1 = look_at_pose(np.array([0.06, -0.30, 0.08]), [0.0, 0.0, 0.04], up=(0.0, 0.0, 1.0))
+CAMS = [SimpleNamespace(K=K, dist=np.zeros(5), T_cam_robot=T) for T in (T0, T1)]
+F = fundamental_from_poses(K, T0, K, T1)
+
+
+def _proj(T, X):
+    Xc = np.atleast_2d(X) @ T[:3, :3].T + T[:3, 3]
+    x = Xc @ K.T
+    return x[:, :2] / x[:, 2:]
+
+
+TIP = np.array([0.02, 0.0, 0.08])  # the tube's end (base frame, m)
+CABLE_END = np.array([0.0, 0.03, 0.05])  # where a cable crossing the tube ends
+
+
+def _cand(tip, followed=0, turn=0.0):
+    return SimpleNamespace(tip=np.asarray(tip, np.float64), crossings_followed=followed,
+                           crossing_turn_deg=turn)  # fmt: skip
+
+
+def _on_epiline_of(x0, offset_px):
+    """A point of view 1 on the epipolar line of view-0 pixel ``x0``, ``offset_px`` along it
+    from the line's foot nearest the true tip (exactly consistent with ``x0``)."""
+    ln = F @ np.r_[x0, 1.0]
+    ln = ln / np.hypot(ln[0], ln[1])
+    t1 = _proj(T1, TIP)[0]
+    foot = t1 - (ln[:2] @ t1 + ln[2]) * ln[:2]
+    return foot + offset_px * np.array([-ln[1], ln[0]])
+
+
+def test_the_consistent_smoother_branch_is_chosen():
+    """View 0 traced the tube to its end; view 1's tracer followed a cable to its end (one
+    crossing followed, 40 deg turn). View 1's alternatives: the tube's end (consistent,
+    smooth), a decoy exactly on view 0's tip's epipolar line 40 px from the end (consistent,
+    smoother than the trace but turning more than the tube's end) and one off the line.
+    View 0's alternative along the cable to its end is consistent with view 1's trace (both
+    see the cable's end, one 3-D point) but not smoother than view 0's own trace, so it is
+    not a candidate. Expected: view 0's trace and view 1's tube end, exactly (no
+    arithmetic on the tips)."""
+    t0, t1 = _proj(T0, TIP)[0], _proj(T1, TIP)[0]
+    c0, c1 = _proj(T0, CABLE_END)[0], _proj(T1, CABLE_END)[0]
+    assert max(epipolar_distances(F, t0, c1)) > 15.0  # flagged, and beyond match_px
+    assert max(epipolar_distances(F, c0, c1)) < 1e-6  # the cable's end: consistent
+    decoy = _on_epiline_of(t0, 40.0)
+    cands = [
+        [_cand(t0, 0, 5.0), _cand(c0, 1, 30.0)],
+        [_cand(c1, 1, 40.0), _cand(decoy, 0, 25.0), _cand(t1, 0, 10.0), _cand(t1 + [0, 30], 0, 0.0)],
+    ]  # fmt: skip
+    res = choose_branches(CAMS, cands)
+    assert res.indices == (0, 2), res
+    np.testing.assert_array_equal(res.tips[1], t1)
+    assert res.epipolar_px < 1e-6
+    # Without the tube's end, the decoy is the best consistent smoother branch: the rules
+    # rank, they cannot know a decoy (what the frame's images then decide is not here).
+    res = choose_branches(CAMS, [cands[0], cands[1][:2] + cands[1][3:]])
+    assert res.indices == (0, 1)
+    # The cable pair is consistent but needs view 0 to leave a smoother trace: with view 0's
+    # cable branch as smooth as its trace it still loses to (trace, tube end) on crossings.
+    cands[0][1] = _cand(c0, 0, 5.0)
+    assert choose_branches(CAMS, cands).indices == (0, 2)
+
+
+def test_no_consistent_pair_chooses_nothing_and_both_views_never_change():
+    """Alternatives consistent only with each other (both views leave their traces) are
+    not considered; with no other consistent pair the result is None."""
+    t0, t1 = _proj(T0, TIP)[0], _proj(T1, TIP)[0]
+    c1 = _proj(T1, CABLE_END)[0]
+    far0 = t0 + np.array([0.0, -40.0])
+    assert max(epipolar_distances(F, far0, c1)) > 15.0
+    assert max(epipolar_distances(F, far0, t1)) > 15.0
+    assert max(epipolar_distances(F, t0, c1)) > 15.0
+    cands = [[_cand(far0, 1, 40.0), _cand(t0, 0, 1.0)], [_cand(c1, 1, 40.0), _cand(t1, 0, 1.0)]]
+    assert choose_branches(CAMS, cands) is None
+
+
+def _x_junction(cable_deg=20.0, bend_deg=30.0):
+    """160x120 mask: a tube 7 px wide up from (60, 119) to (60, 60), bending ``bend_deg``
+    left there and ending 30 px on; a cable as wide and as dark crossing it at (60, 60),
+    ``cable_deg`` right of its heading, from 60 px behind the crossing to 50 px beyond it
+    (inside the image). Returns the mask, the tube's drawn end (cv2.line's round cap: 3.5
+    px beyond the end point) and the cable's far end."""
+    m = np.zeros((120, 160), np.uint8)
+    cv2.line(m, (60, 119), (60, 60), 1, 7)
+    a = np.radians(bend_deg)
+    end = np.array([60 - 30 * np.sin(a), 60 - 30 * np.cos(a)])
+    cv2.line(m, (60, 60), tuple(int(round(x)) for x in end), 1, 7)
+    b = np.radians(cable_deg)
+    c0 = (int(round(60 - 60 * np.sin(b))), int(round(60 + 60 * np.cos(b))))
+    c1 = (int(round(60 + 50 * np.sin(b))), int(round(60 - 50 * np.cos(b))))
+    cv2.line(m, c0, c1, 1, 7)
+    return m > 0, end + 3.5 * np.array([-np.sin(a), -np.cos(a)]), np.array(c1, np.float64)
+
+
+def _traced(mask):
+    plate = np.broadcast_to(np.array([0.16, 0.50, 0.20]), mask.shape + (3,)).copy()
+    frame = plate.copy()
+    frame[mask] = 0.1
+    cfg = PlateForegroundConfig(align=False, start_spread_deg=0.0, close_px=0.0, refine=False)
+    return plate_foreground(frame, plate, (60.0, 119.0), (0.0, -1.0), cfg=cfg)
+
+
+def test_x_junction_the_other_view_picks_the_tube_not_the_cable():
+    """View 1 is the X-junction mask (the tracer follows the straighter cable to its end,
+    inside the image, where the off-border re-trace does not act); view 0 a straight tube
+    whose end is on the row of view 1's tube end. The cameras are a rectified pair (camera
+    1 moved 0.1 m along x: the epipolar lines are the rows). The junction's alternatives
+    include the tube's end; it is the one on view 0's tip's row and it follows no crossing
+    (the cable is on the mask behind the crossing too, the tube's branch is not).
+    Expected: view 1's tip at the tube's drawn end within 2 px (the bound of
+    test_foreground_plate's tracing tests: nearest-pixel sampling 0.5 + 0.25 px march +
+    the pixel half-diagonal 0.71, rounded up), view 0's tip unchanged."""
+    mask1, end1, cable_end = _x_junction()
+    tr1 = _traced(mask1)
+    assert np.linalg.norm(tr1.tip - cable_end) < 6.0  # the tracer alone follows the cable
+    assert tr1.crossings_followed == 1
+    alts = trace_alternatives(tr1)
+    good = [a for a in alts if np.linalg.norm(a.tip - end1) < 2.0]
+    assert len(good) == 1 and good[0].crossings_followed == 0
+    mask0 = np.zeros((120, 160), bool)
+    cv2.line(mask0.view(np.uint8), (60, 119), (60, int(round(end1[1] + 3.5))), 1, 7)
+    tr0 = _traced(mask0)
+    assert abs(tr0.tip[1] - end1[1]) < 2.0
+    Ts = [np.eye(4), np.eye(4)]
+    Ts[1][0, 3] = -0.1  # camera 1 at x = +0.1 m
+    cams = [SimpleNamespace(K=K, dist=np.zeros(5), T_cam_robot=T) for T in Ts]
+    tips, src, _, chosen = traced_stereo_tips(cams, [tr0, tr1])
+    assert "+branch" in src and chosen[0] is tr0 and chosen[1] is not tr1
+    assert np.linalg.norm(tips[1] - end1) < 2.0, (tips[1], end1)
+    np.testing.assert_array_equal(tips[0], tr0.tip)
