@@ -23,7 +23,8 @@ ROBOT = {
     "joints": ["kappa", "phi"],
     "n_points": 24,
 }
-FAST = ["--levels", "2", "--max-steps", "4", "--batch-size", "2", "--quiet"]
+#: as tests/cli/test_cli_segment.py's FAST (one refinement program for both modules)
+FAST = ["--levels", "1", "--max-steps", "4", "--batch-size", "2", "--quiet"]
 
 
 def _cam():

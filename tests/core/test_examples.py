@@ -76,7 +76,7 @@ def test_stereo(run_example):
     assert img is not None and img.std() > 1.0
 
 
-@pytest.mark.slow  # synth + one refinement compile at 320x240: ~2 min at load 7
+@pytest.mark.slow  # synth + one one-level refinement compile at 320x240
 def test_refine_frame(run_example):
     ns, out = run_example("refine_frame.py")
     res, truth = ns["result"], np.asarray(ns["truth"], bool)
@@ -90,11 +90,12 @@ def test_refine_frame(run_example):
     assert nominal == pytest.approx(ns["iou_nominal"]) and refined == pytest.approx(
         ns["iou_refined"]
     )
-    # measured here: 0.704 -> 0.791 (+0.087; at 160x120 the 2-3 px wide tube gained only
-    # +0.009, hence 320x240). Required: half the measured gain, +0.04: the other half covers
+    # measured here: 0.704 -> 0.842 (+0.138, one pyramid level, 23 steps; the earlier
+    # two-level config gained +0.087; at 160x120 the 2-3 px wide tube gained only +0.009,
+    # hence 320x240). Required: under half the measured gain, +0.06: the other half covers
     # a different solver path on another CPU (float32 rounding of the energy changes BFGS
     # steps, not the optimum's basin on this seed); a refinement that does nothing fails
-    assert refined > nominal + 0.04
+    assert refined > nominal + 0.06
     img = cv2.imread(str(out / "refine_frame.png"))
     assert img is not None and img.std() > 1.0
 
