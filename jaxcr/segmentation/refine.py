@@ -188,6 +188,13 @@ class RefineConfig(eqx.Module):
         identity. Off by default (docs/decisions.md S12): it cut tracking time to 0.55x and
         cold time to 0.71x at equal IoU on the benchmark scenes, but on the camera-correction
         scene of ``tests/segmentation/test_refine.py`` the refined IoU fell from > 0.8 to 0.69.
+    share_levels : bool
+        one compiled solve for every pyramid level (the coarse levels' data padded to the
+        finest grid, traced level, band size and step budget; :func:`refine_frame`), or one
+        per level. Sharing compiles faster (-20 % CPU on the two-level test program) but each
+        coarse step then costs a fine one (+50 % CPU per frame at 640x480, package defaults);
+        for long batch jobs ``False`` is faster
+        (experiments/results/segmentation/refine_compile_profile.md).
 
     Examples
     --------
@@ -229,6 +236,7 @@ class RefineConfig(eqx.Module):
     camera_correction_mode: str = eqx.field(static=True, default="camera")
     g_cam_rel: float | None = eqx.field(static=True, default=None)
     hessian_memory: bool = eqx.field(static=True, default=False)
+    share_levels: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         n = len(self.levels)
@@ -662,7 +670,8 @@ class _Levels(eqx.Module):
     one compiled solve serves every level (:func:`refine_frame`): per camera, the levels'
     :class:`RegionData` padded to the finest level's grid (zero weight on the padding), which
     tiles of that grid lie in the level's image (``tile_ok``) and the level's band size
-    (``k_active`` of ``k_max`` slots); per level, the level, tau and the step budget."""
+    (``k_active`` of ``k_max`` slots); per level, the level, tau and the step budget; static,
+    the capsule count of the drawn tube and the solver's ``max_steps`` (the largest budget)."""
 
     datas: tuple[RegionData, ...]
     tile_ok: tuple[Bool[Array, "L n"], ...]
@@ -671,12 +680,19 @@ class _Levels(eqx.Module):
     tau: Float[Array, " L"]
     steps: Int[Array, " L"]
     k_max: tuple[int, ...] = eqx.field(static=True)
+    n_capsules: int = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
 
 
-def _level_tables(pyramids, config: RefineConfig, n_seg: int, dtype) -> tuple[_Levels, int]:
-    """:class:`_Levels` of ``config``'s levels, and the capsule count every level's merged
-    tube is padded to (:func:`silhouette.level_tube_padded`)."""
-    finest = min(config.levels)
+def _level_tables(
+    pyramids, config: RefineConfig, n_seg: int, dtype, which: tuple[int, ...] | None = None
+) -> _Levels:
+    """:class:`_Levels` of ``config``'s levels (those at indices ``which``; all if None), with
+    the capsule count every level's merged tube is padded to
+    (:func:`silhouette.level_tube_padded`)."""
+    which = tuple(range(len(config.levels))) if which is None else which
+    levels = [config.levels[i] for i in which]
+    finest = min(levels)
     tile = config.tile
     datas, tile_ok, k_active, k_max = [], [], [], []
     for pyr in pyramids:
@@ -685,7 +701,7 @@ def _level_tables(pyramids, config: RefineConfig, n_seg: int, dtype) -> tuple[_L
         row = jnp.arange(grid.n_tiles) // grid.cols
         col = jnp.arange(grid.n_tiles) % grid.cols
         rds, oks, ks = [], [], []
-        for level in config.levels:
+        for level in levels:
             img, w, b = pyr[level]
             h, wd = w.shape
             pad = ((0, hf - h), (0, wf - wd))
@@ -700,16 +716,17 @@ def _level_tables(pyramids, config: RefineConfig, n_seg: int, dtype) -> tuple[_L
         tile_ok.append(jnp.stack(oks))
         k_active.append(jnp.asarray(ks, jnp.int32))
         k_max.append(max(ks))
-    tables = _Levels(
+    return _Levels(
         datas=tuple(datas),
         tile_ok=tuple(tile_ok),
         k_active=tuple(k_active),
-        level=jnp.asarray(config.levels, jnp.int32),
-        tau=jnp.asarray(config.tau, dtype),
-        steps=jnp.asarray(config.steps, jnp.int32),
+        level=jnp.asarray(levels, jnp.int32),
+        tau=jnp.asarray([config.tau[i] for i in which], dtype),
+        steps=jnp.asarray([config.steps[i] for i in which], jnp.int32),
         k_max=tuple(k_max),
+        n_capsules=-(-n_seg // (config.seg_merge * 2**finest)),
+        max_steps=max(config.steps[i] for i in which),
     )
-    return tables, -(-n_seg // (config.seg_merge * 2**finest))
 
 
 def refine_frame(
@@ -894,15 +911,15 @@ def refine_frame(
         pyramid(im, bg, max(config.levels) + 1) for im, bg in zip(images, backgrounds, strict=True)
     ]
     data_ok = sum(jnp.sum(p[0][1]) for p in pyramids) > 0.5
-    # One compiled solve serves every pyramid level (issue 18): the levels' data are padded
-    # to one shape and stacked, and a lax.scan over the schedule's solves picks its level's
-    # slice (see _level_tables).
-    tables, size = _level_tables(pyramids, config, base.p.shape[0] - 1, dtype)
 
+    # One compiled solve serves every pyramid level (issue 18, config.share_levels): the
+    # levels' data are padded to one shape and stacked, and a lax.scan over the schedule's
+    # solves picks its level's slice (see _level_tables). Otherwise each level gets its own
+    # one-level table and scan: the same body traced once per level, on unpadded arrays.
     def draw(tube, lv):
-        return level_tube_padded(tube, lv.level, config.seg_merge, size)
+        return level_tube_padded(tube, lv.level, config.seg_merge, lv.n_capsules)
 
-    def solve(carry, xs):
+    def solve(carry, xs, tables):
         params, _, hinv, have_h = carry
         li, new_level = xs
         lv = jax.tree.map(lambda x: x[li], tables)
@@ -965,7 +982,7 @@ def refine_frame(
             flat0 * scale,
             args=args,
             options=options,
-            max_steps=max(config.steps),
+            max_steps=lv.max_steps,
             throw=False,
         )
         value = unravel(sol.value / scale)
@@ -978,12 +995,21 @@ def refine_frame(
             have_h = have_h | keep
         return (new, _result_int(sol.result), hinv, have_h), sol.stats["num_steps"]
 
-    # the schedule: solve j runs at level index schedule[j] (outer[li] solves per level)
-    schedule = [li for li, n in enumerate(config.outer) for _ in range(n)]
-    new_level = [j > 0 and schedule[j - 1] != li for j, li in enumerate(schedule)]
-    zero = jnp.asarray(0, jnp.int32)
-    xs = (jnp.asarray(schedule, jnp.int32), jnp.asarray(new_level, bool))
-    (params, status, hinv, have_h), n_solve = jax.lax.scan(solve, (params0, zero, hinv, have_h), xs)
+    n_levels = len(config.levels)
+    groups = [tuple(range(n_levels))] if config.share_levels else [(i,) for i in range(n_levels)]
+    carry = (params0, jnp.asarray(0, jnp.int32), hinv, have_h)
+    n_solve = []
+    for group in groups:
+        tables = _level_tables(pyramids, config, base.p.shape[0] - 1, dtype, group)
+        # the schedule: solve j runs at row k of the table (config.outer[li] solves of level
+        # li = group[k]); each level after the first starts from the identity Hessian
+        rows = [(k, li) for k, li in enumerate(group) for _ in range(config.outer[li])]
+        new_level = [li > 0 and (j == 0 or rows[j - 1][1] != li) for j, (_, li) in enumerate(rows)]
+        xs = (jnp.asarray([k for k, _ in rows], jnp.int32), jnp.asarray(new_level, bool))
+        carry, n = jax.lax.scan(lambda c, x, t=tables: solve(c, x, t), carry, xs)
+        n_solve.append(n)
+    params, status, hinv, have_h = carry
+    n_solve = jnp.concatenate(n_solve)
     ends = [sum(config.outer[: li + 1]) for li in range(len(config.levels))]
     steps = [jnp.sum(n_solve[e - n : e]) for e, n in zip(ends, config.outer, strict=True)]
 

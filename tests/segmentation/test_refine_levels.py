@@ -8,6 +8,8 @@ computation it replaces (the reference: the unpadded level, level_tube, a static
 is compiled here (tracing only), so the module costs seconds.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,7 +18,12 @@ import pytest
 
 import jaxcr.segmentation.refine as refine_mod
 from jaxcr.segmentation.background import colour_mask
-from jaxcr.segmentation.energy import Weights, chan_vese_energy, pyramid, region_data_from_level
+from jaxcr.segmentation.energy import (
+    Weights,
+    chan_vese_energy,
+    pyramid,
+    region_data_from_level,
+)
 from jaxcr.segmentation.refine import ImageSpaceBFGS, _level_tables, refine_frame
 from jaxcr.segmentation.silhouette import (
     TubeImage,
@@ -59,10 +66,11 @@ def test_level_tube_padded_matches_level_tube(level, merge):
 def _scene_level(level):
     """Per-level data (the reference) and the padded, stacked tables of a two-level config."""
     base, cam = refine_scene.base(), refine_scene.camera()
-    img, bg = render_tube(base, cam, 3, (W, H))
+    img, _ = render_tube(base, cam, 3, (W, H))
     bgm, ip = colour_mask(jnp.asarray(img))
     pyr = pyramid(ip, bgm, 2)
-    tables, size = _level_tables([pyr], CFG, base.p.shape[0] - 1, jnp.float32)
+    tables = _level_tables([pyr], CFG, base.p.shape[0] - 1, jnp.float32)
+    size = tables.n_capsules
     li = CFG.levels.index(level)
     lv = jax.tree.map(lambda x: x[li], tables)
     ref_data = region_data_from_level(*pyr[level], level, CFG.tile)
@@ -145,9 +153,10 @@ def test_step_budget_matches_static_max_steps(budget):
         assert int(got.result._value) == int(optx.RESULTS.nonlinear_max_steps_reached._value)
 
 
-def test_two_level_refine_traces_the_solve_once(monkeypatch):
+@pytest.mark.parametrize("share", [True, False])
+def test_two_level_refine_traces_the_solve_once(monkeypatch, share):
     """The pyramid levels share one solve: tracing a two-level refine_frame calls
-    optx.minimise once (the per-level program traced it once per level)."""
+    optx.minimise once; with ``share_levels=False``, once per level (the per-level program)."""
     calls = []
     real = optx.minimise
 
@@ -159,9 +168,10 @@ def test_two_level_refine_traces_the_solve_once(monkeypatch):
     base, cam = refine_scene.base(), refine_scene.camera()
     img = jnp.zeros((H, W, 3))
     bg = jnp.zeros((H, W), bool)
-    assert len(CFG.levels) == 2
-    jax.make_jaxpr(lambda b, i, g: refine_frame(b, cam, i, g, CFG))(base, img, bg)
-    assert len(calls) == 1
+    cfg = dataclasses.replace(CFG, share_levels=share)
+    assert len(cfg.levels) == 2
+    jax.make_jaxpr(lambda b, i, g: refine_frame(b, cam, i, g, cfg))(base, img, bg)
+    assert len(calls) == (1 if share else 2)
 
 
 def test_padded_level_gradient_is_nan_free_on_a_straight_tube():
