@@ -191,10 +191,9 @@ class RefineConfig(eqx.Module):
     share_levels : bool
         one compiled solve for every pyramid level (the coarse levels' data padded to the
         finest grid, traced level, band size and step budget; :func:`refine_frame`), or one
-        per level. Sharing compiles faster (-20 % CPU on the two-level test program) but each
-        coarse step then costs a fine one (+50 % CPU per frame at 640x480, package defaults);
-        for long batch jobs ``False`` is faster
-        (experiments/results/segmentation/refine_compile_profile.md).
+        per level. Sharing compiles faster (-20-26 % CPU) but a coarse step then costs about a
+        fine one (+33-52 % CPU per frame at 640x480, package defaults); for long batch jobs
+        ``False`` may be faster (experiments/results/segmentation/refine_compile_profile.md).
 
     Examples
     --------
