@@ -1,7 +1,8 @@
 """Compile cost of one refinement program: the per-frame ``refine_frame`` of
 tests/segmentation/test_refine.py's configuration (160x120, levels (1, 0), one camera).
 
-Prints the jaxpr size (equations, nested jaxprs counted), the wall seconds of tracing, of
+Prints the jaxpr size (equations, nested jaxprs counted), the optimised HLO's instructions and
+fusions (load-independent), the wall seconds of tracing, of
 lowering + XLA compilation, the *process CPU* seconds of lowering + compilation (the figure
 to compare on a loaded machine: the other engineers' processes inflate wall time, not the CPU
 time this process spends), and the CPU seconds of running two frames. With ``--save F.npz``
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import time
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -36,6 +38,8 @@ from jaxcr.segmentation.shape import delta_u_steps  # noqa: E402
 from jaxcr.segmentation.silhouette import project_tube, rasterise_dense  # noqa: E402
 
 W, H = 160, 120
+# an instruction line of the optimised HLO text (as refine_compile_profile.py counts them)
+HLO_LINE = re.compile(r"\s+(ROOT )?%?[\w.\-]+ = ")
 CFG = RefineConfig(  # tests/segmentation/test_refine.py's CFG
     n_coeffs=3, levels=(1, 0), steps=(30, 15), outer=(2, 1), tau=(1.0, 0.8), band_tiles=96,
     min_tiles=24, g_reg=0.5, local=False, camera_correction=False,
@@ -102,6 +106,10 @@ def measure(save: str | None) -> None:
     compiled = jax.jit(f).lower(*args).compile()
     t1, c1 = time.perf_counter(), time.process_time()
     print(f"lower + XLA compile {t1 - t0:.1f} s wall, {c1 - c0:.1f} s CPU")
+    txt = compiled.as_text()
+    n_hlo = sum(1 for line in txt.splitlines() if HLO_LINE.match(line))
+    n_fus = len(re.findall(r"\bfusion\(", txt))
+    print(f"optimised HLO instructions {n_hlo}, fusions {n_fus}")
     c0 = time.process_time()
     outs = jax.block_until_ready([compiled(base, *fr) for fr in frames])
     print(f"run two frames {time.process_time() - c0:.2f} s CPU")

@@ -44,7 +44,8 @@ class RegionData(eqx.Module):
         tile_s1: (n_tiles, 3) per-tile sums of w img.
         total_w, total_s2: scalars, image totals of w and w |img|^2; total_s1: (3,).
         centre: (3,) the colour subtracted (weighted mean colour of the data pixels).
-        pix_area: full-resolution pixels per pixel at this level (``4**level``).
+        pix_area: full-resolution pixels per pixel at this level (``4**level``); a float, or
+            a scalar array when one compiled program serves several levels.
 
     ``H, W`` are the image size rounded up to whole tiles.
     """
@@ -61,7 +62,7 @@ class RegionData(eqx.Module):
     total_s1: Float[Array, " 3"]
     total_s2: Float[Array, ""]
     centre: Float[Array, " 3"]
-    pix_area: float = eqx.field(static=True)
+    pix_area: float | Float[Array, ""]
 
     def gather(self, tiles: Int[Array, " k"]) -> tuple[Array, Array, Array]:
         """Pixels of the given tiles: w (k, p), b (k, p), img (k, p, 3), p = tile**2, in
@@ -231,6 +232,10 @@ def region_terms(
     """
     ins = band.inside.astype(soft.dtype)
     bw, bb, img = data.gather(band.tiles) if gathered is None else gathered
+    if band.active is not None:
+        # slots past a band of traced size: no pixel of theirs counts
+        act = band.active.astype(bw.dtype)[:, None]
+        bw, bb = bw * act, bb * act
     w = bw * soft
     s0 = jnp.sum(w) + jnp.dot(ins, data.tile_w)
     s1 = jnp.einsum("kp,kpc->c", w, img) + ins @ data.tile_s1

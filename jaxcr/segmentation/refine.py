@@ -74,9 +74,10 @@ from jaxcr.segmentation.energy import (
 from jaxcr.segmentation.shape import delta_u_steps, n_axes, perturbed_centreline, regularisation
 from jaxcr.segmentation.silhouette import (
     Band,
+    TileGrid,
     TubeImage,
     band_margin,
-    level_tube,
+    level_tube_padded,
     project_tube,
     select_band,
 )
@@ -187,6 +188,12 @@ class RefineConfig(eqx.Module):
         identity. Off by default (docs/decisions.md S12): it cut tracking time to 0.55x and
         cold time to 0.71x at equal IoU on the benchmark scenes, but on the camera-correction
         scene of ``tests/segmentation/test_refine.py`` the refined IoU fell from > 0.8 to 0.69.
+    share_levels : bool
+        one compiled solve for every pyramid level (the coarse levels' data padded to the
+        finest grid, traced level, band size and step budget; :func:`refine_frame`), or one
+        per level. Sharing compiles faster (-20-26 % CPU) but a coarse step then costs about a
+        fine one (+33-52 % CPU per frame at 640x480, package defaults); for long batch jobs
+        ``False`` may be faster (experiments/results/segmentation/refine_compile_profile.md).
 
     Examples
     --------
@@ -228,6 +235,7 @@ class RefineConfig(eqx.Module):
     camera_correction_mode: str = eqx.field(static=True, default="camera")
     g_cam_rel: float | None = eqx.field(static=True, default=None)
     hessian_memory: bool = eqx.field(static=True, default=False)
+    share_levels: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         n = len(self.levels)
@@ -523,6 +531,35 @@ def _image_space_stop(solver, y, state, new, options):
     return eqx.tree_at(lambda s: s.terminate, new, converged)
 
 
+class _CountedState(eqx.Module):
+    """A solver state with the number of steps taken: Optimistix counts steps in its loop,
+    not in the state, and its ``max_steps`` is static; :class:`ImageSpaceBFGS` ends a solve
+    after ``options["step_budget"]`` steps (a traced count), so that one compiled solve
+    serves levels with different step budgets. Attributes of the inner state are readable
+    on this one (``state.f_info``)."""
+
+    inner: object
+    num_steps: Int[Array, ""]
+
+    def __getattr__(self, name):
+        if name in ("inner", "num_steps") or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+
+def _budget_terminate(state: _CountedState, options):
+    """(terminate, result) of the inner state, with Optimistix's own status for a solve that
+    ran out of steps (``nonlinear_max_steps_reached``) once ``options["step_budget"]`` steps
+    are taken without convergence."""
+    term, result = state.inner.terminate, state.inner.result
+    budget = options.get("step_budget")
+    if budget is None:
+        return term, result
+    out = (state.num_steps >= budget) & ~term
+    result = optx.RESULTS.where(out, optx.RESULTS.nonlinear_max_steps_reached, result)
+    return term | out, result
+
+
 class ImageSpaceBFGS(optx.BFGS):
     """Optimistix BFGS whose convergence test measures a step by the image motion it causes.
 
@@ -549,6 +586,10 @@ class ImageSpaceBFGS(optx.BFGS):
       gain within the tolerance is below ``ftol`` even by the linear model (the line search
       otherwise halves the step until ``max_steps``, as it did at the end of every solve).
 
+    A solve also ends (status ``nonlinear_max_steps_reached``, as at Optimistix's static
+    ``max_steps``) after ``options["step_budget"]`` steps when given: a traced budget, so
+    that the pyramid levels share one compiled solve (:func:`refine_frame`).
+
     Everything else (BFGS update, Newton descent, backtracking Armijo search) is
     ``optx.BFGS``.
     """
@@ -569,13 +610,20 @@ class ImageSpaceBFGS(optx.BFGS):
         earlier solve learnt) rather than steepest descent."""
         state = super().init(fn, y, args, options, f_struct, aux_struct, tags)
         h0 = options.get("hessian_inv0")
-        if h0 is None:
-            return state
-        return eqx.tree_at(lambda s: s.f_info.hessian_inv.pytree, state, h0.astype(y.dtype))
+        if h0 is not None:
+            state = eqx.tree_at(lambda s: s.f_info.hessian_inv.pytree, state, h0.astype(y.dtype))
+        return _CountedState(state, jnp.asarray(0, jnp.int32))
 
     def step(self, fn, y, args, options, state, tags):
-        y_new, new, aux = super().step(fn, y, args, options, state, tags)
-        return y_new, _image_space_stop(self, y, state, new, options), aux
+        y_new, new, aux = super().step(fn, y, args, options, state.inner, tags)
+        new = _image_space_stop(self, y, state.inner, new, options)
+        return y_new, _CountedState(new, state.num_steps + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return _budget_terminate(state, options)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return super().postprocess(fn, y, aux, args, options, state.inner, tags, result)
 
 
 class ImageSpaceLBFGS(optx.LBFGS):
@@ -591,9 +639,20 @@ class ImageSpaceLBFGS(optx.LBFGS):
         self.xtol = xtol
         self.ftol = ftol
 
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        state = super().init(fn, y, args, options, f_struct, aux_struct, tags)
+        return _CountedState(state, jnp.asarray(0, jnp.int32))
+
     def step(self, fn, y, args, options, state, tags):
-        y_new, new, aux = super().step(fn, y, args, options, state, tags)
-        return y_new, _image_space_stop(self, y, state, new, options), aux
+        y_new, new, aux = super().step(fn, y, args, options, state.inner, tags)
+        new = _image_space_stop(self, y, state.inner, new, options)
+        return y_new, _CountedState(new, state.num_steps + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return _budget_terminate(state, options)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return super().postprocess(fn, y, aux, args, options, state.inner, tags, result)
 
 
 def _pow2(x: Array) -> Array:
@@ -603,6 +662,70 @@ def _pow2(x: Array) -> Array:
 
 def _result_int(result) -> Int[Array, ""]:
     return jnp.asarray(result._value, jnp.int32)
+
+
+class _Levels(eqx.Module):
+    """The pyramid levels of a refinement as one pytree with a leading level axis L, so that
+    one compiled solve serves every level (:func:`refine_frame`): per camera, the levels'
+    :class:`RegionData` padded to the finest level's grid (zero weight on the padding), which
+    tiles of that grid lie in the level's image (``tile_ok``) and the level's band size
+    (``k_active`` of ``k_max`` slots); per level, the level, tau and the step budget; static,
+    the capsule count of the drawn tube and the solver's ``max_steps`` (the largest budget)."""
+
+    datas: tuple[RegionData, ...]
+    tile_ok: tuple[Bool[Array, "L n"], ...]
+    k_active: tuple[Int[Array, " L"], ...]
+    level: Int[Array, " L"]
+    tau: Float[Array, " L"]
+    steps: Int[Array, " L"]
+    k_max: tuple[int, ...] = eqx.field(static=True)
+    n_capsules: int = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+
+
+def _level_tables(
+    pyramids, config: RefineConfig, n_seg: int, dtype, which: tuple[int, ...] | None = None
+) -> _Levels:
+    """:class:`_Levels` of ``config``'s levels (those at indices ``which``; all if None), with
+    the capsule count every level's merged tube is padded to
+    (:func:`silhouette.level_tube_padded`)."""
+    which = tuple(range(len(config.levels))) if which is None else which
+    levels = [config.levels[i] for i in which]
+    finest = min(levels)
+    tile = config.tile
+    datas, tile_ok, k_active, k_max = [], [], [], []
+    for pyr in pyramids:
+        hf, wf = pyr[finest][1].shape
+        grid = TileGrid(hf, wf, tile)
+        row = jnp.arange(grid.n_tiles) // grid.cols
+        col = jnp.arange(grid.n_tiles) % grid.cols
+        rds, oks, ks = [], [], []
+        for level in levels:
+            img, w, b = pyr[level]
+            h, wd = w.shape
+            pad = ((0, hf - h), (0, wf - wd))
+            rd = region_data_from_level(
+                jnp.pad(img, pad + ((0, 0),)), jnp.pad(w, pad), jnp.pad(b, pad), level, tile
+            )
+            rds.append(eqx.tree_at(lambda d: d.pix_area, rd, jnp.asarray(4.0**level, dtype)))
+            rows, cols = -(-h // tile), -(-wd // tile)
+            oks.append((row < rows) & (col < cols))
+            ks.append(min(config.tiles_at(level), rows * cols))
+        datas.append(jax.tree.map(lambda *x: jnp.stack(x), *rds))
+        tile_ok.append(jnp.stack(oks))
+        k_active.append(jnp.asarray(ks, jnp.int32))
+        k_max.append(max(ks))
+    return _Levels(
+        datas=tuple(datas),
+        tile_ok=tuple(tile_ok),
+        k_active=tuple(k_active),
+        level=jnp.asarray(levels, jnp.int32),
+        tau=jnp.asarray([config.tau[i] for i in which], dtype),
+        steps=jnp.asarray([config.steps[i] for i in which], jnp.int32),
+        k_max=tuple(k_max),
+        n_capsules=-(-n_seg // (config.seg_merge * 2**finest)),
+        max_steps=max(config.steps[i] for i in which),
+    )
 
 
 def refine_frame(
@@ -705,7 +828,7 @@ def refine_frame(
             ok = jnp.concatenate([t.valid, t.valid[-1:]])[:, None, None]
             jx = jnp.concatenate([dax, dbx[-1:]], axis=0)
             jy = jnp.concatenate([day, dby[-1:]], axis=0)
-            out.append(jnp.where(ok, jnp.stack([jx, jy], axis=1), 0.0) / 2.0**level)
+            out.append(jnp.where(ok, jnp.stack([jx, jy], axis=1), 0.0) * jnp.exp2(-level))
         return jax.lax.stop_gradient(jnp.concatenate(out, axis=0))
 
     params0 = {"c": c0}
@@ -730,16 +853,16 @@ def refine_frame(
     def image_energy(tubes, args):
         """The data and penalty terms of J (everything but the regulariser) for the
         projected tubes of each camera."""
-        bands, datas, level, tau, vars_, gathered = args
+        bands, datas, lv, vars_, gathered = args
         J = 0.0
         for tube, band, data, var, gat in zip(tubes, bands, datas, vars_, gathered, strict=True):
             Jc, _ = chan_vese_energy(
-                level_tube(tube, level, config.seg_merge),
+                draw(tube, lv),
                 band,
                 data,
                 0.0,
                 weights,
-                tau,
+                lv.tau,
                 area_ref,
                 config.local,
                 config.robust,
@@ -774,9 +897,6 @@ def refine_frame(
         solver = ImageSpaceLBFGS(config.xtol, config.ftol)
     else:
         solver = ImageSpaceBFGS(config.xtol, config.ftol)
-    params = params0
-    steps = []
-    status = jnp.asarray(0, jnp.int32)
     n_flat = jax.flatten_util.ravel_pytree(params0)[0].shape[0]
     memory = config.hessian_memory and config.solver == "bfgs"
     eye = jnp.eye(n_flat, dtype=dtype)
@@ -786,93 +906,111 @@ def refine_frame(
         hinv = jnp.asarray(init_hessian, dtype).reshape(n_flat, n_flat)
         have_h = jnp.all(jnp.isfinite(hinv))
         hinv = jnp.where(have_h, hinv, eye)
-    n_levels = max(config.levels) + 1
-    pyramids = [pyramid(im, bg, n_levels) for im, bg in zip(images, backgrounds, strict=True)]
+    pyramids = [
+        pyramid(im, bg, max(config.levels) + 1) for im, bg in zip(images, backgrounds, strict=True)
+    ]
     data_ok = sum(jnp.sum(p[0][1]) for p in pyramids) > 0.5
-    for li, level in enumerate(config.levels):
-        if li > 0:
-            # the coarse level's curvature (wider tau, coarser pixels) is not the fine one's
-            hinv, have_h = eye, jnp.asarray(False)
-        datas = tuple(region_data_from_level(*p[level], level, config.tile) for p in pyramids)
-        k_tiles = config.tiles_at(level)
-        tau = config.tau[li]
 
-        def solve(carry, _, datas=datas, level=level, k_tiles=k_tiles, tau=tau, li=li):
-            params, nsteps, _, hinv, have_h = carry
-            tubes, tube_jacs = _tube_jacobian(params)
-            bands = tuple(
-                select_band(level_tube(t, level, config.seg_merge), d.grid, k_tiles, config.k_seg)
-                for t, d in zip(tubes, datas, strict=True)
-            )
-            if config.data_var == "residual":
-                vars_ = tuple(
-                    residual_variance(
-                        chan_vese_energy(
-                            level_tube(t, level, config.seg_merge), bd, d, 0.0, weights, tau,
-                            area_ref, config.local, config.robust,
-                        )[1]
-                    )
-                    for t, bd, d in zip(tubes, bands, datas, strict=True)
-                )  # fmt: skip
-            else:
-                vars_ = (None,) * len(tubes)
-            # the band's pixels once per solve, not at every energy evaluation
-            gathered = tuple(d.gather(bd.tiles) for d, bd in zip(datas, bands, strict=True))
-            args = (bands, datas, level, tau, vars_, gathered)
-            # solve in image-motion units (see ImageSpaceBFGS): z_i = scale_i * y_i with
-            # scale_i the RMS motion (level px) of the projected points per unit of y_i, and
-            # J divided by kappa so that the first, steepest-descent step moves the tube by
-            # about STEP0_PX (quasi-Newton methods start from an identity Hessian, which in
-            # parameter units made the first trial move it by 30-50 px: 4-5 rejected trials
-            # per solve); L-BFGS is invariant to kappa after that first step
-            flat0, unravel = jax.flatten_util.ravel_pytree(params)
-            jac = _motion_jacobian(tubes, tube_jacs, level)
-            # Both factors are rounded to powers of two: scaling is then exact in floating
-            # point, and rounding differences between compiled contexts (per frame, lax.map,
-            # vmap) in the gradient behind kappa almost never change it
-            scale = jnp.sqrt(jnp.mean(jnp.sum(jac * jac, axis=1), axis=0))
-            scale = _pow2(jnp.maximum(scale, 1e-3 * jnp.max(scale) + 1e-12))
-            g0 = first_gradient(jax.lax.stop_gradient(params), tubes, tube_jacs, args)
-            uv0 = jac @ (g0 / scale**2)
-            kappa = jnp.maximum(jnp.max(jnp.hypot(uv0[:, 0], uv0[:, 1])) / STEP0_PX, 1e-6)
-            kappa = jax.lax.stop_gradient(_pow2(kappa))
+    # One compiled solve serves every pyramid level (issue 18, config.share_levels): the
+    # levels' data are padded to one shape and stacked, and a lax.scan over the schedule's
+    # solves picks its level's slice (see _level_tables). Otherwise each level gets its own
+    # one-level table and scan: the same body traced once per level, on unpadded arrays.
+    def draw(tube, lv):
+        return level_tube_padded(tube, lv.level, config.seg_merge, lv.n_capsules)
 
-            def scaled(z, args):
-                return objective(unravel(z / scale), args) / kappa
-
-            options = {"motion_jac": jac / scale, "f_scale": kappa}
-            # the inverse Hessian is carried in J per (parameter unit)^2 and moved into this
-            # solve's units (z = scale * y, J / kappa): H_z^-1 = kappa D H^-1 D, D = diag(scale)
-            outer_scale = scale[:, None] * scale[None, :]
-            if memory:
-                hz = kappa * outer_scale * hinv
-                use = have_h & jnp.all(jnp.isfinite(hz))
-                options["hessian_inv0"] = jnp.where(use, hz, eye)
-            sol = optx.minimise(
-                scaled,
-                solver,
-                flat0 * scale,
-                args=args,
-                options=options,
-                max_steps=config.steps[li],
-                throw=False,
-            )
-            value = unravel(sol.value / scale)
-            good = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(value)]))
-            new = jax.tree.map(lambda a, b: jnp.where(good, a, b), value, params)
-            if memory:
-                h_new = sol.state.f_info.hessian_inv.pytree / (kappa * outer_scale)
-                keep = good & jnp.all(jnp.isfinite(h_new))
-                hinv = jnp.where(keep, h_new, hinv)
-                have_h = have_h | keep
-            out = (new, nsteps + sol.stats["num_steps"], _result_int(sol.result), hinv, have_h)
-            return out, None
-
-        zero = jnp.asarray(0, jnp.int32)
-        (params, n, status, hinv, have_h), _ = jax.lax.scan(
-            solve, (params, zero, zero, hinv, have_h), None, length=config.outer[li]
+    def solve(carry, xs, tables):
+        params, _, hinv, have_h = carry
+        li, new_level = xs
+        lv = jax.tree.map(lambda x: x[li], tables)
+        # the coarse level's curvature (wider tau, coarser pixels) is not the fine one's
+        hinv = jnp.where(new_level, eye, hinv)
+        have_h = have_h & ~new_level
+        datas = lv.datas
+        tubes, tube_jacs = _tube_jacobian(params)
+        bands = tuple(
+            select_band(draw(t, lv), d.grid, k, config.k_seg, ok, ka)
+            for t, d, k, ok, ka in zip(tubes, datas, lv.k_max, lv.tile_ok, lv.k_active, strict=True)
         )
-        steps.append(n)
+        if config.data_var == "residual":
+            vars_ = tuple(
+                residual_variance(
+                    chan_vese_energy(
+                        draw(t, lv), bd, d, 0.0, weights, lv.tau, area_ref, config.local,
+                        config.robust,
+                    )[1]
+                )
+                for t, bd, d in zip(tubes, bands, datas, strict=True)
+            )  # fmt: skip
+        else:
+            vars_ = (None,) * len(tubes)
+        # the band's pixels once per solve, not at every energy evaluation
+        gathered = tuple(d.gather(bd.tiles) for d, bd in zip(datas, bands, strict=True))
+        args = (bands, datas, lv, vars_, gathered)
+        # solve in image-motion units (see ImageSpaceBFGS): z_i = scale_i * y_i with
+        # scale_i the RMS motion (level px) of the projected points per unit of y_i, and
+        # J divided by kappa so that the first, steepest-descent step moves the tube by
+        # about STEP0_PX (quasi-Newton methods start from an identity Hessian, which in
+        # parameter units made the first trial move it by 30-50 px: 4-5 rejected trials
+        # per solve); L-BFGS is invariant to kappa after that first step
+        flat0, unravel = jax.flatten_util.ravel_pytree(params)
+        jac = _motion_jacobian(tubes, tube_jacs, lv.level)
+        # Both factors are rounded to powers of two: scaling is then exact in floating
+        # point, and rounding differences between compiled contexts (per frame, lax.map,
+        # vmap) in the gradient behind kappa almost never change it
+        scale = jnp.sqrt(jnp.mean(jnp.sum(jac * jac, axis=1), axis=0))
+        scale = _pow2(jnp.maximum(scale, 1e-3 * jnp.max(scale) + 1e-12))
+        g0 = first_gradient(jax.lax.stop_gradient(params), tubes, tube_jacs, args)
+        uv0 = jac @ (g0 / scale**2)
+        kappa = jnp.maximum(jnp.max(jnp.hypot(uv0[:, 0], uv0[:, 1])) / STEP0_PX, 1e-6)
+        kappa = jax.lax.stop_gradient(_pow2(kappa))
+
+        def scaled(z, args):
+            return objective(unravel(z / scale), args) / kappa
+
+        options = {"motion_jac": jac / scale, "f_scale": kappa, "step_budget": lv.steps}
+        # the inverse Hessian is carried in J per (parameter unit)^2 and moved into this
+        # solve's units (z = scale * y, J / kappa): H_z^-1 = kappa D H^-1 D, D = diag(scale)
+        outer_scale = scale[:, None] * scale[None, :]
+        if memory:
+            hz = kappa * outer_scale * hinv
+            use = have_h & jnp.all(jnp.isfinite(hz))
+            options["hessian_inv0"] = jnp.where(use, hz, eye)
+        sol = optx.minimise(
+            scaled,
+            solver,
+            flat0 * scale,
+            args=args,
+            options=options,
+            max_steps=lv.max_steps,
+            throw=False,
+        )
+        value = unravel(sol.value / scale)
+        good = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(value)]))
+        new = jax.tree.map(lambda a, b: jnp.where(good, a, b), value, params)
+        if memory:
+            h_new = sol.state.inner.f_info.hessian_inv.pytree / (kappa * outer_scale)
+            keep = good & jnp.all(jnp.isfinite(h_new))
+            hinv = jnp.where(keep, h_new, hinv)
+            have_h = have_h | keep
+        return (new, _result_int(sol.result), hinv, have_h), sol.stats["num_steps"]
+
+    n_levels = len(config.levels)
+    groups = [tuple(range(n_levels))] if config.share_levels else [(i,) for i in range(n_levels)]
+    carry = (params0, jnp.asarray(0, jnp.int32), hinv, have_h)
+    n_solve = []
+    for group in groups:
+        tables = _level_tables(pyramids, config, base.p.shape[0] - 1, dtype, group)
+        # the schedule: solve j runs at row k of the table (config.outer[li] solves of level
+        # li = group[k]); each level after the first starts from the identity Hessian
+        rows = [(k, li) for k, li in enumerate(group) for _ in range(config.outer[li])]
+        new_level = [li > 0 and (j == 0 or rows[j - 1][1] != li) for j, (_, li) in enumerate(rows)]
+        xs = (jnp.asarray([k for k, _ in rows], jnp.int32), jnp.asarray(new_level, bool))
+        carry, n = jax.lax.scan(lambda c, x, t=tables: solve(c, x, t), carry, xs)
+        n_solve.append(n)
+    params, status, hinv, have_h = carry
+    n_solve = jnp.concatenate(n_solve)
+    ends = [sum(config.outer[: li + 1]) for li in range(len(config.levels))]
+    steps = [jnp.sum(n_solve[e - n : e]) for e, n in zip(ends, config.outer, strict=True)]
 
     # final outputs at full resolution
     datas0 = tuple(region_data_from_level(*p[0], 0, config.tile) for p in pyramids)

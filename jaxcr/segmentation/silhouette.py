@@ -124,6 +124,43 @@ def level_tube(tube: TubeImage, level: int, merge: int = 1) -> TubeImage:
     return coarsen_tube(scale_tube(tube, level), merge * 2**level)
 
 
+def level_tube_padded(tube: TubeImage, level: Int[Array, ""], merge: int, size: int) -> TubeImage:
+    """:func:`level_tube` for a *traced* pyramid level, padded to ``size`` capsules.
+
+    One compiled program can then draw the tube at every level of a pyramid (the
+    refinement's solves share one level body, :func:`jaxcr.segmentation.refine.refine_frame`):
+    capsule ``i`` merges segments ``i s .. i s + s - 1`` (``s = merge * 2**level``, the last
+    run may be shorter, as :func:`coarsen_tube`), and capsules past the tube's end are
+    invalid (their margin is ``OFF_IMAGE_MARGIN``: they never win a pixel nor a band slot).
+    ``size`` must be at least the number of capsules at the finest level drawn,
+    ``ceil(m / (merge * 2**level_min))``. Equal to :func:`level_tube` on the valid capsules.
+    """
+    m = tube.ax.shape[0]
+    level = jnp.asarray(level, jnp.int32)
+    k = jnp.exp2(-level.astype(tube.ax.dtype))
+
+    def c(x):
+        return (x + 0.5) * k - 0.5
+
+    stride = merge * jnp.left_shift(jnp.asarray(1, jnp.int32), level)
+    starts = jnp.arange(size, dtype=jnp.int32) * stride
+    live = starts < m
+    starts = jnp.minimum(starts, m - 1)
+    ends = jnp.minimum(starts + stride - 1, m - 1)
+    # invalid members of a run by differences of a running count
+    bad = jnp.concatenate([jnp.zeros(1, jnp.int32), jnp.cumsum((~tube.valid).astype(jnp.int32))])
+    valid = live & (bad[ends + 1] - bad[starts] == 0)
+    return TubeImage(
+        c(tube.ax[starts]),
+        c(tube.ay[starts]),
+        c(tube.bx[ends]),
+        c(tube.by[ends]),
+        tube.ra[starts] * k,
+        tube.rb[ends] * k,
+        valid,
+    )
+
+
 def capsule_margin(px, py, ax, ay, bx, by, ra, rb, valid):
     """Margin (px) of points ``(px, py)`` w.r.t. capsules, elementwise with broadcasting.
 
@@ -247,19 +284,39 @@ class Band(eqx.Module):
             margin exceeds half the tile diagonal) and every band tile's candidates include
             every segment that can be the nearest one at one of its pixels, so the band mask
             equals the exact one.
+        active: (k_tiles,) bool or None: which slots belong to the band (None: all). A band
+            of a traced size ``k_active`` (:func:`select_band`) keeps ``k_tiles`` slots; the
+            slots past ``k_active`` are inactive, and the region sums give their pixels
+            zero weight (:func:`jaxcr.segmentation.energy.region_terms`).
     """
 
     tiles: Int[Array, " k"]
     segs: Int[Array, "k c"]
     inside: Bool[Array, " n"]
     exact: Bool[Array, ""]
+    active: Bool[Array, " k"] | None = None
 
 
-def select_band(tube: TubeImage, grid: TileGrid, k_tiles: int, k_seg: int) -> Band:
+def select_band(
+    tube: TubeImage,
+    grid: TileGrid,
+    k_tiles: int,
+    k_seg: int,
+    tile_ok: Bool[Array, " n"] | None = None,
+    k_active: Int[Array, ""] | None = None,
+) -> Band:
     """Choose the ``k_tiles`` tiles whose centres are nearest the silhouette boundary.
 
     Runs under ``stop_gradient``. ``k_tiles`` and ``k_seg`` are clipped to the grid and
     segment counts.
+
+    ``tile_ok`` (n_tiles,) and ``k_active`` (a traced count <= ``k_tiles``) serve an image
+    padded to a larger grid (a coarse pyramid level drawn on the finest level's grid): tiles
+    with ``tile_ok`` False never enter the band, and only the ``k_active`` nearest tiles
+    are band tiles (:attr:`Band.active`); the others are classified whole by their centre,
+    like every tile outside the band. The band is then the one :func:`select_band` picks on
+    the unpadded grid with ``k_tiles = k_active`` (up to the order of tiles of equal
+    distance).
     """
     tube = jax.lax.stop_gradient(tube)
     k_tiles = min(k_tiles, grid.n_tiles)
@@ -278,7 +335,8 @@ def select_band(tube: TubeImage, grid: TileGrid, k_tiles: int, k_seg: int) -> Ba
         tube.valid[None],
     )  # (n_tiles, n_seg)
     mc = jnp.max(m, axis=1)
-    neg_abs, tiles = jax.lax.top_k(-jnp.abs(mc), k_tiles)
+    key = -jnp.abs(mc) if tile_ok is None else jnp.where(tile_ok, -jnp.abs(mc), -jnp.inf)
+    neg_abs, tiles = jax.lax.top_k(key, k_tiles)
     half_diag = grid.tile * 0.7072
     if k_seg < n_seg:
         # a segment can win at some pixel of the tile only if its centre margin is within
@@ -290,10 +348,18 @@ def select_band(tube: TubeImage, grid: TileGrid, k_tiles: int, k_seg: int) -> Ba
     else:
         _, segs = jax.lax.top_k(m[tiles], k_seg)
         complete = jnp.asarray(True)
-    in_band = jnp.zeros(grid.n_tiles, bool).at[tiles].set(True)
+    if k_active is None:
+        in_band = jnp.zeros(grid.n_tiles, bool).at[tiles].set(True)
+        inside = (mc > 0) & ~in_band
+        exact = ((k_tiles == grid.n_tiles) | (-neg_abs[-1] >= half_diag)) & complete
+        return Band(tiles=tiles, segs=segs, inside=inside, exact=exact)
+    active = jnp.arange(k_tiles) < k_active
+    in_band = jnp.zeros(grid.n_tiles, bool).at[tiles].set(active)
     inside = (mc > 0) & ~in_band
-    exact = ((k_tiles == grid.n_tiles) | (-neg_abs[-1] >= half_diag)) & complete
-    return Band(tiles=tiles, segs=segs, inside=inside, exact=exact)
+    n_ok = grid.n_tiles if tile_ok is None else jnp.sum(tile_ok)
+    last = -neg_abs[jnp.clip(k_active - 1, 0, k_tiles - 1)]
+    exact = ((k_active >= n_ok) | (last >= half_diag)) & complete
+    return Band(tiles=tiles, segs=segs, inside=inside, exact=exact, active=active)
 
 
 def band_margin(tube: TubeImage, grid: TileGrid, band: Band) -> Float[Array, "k p"]:
