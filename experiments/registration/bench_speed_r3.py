@@ -22,16 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcr.benchmarks import parse_seeds
 from jaxcr.benchmarks.registration import run_planning_benchmark, run_registration_benchmark
 
 OUT = Path(__file__).parent.parent / "results" / "registration"
-
-
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(x) for x in text.split(",")]
 
 
 def main(argv=None) -> int:
@@ -42,7 +36,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scratch", default="/tmp/bench_speed_r3")
     ap.add_argument("--out", default=str(OUT))
     a = ap.parse_args(argv)
-    seeds = _seeds(a.seeds)
+    seeds = parse_seeds(a.seeds)
     load0 = os.getloadavg()
     reg = run_registration_benchmark(
         seeds=seeds, frames=a.pairs, repeats=a.repeats, scratch=a.scratch + "/reg"

@@ -21,16 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcr.benchmarks import parse_seeds
 from jaxcr.benchmarks.registration import run_registration_benchmark
 
 OUT = Path(__file__).parent.parent / "results" / "registration"
-
-
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(x) for x in text.split(",")]
 
 
 def main(argv=None) -> int:
@@ -44,7 +38,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     load0 = os.getloadavg()
     reg = run_registration_benchmark(
-        seeds=_seeds(a.seeds),
+        seeds=parse_seeds(a.seeds),
         frames=a.pairs,
         repeats=a.repeats,
         scratch=a.scratch,

@@ -57,6 +57,7 @@ import cv2
 import numpy as np
 from skimage.graph import MCP_Geometric
 
+from jaxcr.benchmarks import parse_seeds
 from jaxcr.segmentation import background as bgm
 from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foreground
 from jaxcr.stereo.base_locate import flood_component
@@ -86,17 +87,6 @@ def _round1_module(commit: str):
     sys.modules["foreground_round1"] = mod  # dataclasses look their module up
     exec(compile(src, f"{commit}:foreground.py", "exec"), mod.__dict__)
     return mod
-
-
-def _seeds(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        if "-" in part:
-            a, b = part.split("-")
-            out += list(range(int(a), int(b) + 1))
-        else:
-            out.append(int(part))
-    return out
 
 
 def geodesic_tip(mask: np.ndarray, entry_uv: np.ndarray) -> np.ndarray:
@@ -309,7 +299,7 @@ def main(argv=None) -> int:
         argv if argv is not None else sys.argv[1:]
     )
     load = os.getloadavg()
-    for seed in [] if args.merge else _seeds(args.seeds):
+    for seed in [] if args.merge else parse_seeds(args.seeds):
         if seed in done:
             continue
         t0 = time.perf_counter()

@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 from skimage.draw import polygon
 
+from jaxcr.benchmarks import parse_seeds
 from jaxcr.camera import Camera, project_points, surface_points
 from jaxcr.kinematics.cosserat import integrate_centreline
 from jaxcr.segmentation.background import colour_mask, no_mask
@@ -203,14 +204,6 @@ def run_scene(name, base, cams, truth, seeds, background):
         "uncertainty_s": t_unc,
     }  # fmt: skip
     return rows, summary
-
-
-def parse_seeds(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b) + 1)) if b else [int(a)]
-    return out
 
 
 def fmt(x, d=2):

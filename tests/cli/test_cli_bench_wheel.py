@@ -59,3 +59,13 @@ def test_bench_runs_from_an_installed_wheel(tmp_path):
     assert Path(imported).resolve().is_relative_to(site.resolve())
     text = out.read_text()
     assert "jaxcr.benchmarks.fk:run_fk_benchmark" in text and "median per q" in text
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [("0-9", list(range(10))), ("3,5", [3, 5]), ("0-2,7,10-11", [0, 1, 2, 7, 10, 11]), ("4", [4])],
+)
+def test_parse_seeds_matches_written_out_lists(text, expected):
+    from jaxcr.benchmarks import parse_seeds
+
+    assert parse_seeds(text) == expected
