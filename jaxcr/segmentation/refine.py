@@ -560,7 +560,24 @@ def _budget_terminate(state: _CountedState, options):
     return term | out, result
 
 
-class ImageSpaceBFGS(optx.BFGS):
+class _ImageSpaceSteps:
+    """The steps of :class:`ImageSpaceBFGS` and :class:`ImageSpaceLBFGS` (mixed in before the
+    Optimistix solver): the inner solver's step followed by the image-space stopping test,
+    counted in a :class:`_CountedState` so that ``options["step_budget"]`` can end the solve."""
+
+    def step(self, fn, y, args, options, state, tags):
+        y_new, new, aux = super().step(fn, y, args, options, state.inner, tags)
+        new = _image_space_stop(self, y, state.inner, new, options)
+        return y_new, _CountedState(new, state.num_steps + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return _budget_terminate(state, options)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return super().postprocess(fn, y, aux, args, options, state.inner, tags, result)
+
+
+class ImageSpaceBFGS(_ImageSpaceSteps, optx.BFGS):
     """Optimistix BFGS whose convergence test measures a step by the image motion it causes.
 
     Optimistix's own test (Cauchy: every parameter moved by less than ``atol + rtol |y|`` *and*
@@ -614,19 +631,8 @@ class ImageSpaceBFGS(optx.BFGS):
             state = eqx.tree_at(lambda s: s.f_info.hessian_inv.pytree, state, h0.astype(y.dtype))
         return _CountedState(state, jnp.asarray(0, jnp.int32))
 
-    def step(self, fn, y, args, options, state, tags):
-        y_new, new, aux = super().step(fn, y, args, options, state.inner, tags)
-        new = _image_space_stop(self, y, state.inner, new, options)
-        return y_new, _CountedState(new, state.num_steps + 1), aux
 
-    def terminate(self, fn, y, args, options, state, tags):
-        return _budget_terminate(state, options)
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        return super().postprocess(fn, y, aux, args, options, state.inner, tags, result)
-
-
-class ImageSpaceLBFGS(optx.LBFGS):
+class ImageSpaceLBFGS(_ImageSpaceSteps, optx.LBFGS):
     """:class:`ImageSpaceBFGS`'s stopping test on Optimistix L-BFGS, whose initial inverse
     Hessian at every step is ``gamma I`` with ``gamma = s.y / y.y`` from the last step
     (Nocedal & Wright eq. 7.20) instead of BFGS's fixed identity."""
@@ -642,17 +648,6 @@ class ImageSpaceLBFGS(optx.LBFGS):
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         state = super().init(fn, y, args, options, f_struct, aux_struct, tags)
         return _CountedState(state, jnp.asarray(0, jnp.int32))
-
-    def step(self, fn, y, args, options, state, tags):
-        y_new, new, aux = super().step(fn, y, args, options, state.inner, tags)
-        new = _image_space_stop(self, y, state.inner, new, options)
-        return y_new, _CountedState(new, state.num_steps + 1), aux
-
-    def terminate(self, fn, y, args, options, state, tags):
-        return _budget_terminate(state, options)
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        return super().postprocess(fn, y, aux, args, options, state.inner, tags, result)
 
 
 def _pow2(x: Array) -> Array:
