@@ -32,9 +32,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
+from jaxcr.stereo.tip_consistency import _undistort  # host-side cv2.undistortPoints
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
 
 __all__ = ["BranchChoice", "choose_branches"]
@@ -52,12 +52,6 @@ class BranchChoice:
     epipolar_px: float
     turn_deg: float
     consistent_pairs: int
-
-
-def _undistort(cam, uv) -> np.ndarray:
-    K = np.asarray(cam.K, np.float64)
-    pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
-    return cv2.undistortPoints(pts, K, np.asarray(cam.dist, np.float64), P=K).reshape(-1, 2)
 
 
 def _smoother(alt, orig) -> bool:
