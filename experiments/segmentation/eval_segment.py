@@ -26,6 +26,17 @@ from jaxcr.segmentation.metrics import adjusted_iou, iou, mean_centreline_error,
 from jaxcr.segmentation.refine import RefineConfig, refine_batch
 
 
+def colour_masks(imgs, names):
+    """(backgrounds, images) per camera, as tuples in ``names``' order: the colour-key
+    background model of every frame of each camera's stack (batch, H, W, 3)."""
+    bgs, ims = [], []
+    for n in names:
+        b, i = jax.jit(jax.vmap(colour_mask))(jnp.asarray(imgs[n], jnp.float32))
+        bgs.append(b)
+        ims.append(i)
+    return tuple(bgs), tuple(ims)
+
+
 def load_frames(path, max_frames=None):
     ds = load_dataset(path)
     names = list(ds.cameras)
@@ -45,11 +56,7 @@ def evaluate(
 ) -> dict:
     ds, names, frames, fk, imgs, full, vis, occ, truth = load_frames(path, max_frames)
     cams = tuple(ds.cameras[n] for n in names)
-    bgs, ims = [], []
-    for n in names:
-        b, i = jax.jit(jax.vmap(colour_mask))(jnp.asarray(imgs[n], jnp.float32))
-        bgs.append(b)
-        ims.append(i)
+    bgs, ims = colour_masks(imgs, names)
     t0 = time.perf_counter()
     out = refine_batch(fk.centreline, cams, tuple(ims), tuple(bgs), config, mode=mode)
     wall = time.perf_counter() - t0

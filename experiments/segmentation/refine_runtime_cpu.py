@@ -17,16 +17,14 @@ import argparse
 import os
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcr.segmentation.background import colour_mask
 from jaxcr.segmentation.refine import RefineConfig, refine_batch
 
 
 def main(argv=None) -> int:
-    from experiments.segmentation.eval_segment import load_frames
+    from experiments.segmentation.eval_segment import colour_masks, load_frames
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dataset")
@@ -36,11 +34,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     ds, names, frames, fk, imgs, *_ = load_frames(a.dataset, a.frames)
     cams = tuple(ds.cameras[n] for n in names)
-    bgs, ims = [], []
-    for n in names:
-        b, i = jax.jit(jax.vmap(colour_mask))(jnp.asarray(imgs[n], jnp.float32))
-        bgs.append(b)
-        ims.append(i)
+    bgs, ims = colour_masks(imgs, names)
     cfgs = {"default": RefineConfig()}
     if a.per_level:
         cfgs["share_levels=False"] = RefineConfig(share_levels=False)
