@@ -63,6 +63,7 @@ from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foregroun
 from jaxcr.stereo.base_locate import flood_component
 from jaxcr.stereo.chroma import plate_alpha
 from jaxcr.stereo.pipeline import traced_stereo_tips
+from jaxcr.stereo.tip_consistency import undistort_pixels
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
 from jaxcr.synth.real_like import render_real_like_frame
 
@@ -142,11 +143,6 @@ def run_view(view, cfg: PlateForegroundConfig, r1, methods) -> dict:
     return out
 
 
-def _undistort(cam, uv) -> np.ndarray:
-    pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
-    return cv2.undistortPoints(pts, cam.K, cam.dist, P=cam.K).reshape(-1, 2)
-
-
 def stereo_step(fr, views: list[dict]) -> dict:
     """``trace_stereo``: each view's tip from ``trace`` with the end face's foreshortening
     taken from the tube's 3-D direction, both cameras known
@@ -171,8 +167,8 @@ def stereo_step(fr, views: list[dict]) -> dict:
         if m == "trace_stereo" and recheck is not None:
             epi["trace_stereo_before_recheck"] = recheck.epipolar_before_px
         if np.all(np.isfinite(t1)) and np.all(np.isfinite(t2)):
-            epi[m] = max(epipolar_distances(F, _undistort(cams[0], t1)[0],
-                                            _undistort(cams[1], t2)[0]))  # fmt: skip
+            epi[m] = max(epipolar_distances(F, undistort_pixels(cams[0], t1)[0],
+                                            undistort_pixels(cams[1], t2)[0]))  # fmt: skip
         else:
             epi[m] = float("inf")
     return epi

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from jaxcr.stereo.tip_consistency import _undistort  # host-side cv2.undistortPoints
+from jaxcr.stereo.tip_consistency import undistort_pixels
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
 
 __all__ = ["BranchChoice", "choose_branches"]
@@ -91,7 +91,7 @@ def choose_branches(
             tips = [np.asarray(t, np.float64) for t in tips]
             if not all(np.all(np.isfinite(t)) for t in tips):
                 continue
-            x0, x1 = (_undistort(c, t)[0] for c, t in zip(cams, tips, strict=True))
+            x0, x1 = (undistort_pixels(c, t)[0] for c, t in zip(cams, tips, strict=True))
             e = float(max(epipolar_distances(F, x0, x1)))
             if not e <= match_px:
                 continue

@@ -59,7 +59,9 @@ class TipConsistency:
     epipolar_after_px: float
 
 
-def _undistort(cam, uv) -> np.ndarray:
+def undistort_pixels(cam, uv) -> np.ndarray:
+    """Pixels (..., 2) of ``cam`` with its lens distortion removed, as pixels of the same
+    K (OpenCV ``undistortPoints`` with ``P=K``; host side, float64); shape (n, 2)."""
     pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
     K = np.asarray(cam.K, np.float64)
     return cv2.undistortPoints(pts, K, np.asarray(cam.dist, np.float64), P=K).reshape(-1, 2)
@@ -155,7 +157,7 @@ def reconcile_tips(
     def epi(ts):
         if not all(np.all(np.isfinite(t)) for t in ts):
             return float("inf")
-        a, b = (_undistort(c, t)[0] for c, t in zip(cams, ts, strict=True))
+        a, b = (undistort_pixels(c, t)[0] for c, t in zip(cams, ts, strict=True))
         return max(epipolar_distances(F, a, b))
 
     e0 = epi(tips)
@@ -163,14 +165,14 @@ def reconcile_tips(
         return TipConsistency(tips, "consistent" if np.isfinite(e0) else "kept", None,
                               float("nan"), e0, e0)  # fmt: skip
     min_angle = np.radians(min_angle_deg)
-    tu = [_undistort(c, t)[0] for c, t in zip(cams, tips, strict=True)]
+    tu = [undistort_pixels(c, t)[0] for c, t in zip(cams, tips, strict=True)]
     # Epiline in view k of the other view's tip.
     lines = [_epiline(F, tu[1], to_second=False), _epiline(F, tu[0], to_second=True)]
     cross = []
     for k in range(2):
         bb = _densify(np.asarray(traces[k].backbone, np.float64), 0.5)
         bb = np.vstack([bb[:-1], tips[k]]) if len(bb) > 1 else tips[k][None]
-        pos = _last_crossing(_undistort(cams[k], bb), lines[k], min_angle)
+        pos = _last_crossing(undistort_pixels(cams[k], bb), lines[k], min_angle)
         if pos is not None:
             i = int(np.floor(pos))
             f = pos - i
@@ -192,8 +194,8 @@ def reconcile_tips(
     bbj = np.vstack([bbj[:-1], tips[j]]) if len(bbj) > 1 else tips[j][None]
     w = 24.0
     path = _predicted_path(bbj, w, max_extend_px)
-    sd = _undistort(cams[j], path) @ lines[j][:2] + lines[j][2]
-    s0 = float(_undistort(cams[j], tips[j][None])[0] @ lines[j][:2] + lines[j][2])
+    sd = undistort_pixels(cams[j], path) @ lines[j][:2] + lines[j][2]
+    s0 = float(undistort_pixels(cams[j], tips[j][None])[0] @ lines[j][:2] + lines[j][2])
     hit = np.flatnonzero(np.sign(sd) != np.sign(s0))
     if not len(hit):  # the predicted path never reaches the line: no decision
         return TipConsistency(tips, "kept", None, float("nan"), e0, e0)
