@@ -43,7 +43,8 @@ def _use_run_cache():
 
 # Modules whose fixtures compile the refinement or run `jaxcr segment`/`demo` end to end: marked
 # slow as a whole, so `pytest -m "not slow"` is a smaller subset (the whole suite is the test
-# command). Individual tests elsewhere use @pytest.mark.slow.
+# command). Individual tests are marked slow by @pytest.mark.slow or by tests/slow_tests.txt,
+# the list of tests that used >= 1 s of CPU in a measured run (tests/helpers/slow_marks.py).
 SLOW_MODULES = (
     "tests/segmentation/test_refine.py",
     "tests/segmentation/test_refine_multicam.py",
@@ -84,8 +85,11 @@ LONGEST_FIRST = (
 
 
 def pytest_collection_modifyitems(config, items):
+    from tests.helpers.slow_marks import read_list
+
+    slow_tests = read_list()  # tests/slow_tests.txt: measured, see tests/helpers/slow_marks.py
     for item in items:
-        if item.nodeid.split("::")[0] in SLOW_MODULES:
+        if item.nodeid.split("::")[0] in SLOW_MODULES or item.nodeid in slow_tests:
             item.add_marker(pytest.mark.slow)
     # The longest modules first (LONGEST_FIRST), then the other modules holding slow
     # (compile-heavy) tests, then the rest in their usual order: with whole modules per
