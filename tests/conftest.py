@@ -52,6 +52,10 @@ SLOW_MODULES = (
     "tests/segmentation/test_uncertainty.py",  # two compiles of the covariance (1 and 2 views)
     "tests/cli/test_cli_segment.py",
     "tests/cli/test_cli_demo.py",
+    # a local Ray instance per module: mostly waiting for Ray's processes (wall, not CPU, so
+    # tests/slow_tests.txt's CPU measure does not catch every test of them)
+    "tests/scale/test_ray_fault.py",
+    "tests/scale/test_ray_equality.py",
 )
 
 
