@@ -176,7 +176,14 @@ def main() -> None:
     ).stdout.strip()
     cmd = "python experiments/registration/model_object_scale_match_edges.py " + " ".join(
         f"--{k} {' '.join(v) if isinstance(v, list) else v}"
-        for k, v in (("seeds", a.seeds), ("tasks", a.tasks), ("far", a.far), ("pairs", a.pairs))
+        for k, v in (
+            ("seeds", a.seeds),
+            ("tasks", a.tasks),
+            ("far", a.far),
+            ("pairs", a.pairs),
+            ("variants", a.variants),
+        )
+        if v
     )
     names = list(variants)
     ref = names[0]
