@@ -14,6 +14,12 @@ nearest ring view), in frame O = the last ring view, with the view that is worst
     python experiments/registration/model_object_fresh_seeds.py --seeds 320-325 --tasks 1 2 \
         --name model_object_fresh_seeds_320_325
 
+``--set FIELD=VALUE`` overrides a PipelineConfig field (Python literal), for before/after
+comparisons on the development seeds (fresh seeds run with the defaults):
+
+    python experiments/registration/model_object_fresh_seeds.py --seeds 0-9 --tasks 1 \
+        --set photometric_scale_match=False --name dev_before
+
 Records are appended to --log (JSON lines) as each run completes, so a stopped run resumes;
 the report is written from the completed records and says how many there are.
 """
@@ -21,6 +27,8 @@ the report is written from the completed records and says how many there are.
 from __future__ import annotations
 
 import argparse
+import ast
+import dataclasses
 import json
 import os
 import platform
@@ -43,11 +51,12 @@ OUT = Path(__file__).parent.parent / "results" / "registration"
 GOAL_MM, GOAL_DEG = 2.0, 1.0  # issue 6's done-when targets
 
 
-def run_one(task: str, seed: int, scratch: Path) -> dict:
+def run_one(task: str, seed: int, scratch: Path, overrides: dict | None = None) -> dict:
     scene = generate_task(scratch / f"task{task}_seed{seed}", task, seed)
     sim = RgbdSimulator(scene, seed=seed)
     t0 = time.perf_counter()
-    result = build_model(sim, PipelineConfig(), seed=seed)
+    cfg = dataclasses.replace(PipelineConfig(), **(overrides or {}))
+    result = build_model(sim, cfg, seed=seed)
     wall = time.perf_counter() - t0
     rec = {"task": task, "seed": seed, "wall_s": wall, "notes": list(result.notes)}
     if result.global_result is None:
@@ -104,7 +113,23 @@ def main() -> None:
     ap.add_argument(
         "--name", default="model_object_fresh_seeds", help="report file stem (.md, .json)"
     )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a PipelineConfig field (Python literal); repeatable",
+    )
     a = ap.parse_args()
+    overrides = {}
+    for item in a.set:
+        key, _, val = item.partition("=")
+        if key not in {f.name for f in dataclasses.fields(PipelineConfig)}:
+            ap.error(f"--set: PipelineConfig has no field {key!r}")
+        try:
+            overrides[key] = ast.literal_eval(val)
+        except (ValueError, SyntaxError):
+            overrides[key] = val
     s0, s1 = (int(v) for v in a.seeds.split("-"))
     scratch = Path(a.scratch)
     scratch.mkdir(parents=True, exist_ok=True)
@@ -121,7 +146,7 @@ def main() -> None:
             for task in a.tasks:
                 if (task, seed) in done:
                     continue
-                r = run_one(task, seed, scratch)
+                r = run_one(task, seed, scratch, overrides)
                 with open(log, "a") as fh:
                     fh.write(json.dumps(r) + "\n")
                 done[(task, seed)] = r
@@ -138,7 +163,8 @@ def main() -> None:
         "# Object modelling on fresh seeds (issue 17 item 10)",
         "",
         f"commit {commit}, {platform.machine()}, python {platform.python_version()}; command: "
-        f"`{cmd}`; load average at start {load0[0]:.1f}.",
+        f"`{cmd}`; load average at start {load0[0]:.1f}."
+        + (f" PipelineConfig overrides: {overrides}." if overrides else ""),
         "",
         f"Seeds {s0}-{s1} reserved before development (fresh_seeds_reserved.md; development "
         "seeds 0-9, see that file). Pipeline defaults (pose graph, calibrated edge "

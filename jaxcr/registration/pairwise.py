@@ -35,9 +35,11 @@ from jaxcr.registration.metrics import pose_error
 from jaxcr.registration.pose_graph import inverted_edge
 from jaxcr.registration.projective import (
     DepthImage,
+    blurred_image,
     depth_image,
     projective_icp_jit,
     projective_information_jit,
+    scale_matching_blur,
 )
 from jaxcr.registration.ransac import estimate_transform, inlier_set
 
@@ -104,6 +106,13 @@ def make_frame(
     return Frame(
         np.asarray(rgb), np.asarray(depth), full, arrays, label, image, sample, jnp.asarray(plane)
     )
+
+
+def median_depth(frame: Frame) -> float:
+    """Median depth (m) of the frame's valid pixels (its distance from the scene)."""
+    d = np.asarray(frame.depth)
+    d = d[np.isfinite(d) & (d > 0)]
+    return float(np.median(d)) if len(d) else float("nan")
 
 
 def frame_features(frame: Frame, *, asift: bool = False) -> FrameFeatures:
@@ -233,6 +242,7 @@ def register_pair(
     photometric: bool | str = False,
     prior_gate: tuple[float, float] | None = None,
     geometric_points: str = "raw",
+    scale_match: bool = False,
 ) -> PairResult:
     """Register two RGB-D frames: ``T`` with ``tgt ~ T src`` (``jcr.registration.register_pair``;
     paper Sec. IV.A, see the module docstring).
@@ -278,6 +288,11 @@ def register_pair(
         measured back-projections (``"raw"``, default) or the denoised
         ``Frame.sample_plane`` (:func:`jaxcr.registration.clouds.plane_points`); see
         :func:`geometric_sample`.
+    scale_match : bool, optional
+        With ``photometric``: blur the nearer view's colour image so that both views' texture
+        is blurred alike on the surface (:func:`jaxcr.registration.projective.
+        scale_matching_blur` from the views' median depths, :func:`median_depth`), so a
+        far view's coarser pixels are not read as motion by the colour term.
 
     Returns
     -------
@@ -354,23 +369,27 @@ def register_pair(
     T0 = T_kp if T_kp is not None else (np.eye(4) if prior is None else prior)
     kp = _keypoint_arrays(ka, kb, T_kp, upper=cfg.sigma_keypoint)
     T0 = jnp.asarray(T0, jnp.float32)
+    src_image, tgt_image = src.image, tgt.image
+    if photometric and scale_match:
+        e_src, e_tgt = scale_matching_blur(median_depth(src), median_depth(tgt))
+        src_image, tgt_image = blurred_image(src_image, e_src), blurred_image(tgt_image, e_tgt)
     # data association and photometric options shared by the ICP and its information
     proj_kw = dict(
         window=0,
-        src_image=src.image if photometric else None,
+        src_image=src_image if photometric else None,
         photometric=photometric or "intensity",
         photo_points=src.sample_plane if photometric else None,
     )
     src_sample = geometric_sample(src, geometric_points)
     if association == "projective":
-        res = projective_icp_jit(src_sample, tgt.image, T0, cfg, kp, **proj_kw)
+        res = projective_icp_jit(src_sample, tgt_image, T0, cfg, kp, **proj_kw)
     else:
         res = icp_jit(src.arrays, tgt.arrays, T0, cfg, kp)
     T = np.asarray(res.T, np.float64)
     fitness = float(res.fitness)
     info = None
     if association == "projective" and np.all(np.isfinite(T)):
-        info, _ = projective_information_jit(res.T, src_sample, tgt.image, cfg, kp, **proj_kw)
+        info, _ = projective_information_jit(res.T, src_sample, tgt_image, cfg, kp, **proj_kw)
         info = np.asarray(info, np.float64)
     if not np.all(np.isfinite(T)) or fitness < min_fitness:
         raise RegistrationFailed(

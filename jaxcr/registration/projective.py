@@ -99,6 +99,65 @@ def depth_image(P, C, N, ok, K, blur: float = 1.0) -> DepthImage:
     )
 
 
+def scale_matching_blur(z_src: float, z_tgt: float, base_blur: float = 1.0) -> tuple[float, float]:
+    """Extra Gaussian blur (std, pixels) of the (source, target) colour images that gives
+    both the same blur *on the surface* before the photometric term compares them.
+
+    A pixel of a view at distance z covers z / f of the surface: a camera integrating over
+    its pixel (box, variance 1/12 px^2) and :func:`depth_image`'s smoothing (std
+    ``base_blur`` px) blur the texture by b z / f metres, b = sqrt(base_blur^2 + 1/12).
+    Registering a view at z_s against one at z_t < z_s compares the texture blurred by
+    b z_s / f with the same texture blurred by b z_t / f: a different signal, whose
+    difference the colour term reads as motion wherever the texture is not symmetric
+    about the pixel (a systematic pull, growing with z_s / z_t). Gaussian blurs compose
+    by adding variances, so the nearer view gets the extra std b sqrt(r^2 - 1) pixels
+    (its own pixels; r = z_far / z_near) and the farther none. Depths in metres (e.g. the
+    median depth of each view); returns (0, 0) for equal or invalid depths."""
+    if not (np.isfinite(z_src) and np.isfinite(z_tgt) and z_src > 0 and z_tgt > 0):
+        return 0.0, 0.0
+    b = float(np.sqrt(base_blur**2 + 1.0 / 12.0))
+    r = z_src / z_tgt
+    if r >= 1.0:
+        return 0.0, b * float(np.sqrt(r * r - 1.0))
+    return b * float(np.sqrt(1.0 / (r * r) - 1.0)), 0.0
+
+
+def blurred_image(img: DepthImage, extra_blur: float, base_blur: float = 1.0) -> DepthImage:
+    """``img`` (made by :func:`depth_image` with smoothing ``base_blur`` px) with its
+    intensity and chromaticity images blurred further by a Gaussian of std ``extra_blur``
+    pixels (:func:`scale_matching_blur`) and their gradients recomputed (central
+    differences, as :func:`depth_image`). Both are recomputed from the raw colours with the
+    total std sqrt(base_blur^2 + extra_blur^2) as a normalised convolution over the valid
+    pixels, ``G * (m I) / G * m``, so the background (no depth, black) does not bleed into
+    the object's border pixels; invalid pixels keep their values. Geometry (points,
+    normals, mask) is unchanged. Host side; ``extra_blur <= 0`` returns ``img``."""
+    if extra_blur <= 0:
+        return img
+    import cv2
+
+    sigma = float(np.hypot(base_blur, extra_blur))
+    m = np.asarray(img.mask, np.float32)
+    wm = cv2.GaussianBlur(m, (0, 0), sigma)
+    valid = (m > 0) & (wm > 1e-6)
+
+    def blur(x: np.ndarray, old: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = np.ascontiguousarray(x, np.float32)
+        bx = cv2.GaussianBlur(x * m, (0, 0), sigma) / np.maximum(wm, 1e-6)
+        return _smooth_and_gradient(np.where(valid, bx, old), 0.0)
+
+    C = np.asarray(img.colours, np.float32)
+    ism, grad = blur(C.mean(-1), np.asarray(img.intensity))
+    ch, old = chromaticity(C), np.asarray(img.chroma)
+    cs, cg = zip(*(blur(ch[..., k], old[..., k]) for k in range(2)), strict=True)
+    f = np.float32
+    return img._replace(
+        intensity=jnp.asarray(ism, f),
+        gradient=jnp.asarray(grad, f),
+        chroma=jnp.asarray(np.stack(cs, -1), f),
+        chroma_gradient=jnp.asarray(np.stack(cg, -2), f),
+    )
+
+
 def bilinear(img: Float[Array, "h w ..."], u, v):
     """Bilinear interpolation of ``img`` at pixel coordinates (u, v) (n,) and a mask of the
     points whose four neighbours lie inside the image."""
