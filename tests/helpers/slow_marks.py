@@ -56,12 +56,22 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("logdir", help="folder written by JAXCR_TESTS_COMPILE_LOG")
     ap.add_argument("--cpu", type=float, default=1.0, help="CPU seconds from which a test is slow")
+    ap.add_argument("--summary", action="store_true",
+                    help="print CPU seconds by module (largest first) and write nothing")
     ap.add_argument("--merge", action="store_true",
                     help="add to the current list instead of replacing it (for a -m 'not slow' run)")
     args = ap.parse_args(argv)
     cpu = read_log(args.logdir)
     if not cpu:
         raise SystemExit(f"{args.logdir}: no compile-log lines with CPU columns")
+    if args.summary:
+        by_module: dict[str, float] = {}
+        for t, s in cpu.items():
+            by_module[t.split("::")[0]] = by_module.get(t.split("::")[0], 0.0) + s
+        print(f"{len(cpu)} tests, {sum(cpu.values()):.0f} s of CPU")
+        for m, s in sorted(by_module.items(), key=lambda kv: -kv[1]):
+            print(f"{s:8.1f}  {m}")
+        return 0
     slow = {t for t, s in cpu.items() if s >= args.cpu}
     if args.merge:
         slow |= read_list()
