@@ -59,6 +59,7 @@ from jaxcr.segmentation.foreground import (
     trace_alternatives,
 )
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
+from jaxcr.stereo.backbone_consistency import backbone_consistency
 from jaxcr.stereo.base_frame import (
     BaseSpec,
     frame_from_direction,
@@ -92,7 +93,7 @@ from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
-from jaxcr.stereo.tip_consistency import TipConsistency, reconcile_tips
+from jaxcr.stereo.tip_consistency import TipConsistency, reconcile_tips, trim_unexplained_tail
 from jaxcr.stereo.tip_geometry import (
     end_face_lengths,
     epipolar_distances,
@@ -362,6 +363,11 @@ def traced_stereo_tips(
                 cands,
                 tips_of=lambda a, b: _stereo_or_own_tips(cams, [a, b])[0],
                 match_px=3.0 * flag_px,
+                inconsistency_of=lambda a, b, tips: (
+                    backbone_consistency(
+                        cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
+                    ).inconsistent_px
+                ),
             )
             if choice is not None and choice.indices != (0, 0):
                 traces = [cands[k][choice.indices[k]] for k in range(2)]
@@ -369,8 +375,22 @@ def traced_stereo_tips(
                 src = src + "+branch"
     if not all(np.all(np.isfinite(t)) for t in tips):
         return tips, src, None, traces
-    res = reconcile_tips(cams, traces, tips, flag_px=flag_px)
+    res = None
+    if _epi_px(cams, tips) > flag_px:
+        bc = backbone_consistency(
+            cams, _ending_at(traces[0].backbone, tips[0]), _ending_at(traces[1].backbone, tips[1])
+        )
+        res = trim_unexplained_tail(cams, traces, tips, bc)
+    if res is None:
+        res = reconcile_tips(cams, traces, tips, flag_px=flag_px)
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
+
+
+def _ending_at(backbone, tip) -> np.ndarray:
+    """The traced ``backbone`` (n, 2) with its last point (the traced tip) replaced by
+    ``tip``."""
+    bb = np.asarray(backbone, np.float64).reshape(-1, 2)
+    return np.vstack([bb[:-1], np.asarray(tip, np.float64)[None]])
 
 
 def _stereo_or_own_tips(cams, traces) -> tuple[list[np.ndarray], str]:
