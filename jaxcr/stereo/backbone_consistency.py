@@ -7,7 +7,7 @@ passes it, and a right path that the check flags cannot be told from a wrong one
 alone. Here the whole backbones are compared. Both run from the robot's entry to its tip,
 so corresponding points keep their order: they are matched by a monotone (dynamic time
 warping) path through the symmetric epipolar distances of all sample pairs, from the two
-entries to the two tips (:func:`jaxcr.stereo.correspondence.dtw_path_costs_np`), each pair
+entries to the two tips (:func:`jaxcr.stereo.correspondence.dtw_path`), each pair
 of the path is triangulated (linear DLT, :func:`triangulate_pixels`) and reprojected into
 both views. A backbone part that the other view cannot explain (a branch the other view
 does not see, a stretch past the other view's end) is matched with a large reprojection
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from jaxcr.stereo.correspondence import _backtrack, dtw_path_costs_np
+from jaxcr.stereo.correspondence import dtw_path
 from jaxcr.stereo.tip_consistency import undistort_pixels
 from jaxcr.stereo.tip_geometry import fundamental_from_poses
 
@@ -39,12 +39,14 @@ class BackboneConsistency:
 
     ``pairs`` (p, 2) sample indices (view 1, view 2) of the monotone matching, from the
     entries to the tips; ``points`` (p, 3) their triangulated points (the cameras' shared
-    frame, metres when the poses are); ``reprojection_px`` (p,) the larger of the two
-    views' reprojection errors of each pair (undistorted px); ``residual_px`` [(n1,),
-    (n2,)] per sample of each view the smallest reprojection error of the pairs it is in;
-    ``inconsistent_px`` the length (px, both views summed) of the samples whose residual
-    exceeds ``tol_px``; ``length_px`` (2,) the two resampled backbones' lengths;
-    ``step_px`` the resampling step."""
+    frame, metres when the poses are; inf/NaN at infinity); ``reprojection_px`` (p,) the
+    larger of the two views' reprojection errors of each pair (undistorted px);
+    ``residual_px`` [(n1,), (n2,)] per sample of each view the smallest reprojection error
+    of the pairs it is in; ``inconsistent_px`` the length (px, both views summed) of the
+    samples whose residual exceeds ``tol_px``; ``length_px`` (2,) the two resampled
+    backbones' lengths (undistorted); ``samples`` [(n1, 2), (n2, 2)] the resampled
+    backbones (distorted pixels, what ``pairs`` and ``residual_px`` index); ``steps_px``
+    (2,) their resampling steps."""
 
     pairs: np.ndarray
     points: np.ndarray
@@ -69,10 +71,8 @@ def resample_polyline(line, step: float) -> np.ndarray:
     return np.stack([np.interp(t, s, line[:, 0]), np.interp(t, s, line[:, 1])], 1)
 
 
-def triangulate_pixels(P1, P2, x1, x2) -> np.ndarray:
-    """Linear (DLT) triangulation of pixel pairs: ``P1``, ``P2`` (3, 4) projection matrices
-    (``K [R | t]``), ``x1``, ``x2`` (n, 2) undistorted pixels; (n, 3) points, the smallest
-    right singular vector of each pair's 4 x 4 system (as OpenCV ``triangulatePoints``)."""
+def _triangulate_h(P1, P2, x1, x2) -> np.ndarray:
+    """(n, 4) unit homogeneous DLT points of the pixel pairs (:func:`triangulate_pixels`)."""
     P1, P2 = np.asarray(P1, np.float64), np.asarray(P2, np.float64)
     x1, x2 = np.asarray(x1, np.float64), np.asarray(x2, np.float64)
     A = np.stack(
@@ -87,13 +87,25 @@ def triangulate_pixels(P1, P2, x1, x2) -> np.ndarray:
     # Rows scaled to unit norm: the same null vector, better conditioned in float64.
     A = A / np.maximum(np.linalg.norm(A, axis=2, keepdims=True), 1e-300)
     _, _, vt = np.linalg.svd(A)
-    X = vt[:, -1]
-    return X[:, :3] / X[:, 3:]
+    return vt[:, -1]
 
 
-def _project(P, X) -> np.ndarray:
-    x = np.c_[X, np.ones(len(X))] @ np.asarray(P, np.float64).T
-    return x[:, :2] / x[:, 2:]
+def triangulate_pixels(P1, P2, x1, x2) -> np.ndarray:
+    """Linear (DLT) triangulation of pixel pairs: ``P1``, ``P2`` (3, 4) projection matrices
+    (``K [R | t]``), ``x1``, ``x2`` (n, 2) undistorted pixels; (n, 3) points, the smallest
+    right singular vector of each pair's 4 x 4 system (as OpenCV ``triangulatePoints``);
+    inf/NaN for a pair whose rays are parallel (a point at infinity)."""
+    X = _triangulate_h(P1, P2, x1, x2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return X[:, :3] / X[:, 3:]
+
+
+def _project_h(P, Xh) -> np.ndarray:
+    """Pixels (n, 2) of homogeneous points (n, 4): finite for points at infinity too
+    (their image is the vanishing point of their direction)."""
+    x = Xh @ np.asarray(P, np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return x[:, :2] / x[:, 2:]
 
 
 def _symmetric_epipolar(F, a, b) -> np.ndarray:
@@ -136,14 +148,17 @@ def backbone_consistency(
     T1, T2 = (np.asarray(c.T_cam_robot, np.float64) for c in cams)
     F = fundamental_from_poses(K1, T1, K2, T2)
     cost = np.minimum(_symmetric_epipolar(F, ys[0], ys[1]), cap_px)
-    D, Kr = dtw_path_costs_np(cost)
-    pairs = _backtrack(D, Kr)
+    pairs = dtw_path(cost)
     P1, P2 = K1 @ T1[:3], K2 @ T2[:3]
-    X = triangulate_pixels(P1, P2, ys[0][pairs[:, 0]], ys[1][pairs[:, 1]])
+    Xh = _triangulate_h(P1, P2, ys[0][pairs[:, 0]], ys[1][pairs[:, 1]])
+    # Reprojected from the homogeneous points: a pair of parallel rays (zero disparity,
+    # a point at infinity) reprojects exactly, as it should.
     err = np.maximum(
-        np.linalg.norm(_project(P1, X) - ys[0][pairs[:, 0]], axis=1),
-        np.linalg.norm(_project(P2, X) - ys[1][pairs[:, 1]], axis=1),
+        np.linalg.norm(_project_h(P1, Xh) - ys[0][pairs[:, 0]], axis=1),
+        np.linalg.norm(_project_h(P2, Xh) - ys[1][pairs[:, 1]], axis=1),
     )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[:, :3] / Xh[:, 3:]
     err = np.where(np.isfinite(err), err, np.inf)
     residual = []
     for k in range(2):

@@ -24,6 +24,14 @@ object, a trace that followed the object turns by the crossing angle). Among tho
 smallest sum of turns, then the smallest epipolar distance wins. No consistent pair:
 nothing is chosen (the caller keeps its traces; the frame stays flagged).
 
+With ``inconsistency_of`` (what :func:`jaxcr.stereo.pipeline.traced_stereo_tips` passes:
+the length of the two whole backbones that does not triangulate consistently,
+:mod:`jaxcr.stereo.backbone_consistency`) the smoothness gate is replaced by that length:
+an alternative must lower it clearly and follow no more crossing objects (a tube that
+hooks back turns more at the hook than the trace that stopped there, so the turn cannot
+gate it; a chance meeting of a wrong end with the other tip's epipolar line leaves the
+rest of the backbone unexplained).
+
 Pixels are distorted (as the camera records them) at the interface and undistorted inside.
 Numpy float64 and cv2 (undistortion), per frame, at the edge of the stereo pipeline.
 """
@@ -92,7 +100,9 @@ def choose_branches(
     ``margin_px`` below the traces' own pair's, smooth or not (a tube that hooks back
     turns more at the hook than the trace that stopped there); and the pairs are ranked
     first by whether that length is within ``consistent_px``, then as above (crossings
-    followed, turns), then by the length."""
+    followed, turns), then by the length. ``margin_px`` scales with the image: the
+    caller gives it in tube widths (:func:`jaxcr.stereo.pipeline.traced_stereo_tips`:
+    1.25 widths)."""
     F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
                                np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
     best, key, n_ok = None, None, 0

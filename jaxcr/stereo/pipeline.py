@@ -343,9 +343,12 @@ def traced_stereo_tips(
     are over ``flag_px`` from each other's epipolar lines, the branches the tracers took at
     the junctions they passed are chosen again by both views together (each view's trace
     and its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
-    trace_alternatives`; the consistent pair with the smoothest paths,
-    :func:`jaxcr.stereo.branch_choice.choose_branches`); then, still over ``flag_px``,
-    the tips are re-searched along the traced tubes
+    trace_alternatives`; the consistent pair whose whole backbones triangulate
+    consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
+    :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
+    ``flag_px``, a view's backbone end that the other view does not explain is cut back
+    (:func:`jaxcr.stereo.tip_consistency.trim_unexplained_tail`, action ``"trimmed"``),
+    else the tips are re-searched along the traced tubes
     (:func:`jaxcr.stereo.tip_consistency.reconcile_tips`). ``traces``: the two
     :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
     (u, v), source ``"trace_stereo"`` or ``"trace"`` (``"+branch"`` appended when a branch
@@ -363,6 +366,8 @@ def traced_stereo_tips(
                 cands,
                 tips_of=lambda a, b: _stereo_or_own_tips(cams, [a, b])[0],
                 match_px=3.0 * flag_px,
+                # 1.25 tube widths (20 px for the 16 px tubes of real_like at 1280x720).
+                margin_px=1.25 * float(np.mean([t.width_px for t in traces])),
                 inconsistency_of=lambda a, b, tips: (
                     backbone_consistency(
                         cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
@@ -410,16 +415,31 @@ def _epi_px(cams, tips) -> float:
     return float(max(epipolar_distances(F, und[0], und[1])))
 
 
-def _traced_tips(vrec: list[dict], cams, traces) -> None:
+def _ending_near(uv: np.ndarray, tip) -> np.ndarray:
+    """The ordered skeleton ``uv`` (n, 2) cut after its point nearest ``tip`` (2,) and
+    ended at ``tip``; unchanged when ``tip`` is not finite. The 3-D backbone of
+    ``--segmentation trace`` then ends where the tip was placed (a trace cut back, a
+    tip moved on along the predicted path)."""
+    tip = np.asarray(tip, np.float64)
+    if not np.all(np.isfinite(tip)) or len(uv) < 2:
+        return uv
+    i = int(np.argmin(np.linalg.norm(uv - tip[None], axis=1)))
+    return np.concatenate([uv[: max(i, 1)], tip[None]])
+
+
+def _traced_tips(vrec: list[dict], traces, traced) -> None:
     """``--segmentation trace``: each view's ``tip_px`` from the tracer instead of the
     skeleton's end, with ``tip_source``: ``"trace_stereo"`` (:func:`trace_stereo_tips`),
     else ``"trace"`` (the view's own traced tip, where the two views leave the end face's
     length undetermined), else ``"skeleton"`` (no finite traced tip); ``"+branch"``
     appended for a view whose trace :func:`traced_stereo_tips` replaced by another branch
     (its ``backbone_px`` is then that trace's path, not the mask's skeleton), ``"+cut"`` or
-    ``"+extended"`` for the view its epipolar re-search moved. The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
+    ``"+extended"`` (or ``"+trimmed"``) for the view its epipolar re-search moved.
+    ``traced``: :func:`traced_stereo_tips` of ``traces`` (computed before triangulation:
+    the robot masks are the chosen traces' and the triangulated skeletons end at the
+    tips, :func:`_ending_near`). The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
     the tube's end direction) and ends at it."""
-    tips, source, recheck, chosen = traced_stereo_tips(cams, traces)
+    tips, source, recheck, chosen = traced
     for k, (v, t) in enumerate(zip(vrec, chosen, strict=True)):
         v["tip_skeleton_px"] = v["tip_px"]
         if np.all(np.isfinite(tips[k])):
@@ -854,7 +874,10 @@ def reconstruct_pair(
             )  # fmt: skip
             for k in range(2)
         ]
-        masks = _image_stack([t.mask.astype(np.uint8) for t in tr])
+        # The two views' tips and chosen branches before triangulation, so that the 3-D
+        # backbone is made of the traces the tips belong to and ends at the tips.
+        traced = traced_stereo_tips(cams, tr)
+        masks = _image_stack([t.mask.astype(np.uint8) for t in traced[3]])
         alpha_j = jnp.asarray(masks.astype(np.float32))
     t0 = _tick(timings, "segmentation", t0)
     # 3. Per view: closing, marker squares, base (Hough), flood fill.
@@ -905,6 +928,9 @@ def reconstruct_pair(
             rc = rc[shadow_cut(_smooth_path(rc), uv_seed, cfg.shadow_tolerance_deg) :]
         v["skeleton_rc"] = rc
         v["uv"] = _smooth_path(rc)
+    if cfg.segmentation == "trace":
+        for v, tip in zip(views, traced[0], strict=True):
+            v["uv"] = _ending_near(v["uv"], tip)
     t0 = _tick(timings, "shadow_removal", t0)
     # 6. Correspondence and triangulation (normalised coordinates).
     xn = [
@@ -1147,7 +1173,7 @@ def reconstruct_pair(
         _tick(timings, "single_view_tail", t0)
     vrec = [view_record(v["uv"], v["robot"], search_px=cfg.tip_search_px) for v in views]
     if cfg.segmentation == "trace":
-        _traced_tips(vrec, cams, tr)
+        _traced_tips(vrec, tr, traced)
     return {
         "s": s,
         "p": p,
