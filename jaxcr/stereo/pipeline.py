@@ -930,6 +930,8 @@ def reconstruct_pair(
         v["uv"] = _smooth_path(rc)
     if cfg.segmentation == "trace":
         for v, tip in zip(views, traced[0], strict=True):
+            # The record's skeleton (tip_skeleton_px, backbone_px) stays the whole one.
+            v["uv_skeleton"] = v["uv"]
             v["uv"] = _ending_near(v["uv"], tip)
     t0 = _tick(timings, "shadow_removal", t0)
     # 6. Correspondence and triangulation (normalised coordinates).
@@ -1171,7 +1173,10 @@ def reconstruct_pair(
                 last["length_mm"] = last["s_end_mm"] - last["s_start_mm"]
                 last["single_view_mm"] = 1e3 * float(s[-1] - s[n0 - 1])
         _tick(timings, "single_view_tail", t0)
-    vrec = [view_record(v["uv"], v["robot"], search_px=cfg.tip_search_px) for v in views]
+    vrec = [
+        view_record(v.get("uv_skeleton", v["uv"]), v["robot"], search_px=cfg.tip_search_px)
+        for v in views
+    ]
     if cfg.segmentation == "trace":
         _traced_tips(vrec, tr, traced)
     return {
