@@ -24,6 +24,14 @@ object, a trace that followed the object turns by the crossing angle). Among tho
 smallest sum of turns, then the smallest epipolar distance wins. No consistent pair:
 nothing is chosen (the caller keeps its traces; the frame stays flagged).
 
+With ``inconsistency_of`` (what :func:`jaxcr.stereo.pipeline.traced_stereo_tips` passes:
+the length of the two whole backbones that does not triangulate consistently,
+:mod:`jaxcr.stereo.backbone_consistency`) the smoothness gate is replaced by that length:
+an alternative must lower it clearly and follow no more crossing objects (a tube that
+hooks back turns more at the hook than the trace that stopped there, so the turn cannot
+gate it; a chance meeting of a wrong end with the other tip's epipolar line leaves the
+rest of the backbone unexplained).
+
 Pixels are distorted (as the camera records them) at the interface and undistorted inside.
 Numpy float64 and cv2 (undistortion), per frame, at the edge of the stereo pipeline.
 """
@@ -61,9 +69,15 @@ def _smoother(alt, orig) -> bool:
     return (fa, float(alt.crossing_turn_deg)) < (fo, float(orig.crossing_turn_deg))
 
 
+def _follows_no_more(alt, orig) -> bool:
+    """Whether ``alt`` follows no more crossing objects than ``orig``."""
+    return int(getattr(alt, "crossings_followed", 0)) <= int(getattr(orig, "crossings_followed", 0))
+
+
 def choose_branches(
-    cams, candidates, *, tips_of=None, match_px: float = 15.0
-) -> BranchChoice | None:
+    cams, candidates, *, tips_of=None, match_px: float = 15.0, inconsistency_of=None,
+    consistent_px: float = 40.0, margin_px: float = 20.0,
+) -> BranchChoice | None:  # fmt: skip
     """The consistent pair of candidates with the smoothest paths (module docstring).
 
     ``cams``: two calibrated cameras (``K``, ``dist``, ``T_cam_robot`` in one frame).
@@ -76,16 +90,39 @@ def choose_branches(
     :func:`jaxcr.stereo.pipeline.traced_stereo_tips`, because a tip that is on the right
     branch but off along it, a trace stopped short or run on, is mended after the choice by
     :func:`jaxcr.stereo.tip_consistency.reconcile_tips`). None when no pair is
-    consistent."""
+    consistent.
+
+    ``inconsistency_of(a, b, tips)``: the length (px) of the pair's backbones that the
+    other view does not explain (e.g. :func:`jaxcr.stereo.backbone_consistency.
+    backbone_consistency`'s ``inconsistent_px`` of the backbones ending at ``tips``), or
+    None for the tips-only rule above. Given, it replaces the smoothness gate: a view's
+    trace is replaced by an alternative when the pair's inconsistent length is more than
+    ``margin_px`` below the traces' own pair's, smooth or not (a tube that hooks back
+    turns more at the hook than the trace that stopped there); and the pairs are ranked
+    first by whether that length is within ``consistent_px``, then as above (crossings
+    followed, turns), then by the length. ``margin_px`` scales with the image: the
+    caller gives it in tube widths (:func:`jaxcr.stereo.pipeline.traced_stereo_tips`:
+    1.25 widths)."""
     F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
                                np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
     best, key, n_ok = None, None, 0
+    base_bad = np.inf
+    if inconsistency_of is not None:
+        a, b = candidates[0][0], candidates[1][0]
+        tips = tips_of(a, b) if tips_of is not None else (a.tip, b.tip)
+        if all(np.all(np.isfinite(np.asarray(t, np.float64))) for t in tips):
+            base_bad = float(inconsistency_of(a, b, tips))
     for i0, a in enumerate(candidates[0]):
         for i1, b in enumerate(candidates[1]):
             if i0 and i1:  # one view keeps its trace (the first candidate)
                 continue
-            if (i0 or i1) and not _smoother(candidates[0 if i0 else 1][i0 or i1],
-                                            candidates[0 if i0 else 1][0]):  # fmt: skip
+            if (
+                inconsistency_of is None
+                and (i0 or i1)
+                and not _smoother(
+                    candidates[0 if i0 else 1][i0 or i1], candidates[0 if i0 else 1][0]
+                )  # fmt: skip
+            ):
                 continue
             tips = tips_of(a, b) if tips_of is not None else (a.tip, b.tip)
             tips = [np.asarray(t, np.float64) for t in tips]
@@ -101,6 +138,14 @@ def choose_branches(
                 getattr(b, "crossings_followed", 0)
             )
             k = (followed, turn, e)
+            if inconsistency_of is not None:
+                bad = base_bad if not (i0 or i1) else float(inconsistency_of(a, b, tips))
+                if (i0 or i1) and not (
+                    bad < base_bad - margin_px and _follows_no_more(a if i0 else b,
+                                                                    candidates[0 if i0 else 1][0])
+                ):  # fmt: skip
+                    continue
+                k = (bad > consistent_px, followed, turn, bad, e)
             if key is None or k < key:
                 best, key = ((i0, i1), tips, e, turn), k
     if best is None:

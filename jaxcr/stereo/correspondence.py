@@ -24,7 +24,13 @@ import numpy as np
 from jaxcr._types import Array, Float, Int
 from jaxcr.stereo.triangulation import sampson_distance_np
 
-__all__ = ["dtw_path_costs", "dtw_path_costs_np", "match_backbones", "refine_on_epilines"]
+__all__ = [
+    "dtw_path",
+    "dtw_path_costs",
+    "dtw_path_costs_np",
+    "match_backbones",
+    "refine_on_epilines",
+]
 
 
 def _cum_argmin(v: Float[Array, " m"]) -> tuple[Float[Array, " m"], Int[Array, " m"]]:
@@ -101,6 +107,13 @@ def _backtrack(D: np.ndarray, K: np.ndarray) -> np.ndarray:
         # Entered row i at column k from (i-1, k-1) or (i-1, k).
         j = k - 1 if (k > 0 and D[i - 1, k - 1] <= D[i - 1, k]) else k
     return np.array(cells[::-1], np.int64)
+
+
+def dtw_path(cost: np.ndarray) -> np.ndarray:
+    """The cells (p, 2) of the cheapest monotone path through ``cost`` (n, m) from (0, 0)
+    to (n - 1, m - 1), in order (:func:`dtw_path_costs_np`, then backtracking)."""
+    D, K = dtw_path_costs_np(np.asarray(cost, np.float64))
+    return _backtrack(D, K)
 
 
 def refine_on_epilines(

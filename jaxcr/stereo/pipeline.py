@@ -59,6 +59,7 @@ from jaxcr.segmentation.foreground import (
     trace_alternatives,
 )
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
+from jaxcr.stereo.backbone_consistency import backbone_consistency
 from jaxcr.stereo.base_frame import (
     BaseSpec,
     frame_from_direction,
@@ -92,7 +93,7 @@ from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
-from jaxcr.stereo.tip_consistency import TipConsistency, reconcile_tips
+from jaxcr.stereo.tip_consistency import TipConsistency, reconcile_tips, trim_unexplained_tail
 from jaxcr.stereo.tip_geometry import (
     end_face_lengths,
     epipolar_distances,
@@ -342,9 +343,12 @@ def traced_stereo_tips(
     are over ``flag_px`` from each other's epipolar lines, the branches the tracers took at
     the junctions they passed are chosen again by both views together (each view's trace
     and its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
-    trace_alternatives`; the consistent pair with the smoothest paths,
-    :func:`jaxcr.stereo.branch_choice.choose_branches`); then, still over ``flag_px``,
-    the tips are re-searched along the traced tubes
+    trace_alternatives`; the consistent pair whose whole backbones triangulate
+    consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
+    :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
+    ``flag_px``, a view's backbone end that the other view does not explain is cut back
+    (:func:`jaxcr.stereo.tip_consistency.trim_unexplained_tail`, action ``"trimmed"``),
+    else the tips are re-searched along the traced tubes
     (:func:`jaxcr.stereo.tip_consistency.reconcile_tips`). ``traces``: the two
     :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
     (u, v), source ``"trace_stereo"`` or ``"trace"`` (``"+branch"`` appended when a branch
@@ -362,6 +366,13 @@ def traced_stereo_tips(
                 cands,
                 tips_of=lambda a, b: _stereo_or_own_tips(cams, [a, b])[0],
                 match_px=3.0 * flag_px,
+                # 1.25 tube widths (20 px for the 16 px tubes of real_like at 1280x720).
+                margin_px=1.25 * float(np.mean([t.width_px for t in traces])),
+                inconsistency_of=lambda a, b, tips: (
+                    backbone_consistency(
+                        cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
+                    ).inconsistent_px
+                ),
             )
             if choice is not None and choice.indices != (0, 0):
                 traces = [cands[k][choice.indices[k]] for k in range(2)]
@@ -369,8 +380,22 @@ def traced_stereo_tips(
                 src = src + "+branch"
     if not all(np.all(np.isfinite(t)) for t in tips):
         return tips, src, None, traces
-    res = reconcile_tips(cams, traces, tips, flag_px=flag_px)
+    res = None
+    if _epi_px(cams, tips) > flag_px:
+        bc = backbone_consistency(
+            cams, _ending_at(traces[0].backbone, tips[0]), _ending_at(traces[1].backbone, tips[1])
+        )
+        res = trim_unexplained_tail(cams, traces, tips, bc)
+    if res is None:
+        res = reconcile_tips(cams, traces, tips, flag_px=flag_px)
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
+
+
+def _ending_at(backbone, tip) -> np.ndarray:
+    """The traced ``backbone`` (n, 2) with its last point (the traced tip) replaced by
+    ``tip``."""
+    bb = np.asarray(backbone, np.float64).reshape(-1, 2)
+    return np.vstack([bb[:-1], np.asarray(tip, np.float64)[None]])
 
 
 def _stereo_or_own_tips(cams, traces) -> tuple[list[np.ndarray], str]:
@@ -390,16 +415,31 @@ def _epi_px(cams, tips) -> float:
     return float(max(epipolar_distances(F, und[0], und[1])))
 
 
-def _traced_tips(vrec: list[dict], cams, traces) -> None:
+def _ending_near(uv: np.ndarray, tip) -> np.ndarray:
+    """The ordered skeleton ``uv`` (n, 2) cut after its point nearest ``tip`` (2,) and
+    ended at ``tip``; unchanged when ``tip`` is not finite. The 3-D backbone of
+    ``--segmentation trace`` then ends where the tip was placed (a trace cut back, a
+    tip moved on along the predicted path)."""
+    tip = np.asarray(tip, np.float64)
+    if not np.all(np.isfinite(tip)) or len(uv) < 2:
+        return uv
+    i = int(np.argmin(np.linalg.norm(uv - tip[None], axis=1)))
+    return np.concatenate([uv[: max(i, 1)], tip[None]])
+
+
+def _traced_tips(vrec: list[dict], traces, traced) -> None:
     """``--segmentation trace``: each view's ``tip_px`` from the tracer instead of the
     skeleton's end, with ``tip_source``: ``"trace_stereo"`` (:func:`trace_stereo_tips`),
     else ``"trace"`` (the view's own traced tip, where the two views leave the end face's
     length undetermined), else ``"skeleton"`` (no finite traced tip); ``"+branch"``
     appended for a view whose trace :func:`traced_stereo_tips` replaced by another branch
     (its ``backbone_px`` is then that trace's path, not the mask's skeleton), ``"+cut"`` or
-    ``"+extended"`` for the view its epipolar re-search moved. The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
+    ``"+extended"`` (or ``"+trimmed"``) for the view its epipolar re-search moved.
+    ``traced``: :func:`traced_stereo_tips` of ``traces`` (computed before triangulation:
+    the robot masks are the chosen traces' and the triangulated skeletons end at the
+    tips, :func:`_ending_near`). The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along
     the tube's end direction) and ends at it."""
-    tips, source, recheck, chosen = traced_stereo_tips(cams, traces)
+    tips, source, recheck, chosen = traced
     for k, (v, t) in enumerate(zip(vrec, chosen, strict=True)):
         v["tip_skeleton_px"] = v["tip_px"]
         if np.all(np.isfinite(tips[k])):
@@ -834,7 +874,10 @@ def reconstruct_pair(
             )  # fmt: skip
             for k in range(2)
         ]
-        masks = _image_stack([t.mask.astype(np.uint8) for t in tr])
+        # The two views' tips and chosen branches before triangulation, so that the 3-D
+        # backbone is made of the traces the tips belong to and ends at the tips.
+        traced = traced_stereo_tips(cams, tr)
+        masks = _image_stack([t.mask.astype(np.uint8) for t in traced[3]])
         alpha_j = jnp.asarray(masks.astype(np.float32))
     t0 = _tick(timings, "segmentation", t0)
     # 3. Per view: closing, marker squares, base (Hough), flood fill.
@@ -885,6 +928,11 @@ def reconstruct_pair(
             rc = rc[shadow_cut(_smooth_path(rc), uv_seed, cfg.shadow_tolerance_deg) :]
         v["skeleton_rc"] = rc
         v["uv"] = _smooth_path(rc)
+    if cfg.segmentation == "trace":
+        for v, tip in zip(views, traced[0], strict=True):
+            # The record's skeleton (tip_skeleton_px, backbone_px) stays the whole one.
+            v["uv_skeleton"] = v["uv"]
+            v["uv"] = _ending_near(v["uv"], tip)
     t0 = _tick(timings, "shadow_removal", t0)
     # 6. Correspondence and triangulation (normalised coordinates).
     xn = [
@@ -1125,9 +1173,12 @@ def reconstruct_pair(
                 last["length_mm"] = last["s_end_mm"] - last["s_start_mm"]
                 last["single_view_mm"] = 1e3 * float(s[-1] - s[n0 - 1])
         _tick(timings, "single_view_tail", t0)
-    vrec = [view_record(v["uv"], v["robot"], search_px=cfg.tip_search_px) for v in views]
+    vrec = [
+        view_record(v.get("uv_skeleton", v["uv"]), v["robot"], search_px=cfg.tip_search_px)
+        for v in views
+    ]
     if cfg.segmentation == "trace":
-        _traced_tips(vrec, cams, tr)
+        _traced_tips(vrec, tr, traced)
     return {
         "s": s,
         "p": p,

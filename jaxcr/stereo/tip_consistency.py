@@ -39,7 +39,7 @@ from scipy import ndimage as ndi
 
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
 
-__all__ = ["TipConsistency", "reconcile_tips"]
+__all__ = ["TipConsistency", "reconcile_tips", "trim_unexplained_tail"]
 
 
 @dataclass
@@ -219,3 +219,66 @@ def reconcile_tips(
     else:
         return TipConsistency(tips, "kept", None, evidence, e0, e0)
     return TipConsistency(new, action, view, evidence, e0, epi(new))
+
+
+def trim_unexplained_tail(
+    cams, traces, tips, consistency, *, tol_px: float = 3.0, low: float = 0.4,
+    absent: float = 0.3, probe_widths: float = 2.0,
+) -> TipConsistency | None:  # fmt: skip
+    """A view's trace that ran on past the tube's end, cut where the other view's tube
+    ends, told by the two whole backbones (issue 16 item 2: an overshoot along a shadow,
+    a crease or a crossing object that comes back near the other tip's epipolar line, so
+    that the tips' own check cannot place the cut).
+
+    ``consistency``: :func:`jaxcr.stereo.backbone_consistency.backbone_consistency` of the
+    two backbones ending at ``tips`` (distorted (u, v)). Its monotone matching pairs the
+    last sample of view ``j``'s backbone with a stretch of view ``k``'s: from the first
+    sample paired with it to ``k``'s end. That stretch is ``k``'s *unexplained tail* when
+    it is longer than ``k``'s tube width and over half of its samples reproject more than
+    ``tol_px`` off (a tube pointing at camera ``j`` also pairs a stretch of ``k`` with
+    ``j``'s last sample, but consistently: its points lie on ``j``'s ray through the tip).
+    Exactly one view with such a tail, and no tube beyond ``j``'s tip (on the arc
+    continuing ``j``'s last traced stretch, from 0.75 to ``0.75 + probe_widths`` tube
+    widths beyond the tip, under ``absent`` of the samples have a cue score of at least
+    ``low``, as in :func:`reconcile_tips`): ``k``'s tip moves back to the first sample
+    paired with ``j``'s tip (action ``"trimmed"``). Else None (nothing decided)."""
+    tips = [np.asarray(t, np.float64) for t in tips]
+    pairs = np.asarray(consistency.pairs)
+    tails = []
+    for k in range(2):
+        j = 1 - k
+        n_j = len(consistency.samples[j])
+        first = int(np.min(pairs[pairs[:, j] == n_j - 1, k]))
+        res = np.asarray(consistency.residual_px[k])[first:]
+        length = float(consistency.steps_px[k]) * (len(res) - 1)
+        width = float(getattr(traces[k], "width_px", 5.0))
+        unexplained = length > width and float(np.mean(res > tol_px)) > 0.5
+        tails.append(first if unexplained else None)
+    longer = [k for k in range(2) if tails[k] is not None]
+    if len(longer) != 1:
+        return None
+    k = longer[0]
+    j = 1 - k
+    bbj = np.asarray(traces[j].backbone, np.float64)
+    bbj = np.vstack([bbj[:-1], tips[j]]) if len(bbj) > 1 else tips[j][None]
+    w = float(getattr(traces[j], "width_px", 5.0))
+    path = _predicted_path(bbj, 24.0, (0.75 + probe_widths) * w)
+    probe = path[int(np.ceil(0.75 * w / 0.5)) :]
+    if len(probe) < 6:
+        return None
+    sc = ndi.map_coordinates(np.asarray(traces[j].score, np.float64),
+                             [probe[:, 1], probe[:, 0]], order=1, mode="nearest")  # fmt: skip
+    evidence = float(np.mean(sc >= low))
+    if evidence >= absent:
+        return None
+    K0, K1 = (np.asarray(c.K, np.float64) for c in cams)
+    F = fundamental_from_poses(K0, np.asarray(cams[0].T_cam_robot, np.float64),
+                               K1, np.asarray(cams[1].T_cam_robot, np.float64))  # fmt: skip
+
+    def epi(ts):
+        a, b = (undistort_pixels(c, t)[0] for c, t in zip(cams, ts, strict=True))
+        return max(epipolar_distances(F, a, b))
+
+    new = [t.copy() for t in tips]
+    new[k] = np.asarray(consistency.samples[k][tails[k]], np.float64)
+    return TipConsistency(new, "trimmed", k, evidence, epi(tips), epi(new))
