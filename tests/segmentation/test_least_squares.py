@@ -17,9 +17,13 @@ from jaxcr.segmentation.energy import (
     chan_vese_energy,
     chan_vese_soft,
     prepare_region_data,
-    soft_band,
 )
-from jaxcr.segmentation.least_squares import normal_terms, region_residuals
+from jaxcr.segmentation.least_squares import (
+    band_normal_terms,
+    normal_terms,
+    region_residuals,
+    winner_margins,
+)
 from jaxcr.segmentation.metrics import iou
 from jaxcr.segmentation.refine import refine_frame_jit
 from jaxcr.segmentation.shape import perturbed_centreline
@@ -53,9 +57,20 @@ def _tiny(curvature: float):
     d = prepare_region_data(jnp.asarray(img), jnp.asarray(bg), 1, 8)
     band = select_band(scale_tube(project_tube(cam, cl), 1), d.grid, 30, 8)
 
+    def tube(c):
+        return scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
+
     def margin(c):
-        t = scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
-        return band_margin(t, d.grid, band)
+        return band_margin(tube(c), d.grid, band)
+
+    def fast_normal_terms(c, e):  # the refinement's path: winner_margins + band_normal_terms
+        def fields(c):
+            t = tube(c)
+            return jnp.stack([t.ax, t.ay, t.bx, t.by, t.ra, t.rb]), t
+
+        fj, t = jax.jacfwd(fields, has_aux=True)(c)
+        m, dfield, slot = winner_margins(t, d.grid, band)
+        return m, band_normal_terms(m, dfield, slot, fj.reshape(6, -1, 6), band, e, TAU)
 
     def image_energy(soft):
         return chan_vese_soft(soft, band, d, Weights(), AREA)[0]
@@ -64,13 +79,13 @@ def _tiny(curvature: float):
         t = scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
         return chan_vese_energy(t, band, d, 0.0, Weights(), TAU, AREA)[0]
 
-    return margin, image_energy, bfgs_energy, (cl, cam, d, band)
+    return margin, image_energy, bfgs_energy, fast_normal_terms
 
 
 @pytest.mark.parametrize("curvature", [8.0, 0.0])
 def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
     with jax.enable_x64(True):
-        margin, image_energy, bfgs_energy, (cl, cam, d, band) = _tiny(curvature)
+        margin, image_energy, bfgs_energy, fast_normal_terms = _tiny(curvature)
         c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
         if curvature == 0.0:
             c0 = jnp.zeros((2, 3))  # the straight tube itself: the singular point to guard
@@ -111,8 +126,18 @@ def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
         dm = jax.jit(jax.jacfwd(margin))(c0).reshape(*m0.shape, 6)
         g, G = normal_terms(m0, dm, e, TAU)
         np.testing.assert_allclose(np.asarray(g), g_cv, rtol=1e-9, atol=1e-12 * np.abs(g_cv).max())
-        np.testing.assert_allclose(np.asarray(G), jr.T @ jr, rtol=1e-9, atol=1e-12 * np.abs(G).max())
+        np.testing.assert_allclose(
+            np.asarray(G), jr.T @ jr, rtol=1e-9, atol=1e-12 * np.abs(G).max()
+        )
         assert np.all(np.isfinite(np.asarray(G))) and np.all(np.isfinite(np.asarray(g)))
+        # 4) the refinement's path (per-pixel derivatives w.r.t. the winning capsule's six
+        #    fields, chained through the tube Jacobian) gives the same margins, g and G
+        m1, (g1, G1) = jax.jit(fast_normal_terms)(c0, e)
+        np.testing.assert_allclose(np.asarray(m1), np.asarray(m0), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(g1), g_cv, rtol=1e-9, atol=1e-12 * np.abs(g_cv).max())
+        np.testing.assert_allclose(
+            np.asarray(G1), np.asarray(G), rtol=1e-9, atol=1e-12 * np.abs(G).max()
+        )
 
 
 def test_gauss_newton_refinement_recovers_known_delta_u():
