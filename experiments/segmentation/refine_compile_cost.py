@@ -11,6 +11,7 @@ leaves differ between two such files (e.g. before and after a change to refine.p
 
     python experiments/segmentation/refine_compile_cost.py --save /tmp/after.npz
     python experiments/segmentation/refine_compile_cost.py --compare /tmp/before.npz /tmp/after.npz
+    python experiments/segmentation/refine_compile_cost.py --solver gn   # RefineConfig.solver
 
 The persistent compilation cache is switched off (``jax_enable_compilation_cache``, when run) so
 that XLA really compiles. Results: experiments/results/suite_time.md.
@@ -19,6 +20,7 @@ that XLA really compiles. Results: experiments/results/suite_time.md.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import re
 import time
@@ -93,6 +95,7 @@ def scene():
 
 def measure(save: str | None) -> None:
     base, cam, frames = scene()
+    print(f"solver {CFG.solver}")
 
     def f(b, i, g):
         return refine_frame(b, cam, i, g, CFG)
@@ -153,7 +156,9 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--save", help="store the outputs of two refined frames (.npz)")
     ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two --save files")
+    ap.add_argument("--solver", default=CFG.solver, help="RefineConfig.solver (default bfgs)")
     ns = ap.parse_args()
+    CFG = dataclasses.replace(CFG, solver=ns.solver)
     if ns.compare:
         compare(*ns.compare)
     else:

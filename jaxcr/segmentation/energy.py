@@ -333,14 +333,10 @@ def chan_vese_energy(
         ``area_in``.
     """
     soft = soft_band(tube, band, data.grid, tau)
-    t = region_terms(soft, band, data, local, robust, envelope, gathered)
-    if var is None:
-        var = data.pix_area * data.total_s2 / jnp.maximum(data.pix_area * data.total_w, 1e-6)
-    scale = jnp.maximum(area_ref, 1.0)
-    data_term = (weights.g_in * t.e_in + weights.g_out * (t.e_out - t.e_out_empty)) / (
-        scale * jnp.maximum(var, 1e-8)
+    J_image, t = chan_vese_soft(
+        soft, band, data, weights, area_ref, local, robust, var, envelope, gathered
     )
-    J = data_term + weights.g_reg * reg + weights.g_pen * t.e_pen / scale
+    J = J_image + weights.g_reg * reg
     terms = {
         "e_in": t.e_in,
         "e_out": t.e_out,
@@ -350,6 +346,34 @@ def chan_vese_energy(
         "area_out": t.area_out,
     }
     return J, terms
+
+
+def chan_vese_soft(
+    soft: Float[Array, "k p"],
+    band: Band,
+    data: RegionData,
+    weights: Weights,
+    area_ref: Float[Array, ""],
+    local: bool = False,
+    robust: float = 0.0,
+    var: Float[Array, ""] | None = None,
+    envelope: bool = False,
+    gathered: tuple[Array, Array, Array] | None = None,
+) -> tuple[Float[Array, ""], RegionTerms]:
+    """The image part of J (data and penalty terms, no regulariser) of :func:`chan_vese_energy`
+    as a function of the soft silhouette ``soft`` on the band pixels (arguments as there).
+
+    Returns ``(J_image, terms)``. Its gradient with respect to ``soft`` is the per-pixel
+    weight of the Gauss-Newton form (:mod:`jaxcr.segmentation.least_squares`).
+    """
+    t = region_terms(soft, band, data, local, robust, envelope, gathered)
+    if var is None:
+        var = data.pix_area * data.total_s2 / jnp.maximum(data.pix_area * data.total_w, 1e-6)
+    scale = jnp.maximum(area_ref, 1.0)
+    data_term = (weights.g_in * t.e_in + weights.g_out * (t.e_out - t.e_out_empty)) / (
+        scale * jnp.maximum(var, 1e-8)
+    )
+    return data_term + weights.g_pen * t.e_pen / scale, t
 
 
 def residual_variance(terms: dict[str, Float[Array, ""]]) -> Float[Array, ""]:

@@ -66,10 +66,16 @@ from jaxcr.segmentation.energy import (
     RegionData,
     Weights,
     chan_vese_energy,
+    chan_vese_soft,
     pyramid,
     region_data_from_level,
     region_terms,
     residual_variance,
+)
+from jaxcr.segmentation.least_squares import (
+    band_normal_terms,
+    damped_gauss_newton,
+    winner_margins,
 )
 from jaxcr.segmentation.shape import delta_u_steps, n_axes, perturbed_centreline, regularisation
 from jaxcr.segmentation.silhouette import (
@@ -139,9 +145,11 @@ class RefineConfig(eqx.Module):
         convergence tolerance on the change of the normalised objective J of an
         accepted step (J is in units of the tube's area, see :mod:`jaxcr.segmentation.energy`).
     solver : str
-        ``"bfgs"`` (:class:`ImageSpaceBFGS`, default) or ``"lbfgs"``
-        (:class:`ImageSpaceLBFGS`), both with the image-space convergence test
-        (docs/decisions.md S6).
+        ``"bfgs"`` (:class:`ImageSpaceBFGS`, default), ``"lbfgs"``
+        (:class:`ImageSpaceLBFGS`) or ``"gn"`` (Levenberg-Marquardt on the exact
+        least-squares form of the band energy, :mod:`jaxcr.segmentation.least_squares`;
+        ``steps`` is then its budget of linearisations), all with the image-space
+        convergence test (docs/decisions.md S6).
     robust : float
         occlusion-robust inside term, Welsch scale in image colour std
         (:func:`jaxcr.segmentation.energy.region_terms`); 0 = the paper's quadratic eq. 6
@@ -188,6 +196,11 @@ class RefineConfig(eqx.Module):
         identity. Off by default (docs/decisions.md S12): it cut tracking time to 0.55x and
         cold time to 0.71x at equal IoU on the benchmark scenes, but on the camera-correction
         scene of ``tests/segmentation/test_refine.py`` the refined IoU fell from > 0.8 to 0.69.
+    gn_lambda : float
+        (``solver="gn"``) initial Levenberg-Marquardt damping, relative to the diagonal of
+        the Gauss-Newton matrix (:func:`jaxcr.segmentation.least_squares.damped_gauss_newton`).
+    gn_max_px : float
+        (``solver="gn"``) longest image motion (pixels of the level) of one step.
     share_levels : bool
         one compiled solve for every pyramid level (the coarse levels' data padded to the
         finest grid, traced level, band size and step budget; :func:`refine_frame`), or one
@@ -236,6 +249,8 @@ class RefineConfig(eqx.Module):
     g_cam_rel: float | None = eqx.field(static=True, default=None)
     hessian_memory: bool = eqx.field(static=True, default=False)
     share_levels: bool = eqx.field(static=True, default=True)
+    gn_lambda: float = eqx.field(static=True, default=1e-2)
+    gn_max_px: float = eqx.field(static=True, default=4.0)
 
     def __check_init__(self):
         n = len(self.levels)
@@ -248,9 +263,10 @@ class RefineConfig(eqx.Module):
             raise InputError(
                 "n_coeffs, k_seg and seg_merge must be >= 1 and levels >= 0", field="RefineConfig"
             )
-        if self.solver not in ("lbfgs", "bfgs"):
+        if self.solver not in ("lbfgs", "bfgs", "gn"):
             raise InputError(
-                f"solver must be 'lbfgs' or 'bfgs', got {self.solver!r}", field="RefineConfig"
+                f"solver must be 'bfgs', 'lbfgs' or 'gn', got {self.solver!r}",
+                field="RefineConfig",
             )
         if not (self.xtol > 0 and self.ftol > 0):
             raise InputError("xtol and ftol must be > 0", field="RefineConfig")
@@ -888,8 +904,68 @@ def refine_frame(
             g = g + gf @ jf
         return g
 
+    def gauss_newton_solve(params, tubes, tube_jacs, args, hinv, have_h):
+        """One solve of ``solve`` by :func:`damped_gauss_newton` on the least-squares form of
+        J (:mod:`jaxcr.segmentation.least_squares`); the inverse Hessian passes through."""
+        bands, datas, lv, vars_, gathered = args
+        flat0, unravel = jax.flatten_util.ravel_pytree(params)
+        jac = _motion_jacobian(tubes, tube_jacs, lv.level)
+
+        def reg_flat(y):
+            return reg_of(unravel(y))
+
+        # R is quadratic in the parameters: its Hessian is one constant matrix
+        hess_reg = jax.hessian(reg_flat)(jnp.zeros_like(flat0))
+
+        def drawn(y):
+            _, ts = tubes_of(unravel(y))
+            ds = tuple(draw(t, lv) for t in ts)
+            return tuple(jnp.stack([t.ax, t.ay, t.bx, t.by, t.ra, t.rb]) for t in ds), ds
+
+        def image_soft(softs):
+            J = 0.0
+            for soft, band, data, var, gat in zip(
+                softs, bands, datas, vars_, gathered, strict=True
+            ):
+                J = J + chan_vese_soft(
+                    soft, band, data, weights, area_ref, config.local, config.robust, var,
+                    config.robust_envelope, gat,
+                )[0]  # fmt: skip
+            return J
+
+        def linearise(y):
+            # the drawn tubes' fields and their (6, m, n) Jacobians, then per band pixel the
+            # margin's derivatives w.r.t. its winning capsule's fields (least_squares)
+            field_jacs, ts = jax.jacfwd(drawn, has_aux=True)(y)
+            wins = tuple(
+                winner_margins(t, d.grid, bd) for t, d, bd in zip(ts, datas, bands, strict=True)
+            )
+            softs = tuple(jax.nn.sigmoid(w[0] / lv.tau) for w in wins)
+            J_img, es = jax.value_and_grad(image_soft)(softs)
+            J = J_img + reg_flat(y)
+            g = hess_reg @ y
+            G = hess_reg
+            for (m, dfield, slot), fj, bd, e in zip(wins, field_jacs, bands, es, strict=True):
+                gc, Gc = band_normal_terms(m, dfield, slot, fj, bd, e, lv.tau)
+                g, G = g + gc, G + Gc
+            return J, g, G
+
+        out = damped_gauss_newton(
+            linearise, flat0, jac, xtol=config.xtol, ftol=config.ftol, budget=lv.steps,
+            lam0=config.gn_lambda, max_px=config.gn_max_px,
+        )  # fmt: skip
+        value = unravel(out.y)
+        good = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(value)]))
+        new = jax.tree.map(lambda a, b: jnp.where(good, a, b), value, params)
+        result = optx.RESULTS.where(
+            out.converged, optx.RESULTS.successful, optx.RESULTS.nonlinear_max_steps_reached
+        )
+        return (new, _result_int(result), hinv, have_h), out.num_steps
+
     if config.solver == "lbfgs":
         solver = ImageSpaceLBFGS(config.xtol, config.ftol)
+    elif config.solver == "gn":
+        solver = None
     else:
         solver = ImageSpaceBFGS(config.xtol, config.ftol)
     n_flat = jax.flatten_util.ravel_pytree(params0)[0].shape[0]
@@ -941,6 +1017,8 @@ def refine_frame(
         # the band's pixels once per solve, not at every energy evaluation
         gathered = tuple(d.gather(bd.tiles) for d, bd in zip(datas, bands, strict=True))
         args = (bands, datas, lv, vars_, gathered)
+        if config.solver == "gn":
+            return gauss_newton_solve(params, tubes, tube_jacs, args, hinv, have_h)
         # solve in image-motion units (see ImageSpaceBFGS): z_i = scale_i * y_i with
         # scale_i the RMS motion (level px) of the projected points per unit of y_i, and
         # J divided by kappa so that the first, steepest-descent step moves the tube by
