@@ -2,11 +2,12 @@
 projective ICP (``IcpConfig.coarse_stride``, :func:`jaxcr.registration.projective.
 coarse_to_fine_icp`). Per pair, in one process, alternating pair by pair: the current
 default (``PipelineConfig().register``, keypoint cache as in a run's forward chain) and the
-same call with each ``--strides`` variant (``coarse_stride`` x ``coarse_tol_factor``). Wall and process CPU ms, the
+same call with each ``--variants`` variant: coarse-to-fine ICP (``coarse_stride``,
+``coarse_tol_factor``) and/or SIFT on the valid-depth box (``PipelineConfig.keypoint_crop``). Wall and process CPU ms, the
 1-min load average, pose errors against the rendered truth for every variant. Writes
 experiments/results/registration/<name>.md (+ .json).
 
-    python experiments/registration/bench_speed_r5.py --seeds 0-4 --pairs 4 --strides 4x10,8x10
+    python experiments/registration/bench_speed_r5.py --seeds 0-4 --pairs 4 --variants s4x10,k16,s4x10+k16
 
 Development seeds of Tasks 1 and 2 only (fresh seeds of fresh_seeds_reserved.md unused).
 """
@@ -38,9 +39,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0-4", help="development seeds, e.g. 0-4")
     ap.add_argument("--pairs", type=int, default=4, help="forward pairs per scene")
     ap.add_argument(
-        "--strides",
-        default="4x10,8x10",
-        help="variants STRIDE[xFACTOR]: IcpConfig coarse_stride and coarse_tol_factor",
+        "--variants",
+        default="s4x10,k16,s4x10+k16",
+        help="comma-separated variants of tokens joined by '+': sSTRIDE[xFACTOR] (IcpConfig "
+        "coarse_stride, coarse_tol_factor), kMARGIN (PipelineConfig keypoint_crop)",
     )
     ap.add_argument("--scratch", default="/tmp/bench_speed_r5")
     ap.add_argument("--out", default=str(OUT))
@@ -48,12 +50,22 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     base = PipelineConfig()
     variants = {"now": base}
-    for v in a.strides.split(","):
-        stride, _, factor = v.partition("x")
-        icp = dataclasses.replace(
-            base.icp, coarse_stride=int(stride), coarse_tol_factor=float(factor or 1.0)
-        )
-        variants[f"stride {stride}, tol x{factor or 1}"] = dataclasses.replace(base, icp=icp)
+    for v in a.variants.split(","):
+        cfg, desc = base, []
+        for tok in v.split("+"):
+            if tok.startswith("s"):  # sSTRIDE[xFACTOR]: coarse-to-fine ICP
+                stride, _, factor = tok[1:].partition("x")
+                icp = dataclasses.replace(
+                    cfg.icp, coarse_stride=int(stride), coarse_tol_factor=float(factor or 1)
+                )
+                cfg = dataclasses.replace(cfg, icp=icp)
+                desc.append(f"ICP stride {stride}, tol x{factor or 1}")
+            elif tok.startswith("k"):  # kMARGIN: SIFT on the valid-depth box
+                cfg = dataclasses.replace(cfg, keypoint_crop=int(tok[1:]))
+                desc.append(f"SIFT crop {tok[1:]} px")
+            else:
+                ap.error(f"unknown variant token {tok!r}")
+        variants[" + ".join(desc)] = cfg
     root = Path(a.scratch)
     pairs = []
     for task in ("1", "2"):
@@ -104,7 +116,7 @@ def main(argv=None) -> int:
     )
     now = np.array(wall["now"])
     md = [
-        "# Registration speed, round 5: coarse-to-fine ICP sampling (issue 18)",
+        "# Registration speed, round 5: coarse-to-fine ICP, SIFT crop (issue 18)",
         "",
         f"commit {commit} (modified tracked files: {dirty or 'none'}), {platform.machine()}, "
         f"python {platform.python_version()}, {os.cpu_count()} CPUs shared with other "

@@ -188,6 +188,12 @@ class PipelineConfig:
     # Cauchy-reweighted pose-graph solves after the calibrated one
     # (:func:`jaxcr.registration.pose_graph.optimize_pose_graph` ``robust_rounds``).
     robust_rounds: int = 0
+    # SIFT on each frame's valid-depth bounding box grown by this many pixels
+    # (:func:`jaxcr.registration.keypoints.detect` ``crop_margin``); None: the whole image.
+    # Issue 18: SIFT of the new frame is ~37 % of a pair's time and the object covers
+    # ~20-36 % of the 320x240 view; the crop changes the keypoints near its border and at
+    # coarse scales (experiments/results/registration/speed_r5.md).
+    keypoint_crop: int | None = None
 
     def register(self, src, tgt, K, prior, seed: int, prior_gate=None) -> PairResult:
         """:func:`register_pair` with this configuration's ICP, keypoint and colour options."""
@@ -205,6 +211,7 @@ class PipelineConfig:
             seed=seed,
             geometric_points=self.geometric_points,
             scale_match=self.photometric_scale_match,
+            keypoint_crop=self.keypoint_crop,
         )
 
 
