@@ -42,7 +42,8 @@ def main(argv=None) -> int:
         "--variants",
         default="s4x10,k16,s4x10+k16",
         help="comma-separated variants of tokens joined by '+': sSTRIDE[xFACTOR] (IcpConfig "
-        "coarse_stride, coarse_tol_factor), kMARGIN (PipelineConfig keypoint_crop)",
+        "coarse_stride, coarse_tol_factor), kMARGIN (PipelineConfig keypoint_crop), rOFFSET "
+        "(RANSAC seed + OFFSET: the spread of an equally valid run, a noise reference)",
     )
     ap.add_argument("--scratch", default="/tmp/bench_speed_r5")
     ap.add_argument("--out", default=str(OUT))
@@ -50,6 +51,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     base = PipelineConfig()
     variants = {"now": base}
+    offsets, seed_offset = {}, {"now": 0}
     for v in a.variants.split(","):
         cfg, desc = base, []
         for tok in v.split("+"):
@@ -63,9 +65,13 @@ def main(argv=None) -> int:
             elif tok.startswith("k"):  # kMARGIN: SIFT on the valid-depth box
                 cfg = dataclasses.replace(cfg, keypoint_crop=int(tok[1:]))
                 desc.append(f"SIFT crop {tok[1:]} px")
+            elif tok.startswith("r"):  # rOFFSET: RANSAC seed + OFFSET (a noise reference)
+                offsets[v] = int(tok[1:])
+                desc.append(f"RANSAC seed +{tok[1:]}")
             else:
                 ap.error(f"unknown variant token {tok!r}")
         variants[" + ".join(desc)] = cfg
+        seed_offset[" + ".join(desc)] = offsets.get(v, 0)
     root = Path(a.scratch)
     pairs = []
     for task in ("1", "2"):
@@ -84,16 +90,21 @@ def main(argv=None) -> int:
     cpu = {n: [] for n in variants}
     err = {n: [] for n in variants}
     loads = []
-    for _label, fa, fb, K, truth, k in pairs:
+    names = list(variants)
+    for i, (_label, fa, fb, K, truth, k) in enumerate(pairs):
         loads.append(os.getloadavg()[0])
-        for name, cfg in variants.items():  # alternate, so all variants see the same load
+        # alternate, so all variants see the same load; the order rotates pair by pair (the
+        # first variant of a pair measured slower in a first run: warm caches favour later
+        # ones)
+        for name in names[i % len(names) :] + names[: i % len(names)]:
+            cfg = variants[name]
             # as in a run's forward chain: the target's features computed here, the
             # source's cached from the previous pair (a scene's first pair: both)
             fb.features.clear()
             if k == 0:
                 fa.features.clear()
             c0, t0 = time.process_time(), time.perf_counter()
-            res = cfg.register(fa, fb, K, truth, k)
+            res = cfg.register(fa, fb, K, truth, k + seed_offset[name])
             wall[name].append(time.perf_counter() - t0)
             cpu[name].append(time.process_time() - c0)
             r, t = pose_error(res.T, truth)
