@@ -29,7 +29,7 @@ import numpy as np
 from jaxcr.benchmarks import parse_seeds
 from jaxcr.benchmarks.registration import forward_pairs, scene_sim
 from jaxcr.registration.metrics import pose_error
-from jaxcr.registration.pipeline import PipelineConfig
+from jaxcr.registration.pipeline import PipelineConfig, capture_frame
 
 OUT = Path(__file__).parent.parent / "results" / "registration"
 
@@ -42,8 +42,8 @@ def main(argv=None) -> int:
         "--variants",
         default="s4x10,k16,s4x10+k16",
         help="comma-separated variants of tokens joined by '+': sSTRIDE[xFACTOR] (IcpConfig "
-        "coarse_stride, coarse_tol_factor), kMARGIN (PipelineConfig keypoint_crop), rOFFSET "
-        "(RANSAC seed + OFFSET: the spread of an equally valid run, a noise reference)",
+        "coarse_stride, coarse_tol_factor), kMARGIN (PipelineConfig keypoint_crop), d (the "
+        "default on another random draw of the source pixels: a noise reference)",
     )
     ap.add_argument("--scratch", default="/tmp/bench_speed_r5")
     ap.add_argument("--out", default=str(OUT))
@@ -51,7 +51,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     base = PipelineConfig()
     variants = {"now": base}
-    offsets, seed_offset = {}, {"now": 0}
+    redraw, alt = set(), {"now": False}
     for v in a.variants.split(","):
         cfg, desc = base, []
         for tok in v.split("+"):
@@ -65,23 +65,28 @@ def main(argv=None) -> int:
             elif tok.startswith("k"):  # kMARGIN: SIFT on the valid-depth box
                 cfg = dataclasses.replace(cfg, keypoint_crop=int(tok[1:]))
                 desc.append(f"SIFT crop {tok[1:]} px")
-            elif tok.startswith("r"):  # rOFFSET: RANSAC seed + OFFSET (a noise reference)
-                offsets[v] = int(tok[1:])
-                desc.append(f"RANSAC seed +{tok[1:]}")
+            elif tok == "d":  # another random draw of the 8192 source pixels: noise
+                redraw.add(v)
+                desc.append("now, another pixel sample (noise reference)")
             else:
                 ap.error(f"unknown variant token {tok!r}")
         variants[" + ".join(desc)] = cfg
-        seed_offset[" + ".join(desc)] = offsets.get(v, 0)
+        alt[" + ".join(desc)] = v in redraw
     root = Path(a.scratch)
     pairs = []
     for task in ("1", "2"):
         for s in parse_seeds(a.seeds):
             sim = scene_sim(task, s, root)
             for k, (fa, fb, truth) in enumerate(forward_pairs(sim, s, a.pairs, 25.0, base)):
-                pairs.append((f"task {task} seed {s} pair {k}", fa, fb, sim.K, truth, k))
+                # the same images with another random draw of the sampled source pixels
+                fa2, fb2 = (
+                    capture_frame(f.rgb, f.depth, sim.K, base, 1000 + s + k + j, f.label)
+                    for j, f in enumerate((fa, fb))
+                )
+                pairs.append((f"task {task} seed {s} pair {k}", fa, fb, sim.K, truth, k, fa2, fb2))
     load0 = os.getloadavg()
     comp = {}
-    _, fa, fb, K, truth, k = pairs[0]
+    _, fa, fb, K, truth, k, _, _ = pairs[0]
     for name, cfg in variants.items():
         t0 = time.perf_counter()
         cfg.register(fa, fb, K, truth, k)
@@ -91,20 +96,21 @@ def main(argv=None) -> int:
     err = {n: [] for n in variants}
     loads = []
     names = list(variants)
-    for i, (_label, fa, fb, K, truth, k) in enumerate(pairs):
+    for i, (_label, fa1, fb1, K, truth, k, fa2, fb2) in enumerate(pairs):
         loads.append(os.getloadavg()[0])
         # alternate, so all variants see the same load; the order rotates pair by pair (the
         # first variant of a pair measured slower in a first run: warm caches favour later
         # ones)
         for name in names[i % len(names) :] + names[: i % len(names)]:
             cfg = variants[name]
+            fa, fb = (fa2, fb2) if alt[name] else (fa1, fb1)
             # as in a run's forward chain: the target's features computed here, the
             # source's cached from the previous pair (a scene's first pair: both)
             fb.features.clear()
             if k == 0:
                 fa.features.clear()
             c0, t0 = time.process_time(), time.perf_counter()
-            res = cfg.register(fa, fb, K, truth, k + seed_offset[name])
+            res = cfg.register(fa, fb, K, truth, k)
             wall[name].append(time.perf_counter() - t0)
             cpu[name].append(time.process_time() - c0)
             r, t = pose_error(res.T, truth)
