@@ -42,7 +42,7 @@ def main(argv=None) -> int:
         "--variants",
         default="s4x10,k16,s4x10+k16",
         help="comma-separated variants of tokens joined by '+': sSTRIDE[xFACTOR] (IcpConfig "
-        "coarse_stride, coarse_tol_factor), kMARGIN (PipelineConfig keypoint_crop), d (the "
+        "coarse_stride, coarse_tol_factor), kMARGIN (PipelineConfig keypoint_crop; k- None), d (the "
         "default on another random draw of the source pixels: a noise reference)",
     )
     ap.add_argument("--scratch", default="/tmp/bench_speed_r5")
@@ -62,6 +62,9 @@ def main(argv=None) -> int:
                 )
                 cfg = dataclasses.replace(cfg, icp=icp)
                 desc.append(f"ICP stride {stride}, tol x{factor or 1}")
+            elif tok == "k-":  # SIFT on the whole image (keypoint_crop None)
+                cfg = dataclasses.replace(cfg, keypoint_crop=None)
+                desc.append("SIFT whole image")
             elif tok.startswith("k"):  # kMARGIN: SIFT on the valid-depth box
                 cfg = dataclasses.replace(cfg, keypoint_crop=int(tok[1:]))
                 desc.append(f"SIFT crop {tok[1:]} px")
