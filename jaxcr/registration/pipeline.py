@@ -192,7 +192,7 @@ class PipelineConfig:
     # (:func:`jaxcr.registration.keypoints.detect` ``crop_margin``); None: the whole image
     # (before 2026-12-02). Issue 18: SIFT of the new frame was ~37 % of a pair's time
     # (bench_pairwise_profile_r5.md) while the object covers ~20-36 % of the 320x240 view.
-    # Dev seeds 0-4, Tasks 1+2, 40 forward pairs (speed_r5.md): CPU ms/pair -17 %, pose
+    # Dev seeds 0-4, Tasks 1+2, 40 forward pairs (speed_r5.md): CPU ms/pair -17..-32 %, pose
     # error per pair within 0.010 deg / 0.049 mm of the whole-image SIFT's (another random
     # draw of the ICP's source pixels moves it by up to 0.12 deg / 0.53 mm); object
     # modelling, dev Task 1 seeds 0-4, worst pose 1.99 -> 1.91 mm
