@@ -64,13 +64,15 @@ def stages(cfg: PipelineConfig, fa, fb, K, prior, seed: int) -> dict:
     # as in a run's chain of forward registrations: the source's keypoint features were
     # computed when it was the previous pair's target (pairwise.frame_features), the
     # target's are computed here, once for every pair it takes part in
-    frame_features(fa, asift=cfg.asift)
+    frame_features(fa, asift=cfg.asift, crop_margin=cfg.keypoint_crop)
     fb.features.clear()
     t0 = time.perf_counter()
-    fb_features = frame_features(fb, asift=cfg.asift)
+    fb_features = frame_features(fb, asift=cfg.asift, crop_margin=cfg.keypoint_crop)
     t["keypoints: SIFT + smoothed depth of the new frame"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    ka, kb = matched_features(frame_features(fa, asift=cfg.asift), fb_features, K)
+    ka, kb = matched_features(
+        frame_features(fa, asift=cfg.asift, crop_margin=cfg.keypoint_crop), fb_features, K
+    )
     t["keypoints: match + lift"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     T_kp, _ = estimate_transform(ka, kb, seed=seed) if len(ka) else (None, 0)

@@ -14,8 +14,9 @@ nearest ring view), in frame O = the last ring view, with the view that is worst
     python experiments/registration/model_object_fresh_seeds.py --seeds 320-325 --tasks 1 2 \
         --name model_object_fresh_seeds_320_325
 
-``--set FIELD=VALUE`` overrides a PipelineConfig field (Python literal), for before/after
-comparisons on the development seeds (fresh seeds run with the defaults):
+``--set FIELD=VALUE`` overrides a PipelineConfig field (Python literal; ``icp.FIELD`` a field of
+its IcpConfig), for before/after comparisons on the development seeds (fresh seeds run with
+the defaults):
 
     python experiments/registration/model_object_fresh_seeds.py --seeds 0-9 --tasks 1 \
         --set photometric_scale_match=False --name dev_before
@@ -122,14 +123,23 @@ def main() -> None:
     )
     a = ap.parse_args()
     overrides = {}
+    icp_overrides = {}
     for item in a.set:
         key, _, val = item.partition("=")
+        try:
+            value = ast.literal_eval(val)
+        except (ValueError, SyntaxError):
+            value = val
+        if key.startswith("icp."):  # a field of PipelineConfig.icp (IcpConfig)
+            if key[4:] not in {f.name for f in dataclasses.fields(PipelineConfig().icp)}:
+                ap.error(f"--set: IcpConfig has no field {key[4:]!r}")
+            icp_overrides[key[4:]] = value
+            continue
         if key not in {f.name for f in dataclasses.fields(PipelineConfig)}:
             ap.error(f"--set: PipelineConfig has no field {key!r}")
-        try:
-            overrides[key] = ast.literal_eval(val)
-        except (ValueError, SyntaxError):
-            overrides[key] = val
+        overrides[key] = value
+    if icp_overrides:
+        overrides["icp"] = dataclasses.replace(PipelineConfig().icp, **icp_overrides)
     s0, s1 = (int(v) for v in a.seeds.split("-"))
     scratch = Path(a.scratch)
     scratch.mkdir(parents=True, exist_ok=True)
@@ -164,7 +174,7 @@ def main() -> None:
         "",
         f"commit {commit}, {platform.machine()}, python {platform.python_version()}; command: "
         f"`{cmd}`; load average at start {load0[0]:.1f}."
-        + (f" PipelineConfig overrides: {overrides}." if overrides else ""),
+        + (f" PipelineConfig overrides: {a.set}." if overrides else ""),
         "",
         f"Seeds {s0}-{s1} reserved before development (fresh_seeds_reserved.md; development "
         "seeds 0-9, see that file). Pipeline defaults (pose graph, calibrated edge "

@@ -71,9 +71,9 @@ def forward_pairs(sim: RgbdSimulator, seed: int, n_pairs: int, step_deg: float, 
     ]
 
 
-def _uncached_features(frame, *, asift=False):
+def _uncached_features(frame, *, asift=False, crop_margin=None):
     """Keypoint features computed at every registration (before the per-frame cache)."""
-    return keypoints.frame_features(frame.rgb, frame.depth, asift=asift)
+    return keypoints.frame_features(frame.rgb, frame.depth, asift=asift, crop_margin=crop_margin)
 
 
 @contextlib.contextmanager

@@ -59,6 +59,16 @@ class IcpConfig(eqx.Module):
     # jitter), so the tolerances sit above that floor and ~10x below the pose errors.
     tol_rotation: float = eqx.field(static=True, default=0.0)
     tol_translation: float = eqx.field(static=True, default=0.0)
+    # Coarse-to-fine source sampling of the convergence-stopped projective ICP
+    # (:func:`jaxcr.registration.projective.projective_icp`; 1 = off): the radius schedule
+    # runs to convergence on every ``coarse_stride``-th source row only (the rows are a
+    # random pixel sample in raster order, so the subset is spread over the view), then the
+    # full sample refines from there at ``min_dist`` until converged. The final pose comes
+    # from full-sample steps; the early, wide-radius steps cost 1 / ``coarse_stride``.
+    coarse_stride: int = eqx.field(static=True, default=1)
+    # The coarse stage's convergence tolerances are ``tol_*`` times this: its pose is only
+    # the fine stage's start, and a sparser sample's step-to-step jitter is larger.
+    coarse_tol_factor: float = eqx.field(static=True, default=1.0)
 
 
 DEFAULT_ICP = IcpConfig(

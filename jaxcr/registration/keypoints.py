@@ -36,11 +36,39 @@ def _affine_views(tilts=(1.0, 2.0**0.5, 2.0), n_rot=(1, 3, 5)):
     return out
 
 
-def detect(rgb: np.ndarray, mask: np.ndarray | None = None, asift: bool = False):
+def crop_box(mask: np.ndarray, margin: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1): the bounding box of ``mask``'s True pixels grown by ``margin``
+    pixels on each side, clipped to the image (the whole image when nothing is True)."""
+    h, w = mask.shape
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if len(rows) == 0:
+        return 0, 0, w, h
+    return (
+        max(int(cols[0]) - margin, 0),
+        max(int(rows[0]) - margin, 0),
+        min(int(cols[-1]) + 1 + margin, w),
+        min(int(rows[-1]) + 1 + margin, h),
+    )
+
+
+def detect(
+    rgb: np.ndarray,
+    mask: np.ndarray | None = None,
+    asift: bool = False,
+    crop_margin: int | None = None,
+):
     """Keypoint pixels (n, 2) (u, v) and SIFT descriptors (n, 128) of an RGB image in [0, 1].
-    ``mask`` (H, W) bool restricts detection (e.g. to valid depth)."""
+    ``mask`` (H, W) bool restricts detection (e.g. to valid depth). ``crop_margin`` (px):
+    run SIFT on the mask's bounding box grown by this margin only (:func:`crop_box`; the
+    scale-space pyramid is built over the crop, not the whole image, so its cost follows
+    the object's size; keypoints near the crop border and at coarse scales differ from
+    the whole image's: the blur sees the border replicated instead of the true pixels)."""
     g = _gray(rgb)
     m = None if mask is None else mask.astype(np.uint8) * 255
+    x0 = y0 = 0
+    if crop_margin is not None and mask is not None:
+        x0, y0, x1, y1 = crop_box(mask, int(crop_margin))
+        g, m = g[y0:y1, x0:x1], m[y0:y1, x0:x1]
     uvs, descs = [], []
     views = _affine_views() if asift else [(1.0, 0.0)]
     h, w = g.shape
@@ -58,7 +86,7 @@ def detect(rgb: np.ndarray, mask: np.ndarray | None = None, asift: bool = False)
             continue
         uv = np.array([k.pt for k in kps], np.float64)
         Ai = cv2.invertAffineTransform(A)
-        uvs.append(uv @ Ai[:, :2].T + Ai[:, 2])
+        uvs.append(uv @ Ai[:, :2].T + Ai[:, 2] + np.array([x0, y0], np.float64))
         descs.append(d)
     if not uvs:
         return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
@@ -126,10 +154,13 @@ class FrameFeatures:
     z: np.ndarray
 
 
-def frame_features(rgb, depth, *, asift: bool = False, smooth: int = 5) -> FrameFeatures:
-    """:class:`FrameFeatures` of one RGB-D frame (RGB in [0, 1], depth in metres)."""
+def frame_features(
+    rgb, depth, *, asift: bool = False, smooth: int = 5, crop_margin: int | None = None
+) -> FrameFeatures:
+    """:class:`FrameFeatures` of one RGB-D frame (RGB in [0, 1], depth in metres);
+    ``crop_margin``: SIFT on the valid depth's bounding box (:func:`detect`)."""
     valid = np.isfinite(depth) & (depth > 0)
-    uv, desc = detect(rgb, valid, asift)
+    uv, desc = detect(rgb, valid, asift, crop_margin)
     # Lift with locally averaged depth: a keypoint's depth is its noisiest coordinate.
     z = smooth_depth(np.nan_to_num(depth), valid, smooth)
     return FrameFeatures(uv, desc, z)

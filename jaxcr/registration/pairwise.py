@@ -115,7 +115,9 @@ def median_depth(frame: Frame) -> float:
     return float(np.median(d)) if len(d) else float("nan")
 
 
-def frame_features(frame: Frame, *, asift: bool = False) -> FrameFeatures:
+def frame_features(
+    frame: Frame, *, asift: bool = False, crop_margin: int | None = None
+) -> FrameFeatures:
     """The frame's SIFT keypoints, descriptors and smoothed depth
     (:func:`jaxcr.registration.keypoints.frame_features`), computed once per frame and
     ``asift`` setting and kept in ``frame.features``.
@@ -125,12 +127,16 @@ def frame_features(frame: Frame, *, asift: bool = False) -> FrameFeatures:
     the cache its SIFT ran once per registration (44 % of a pair's time,
     experiments/results/registration/bench_pairwise_profile_r3.md). The entry remembers the
     ``rgb`` and ``depth`` arrays it was computed from and is recomputed if either attribute
-    is replaced by another array (arrays are not expected to be modified in place)."""
-    entry = frame.features.get(bool(asift))
+    is replaced by another array (arrays are not expected to be modified in place).
+    ``crop_margin``: :func:`jaxcr.registration.keypoints.detect` (part of the cache key)."""
+    key = bool(asift) if crop_margin is None else (bool(asift), int(crop_margin))
+    entry = frame.features.get(key)
     if entry is None or entry[0] is not frame.rgb or entry[1] is not frame.depth:
-        feats = keypoints.frame_features(frame.rgb, frame.depth, asift=asift)
+        feats = keypoints.frame_features(
+            frame.rgb, frame.depth, asift=asift, crop_margin=crop_margin
+        )
         entry = (frame.rgb, frame.depth, feats)
-        frame.features[bool(asift)] = entry
+        frame.features[key] = entry
     return entry[2]
 
 
@@ -243,6 +249,7 @@ def register_pair(
     prior_gate: tuple[float, float] | None = None,
     geometric_points: str = "raw",
     scale_match: bool = False,
+    keypoint_crop: int | None = None,
 ) -> PairResult:
     """Register two RGB-D frames: ``T`` with ``tgt ~ T src`` (``jcr.registration.register_pair``;
     paper Sec. IV.A, see the module docstring).
@@ -293,6 +300,9 @@ def register_pair(
         is blurred alike on the surface (:func:`jaxcr.registration.projective.
         scale_matching_blur` from the views' median depths, :func:`median_depth`), so a
         far view's coarser pixels are not read as motion by the colour term.
+    keypoint_crop : int, optional
+        SIFT on each frame's valid-depth bounding box grown by this many pixels
+        (:func:`jaxcr.registration.keypoints.detect` ``crop_margin``); None: the whole image.
 
     Returns
     -------
@@ -360,7 +370,8 @@ def register_pair(
     for f in (src, tgt):
         if not bool(np.asarray(f.arrays.mask).any()):
             raise RegistrationFailed(f"frame {f.label or '?'} has an empty point cloud")
-    ka, kb = matched_features(frame_features(src, asift=asift), frame_features(tgt, asift=asift), K)
+    fa, fb = (frame_features(f, asift=asift, crop_margin=keypoint_crop) for f in (src, tgt))
+    ka, kb = matched_features(fa, fb, K)
     T_kp, n_in = estimate_transform(ka, kb, seed=seed) if len(ka) else (None, 0)
     if T_kp is not None and prior is not None and prior_gate is not None:
         r_err, t_err = pose_error(T_kp, prior)

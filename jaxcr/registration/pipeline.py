@@ -188,6 +188,16 @@ class PipelineConfig:
     # Cauchy-reweighted pose-graph solves after the calibrated one
     # (:func:`jaxcr.registration.pose_graph.optimize_pose_graph` ``robust_rounds``).
     robust_rounds: int = 0
+    # SIFT on each frame's valid-depth bounding box grown by this many pixels
+    # (:func:`jaxcr.registration.keypoints.detect` ``crop_margin``); None: the whole image
+    # (before 2026-12-02). Issue 18: SIFT of the new frame was ~37 % of a pair's time
+    # (bench_pairwise_profile_r5.md) while the object covers ~20-36 % of the 320x240 view.
+    # Dev seeds 0-4, Tasks 1+2, 40 forward pairs (speed_r5.md): CPU ms/pair -17..-32 %, pose
+    # error per pair within 0.010 deg / 0.049 mm of the whole-image SIFT's (another random
+    # draw of the ICP's source pixels moves it by up to 0.12 deg / 0.53 mm); object
+    # modelling, dev Task 1 seeds 0-4, worst pose 1.99 -> 1.91 mm
+    # (model_object_dev_t1_crop16_reg25.md). 32 px measured too: less of the saving.
+    keypoint_crop: int | None = 16
 
     def register(self, src, tgt, K, prior, seed: int, prior_gate=None) -> PairResult:
         """:func:`register_pair` with this configuration's ICP, keypoint and colour options."""
@@ -205,6 +215,7 @@ class PipelineConfig:
             seed=seed,
             geometric_points=self.geometric_points,
             scale_match=self.photometric_scale_match,
+            keypoint_crop=self.keypoint_crop,
         )
 
 

@@ -20,6 +20,7 @@ keypoint term as the nearest-neighbour ICP (:func:`jaxcr.registration.icp.gauss_
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -402,8 +403,50 @@ def projective_icp(
 
         T = jax.lax.fori_loop(0, n, body, T0)
         return projective_evaluate(T, src, tgt, cfg, window)
-    T, _ = _converging_icp(T0, src, tgt, cfg, kp, window, i_src, photometric, photo_points)
+    T, _ = coarse_to_fine_icp(T0, src, tgt, cfg, kp, window, i_src, photometric, photo_points)
     return projective_evaluate(T, src, tgt, cfg, window)
+
+
+def strided_rows(x, stride: int):
+    """Every ``stride``-th row of each array in ``x`` (an array, a NamedTuple of arrays or
+    None)."""
+    if x is None or stride <= 1:
+        return x
+    return jax.tree_util.tree_map(lambda a: a[::stride], x)
+
+
+def coarse_to_fine_icp(T0, src, tgt, cfg, kp, window, i_src, photometric, photo_points):
+    """:func:`_converging_icp`, with ``cfg.coarse_stride`` > 1 in two stages: the whole
+    radius schedule to convergence on every ``coarse_stride``-th source row (its source
+    values ``i_src`` and ``photo_points`` alike), then the full sample from that pose at
+    the final radius ``min_dist`` until converged; ``cfg.iterations`` steps at most over
+    both stages, one full-sample step at least. Returns (T, (coarse steps, fine steps))."""
+    s = int(cfg.coarse_stride)
+    if s <= 1:
+        T, steps = _converging_icp(T0, src, tgt, cfg, kp, window, i_src, photometric, photo_points)
+        return T, (jnp.int32(0), steps)
+    sub = [strided_rows(a, s) for a in (src, i_src, photo_points)]
+    loose = dataclasses.replace(
+        cfg,
+        tol_rotation=cfg.tol_rotation * cfg.coarse_tol_factor,
+        tol_translation=cfg.tol_translation * cfg.coarse_tol_factor,
+    )
+    T1, n1 = _converging_icp(T0, sub[0], tgt, loose, kp, window, sub[1], photometric, sub[2])
+    budget = jnp.maximum(cfg.iterations - n1, 1)
+    T, n2 = _converging_icp(
+        T1,
+        src,
+        tgt,
+        cfg,
+        kp,
+        window,
+        i_src,
+        photometric,
+        photo_points,
+        k0=cfg.iterations - 1,
+        max_steps=budget,
+    )
+    return T, (n1, n2)
 
 
 def pose_update(T_old: Mat4, T_new: Mat4) -> tuple[Float[Array, ""], Float[Array, ""]]:
@@ -416,17 +459,21 @@ def pose_update(T_old: Mat4, T_new: Mat4) -> tuple[Float[Array, ""], Float[Array
     return 0.5 * jnp.sqrt(jnp.sum(w**2)), jnp.sqrt(jnp.sum(dt**2))
 
 
-def _converging_icp(T0, src, tgt, cfg, kp, window, i_src, photometric, photo_points):
+def _converging_icp(
+    T0, src, tgt, cfg, kp, window, i_src, photometric, photo_points, k0=0, max_steps=None
+):
     """The ICP of :func:`projective_icp` with ``cfg``'s convergence stop
-    (:class:`jaxcr.registration.icp.IcpConfig`): the radius schedule in a ``while_loop``;
-    a converged step jumps to the final radius ``min_dist``, a converged step there ends
-    it, ``cfg.iterations`` steps at most. Returns (T, number of steps)."""
+    (:class:`jaxcr.registration.icp.IcpConfig`): the radius schedule in a ``while_loop``
+    from its ``k0``-th radius; a converged step jumps to the final radius ``min_dist``, a
+    converged step there ends it, ``max_steps`` (default ``cfg.iterations``) steps at most.
+    Returns (T, number of steps)."""
     n = cfg.iterations
     ratio = (cfg.min_dist / cfg.max_dist) ** (1.0 / max(n - 1, 1))
+    limit = n if max_steps is None else max_steps
 
     def cond(c):
         k, it, T, done = c
-        return (~done) & (it < n)
+        return (~done) & (it < limit)
 
     def body(c):
         k, it, T, _ = c
@@ -440,7 +487,8 @@ def _converging_icp(T0, src, tgt, cfg, kp, window, i_src, photometric, photo_poi
         k = jnp.where(conv, n - 1, jnp.minimum(k + 1, n - 1))
         return k, it + 1, T1, done
 
-    _, steps, T, _ = jax.lax.while_loop(cond, body, (jnp.int32(0), jnp.int32(0), T0, False))
+    init = (jnp.int32(k0), jnp.int32(0), T0, jnp.asarray(False))
+    _, steps, T, _ = jax.lax.while_loop(cond, body, init)
     return T, steps
 
 

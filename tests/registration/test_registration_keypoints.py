@@ -133,3 +133,38 @@ def test_frame_feature_cache_gives_the_uncached_correspondences(monkeypatch):
     assert len(frame_features(fa).uv) == len(frame_features(fb).uv)
     np.testing.assert_array_equal(frame_features(fa).desc, frame_features(fb).desc)
     assert len(calls) == 4
+
+
+def test_crop_box_and_cropped_detection_against_slow_references():
+    from jaxcr.registration import keypoints
+
+    rng = np.random.default_rng(3)
+    for _ in range(5):  # crop_box against a slow per-pixel loop over the mask
+        mask = np.zeros((H, W), bool)
+        y0, x0 = rng.integers(0, H - 10), rng.integers(0, W - 10)
+        mask[y0 : y0 + rng.integers(1, 10), x0 : x0 + rng.integers(1, 10)] = True
+        ys, xs = [], []
+        for y in range(H):
+            for x in range(W):
+                if mask[y, x]:
+                    ys.append(y)
+                    xs.append(x)
+        ref = (max(min(xs) - 6, 0), max(min(ys) - 6, 0), min(max(xs) + 7, W), min(max(ys) + 7, H))
+        assert keypoints.crop_box(mask, 6) == ref
+    assert keypoints.crop_box(np.zeros((H, W), bool), 6) == (0, 0, W, H)
+    # detect on a crop = OpenCV SIFT run by hand on the cropped grey image and mask, with
+    # the crop's corner added to the keypoints (exact: the same calls on the same pixels)
+    import cv2
+
+    rgb = rng.uniform(0, 1, (3 * H, 3 * W, 3))
+    rgb = cv2.GaussianBlur(rgb, (0, 0), 1.5)
+    mask = np.zeros(rgb.shape[:2], bool)
+    mask[60:150, 80:200] = True
+    uv, desc = keypoints.detect(rgb, mask, crop_margin=16)
+    x0, y0, x1, y1 = keypoints.crop_box(mask, 16)
+    g = keypoints._gray(rgb)[y0:y1, x0:x1]
+    m = mask[y0:y1, x0:x1].astype(np.uint8) * 255
+    kps, d_ref = keypoints._sift().detectAndCompute(g, m)
+    assert len(kps) > 10
+    np.testing.assert_allclose(uv, np.array([k.pt for k in kps]) + [x0, y0], atol=1e-9)
+    np.testing.assert_array_equal(desc, d_ref)

@@ -300,3 +300,39 @@ def test_projective_icp_convergence_stop_equals_fixed_schedule(scene, icp_runs):
     dr, dt = pose_update(fixed.T, T)
     assert float(dr) <= 10 * tol_r and float(dt) <= 10 * tol_t, (float(dr), float(dt))
     assert 3 <= int(steps) < 25  # it did stop early, and not before moving
+
+
+def test_coarse_to_fine_icp_equals_fixed_schedule(scene, icp_runs):
+    # Issue 18: IcpConfig.coarse_stride runs the radius schedule on every 4th source row
+    # (tolerances x coarse_tol_factor), then the full sample at the final radius until
+    # converged. Its last stage is the convergence-stopped ICP on the full sample, so the
+    # bound of test_projective_icp_convergence_stop_equals_fixed_schedule holds against the
+    # fixed 25-step schedule (10 tol each), and it recovers the closed-form pose as well as
+    # that schedule does (test_projective_icp_recovers_known_pose's bounds).
+    from jaxcr.registration.icp import no_keypoints
+    from jaxcr.registration.projective import coarse_to_fine_icp, pose_update, strided_rows
+
+    T0, fixed = icp_runs
+    tol_r, tol_t = 1e-4, 2e-5
+    cfg = IcpConfig(
+        iterations=25,
+        max_dist=0.03,
+        min_dist=0.004,
+        keypoint_weight=0.0,
+        tol_rotation=tol_r,
+        tol_translation=tol_t,
+        coarse_stride=4,
+        coarse_tol_factor=10.0,
+    )
+    sub = strided_rows(scene["src"], 4)
+    for a, b in zip(sub, scene["src"], strict=True):  # against numpy slicing
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[::4])
+    T, (n1, n2) = jax.jit(coarse_to_fine_icp, static_argnums=(3, 5, 7))(
+        jnp.asarray(T0, jnp.float32), scene["src"], scene["tgt"], cfg, no_keypoints(), 0,
+        None, "intensity", None,
+    )  # fmt: skip
+    dr, dt = pose_update(fixed.T, T)
+    assert float(dr) <= 10 * tol_r and float(dt) <= 10 * tol_t, (float(dr), float(dt))
+    r, t = pose_error(np.asarray(T, np.float64), scene["T"])
+    assert r < 0.05 and t < 3e-4, (r, t)
+    assert int(n1) >= 1 and 1 <= int(n2) and int(n1) + int(n2) <= 25
