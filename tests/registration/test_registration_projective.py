@@ -274,6 +274,19 @@ def test_photometric_term_fixes_the_direction_a_plane_leaves_free():
     assert t_pho < 2e-4 and r_pho < 0.05, (t_pho, r_pho)
 
 
+def _stopping_cfg(tol_r: float, tol_t: float, **extra) -> IcpConfig:
+    """The fixed 25-step radius schedule of icp_runs, with convergence tolerances."""
+    return IcpConfig(
+        iterations=25,
+        max_dist=0.03,
+        min_dist=0.004,
+        keypoint_weight=0.0,
+        tol_rotation=tol_r,
+        tol_translation=tol_t,
+        **extra,
+    )
+
+
 def test_projective_icp_convergence_stop_equals_fixed_schedule(scene, icp_runs):
     # Issue 18: the ICP stops when a step moves the pose less than the tolerances (and jumps
     # to the final radius when that happens early). Against the fixed 25-step schedule from
@@ -284,14 +297,7 @@ def test_projective_icp_convergence_stop_equals_fixed_schedule(scene, icp_runs):
 
     T0, fixed = icp_runs
     tol_r, tol_t = 1e-4, 2e-5
-    cfg = IcpConfig(
-        iterations=25,
-        max_dist=0.03,
-        min_dist=0.004,
-        keypoint_weight=0.0,
-        tol_rotation=tol_r,
-        tol_translation=tol_t,
-    )
+    cfg = _stopping_cfg(tol_r, tol_t)
     # the stopping loop itself (what projective_icp_jit runs with these tolerances)
     T, steps = jax.jit(_converging_icp, static_argnums=(3, 5, 7))(
         jnp.asarray(T0, jnp.float32), scene["src"], scene["tgt"], cfg, no_keypoints(), 0,
@@ -314,16 +320,7 @@ def test_coarse_to_fine_icp_equals_fixed_schedule(scene, icp_runs):
 
     T0, fixed = icp_runs
     tol_r, tol_t = 1e-4, 2e-5
-    cfg = IcpConfig(
-        iterations=25,
-        max_dist=0.03,
-        min_dist=0.004,
-        keypoint_weight=0.0,
-        tol_rotation=tol_r,
-        tol_translation=tol_t,
-        coarse_stride=4,
-        coarse_tol_factor=10.0,
-    )
+    cfg = _stopping_cfg(tol_r, tol_t, coarse_stride=4, coarse_tol_factor=10.0)
     sub = strided_rows(scene["src"], 4)
     for a, b in zip(sub, scene["src"], strict=True):  # against numpy slicing
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[::4])
