@@ -56,10 +56,16 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("logdir", help="folder written by JAXCR_TESTS_COMPILE_LOG")
     ap.add_argument("--cpu", type=float, default=1.0, help="CPU seconds from which a test is slow")
-    ap.add_argument("--summary", action="store_true",
-                    help="print CPU seconds by module (largest first) and write nothing")
-    ap.add_argument("--merge", action="store_true",
-                    help="add to the current list instead of replacing it (for a -m 'not slow' run)")
+    ap.add_argument(
+        "--summary",
+        action="store_true",
+        help="print CPU seconds by module (largest first) and write nothing",
+    )
+    ap.add_argument(
+        "--merge",
+        action="store_true",
+        help="add to the current list instead of replacing it (for a -m 'not slow' run)",
+    )
     args = ap.parse_args(argv)
     cpu = read_log(args.logdir)
     if not cpu:
@@ -79,8 +85,10 @@ def main(argv=None) -> int:
         f.write(HEADER.format(cpu=args.cpu))
         f.writelines(t + "\n" for t in sorted(slow))
     kept = sum(s for t, s in cpu.items() if t not in slow)
-    print(f"{len(slow)} slow tests written to {LIST}; the other {len(cpu) - len(slow & set(cpu))} "
-          f"measured tests used {kept:.0f} s of CPU in this log")
+    print(
+        f"{len(slow)} slow tests written to {LIST}; the other {len(cpu) - len(slow & set(cpu))} "
+        f"measured tests used {kept:.0f} s of CPU in this log"
+    )
     return 0
 
 
