@@ -44,7 +44,7 @@ def _use_run_cache():
 # Modules whose fixtures compile the refinement or run `jaxcr segment`/`demo` end to end: marked
 # slow as a whole, so `pytest -m "not slow"` is a smaller subset (the whole suite is the test
 # command). Individual tests are marked slow by @pytest.mark.slow or by tests/slow_tests.txt,
-# the list of tests that used >= 1 s of CPU in a measured run (tests/helpers/slow_marks.py).
+# the list of tests that used >= 0.8-1 s of CPU in measured runs (tests/helpers/slow_marks.py).
 SLOW_MODULES = (
     "tests/segmentation/test_refine.py",
     "tests/segmentation/test_refine_multicam.py",
