@@ -116,18 +116,19 @@ def resolve_steps(cfg: MotionConfig, width: int) -> tuple[int, int, int]:
     return sp, scale, step
 
 
-@functools.partial(
-    jax.jit,
-    static_argnames=(
-        "n_segments",
-        "models",
-        "n_irls",
-        "penalty",
-        "select_sigma",
-        "stabilise",
-        "translation_irls",
-    ),
+#: the static (shape- or branch-deciding) arguments of the two jitted per-frame functions below
+_FRAME_STATIC = (
+    "n_segments",
+    "models",
+    "n_irls",
+    "penalty",
+    "select_sigma",
+    "stabilise",
+    "translation_irls",
 )
+
+
+@functools.partial(jax.jit, static_argnames=_FRAME_STATIC)
 def frame_probabilities(
     pts: Float[Array, "n 2"],
     flow: Float[Array, "n 2"],
@@ -182,18 +183,7 @@ def frame_probabilities(
 _window_update = jax.vmap(window_update, in_axes=(0, 0, 0, None, None))
 
 
-@functools.partial(
-    jax.jit,
-    static_argnames=(
-        "n_segments",
-        "models",
-        "n_irls",
-        "penalty",
-        "select_sigma",
-        "stabilise",
-        "translation_irls",
-    ),
-)
+@functools.partial(jax.jit, static_argnames=_FRAME_STATIC)
 def frame_update(
     sums: Float[Array, "m 2 k"],
     counts: Float[Array, "m 2 k"],
