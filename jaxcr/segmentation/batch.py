@@ -306,9 +306,10 @@ class Segmenter:
         qs = jnp.asarray(np.stack([self.frames[fid].q for fid, _ in full]), jnp.float32)
         imgs_np = [np.stack([ims[k] for _, ims in full]) for k in range(len(self.cams))]
         with CompileTimer() as timer:
-            # not through cached_call: exporting the CTR kinematics failed (cached_call fell
-            # back to tracing, so it was traced twice; cause not investigated)
-            fk = _fk_batch(self.ds.robot, qs)
+            # through the stored traced program too, as the refinement: a second process then
+            # neither traces nor lowers the kinematics (a CTR's shooting solver is the largest
+            # of them)
+            fk = cached_call(_fk_batch, self.ds.robot, qs)
             bgs, subs = [], []
             traces = None
             if not self.bg_fns:  # --background plate: per frame, from the nominal base
@@ -361,6 +362,7 @@ class Segmenter:
                     self.config,
                     res.coeffs,
                     res.camera_correction,
+                    jit_call=cached_call,
                 )
                 unc = jax.tree.map(np.asarray, jax.block_until_ready(unc))
             self.compile_s += utimer.compile_s

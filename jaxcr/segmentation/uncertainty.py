@@ -379,15 +379,17 @@ def shape_uncertainty_batch(
     camera_corrections: Float[Array, "f c 6"] | None = None,
     *,
     rcond: float = RCOND,
+    jit_call=None,
 ) -> ShapeUncertainty:
     """:func:`shape_uncertainty` of F frames in one compiled call (arguments as
     :func:`jaxcr.segmentation.refine.refine_batch`, plus the results' ``coeffs`` and
-    ``camera_correction`` with a leading frame axis)."""
+    ``camera_correction`` with a leading frame axis). ``jit_call``: how the compiled function
+    is called, ``jit_call(fn, *args)``; None calls ``fn(*args)``
+    (``jaxcr.io.exported.cached_call``: as ``refine_batch``'s)."""
     as_t = lambda x: tuple(x) if isinstance(x, (tuple, list)) else (x,)  # noqa: E731
     cameras, images, backgrounds = as_t(cameras), as_t(images), as_t(backgrounds)
     f = bases.p.shape[0]
     if camera_corrections is None:
         camera_corrections = jnp.zeros((f, len(cameras), 6), bases.p.dtype)
-    return _batch_jit(
-        bases, cameras, images, backgrounds, config, coeffs, camera_corrections, float(rcond)
-    )
+    args = (bases, cameras, images, backgrounds, config, coeffs, camera_corrections, float(rcond))
+    return _batch_jit(*args) if jit_call is None else jit_call(_batch_jit, *args)

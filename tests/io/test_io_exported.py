@@ -93,3 +93,25 @@ def test_unreadable_entry_is_rebuilt(folder):
     out = exported.cached_call(_poly, p, x, "plain")
     np.testing.assert_allclose(out["y"], np.arange(3.0))
     assert path.read_bytes().startswith(exported.FORMAT)
+
+
+
+def test_kinematics_round_trip_equals_the_direct_call(folder):
+    """`jaxcr segment` calls the batched forward kinematics through cached_call, so a second
+    process neither traces nor lowers it. The stored-and-reloaded program gives the direct
+    call's FkResult (same arithmetic: float32 rounding, rtol 1e-6 as above). A single-segment
+    arc keeps this cheap; the CTR path (which once fell back to tracing) runs end to end in
+    the `jaxcr segment` tests, whose synthetic datasets are CTRs."""
+    import jaxcr as jcr
+    from jaxcr.segmentation.batch import _fk_batch
+
+    robot = jcr.robot_from_dict({"kind": "single_segment", "length": 0.04, "radius": 0.002})
+    qs = jnp.asarray(np.linspace(-1.0, 1.0, 2 * robot.n_joints).reshape(2, -1), jnp.float32)
+    ref = _fk_batch(robot, qs)
+    exported.cached_call(_fk_batch, robot, qs)
+    exported._memo.clear()  # a new process: the stored program is loaded, not traced
+    out = exported.cached_call(_fk_batch, robot, qs)
+    assert len(STORED) == 1
+    assert type(out) is type(ref)
+    np.testing.assert_array_equal(np.asarray(out.ok), np.asarray(ref.ok))
+    np.testing.assert_allclose(out.centreline.p, ref.centreline.p, rtol=1e-6, atol=1e-9)
