@@ -246,7 +246,7 @@ def trim_unexplained_tail(
     ``low``, as in :func:`reconcile_tips`): ``k``'s tip moves back to the first sample
     paired with ``j``'s tip (action ``"trimmed"``). Else None (nothing decided).
 
-    ``tails``: per view ``(i, tail_px)`` from the open-ended match
+    ``tails``: per view ``(i, tail_px, cost)`` from the open-ended match
     (:func:`jaxcr.stereo.backbone_consistency.open_end_tails`, which places an unseen
     stretch in the view that has it instead of sharing it between the two ends). Given,
     a view ``k`` has an unexplained tail when ``tail_px`` exceeds its tube width; of the

@@ -1,8 +1,9 @@
 """Whole-backbone consistency of two views (:mod:`jaxcr.stereo.backbone_consistency`, issue 16
 item 2) on a hand-built two-camera case: a 3-D arc projected exactly into both views is
 consistent (zero inconsistent length, points on the arc), the same arc with a stretch
-appended in one view only is inconsistent by that stretch's length, and the DLT agrees with
-OpenCV ``triangulatePoints``. Numpy only (no compilation); well under a second of CPU."""
+appended in one view only is inconsistent by that stretch's length (and the open-ended match
+puts all of it in that view), a tube whose return hides behind its outgoing part in one view
+is found with its tip, and the DLT agrees with OpenCV ``triangulatePoints``. Numpy only (no compilation); well under a second of CPU."""
 
 from __future__ import annotations
 
@@ -133,7 +134,7 @@ def _beyond(X, length=0.04, n=120):
 def test_open_end_places_an_unseen_stretch_in_the_view_that_has_it():
     """:func:`open_end_tails`: the stretch view 1 sees past view 0's end (the case above,
     where the end-to-end match shares it between the two ends) is all in view 1's tail,
-    and view 0 is explained whole."""
+    and cutting view 0 instead is the costlier explanation."""
     X = _arc()
     b0 = _proj(T0, X)
     b1 = _proj(T1, np.vstack([X, _beyond(X)]))
