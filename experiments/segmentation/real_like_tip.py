@@ -18,8 +18,10 @@ webcam noise, lens distortion, entry pixel with model error). Methods per view:
   trace`` records: where the two tips are over 5 px from each other's epipolar lines, the
   branch a view took at a crossing is chosen again by both views,
   :mod:`jaxcr.stereo.branch_choice`, ranked by how much of the two whole backbones fails
-  to triangulate consistently, :mod:`jaxcr.stereo.backbone_consistency`; a view's trace
-  whose end the other view does not explain is cut back, else the tips are re-searched
+  to triangulate consistently, :mod:`jaxcr.stereo.backbone_consistency`; a view whose
+  tube hooks back over its own silhouette gets its tip where the way back ends
+  (``fold_back_tip``), else a view's trace whose end the other view does not explain is
+  cut back (``open_end_tails``), else the tips are re-searched
   along the tubes, :mod:`jaxcr.stereo.tip_consistency`). The epipolar distance of each
   method's two tips is recorded per frame (a frame over 5 px is flagged);
 * ``trace_r1`` -- the first round's foreground (commit cf4b1bb, from git);
@@ -360,8 +362,10 @@ def main(argv=None) -> int:
         "two tips are over 5 px from each other's epipolar lines, the branch a view took at "
         "a crossing chosen again by both views (jaxcr.stereo.branch_choice, ranked by the "
         "length of the two whole backbones that does not triangulate consistently, "
-        "jaxcr.stereo.backbone_consistency), a trace's end that the other view does not "
-        "explain cut back (trimmed), else the tips re-searched along the traced tubes "
+        "jaxcr.stereo.backbone_consistency), a view whose tube hooks back over its own "
+        "silhouette given the tip where the way back ends (folded, fold_back_tip), else a "
+        "trace's end that the other view does not explain cut back (trimmed, placed by an "
+        "open-ended match), else the tips re-searched along the traced tubes "
         "(jaxcr.stereo.tip_consistency; jaxcr.stereo.pipeline."
         "traced_stereo_tips, what `jaxcr stereo --segmentation trace` records), with the "
         "rig's calibration (`calib_camera`, with the preset's calibration error); `trace_r1` "

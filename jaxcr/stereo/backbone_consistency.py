@@ -26,11 +26,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from jaxcr.stereo.correspondence import dtw_path
+from jaxcr.stereo.correspondence import dtw_path, dtw_path_costs_np
 from jaxcr.stereo.tip_consistency import undistort_pixels
 from jaxcr.stereo.tip_geometry import fundamental_from_poses
 
-__all__ = ["BackboneConsistency", "backbone_consistency", "triangulate_pixels", "resample_polyline"]
+__all__ = [
+    "BackboneConsistency", "backbone_consistency", "fold_back_tip", "open_end_tails", "triangulate_pixels",
+    "resample_polyline",
+]  # fmt: skip
 
 
 @dataclass
@@ -170,3 +173,108 @@ def backbone_consistency(
     bad = sum(float(np.sum(r > tol_px)) * st for r, st in zip(residual, steps, strict=True))
     lengths = np.array([np.sum(np.linalg.norm(np.diff(y, axis=0), axis=1)) for y in ys])
     return BackboneConsistency(pairs, X, err, residual, bad, lengths, samples, np.array(steps))
+
+
+def open_end_tails(
+    cams, consistency: BackboneConsistency, *, tol_px: float = 3.0, cap_px: float = 50.0
+) -> list[tuple[int, float, float]]:  # fmt: skip
+    """Per view ``k``: where ``k``'s backbone stops being explained when the other view's
+    backbone is matched whole, ``(i, tail_px, cost)``: ``i`` the last sample of ``k`` (an
+    index into ``consistency.samples[k]``), ``tail_px`` the length of ``k`` beyond it and
+    ``cost`` the match's (below; the smaller of the two views' is the better
+    explanation: the other view's unexplained stretch, forced into the match, costs
+    there).
+
+    :func:`backbone_consistency` matches the two backbones from end to end, so a stretch
+    that one view does not see is partly paired diagonally with the other view's last
+    samples, and its unexplained length is shared between the two views' ends. Here the
+    match is *open-ended* in ``k``: the monotone path runs from the entries to the other
+    view's tip and to any sample ``i`` of ``k``, and each of ``k``'s samples beyond ``i``
+    costs ``2 tol_px`` (a pair over twice the inconsistency level is better left
+    unmatched; matched pairs cost their symmetric epipolar distance clipped at
+    ``cap_px``, as in :func:`backbone_consistency`). ``i`` minimises the path's cost plus
+    that tail cost (a standard open-end DTW on the same cost matrix)."""
+    ys = [undistort_pixels(c, s) for c, s in zip(cams, consistency.samples, strict=True)]
+    K1, K2 = (np.asarray(c.K, np.float64) for c in cams)
+    T1, T2 = (np.asarray(c.T_cam_robot, np.float64) for c in cams)
+    F = fundamental_from_poses(K1, T1, K2, T2)
+    D, _ = dtw_path_costs_np(np.minimum(_symmetric_epipolar(F, ys[0], ys[1]), cap_px))
+    pen = 2.0 * tol_px
+    out = []
+    for k in range(2):
+        last = D[:, -1] if k == 0 else D[-1, :]  # k cut at i, the other view whole
+        n = len(last)
+        total = last + pen * (n - 1 - np.arange(n))
+        i = int(np.argmin(total))
+        out.append((i, float(consistency.steps_px[k]) * (n - 1 - i), float(total[i])))
+    return out
+
+
+def fold_back_tip(
+    cams, consistency: BackboneConsistency, widths, *, tol_px: float = 3.0,
+    cap_px: float = 50.0,
+) -> tuple[int, np.ndarray, float] | None:  # fmt: skip
+    """A view whose tube hooks back over its own silhouette: the view ``j`` and its tip
+    (distorted (u, v)) on the way back, or None.
+
+    Where the tube bends back towards a camera, its return runs over its outgoing part in
+    that view's image, so the tracer stops at the fold and the tip lies inside the traced
+    silhouette; the other view ``k`` sees the whole tube, whose end then has no partner
+    on ``j``'s traced backbone. Hypothesis: ``j``'s tube goes on back along its own
+    backbone (its samples followed by the same samples in reverse). ``k``'s whole backbone
+    is matched (as in :func:`open_end_tails`) with ``j``'s backbone and its reverse, the
+    match ending anywhere on the way back at least a tube width (``widths[j]``, px) past
+    the fold. The fold is taken when that match costs less than the best explanation
+    without it (either view's unexplained tail left unmatched at ``2 tol_px`` a sample,
+    :func:`open_end_tails`) by more than a tube width of unmatched samples of ``k``, and
+    explains ``k`` whole (the samples of ``k`` whose best pair along it is over
+    ``tol_px`` from the epipolar line add up to at most ``widths[k]``), and the way back
+    in ``j`` is no longer than the stretch of ``k`` that ``j``'s trace leaves unexplained
+    (:func:`open_end_tails`: the return runs along camera ``j``'s rays, that is why it
+    hides, so ``j`` sees it foreshortened; a long way back that ``k`` sees short is a
+    chance match, and an overshoot of ``k`` the likelier story); the tip is ``j``'s sample
+    where the match ends. Returns ``(j, tip, gain)`` for the larger
+    gain (in the cost's px units) of the two views, None when neither passes."""
+    ys = [undistort_pixels(c, s) for c, s in zip(cams, consistency.samples, strict=True)]
+    K1, K2 = (np.asarray(c.K, np.float64) for c in cams)
+    T1, T2 = (np.asarray(c.T_cam_robot, np.float64) for c in cams)
+    F = fundamental_from_poses(K1, T1, K2, T2)
+    pen = 2.0 * tol_px
+    best = None
+    for j in range(2):
+        k = 1 - j
+        n_j, n_k = len(ys[j]), len(ys[k])
+        if n_j < 3:
+            continue
+        yj = np.vstack([ys[j], ys[j][-2::-1]])  # there and back
+        a, b = (ys[k], yj) if k == 0 else (yj, ys[k])
+        D, _ = dtw_path_costs_np(np.minimum(_symmetric_epipolar(F, a, b), cap_px))
+        Dk = D[-1, :] if k == 0 else D[:, -1]  # k whole, j' open-ended
+        Dj = D[:, n_j - 1] if k == 0 else D[n_j - 1, :]  # j whole (no fold), k open
+        tail_k = Dj + pen * (n_k - 1 - np.arange(n_k))  # k cut, j whole
+        nofold = min(float(np.min(Dk[:n_j] + pen * (n_j - 1 - np.arange(n_j)))),
+                     float(np.min(tail_k)))  # fmt: skip
+        tail_k_px = (n_k - 1 - int(np.argmin(tail_k))) * float(consistency.steps_px[k])
+        first = n_j - 1 + int(np.ceil(float(widths[j]) / float(consistency.steps_px[j])))
+        if first >= len(yj):
+            continue
+        i = first + int(np.argmin(Dk[first:]))
+        gain = nofold - float(Dk[i])
+        margin = pen * float(widths[k]) / float(consistency.steps_px[k])
+        # The fold must explain k whole: along the folded match, k's samples whose best
+        # pair is over tol_px off add up to at most a tube width.
+        C = np.minimum(_symmetric_epipolar(F, a[: i + 1] if k == 1 else a,
+                                           b if k == 1 else b[: i + 1]), cap_px)  # fmt: skip
+        path = dtw_path(C)
+        resid = np.full(n_k, np.inf)
+        np.minimum.at(resid, path[:, 0 if k == 0 else 1], C[path[:, 0], path[:, 1]])
+        left = float(np.sum(resid > tol_px)) * float(consistency.steps_px[k])
+        back_px = (i - (n_j - 1)) * float(consistency.steps_px[j])
+        if (
+            gain > margin and left <= float(widths[k]) and back_px <= tail_k_px
+            and (best is None or gain > best[2])
+        ):  # fmt: skip
+            src = consistency.samples[j]
+            tip = np.vstack([src, src[-2::-1]])[i]
+            best = (j, np.asarray(tip, np.float64), gain)
+    return best

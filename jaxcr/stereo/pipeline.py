@@ -59,7 +59,7 @@ from jaxcr.segmentation.foreground import (
     trace_alternatives,
 )
 from jaxcr.stereo.aruco import MarkerLayout, detect_markers, stereo_base_pose
-from jaxcr.stereo.backbone_consistency import backbone_consistency
+from jaxcr.stereo.backbone_consistency import backbone_consistency, fold_back_tip, open_end_tails
 from jaxcr.stereo.base_frame import (
     BaseSpec,
     frame_from_direction,
@@ -346,14 +346,47 @@ def traced_stereo_tips(
     trace_alternatives`; the consistent pair whose whole backbones triangulate
     consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
     :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
-    ``flag_px``, a view's backbone end that the other view does not explain is cut back
-    (:func:`jaxcr.stereo.tip_consistency.trim_unexplained_tail`, action ``"trimmed"``),
+    ``flag_px``, a view whose tube hooks back over its own silhouette gets its tip where
+    the way back ends (:func:`jaxcr.stereo.backbone_consistency.fold_back_tip`, action
+    ``"folded"``), else a view's backbone end that the other view does not explain is cut
+    back (:func:`jaxcr.stereo.tip_consistency.trim_unexplained_tail` with
+    :func:`jaxcr.stereo.backbone_consistency.open_end_tails`, action ``"trimmed"``),
     else the tips are re-searched along the traced tubes
     (:func:`jaxcr.stereo.tip_consistency.reconcile_tips`). ``traces``: the two
     :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
     (u, v), source ``"trace_stereo"`` or ``"trace"`` (``"+branch"`` appended when a branch
     choice replaced a view's trace), the re-search's result or None when a tip is not
     finite, the two traces the tips belong to)."""
+    traces, tips, src = _branch_step(cams, traces, flag_px)
+    return _tip_step(cams, traces, tips, src, flag_px)
+
+
+def _tip_step(cams, traces, tips, src, flag_px: float):
+    """:func:`traced_stereo_tips` after the branch choice: a fold, a trim or the tips'
+    re-search (its return value)."""
+    if not all(np.all(np.isfinite(t)) for t in tips):
+        return tips, src, None, traces
+    res = None
+    if _epi_px(cams, tips) > flag_px:
+        bc = backbone_consistency(
+            cams, _ending_at(traces[0].backbone, tips[0]), _ending_at(traces[1].backbone, tips[1])
+        )
+        fold = fold_back_tip(cams, bc, [t.width_px for t in traces])
+        if fold is not None:
+            j, tip_j, _ = fold
+            new = [np.asarray(t, np.float64) for t in tips]
+            new[j] = tip_j
+            res = TipConsistency(new, "folded", j, float("nan"), _epi_px(cams, tips),
+                                 _epi_px(cams, new))  # fmt: skip
+        else:
+            res = trim_unexplained_tail(cams, traces, tips, bc, tails=open_end_tails(cams, bc))
+    if res is None:
+        res = reconcile_tips(cams, traces, tips, flag_px=flag_px)
+    return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
+
+
+def _branch_step(cams, traces, flag_px: float):
+    """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source)."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
     if _epi_px(cams, tips) > flag_px and all(
@@ -378,17 +411,7 @@ def traced_stereo_tips(
                 traces = [cands[k][choice.indices[k]] for k in range(2)]
                 tips, src = _stereo_or_own_tips(cams, traces)
                 src = src + "+branch"
-    if not all(np.all(np.isfinite(t)) for t in tips):
-        return tips, src, None, traces
-    res = None
-    if _epi_px(cams, tips) > flag_px:
-        bc = backbone_consistency(
-            cams, _ending_at(traces[0].backbone, tips[0]), _ending_at(traces[1].backbone, tips[1])
-        )
-        res = trim_unexplained_tail(cams, traces, tips, bc)
-    if res is None:
-        res = reconcile_tips(cams, traces, tips, flag_px=flag_px)
-    return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
+    return traces, tips, src
 
 
 def _ending_at(backbone, tip) -> np.ndarray:
@@ -434,7 +457,7 @@ def _traced_tips(vrec: list[dict], traces, traced) -> None:
     length undetermined), else ``"skeleton"`` (no finite traced tip); ``"+branch"``
     appended for a view whose trace :func:`traced_stereo_tips` replaced by another branch
     (its ``backbone_px`` is then that trace's path, not the mask's skeleton), ``"+cut"`` or
-    ``"+extended"`` (or ``"+trimmed"``) for the view its epipolar re-search moved.
+    ``"+extended"`` (or ``"+trimmed"``, ``"+folded"``) for the view its epipolar re-search moved.
     ``traced``: :func:`traced_stereo_tips` of ``traces`` (computed before triangulation:
     the robot masks are the chosen traces' and the triangulated skeletons end at the
     tips, :func:`_ending_near`). The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along

@@ -47,6 +47,9 @@ class TipConsistency:
     """Result of :func:`reconcile_tips`: ``tips`` [(2,), (2,)] distorted (u, v) pixels;
     ``action`` one of ``"consistent"``, ``"cut"`` (the longer view moved back), ``"extended"``
     (the shorter view moved on), ``"kept"`` (flagged, no decision), ``"no_crossing"``;
+    ``"trimmed"`` (:func:`trim_unexplained_tail`) and ``"folded"``
+    (:func:`jaxcr.stereo.pipeline.traced_stereo_tips` with
+    :func:`jaxcr.stereo.backbone_consistency.fold_back_tip`);
     ``view`` the view (0 or 1) whose tip moved (None if none); ``evidence`` the fraction
     of the shorter view's predicted path with tube score (NaN if not measured);
     ``epipolar_px`` before and after."""
@@ -223,7 +226,7 @@ def reconcile_tips(
 
 def trim_unexplained_tail(
     cams, traces, tips, consistency, *, tol_px: float = 3.0, low: float = 0.4,
-    absent: float = 0.3, probe_widths: float = 2.0,
+    absent: float = 0.3, probe_widths: float = 2.0, tails=None,
 ) -> TipConsistency | None:  # fmt: skip
     """A view's trace that ran on past the tube's end, cut where the other view's tube
     ends, told by the two whole backbones (issue 16 item 2: an overshoot along a shadow,
@@ -241,7 +244,18 @@ def trim_unexplained_tail(
     continuing ``j``'s last traced stretch, from 0.75 to ``0.75 + probe_widths`` tube
     widths beyond the tip, under ``absent`` of the samples have a cue score of at least
     ``low``, as in :func:`reconcile_tips`): ``k``'s tip moves back to the first sample
-    paired with ``j``'s tip (action ``"trimmed"``). Else None (nothing decided)."""
+    paired with ``j``'s tip (action ``"trimmed"``). Else None (nothing decided).
+
+    ``tails``: per view ``(i, tail_px, cost)`` from the open-ended match
+    (:func:`jaxcr.stereo.backbone_consistency.open_end_tails`, which places an unseen
+    stretch in the view that has it instead of sharing it between the two ends). Given,
+    a view ``k`` has an unexplained tail when ``tail_px`` exceeds its tube width; of the
+    views with one and no tube beyond the other view's tip (the test above), the one whose
+    open-ended match costs less is cut back to its sample ``i`` (the better
+    explanation of the two backbones)."""
+    if tails is not None:
+        return _trim_open_end(cams, traces, tips, consistency, tails, low=low, absent=absent,
+                              probe_widths=probe_widths)  # fmt: skip
     tips = [np.asarray(t, np.float64) for t in tips]
     pairs = np.asarray(consistency.pairs)
     tails = []
@@ -259,17 +273,8 @@ def trim_unexplained_tail(
         return None
     k = longer[0]
     j = 1 - k
-    bbj = np.asarray(traces[j].backbone, np.float64)
-    bbj = np.vstack([bbj[:-1], tips[j]]) if len(bbj) > 1 else tips[j][None]
-    w = float(getattr(traces[j], "width_px", 5.0))
-    path = _predicted_path(bbj, 24.0, (0.75 + probe_widths) * w)
-    probe = path[int(np.ceil(0.75 * w / 0.5)) :]
-    if len(probe) < 6:
-        return None
-    sc = ndi.map_coordinates(np.asarray(traces[j].score, np.float64),
-                             [probe[:, 1], probe[:, 0]], order=1, mode="nearest")  # fmt: skip
-    evidence = float(np.mean(sc >= low))
-    if evidence >= absent:
+    evidence = _beyond_evidence(traces[j], tips[j], low, probe_widths)
+    if not evidence < absent:
         return None
     K0, K1 = (np.asarray(c.K, np.float64) for c in cams)
     F = fundamental_from_poses(K0, np.asarray(cams[0].T_cam_robot, np.float64),
@@ -281,4 +286,48 @@ def trim_unexplained_tail(
 
     new = [t.copy() for t in tips]
     new[k] = np.asarray(consistency.samples[k][tails[k]], np.float64)
+    return TipConsistency(new, "trimmed", k, evidence, epi(tips), epi(new))
+
+
+def _beyond_evidence(trace, tip, low: float, probe_widths: float) -> float:
+    """Fraction of the arc continuing ``trace``'s last traced stretch beyond ``tip``, from
+    0.75 to ``0.75 + probe_widths`` tube widths, with a cue score of at least ``low``; NaN
+    when under 3 px of it lies in the image (no decision)."""
+    tip = np.asarray(tip, np.float64)
+    bb = np.asarray(trace.backbone, np.float64)
+    bb = np.vstack([bb[:-1], tip]) if len(bb) > 1 else tip[None]
+    w = float(getattr(trace, "width_px", 5.0))
+    path = _predicted_path(bb, 24.0, (0.75 + probe_widths) * w)
+    probe = path[int(np.ceil(0.75 * w / 0.5)) :]
+    if len(probe) < 6:
+        return float("nan")
+    sc = ndi.map_coordinates(np.asarray(trace.score, np.float64),
+                             [probe[:, 1], probe[:, 0]], order=1, mode="nearest")  # fmt: skip
+    return float(np.mean(sc >= low))
+
+
+def _trim_open_end(cams, traces, tips, consistency, tails, *, low, absent, probe_widths):
+    """:func:`trim_unexplained_tail` with the open-ended tails (its docstring)."""
+    tips = [np.asarray(t, np.float64) for t in tips]
+    best = None
+    for k in range(2):
+        i, tail, cost = tails[k]
+        if not tail > float(getattr(traces[k], "width_px", 5.0)):
+            continue
+        ev = _beyond_evidence(traces[1 - k], tips[1 - k], low, probe_widths)
+        if ev < absent and (best is None or cost < best[2]):
+            best = (k, i, cost, ev)
+    if best is None:
+        return None
+    k, i, _, evidence = best
+    K0, K1 = (np.asarray(c.K, np.float64) for c in cams)
+    F = fundamental_from_poses(K0, np.asarray(cams[0].T_cam_robot, np.float64),
+                               K1, np.asarray(cams[1].T_cam_robot, np.float64))  # fmt: skip
+
+    def epi(ts):
+        a, b = (undistort_pixels(c, t)[0] for c, t in zip(cams, ts, strict=True))
+        return max(epipolar_distances(F, a, b))
+
+    new = [t.copy() for t in tips]
+    new[k] = np.asarray(consistency.samples[k][i], np.float64)
     return TipConsistency(new, "trimmed", k, evidence, epi(tips), epi(new))

@@ -1,8 +1,9 @@
 """Whole-backbone consistency of two views (:mod:`jaxcr.stereo.backbone_consistency`, issue 16
 item 2) on a hand-built two-camera case: a 3-D arc projected exactly into both views is
 consistent (zero inconsistent length, points on the arc), the same arc with a stretch
-appended in one view only is inconsistent by that stretch's length, and the DLT agrees with
-OpenCV ``triangulatePoints``. Numpy only (no compilation); well under a second of CPU."""
+appended in one view only is inconsistent by that stretch's length (and the open-ended match
+puts all of it in that view), a tube whose return hides behind its outgoing part in one view
+is found with its tip, and the DLT agrees with OpenCV ``triangulatePoints``. Numpy only (no compilation); well under a second of CPU."""
 
 from __future__ import annotations
 
@@ -11,7 +12,12 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from jaxcr.stereo.backbone_consistency import backbone_consistency, triangulate_pixels
+from jaxcr.stereo.backbone_consistency import (
+    backbone_consistency,
+    fold_back_tip,
+    open_end_tails,
+    triangulate_pixels,
+)
 from jaxcr.stereo.tip_consistency import trim_unexplained_tail
 from jaxcr.synth.scene import look_at_pose
 
@@ -114,3 +120,59 @@ def test_an_unexplained_tail_is_trimmed_only_without_tube_beyond_the_other_tip()
     traces[0].score = np.zeros((160, 200))
     traces[1].width_px = 40.0
     assert trim_unexplained_tail(CAMS, traces, tips, bc) is None
+
+
+def _beyond(X, length=0.04, n=120):
+    """X extended from its end by ``length`` m across the epipolar planes (along the
+    normal of the plane through the end and the two camera centres)."""
+    c0, c1 = (-T[:3, :3].T @ T[:3, 3] for T in (T0, T1))
+    nrm = np.cross(c1 - c0, X[-1] - c0)
+    nrm = nrm / np.linalg.norm(nrm)
+    return X[-1] + np.outer(np.linspace(0.0, length, n)[1:], nrm)
+
+
+def test_open_end_places_an_unseen_stretch_in_the_view_that_has_it():
+    """:func:`open_end_tails`: the stretch view 1 sees past view 0's end (the case above,
+    where the end-to-end match shares it between the two ends) is all in view 1's tail,
+    and cutting view 0 instead is the costlier explanation."""
+    X = _arc()
+    b0 = _proj(T0, X)
+    b1 = _proj(T1, np.vstack([X, _beyond(X)]))
+    stretch = float(np.sum(np.linalg.norm(np.diff(b1[len(X) - 1 :], axis=0), axis=1)))
+    tails = open_end_tails(CAMS, backbone_consistency(CAMS, b0, b1, step_px=1.0))
+    # Resampled every 1 px: the cut lies within a sample or two of the end of the arc
+    # (the stretch leaves the end's epipolar plane at a right angle, so its first samples
+    # are 1-2 px off the plane: under 2 tol_px = 6 px they may still be matched, a few
+    # px of the 51 px stretch); 6 px covers that and the step.
+    assert abs(tails[1][1] - stretch) <= 6.0, (tails, stretch)
+    # Cutting view 0 instead leaves the stretch in the match (each of its ~50 samples
+    # costs up to the 50 px cap, at least 6 px once off the end's plane): a costlier
+    # explanation than leaving it out at 6 px a sample.
+    assert tails[1][2] < tails[0][2]
+    # Nothing beyond either end: no tail (within the step).
+    full = open_end_tails(CAMS, backbone_consistency(CAMS, b0, _proj(T1, X), step_px=1.0))
+    assert full[0][1] <= 1.0 and full[1][1] <= 1.0
+
+
+def test_a_tube_folding_back_over_itself_in_one_view_is_found():
+    """:func:`fold_back_tip`: the tube's second half lies on camera 1's rays through its
+    first half (taken backwards), deeper; view 1 sees there and back on one line, and its
+    trace stops at the fold. The tip in view 1 is where the return ends, the projection
+    of the tube's end, which view 0 sees whole."""
+    X = _arc(120, end=1.0)
+    c1 = -T1[:3, :3].T @ T1[:3, 3]
+    m = 40  # the return runs back over 40 samples, to X[-41]'s image
+    lam = 1.0 + 0.6 * np.linspace(0.0, 1.0, m + 1)[1:]
+    back = c1 + lam[:, None] * (X[-2 : -m - 2 : -1] - c1)
+    tube = np.vstack([X, back])
+    b0, b1 = _proj(T0, tube), _proj(T1, X)
+    bc = backbone_consistency(CAMS, b0, b1, step_px=1.0)
+    fold = fold_back_tip(CAMS, bc, [8.0, 8.0])
+    assert fold is not None and fold[0] == 1
+    # The true tip's image is X[-41]'s: on the resampled polyline within a step of the
+    # match's last sample, plus the epipolar matching's own one-sample slack: 2 px.
+    truth = _proj(T1, back[-1])[0]
+    assert np.linalg.norm(fold[1] - truth) <= 2.0, (fold[1], truth)
+    # The views of one arc: nothing folds.
+    assert fold_back_tip(CAMS, backbone_consistency(CAMS, _proj(T0, X), b1, step_px=1.0),
+                         [8.0, 8.0]) is None  # fmt: skip
