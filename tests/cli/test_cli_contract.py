@@ -28,9 +28,13 @@ from jaxcr.cli import main
 from jaxcr.errors import InputError
 from jaxcr.io import outdir
 from jaxcr.io import results as R
+from tests.helpers import cli_scene
 from tests.helpers.datasets import make_dataset
 
-FAST = ["--levels", "1", "--max-steps", "2", "--batch-size", "1", "--quiet"]
+#: the canonical CLI scene's options (tests/helpers/cli_scene.py): the Ctrl-C run below refines
+#: that scene's frames with the programs tests/cli/test_cli_segment.py compiles (the run's
+#: compilation cache serves them) instead of compiling a refinement of its own
+FAST = [*cli_scene.FAST, "--quiet"]
 
 
 def _one_line_error(capsys) -> str:
@@ -79,7 +83,7 @@ _CHILD = textwrap.dedent(
 
 
 def test_ctrl_c_exits_130_at_once_and_resume_completes(tmp_path):
-    ds = make_dataset(tmp_path / "ds", n_frames=4)
+    ds = cli_scene.make_frames(tmp_path / "ds", 4)
     out = tmp_path / "out"
     argv = ["segment", str(ds), "-o", str(out), *FAST]
     proc = subprocess.Popen(
@@ -99,7 +103,7 @@ def test_ctrl_c_exits_130_at_once_and_resume_completes(tmp_path):
     time.sleep(0.5)  # inside the slow collections
     proc.send_signal(signal.SIGINT)
     try:
-        _, err = proc.communicate(timeout=10)  # at once: the child needs ~5 s per frame
+        _, err = proc.communicate(timeout=10)  # at once: the child needs ~5 s per record
     except subprocess.TimeoutExpired:
         proc.kill()
         _, err = proc.communicate()
@@ -110,8 +114,8 @@ def test_ctrl_c_exits_130_at_once_and_resume_completes(tmp_path):
     assert not (out / outdir.LOCK_FILE).exists()  # released on the way out
     assert not (out / R.DONE_FILE).exists()
     n_before = len(R.read_results(log))
-    assert 1 <= n_before < 4
-    assert main([*argv, "--resume"]) in (0, 1)  # random images: frames may fail, with reasons
+    assert 1 <= n_before < 4  # chunks of 2 frames, ~5 s per record: interrupted in the first
+    assert main([*argv, "--resume"]) in (0, 1)  # a frame may fail, with a reason
     assert (out / R.DONE_FILE).exists()
     lines = log.read_text().splitlines()
     assert sorted(json.loads(x)["frame"] for x in lines) == [f"{i:06d}" for i in range(4)]

@@ -1,8 +1,9 @@
 """Progress reporting policy (``jaxcr.progress``) and its use by the commands.
 
 Unit tests of the policy (terminal test, ``JAXCR_PROGRESS`` override, plain-line schedule on a
-fake clock), then commands run as subprocesses with stderr on a pipe (not a terminal): no
-carriage-return bar redraws, a few plain lines instead; ``JAXCR_PROGRESS=1`` forces the bar.
+fake clock), then commands run with stderr not a terminal (``fk`` as a subprocess writing to a
+pipe, ``validate`` in this process with stderr captured): no carriage-return bar redraws, a few
+plain lines instead; ``JAXCR_PROGRESS=1`` forces the bar.
 ``model-object``'s no-total progress is checked in-process with a stand-in for the pipeline
 (the real one takes minutes).
 """
@@ -203,7 +204,27 @@ def dataset(tmp_path_factory):
     return root
 
 
-def test_validate_redirected_plain_lines_forced_bar_and_bad_override(dataset):
+def _main(args, monkeypatch, capsys, env_value=None):
+    """``jaxcr ARGS`` in this process, stderr captured (not a terminal, as a pipe): the same
+    policy as in a new process, without one's Python/JAX start-up (~2 s of CPU each);
+    test_fk_redirected_plain_lines_forced_bar runs a real subprocess with a real pipe."""
+    from jaxcr.cli import main
+
+    monkeypatch.delenv(P.ENV, raising=False)
+    if env_value is not None:
+        monkeypatch.setenv(P.ENV, env_value)
+    capsys.readouterr()
+    code = main(args)
+    out = capsys.readouterr()
+    return SimpleNamespace(returncode=code, stdout=out.out, stderr=out.err)
+
+
+def test_validate_redirected_plain_lines_forced_bar_and_bad_override(dataset, monkeypatch,
+                                                                     capsys):  # fmt: skip
+    def _run(args, env_value=None):
+        return _main(args, monkeypatch, capsys, env_value)
+
+    assert not sys.stderr.isatty()  # captured, as a pipe
     r = _run(["validate", str(dataset)])
     assert r.returncode == 0, r.stderr
     assert "\r" not in r.stderr

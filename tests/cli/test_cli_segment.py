@@ -19,43 +19,28 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcr.camera import Camera
 from jaxcr.cli import main
 from jaxcr.io import results as R
 from jaxcr.io.dataset import DatasetWriter
 from jaxcr.kinematics.robots import robot_from_dict
+from tests.helpers.cli_scene import FAST as SCENE_FAST
+from tests.helpers.cli_scene import ROBOT, H, W
+from tests.helpers.cli_scene import camera as scene_camera
+from tests.helpers.cli_scene import draw as _draw
 
-W, H = 96, 72
-ROBOT = {
-    "kind": "constant_curvature",
-    "sections": [{"length": 0.08, "radius": 0.003}],
-    "joints": ["kappa", "phi"],
-    "n_points": 24,
-}
-#: one pyramid level (a program half the size of two levels' to compile): these tests check
-#: the command's plumbing (records, files, resume, Ctrl-C, warm start, evaluate), not the
-#: refinement's accuracy (tests/segmentation/test_refine*.py); test_cli_segment_plate.py
-#: runs the same flags, so the same program
-FAST = ["--levels", "1", "--max-steps", "4", "--batch-size", "2", "--quiet"]
-
-
-def _draw(camera: Camera, p: np.ndarray, radius: float) -> np.ndarray:
-    K = np.asarray(camera.K, np.float64)
-    T = np.asarray(camera.T_cam_robot, np.float64)
-    rvec, _ = cv2.Rodrigues(T[:3, :3])
-    uv, _ = cv2.projectPoints(p, rvec, T[:3, 3], K, np.zeros(5))
-    depth = (p @ T[:3, :3].T + T[:3, 3])[:, 2]
-    thick = max(1, int(round(2 * radius * K[0, 0] / depth.mean())))
-    mask = np.zeros((H, W), np.uint8)
-    pts = np.round(uv.reshape(-1, 1, 2) * 8).astype(np.int32)  # 3 fractional bits
-    cv2.polylines(mask, [pts], False, 255, thick, cv2.LINE_8, shift=3)
-    return mask > 0
+#: the canonical CLI scene's options (tests/helpers/cli_scene.py: one pyramid level, a program
+#: half the size of two levels' to compile): these tests check the command's plumbing
+#: (records, files, resume, Ctrl-C, warm start, evaluate), not the refinement's accuracy
+#: (tests/segmentation/test_refine*.py); test_cli_segment_plate.py, test_cli_contract.py's
+#: Ctrl-C run and tests/scale/test_ray_fault.py run the same options on the same shapes, so
+#: the same programs
+FAST = [*SCENE_FAST, "--quiet"]
 
 
 def make_dataset(root: Path) -> Path:
     rng = np.random.default_rng(0)
     robot = robot_from_dict(ROBOT)
-    cam = Camera.look_at((-0.15, 0.0, 0.04), (0.0, 0.0, 0.04), (0.0, -1.0, 0.0), 110.0, (W, H))
+    cam = scene_camera()
     qs = [(5.0, 0.0), (-4.0, 0.2), (3.0, -0.3), (-6.0, 0.1), (2.0, 0.0), (4.0, 0.0), (1.0, 0.0)]
     with DatasetWriter(root, "tiny", ROBOT, {"main": cam}) as w:
         for k, q in enumerate(qs):

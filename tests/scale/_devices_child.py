@@ -58,7 +58,10 @@ def main() -> None:
     # refinement: 4 frames of a 48x36 camera, a short schedule (cheap compile). The
     # single-device reference refines frames 0-1 and 2-3 as two batches on device 0: the same
     # compiled program as the 2-device run's first block, so only device 1's copy compiles
-    # anew (the padding path is covered by fk's 5 rows above)
+    # anew (the padding path is covered by fk's 5 rows above). "The same program" needs the
+    # same arguments as map_frames gives device 0's copy: every array committed to device 0
+    # (jit compiles an uncommitted argument separately from a committed one: measured, three
+    # refinement compiles instead of two), including the zero starts refine_batch would make
     cam = Camera.look_at([0.0, -0.2, 0.03], [0.0, 0.0, 0.03], [0.0, 0.0, 1.0], 90.0, (48, 36))
     fk = jax.vmap(robot.forward)(jnp.asarray(q[:4], jnp.float32))
     imgs = jnp.asarray(rng.random((4, 36, 48, 3)), jnp.float32)
@@ -66,9 +69,20 @@ def main() -> None:
     cfg = RefineConfig(levels=(0,), steps=(3,), outer=(1,), tau=(0.8,), n_coeffs=2,
                        band_tiles=24, min_tiles=8, camera_correction=False)  # fmt: skip
 
+    dev0 = jax.local_devices()[0]
+
+    def on0(tree):
+        return jax.tree.map(lambda x: jax.device_put(x, dev0) if eqx.is_array(x) else x, tree)
+
     def part(a, b):
         cl = jax.tree.map(lambda x: x[a:b], fk.centreline)
-        return refine_batch(cl, (cam,), (imgs[a:b],), (bgs[a:b],), cfg, devices=1)
+        n = b - a
+        return refine_batch(
+            on0(cl), on0((cam,)), (on0(imgs[a:b]),), (on0(bgs[a:b]),), cfg,
+            inits=on0(jnp.zeros((n,) + cfg.coeff_shape, jnp.float32)),
+            valid=on0(jnp.ones(n, bool)),
+            init_cams=on0(jnp.zeros((n, 1, 6), jnp.float32)), devices=1,
+        )  # fmt: skip
 
     r1 = jax.tree.map(lambda x, y: jnp.concatenate([x, y]), part(0, 2), part(2, 4))
     r2 = refine_batch(fk.centreline, (cam,), (imgs,), (bgs,), cfg)

@@ -1,4 +1,4 @@
-"""The fault test of issue 19: a 12-frame 160x120 segment job on a local Ray instance with 2
+"""The fault test of issue 19: a 12-frame 96x72 segment job on a local Ray instance with 2
 workers, one worker SIGKILLed mid-run; the job finishes and its output folder equals a local
 run's (same files byte for byte, same records apart from timings, a frame failing on a worker
 recorded as locally); a second run into the folder meanwhile is refused naming the holder.
@@ -25,7 +25,7 @@ import pytest
 
 pytest.importorskip("ray", reason="Ray is not installed (pip install -e '.[ray]')")
 
-from tests.helpers.scale_data import FAST_FLAGS, make_segment_dataset  # noqa: E402
+from tests.helpers import cli_scene  # noqa: E402
 
 BAD = 5  # frame 5's joint is beyond float32: recorded as failed by whichever process runs it
 TIMINGS = ("time_s", "compile_s")
@@ -92,16 +92,18 @@ def _files(out: Path) -> dict[str, bytes]:
     }
 
 
-#: the segment command of both runs: the short refinement schedule of the scale-out helpers,
-#: and no per-frame covariance (its compile is a third of the module's cost; what this module
-#: checks -- exactly-once records, equal files, the lock -- does not depend on it)
-FLAGS = [*FAST_FLAGS, "--no-uncertainty", "--batch-size", "2", "--no-overlays", "--quiet"]
+#: the segment command of both runs: the canonical CLI scene's options (tests/helpers/
+#: cli_scene.py), so in a whole-suite run the refinement is the program test_cli_segment.py
+#: compiles, loaded from the run's cache; and no per-frame covariance (its compile was a third
+#: of the module's cost alone; what this module checks -- exactly-once records, equal files,
+#: the lock -- does not depend on it)
+FLAGS = [*cli_scene.FAST, "--no-uncertainty", "--no-overlays", "--quiet"]
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("scale")
-    ds = make_segment_dataset(root / "ds", 12, bad=(BAD,))
+    ds = cli_scene.make_frames(root / "ds", 12, bad=(BAD,))
     # The compiled programs go to the run's persistent compilation cache (tests/conftest.py),
     # or to JAXCR_SCALE_TEST_CACHE (a CI runner can keep that folder between runs: then nothing
     # compiles and the module takes the time of the runs themselves)

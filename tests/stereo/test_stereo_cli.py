@@ -16,9 +16,12 @@ from jaxcr.stereo.evaluate import evaluate_frame
 
 @pytest.fixture(scope="module")
 def synth_set(tmp_path_factory):
+    """One pair at 320x240, seed 4: the pair of examples/stereo.py (tests/core/test_examples.py)
+    and the size of test_ray_equality.py's and the tutorial's stereo runs, so the stereo
+    programs compiled there are loaded from the run's compilation cache (480x360 before)."""
     d = tmp_path_factory.mktemp("stereo") / "set"
     code = main(
-        ["stereo", "synth", "-o", str(d), "--frames", "1", "--size", "480x360", "--seed", "4"]
+        ["stereo", "synth", "-o", str(d), "--frames", "1", "--size", "320x240", "--seed", "4"]
     )
     assert code == 0
     return d
@@ -45,7 +48,10 @@ def test_stereo_cli_outputs_and_accuracy(synth_set, tmp_path):
         "boundary_p": npz["boundary_p"],
     }
     ev = evaluate_frame(res, truth)
-    assert ev["backbone_rms_mm"] < 0.5
+    # the bound was 0.5 mm at 480x360; at 320x240 (same field of view) a pixel covers
+    # 480/320 = 1.5x more, so 0.75 mm, as tests/core/test_examples.py::test_stereo derives
+    # for this very pair (measured there: 0.49 mm; coverage 0.974, 0.975-0.995 over seeds 0-5)
+    assert ev["backbone_rms_mm"] < 0.75
     assert ev["coverage"] > 0.95
 
 
