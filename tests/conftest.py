@@ -70,7 +70,10 @@ LONGEST_FIRST = (
     "tests/segmentation/test_refine.py",  # (226) five refinement programs
     "tests/kinematics/test_kinematics_fit.py",  # (208)
     "tests/cli/test_tutorial.py",  # (172) one test
-    "tests/segmentation/test_refine_convergence.py",  # (160) four
+    # (160 with four programs of its own; now two, and it loads test_refine's per-frame and
+    # vmap programs, so it must stay after test_refine: started together on the two
+    # workers, both would compile them)
+    "tests/segmentation/test_refine_convergence.py",
     "tests/core/test_examples.py",  # (148)
     "tests/cli/test_cli_segment.py",  # (145)
     "tests/scale/test_devices.py",  # (97) one test, a subprocess with 2 host devices

@@ -99,7 +99,9 @@ FAILURES = {
 
 
 class RefineConfig(eqx.Module):
-    """Settings of the refinement (all static: a new config compiles a new function).
+    """Settings of the refinement (all static: a new config compiles a new function; only
+    ``steps`` is passed traced by :func:`refine_frame_jit` and :func:`refine_batch`, so
+    configs differing in nothing else share their compiled programs).
 
     Parameters
     ----------
@@ -681,7 +683,8 @@ class _Levels(eqx.Module):
     :class:`RegionData` padded to the finest level's grid (zero weight on the padding), which
     tiles of that grid lie in the level's image (``tile_ok``) and the level's band size
     (``k_active`` of ``k_max`` slots); per level, the level, tau and the step budget; static,
-    the capsule count of the drawn tube and the solver's ``max_steps`` (the largest budget)."""
+    the capsule count of the drawn tube and the solver's ``max_steps`` (the largest budget, or
+    None when the budgets are traced: see :func:`_level_tables`)."""
 
     datas: tuple[RegionData, ...]
     tile_ok: tuple[Bool[Array, "L n"], ...]
@@ -691,15 +694,22 @@ class _Levels(eqx.Module):
     steps: Int[Array, " L"]
     k_max: tuple[int, ...] = eqx.field(static=True)
     n_capsules: int = eqx.field(static=True)
-    max_steps: int = eqx.field(static=True)
+    max_steps: int | None = eqx.field(static=True)
 
 
 def _level_tables(
-    pyramids, config: RefineConfig, n_seg: int, dtype, which: tuple[int, ...] | None = None
+    pyramids,
+    config: RefineConfig,
+    n_seg: int,
+    dtype,
+    which: tuple[int, ...] | None = None,
+    steps=None,
 ) -> _Levels:
     """:class:`_Levels` of ``config``'s levels (those at indices ``which``; all if None), with
     the capsule count every level's merged tube is padded to
-    (:func:`silhouette.level_tube_padded`)."""
+    (:func:`silhouette.level_tube_padded`). ``steps``: the per-level step budgets as an
+    array (e.g. traced) instead of ``config.steps``; the solver's static ``max_steps`` is
+    then None (no bound of its own: the traced budget ends every solve)."""
     which = tuple(range(len(config.levels))) if which is None else which
     levels = [config.levels[i] for i in which]
     finest = min(levels)
@@ -732,10 +742,14 @@ def _level_tables(
         k_active=tuple(k_active),
         level=jnp.asarray(levels, jnp.int32),
         tau=jnp.asarray([config.tau[i] for i in which], dtype),
-        steps=jnp.asarray([config.steps[i] for i in which], jnp.int32),
+        steps=(
+            jnp.asarray([config.steps[i] for i in which], jnp.int32)
+            if steps is None
+            else jnp.asarray(steps, jnp.int32)[jnp.asarray(which)]
+        ),
         k_max=tuple(k_max),
         n_capsules=-(-n_seg // (config.seg_merge * 2**finest)),
-        max_steps=max(config.steps[i] for i in which),
+        max_steps=max(config.steps[i] for i in which) if steps is None else None,
     )
 
 
@@ -749,6 +763,8 @@ def refine_frame(
     valid: Bool[Array, ""] | bool = True,
     init_cam: Float[Array, "c 6"] | None = None,
     init_hessian: Float[Array, "n n"] | None = None,
+    *,
+    steps: Int[Array, " L"] | None = None,
 ) -> RefineResult:
     """Refine one frame (pure; jit it, or use :func:`refine_batch` / :func:`refine_frame_jit`).
 
@@ -768,6 +784,10 @@ def refine_frame(
         init_hessian: warm-start inverse Hessian (n, n) for the first solve (the previous
             frame's :attr:`RefineResult.hessian_inv`); identity if None or non-finite. Used
             only with ``config.hessian_memory`` and BFGS.
+        steps: the per-level step budgets (one per ``config.levels``) as an integer array,
+            used instead of ``config.steps``: traced, it makes configs that differ only in
+            ``steps`` one compiled program (:func:`refine_frame_jit` and
+            :func:`refine_batch` pass it so); the same solves either way.
 
     Returns:
         :class:`RefineResult` (see there).
@@ -775,6 +795,12 @@ def refine_frame(
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     if not (len(cameras) == len(images) == len(backgrounds)):
         raise InputError("need one image and one background mask per camera", field="images")
+    if steps is not None and jnp.shape(steps) != (len(config.levels),):
+        raise InputError(
+            f"steps needs one budget per level ({len(config.levels)}), got shape "
+            f"{jnp.shape(steps)}",
+            field="steps",
+        )
     dtype = base.p.dtype
     finite_in = jnp.all(jnp.isfinite(base.p)) & jnp.all(jnp.isfinite(base.u))
     finite_in = finite_in & jnp.all(jnp.isfinite(base.R)) & jnp.all(jnp.isfinite(base.rho))
@@ -1072,7 +1098,7 @@ def refine_frame(
     carry = (params0, jnp.asarray(0, jnp.int32), hinv, have_h)
     n_solve = []
     for group in groups:
-        tables = _level_tables(pyramids, config, base.p.shape[0] - 1, dtype, group)
+        tables = _level_tables(pyramids, config, base.p.shape[0] - 1, dtype, group, steps)
         # the schedule: solve j runs at row k of the table (config.outer[li] solves of level
         # li = group[k]); each level after the first starts from the identity Hessian
         rows = [(k, li) for k, li in enumerate(group) for _ in range(config.outer[li])]
@@ -1170,9 +1196,21 @@ def refine_frame(
     )
 
 
+def _steps_apart(config: RefineConfig):
+    """``config`` without its step budgets (all 1) and the budgets as an array: the compiled
+    entry points below take the budgets as a traced argument, so that configs differing only
+    in ``steps`` share one compiled program (and one trace)."""
+    steps = jnp.asarray(config.steps, jnp.int32)
+    return dataclasses.replace(config, steps=(1,) * len(config.steps)), steps
+
+
 @eqx.filter_jit
-def _refine_frame_jit(base, cameras, images, backgrounds, config, init, valid, init_cam, init_h):
-    return refine_frame(base, cameras, images, backgrounds, config, init, valid, init_cam, init_h)
+def _refine_frame_jit(
+    base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, steps
+):
+    return refine_frame(
+        base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, steps=steps
+    )
 
 
 def _direct(fn, *args):
@@ -1205,20 +1243,23 @@ def refine_frame_jit(
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     init = jnp.zeros(config.coeff_shape, base.p.dtype) if init is None else init
     init_cam = _cam_init(init_cam, (), len(cameras), base.p.dtype)
+    config, steps = _steps_apart(config)
     t0 = time.perf_counter()
     out = _refine_frame_jit(
         base, cameras, images, backgrounds, config, init, jnp.asarray(valid, bool), init_cam,
-        init_hessian,
+        init_hessian, steps,
     )  # fmt: skip
     jax.block_until_ready(out)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.asarray(time.perf_counter() - t0))
 
 
 @eqx.filter_jit
-def _refine_batch_jit(bases, cameras, images, backgrounds, config, inits, valid, mode, cams0):
+def _refine_batch_jit(
+    bases, cameras, images, backgrounds, config, inits, valid, mode, cams0, steps
+):
     def one(args):
         base, ims, bgs, init, v, cam0 = args
-        return refine_frame(base, cameras, ims, bgs, config, init, v, cam0)
+        return refine_frame(base, cameras, ims, bgs, config, init, v, cam0, steps=steps)
 
     args = (bases, images, backgrounds, inits, valid, cams0)
     if mode == "vmap":
@@ -1287,13 +1328,15 @@ def refine_batch(
     t0 = time.perf_counter()
     call = _direct if jit_call is None else jit_call
 
-    def body(batched, cameras, config, mode):
+    config, steps = _steps_apart(config)
+
+    def body(batched, cameras, config, mode, steps):
         bases, images, backgrounds, inits, valid, cams0 = batched
-        args = (bases, cameras, images, backgrounds, config, inits, valid, mode, cams0)
+        args = (bases, cameras, images, backgrounds, config, inits, valid, mode, cams0, steps)
         return call(_refine_batch_jit, *args)
 
     batched = (bases, images, backgrounds, inits, valid, cams0)
-    out = map_frames(body, batched, cameras, config, mode, devices=devices)
+    out = map_frames(body, batched, cameras, config, mode, steps, devices=devices)
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / max(f, 1)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))

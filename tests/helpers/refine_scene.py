@@ -8,6 +8,9 @@ count, batch size F and the same jitted function. tests/segmentation/test_refine
 :func:`jaxcr.segmentation.refine.refine_frame_jit` and ``refine_batch(..., mode="map")`` on
 F = 2 frames with this setup; tests/segmentation/test_segmentation_api.py calls the public
 front doors on the same shapes, so it loads both programs instead of compiling two more.
+tests/segmentation/test_refine_convergence.py runs the per-frame program and test_refine's
+vmap program (VMAP_BATCH frames) with a config that differs from CFG only in ``steps``, which
+the compiled entry points take as a traced argument: the same programs.
 Change nothing here without re-deriving the thresholds of the modules that import it.
 """
 
@@ -31,6 +34,11 @@ CFG = RefineConfig(
 )
 #: the batch size of the shared ``refine_batch`` program
 BATCH = 2
+#: the batch size of the shared ``refine_batch(..., mode="vmap")`` program: test_refine's
+#: batch of good and bad frames; tests/segmentation/test_refine_convergence.py runs the same
+#: program (its config differs from CFG only in ``steps``, which refine_frame_jit and
+#: refine_batch pass as a traced argument, so it is the same compiled program)
+VMAP_BATCH = 5
 
 
 def base():

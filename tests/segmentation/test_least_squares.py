@@ -6,6 +6,7 @@ on the suite's canonical refinement scene (one new compiled program)."""
 import dataclasses
 
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -39,7 +40,11 @@ AREA = 500.0
 
 def _tiny(curvature: float):
     """A 12 cm tube (curvature ``curvature`` 1/m; 0 = straight) seen at level 1 of a smooth
-    96x72 image (smooth so the energy is smooth at the finite-difference step), x64."""
+    96x72 image (smooth so the energy is smooth at the finite-difference step), x64: the
+    scene ``(centreline, camera, region data, band)``. The compiled functions below take it
+    as an argument instead of closing over it (closed-over arrays are constants of a
+    program), so both curvatures run the same eight compiled programs; each curvature
+    compiled all eight again before (~15 s of CPU)."""
     n = 33
     s = jnp.linspace(0.0, 0.12, n, dtype=jnp.float64)
     u = jnp.tile(jnp.array([curvature, 0.5 * curvature, 0.0], jnp.float64), (n - 1, 1))
@@ -56,49 +61,76 @@ def _tiny(curvature: float):
     bg[:, :10] = True  # background pixels: e_p = g_pen/A > 0 there, 0 on the padding
     d = prepare_region_data(jnp.asarray(img), jnp.asarray(bg), 1, 8)
     band = select_band(scale_tube(project_tube(cam, cl), 1), d.grid, 30, 8)
+    return cl, cam, d, band
 
-    def tube(c):
-        return scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
 
-    def margin(c):
-        return band_margin(tube(c), d.grid, band)
+def _tube(scene, c):
+    cl, cam, _, _ = scene
+    return scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
 
-    def fast_normal_terms(c, e):  # the refinement's path: winner_margins + band_normal_terms
-        def fields(c):
-            t = tube(c)
-            return jnp.stack([t.ax, t.ay, t.bx, t.by, t.ra, t.rb]), t
 
-        fj, t = jax.jacfwd(fields, has_aux=True)(c)
-        m, dfield, slot = winner_margins(t, d.grid, band)
-        return m, band_normal_terms(m, dfield, slot, fj.reshape(6, -1, 6), band, e, TAU)
+def _margin(scene, c):
+    _, _, d, band = scene
+    return band_margin(_tube(scene, c), d.grid, band)
 
-    def image_energy(soft):
-        return chan_vese_soft(soft, band, d, Weights(), AREA)[0]
 
-    def bfgs_energy(c):  # what the BFGS solver minimises (regulariser left out)
-        t = scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
-        return chan_vese_energy(t, band, d, 0.0, Weights(), TAU, AREA)[0]
+def _resid(scene, c, e):
+    return region_residuals(_margin(scene, c), e, TAU).ravel()
 
-    return margin, image_energy, bfgs_energy, fast_normal_terms
+
+def _image_energy(scene, soft):
+    _, _, d, band = scene
+    return chan_vese_soft(soft, band, d, Weights(), AREA)[0]
+
+
+def _bfgs_energy(scene, c):
+    """What the BFGS solver minimises (regulariser left out)."""
+    _, _, d, band = scene
+    return chan_vese_energy(_tube(scene, c), band, d, 0.0, Weights(), TAU, AREA)[0]
+
+
+def _fast_normal_terms(scene, c, e):
+    """The refinement's path: winner_margins + band_normal_terms."""
+    _, _, d, band = scene
+
+    def fields(c):
+        t = _tube(scene, c)
+        return jnp.stack([t.ax, t.ay, t.bx, t.by, t.ra, t.rb]), t
+
+    fj, t = jax.jacfwd(fields, has_aux=True)(c)
+    m, dfield, slot = winner_margins(t, d.grid, band)
+    return m, band_normal_terms(m, dfield, slot, fj.reshape(6, -1, 6), band, e, TAU)
+
+
+def _half_sq(scene, c, e):
+    return 0.5 * jnp.sum(_resid(scene, c, e) ** 2)
+
+
+# compiled once for both curvatures (the scene is an argument; its non-array leaves static)
+_margin_j = eqx.filter_jit(_margin)
+_resid_j = eqx.filter_jit(_resid)
+_grad_image_energy = eqx.filter_jit(jax.grad(_image_energy, argnums=1))
+_jac_resid = eqx.filter_jit(jax.jacfwd(_resid, argnums=1))
+_jac_margin = eqx.filter_jit(jax.jacfwd(_margin, argnums=1))
+_grad_half_sq = eqx.filter_jit(jax.grad(_half_sq, argnums=1))
+_grad_bfgs = eqx.filter_jit(jax.grad(_bfgs_energy, argnums=1))
+_fast_normal_terms_j = eqx.filter_jit(_fast_normal_terms)
 
 
 @pytest.mark.parametrize("curvature", [8.0, 0.0])
 def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
     with jax.enable_x64(True):
-        margin, image_energy, bfgs_energy, fast_normal_terms = _tiny(curvature)
+        scene = _tiny(curvature)
         c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
         if curvature == 0.0:
             c0 = jnp.zeros((2, 3))  # the straight tube itself: the singular point to guard
-        m0 = jax.jit(margin)(c0)
+        m0 = _margin_j(scene, c0)
         soft0 = jax.nn.sigmoid(m0 / TAU)
         # the pixel weights at c0, held fixed (the region means of c0)
-        e = jax.jit(jax.grad(image_energy))(soft0)
+        e = _grad_image_energy(scene, soft0)
         assert float(jnp.max(jnp.abs(e))) > 0 and bool(jnp.any(e == 0))  # padding: e = 0
 
-        def resid(c):
-            return region_residuals(margin(c), e, TAU).ravel()
-
-        jr = np.asarray(jax.jit(jax.jacfwd(resid))(c0)).reshape(-1, 6)
+        jr = np.asarray(_jac_resid(scene, c0, e)).reshape(-1, 6)
         assert np.all(np.isfinite(jr))
         # 1) residual Jacobian vs central differences. Error of a central difference:
         #    eps^2/6 |r'''| (truncation) + 2 * 1e-16 |r| / eps (x64 rounding). Margins move
@@ -107,23 +139,23 @@ def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
         #    = 3e5 |r|, and eps = 1e-6 gives <~ 5e-8 |r| + 2e-10 |r|: atol 1e-6 max |r|.
         #    Pixels whose margin switches winning segment or capsule end within eps (a kink
         #    of the max) would differ; none does at this seed.
-        rj = jax.jit(resid)
-        r0 = np.asarray(rj(c0))
+        r0 = np.asarray(_resid_j(scene, c0, e))
         eps = 1e-6
         fd = np.zeros_like(jr)
         for i in range(6):
             dc = jnp.zeros(6).at[i].set(eps).reshape(2, 3)
-            fd[:, i] = (np.asarray(rj(c0 + dc)) - np.asarray(rj(c0 - dc))) / (2 * eps)
+            hi, lo = _resid_j(scene, c0 + dc, e), _resid_j(scene, c0 - dc, e)
+            fd[:, i] = (np.asarray(hi) - np.asarray(lo)) / (2 * eps)
         np.testing.assert_allclose(jr, fd, rtol=1e-5, atol=1e-6 * np.abs(r0).max())
         assert np.abs(jr).max() > 1e-3  # not trivially flat
         # 2) grad 1/2 |r|^2 (means fixed) == grad of the BFGS energy (means re-estimated):
         #    the envelope theorem makes them equal in exact arithmetic; float64 sums of
         #    ~1e3 terms: rtol 1e-9
-        g_ls = np.asarray(jax.jit(jax.grad(lambda c: 0.5 * jnp.sum(resid(c) ** 2)))(c0)).ravel()
-        g_cv = np.asarray(jax.jit(jax.grad(bfgs_energy))(c0)).ravel()
+        g_ls = np.asarray(_grad_half_sq(scene, c0, e)).ravel()
+        g_cv = np.asarray(_grad_bfgs(scene, c0)).ravel()
         np.testing.assert_allclose(g_ls, g_cv, rtol=1e-9, atol=1e-12 * np.abs(g_cv).max())
         # 3) normal_terms (closed form, no square root) == (J_r^T r, J_r^T J_r)
-        dm = jax.jit(jax.jacfwd(margin))(c0).reshape(*m0.shape, 6)
+        dm = _jac_margin(scene, c0).reshape(*m0.shape, 6)
         g, G = normal_terms(m0, dm, e, TAU)
         np.testing.assert_allclose(np.asarray(g), g_cv, rtol=1e-9, atol=1e-12 * np.abs(g_cv).max())
         np.testing.assert_allclose(
@@ -132,7 +164,7 @@ def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
         assert np.all(np.isfinite(np.asarray(G))) and np.all(np.isfinite(np.asarray(g)))
         # 4) the refinement's path (per-pixel derivatives w.r.t. the winning capsule's six
         #    fields, chained through the tube Jacobian) gives the same margins, g and G
-        m1, (g1, G1) = jax.jit(fast_normal_terms)(c0, e)
+        m1, (g1, G1) = _fast_normal_terms_j(scene, c0, e)
         np.testing.assert_allclose(np.asarray(m1), np.asarray(m0), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(np.asarray(g1), g_cv, rtol=1e-9, atol=1e-12 * np.abs(g_cv).max())
         np.testing.assert_allclose(

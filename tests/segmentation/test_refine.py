@@ -113,6 +113,7 @@ def batch(scene):
             frames[0]["bg"],
         ]
     )
+    assert imgs.shape[0] == refine_scene.VMAP_BATCH  # test_refine_convergence's program too
     return bases, cam, imgs, bgs, refine_batch(bases, cam, imgs, bgs, CFG, mode="vmap")
 
 
@@ -219,6 +220,8 @@ def test_bad_arguments_raise_input_error(scene):
         RefineConfig(levels=(1, 0), steps=(3,))
     with pytest.raises(InputError):
         refine_frame(base, (cam, cam), frames[0]["img"], frames[0]["bg"], CFG)
+    with pytest.raises(InputError):  # one step budget per level
+        refine_frame(base, cam, frames[0]["img"], frames[0]["bg"], CFG, steps=jnp.ones(3, int))
     with pytest.raises(InputError):
         refine_batch(
             jax.tree.map(lambda x: x[None], base),

@@ -2,10 +2,17 @@
 refine_frame): stops on its image-space test, not on max_steps; a warm start from the answer
 takes fewer steps than a cold start; vmap agrees with per-frame results.
 
-Small images (128x96), one small config; the compiled functions are module fixtures.
+The suite's canonical scene and programs (tests/helpers/refine_scene.py) with a longer
+level-0 step budget: CFG differs from refine_scene.CFG only in ``steps`` (the canonical
+budget of 15 fine steps always runs out on these frames, so the stop on the image-space test
+could not be seen), and refine_frame_jit / refine_batch pass the budgets as a traced
+argument, so the per-frame program and the vmap batch program here are the ones
+tests/segmentation/test_refine.py compiles (served by the run's compilation cache). Compiled
+here: the warm schedule (CFG.warm()) and refine_sequence.
 """
 
-import equinox as eqx
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,25 +27,14 @@ from jaxcr.segmentation.refine import (
     ImageSpaceLBFGS,
     RefineConfig,
     refine_batch,
-    refine_frame,
     refine_frame_jit,
     refine_sequence,
 )
-from tests.helpers.tube_render import arc_base, front_camera, tube_frames
+from tests.helpers import refine_scene
+from tests.helpers.tube_render import tube_frames
 
-W, H = 128, 96
-CFG = RefineConfig(
-    n_coeffs=3,
-    levels=(1, 0),
-    steps=(30, 40),
-    outer=(2, 1),
-    tau=(1.0, 0.8),
-    band_tiles=96,
-    min_tiles=24,
-    g_reg=0.5,
-    local=False,
-    camera_correction=False,
-)
+W, H = refine_scene.W, refine_scene.H
+CFG = dataclasses.replace(refine_scene.CFG, steps=(30, 40))
 MAX_STEPS = 30 * 2 + 40
 # easy frames: a small in-image-plane bend (row 0) of the nominal shape
 TRUE = [
@@ -47,37 +43,17 @@ TRUE = [
 ]
 
 
-def _base():
-    return arc_base(3e-3)
-
-
-def _camera():
-    return front_camera(160.0, (W, H))
-
-
 @pytest.fixture(scope="module")
 def scene():
-    base, cam = _base(), _camera()
+    base, cam = refine_scene.base(), refine_scene.camera()
     return base, cam, tube_frames(base, cam, TRUE, (W, H))
 
 
 @pytest.fixture(scope="module")
-def run():
-    """Per-frame compiled refine (init always given: one trace for cold and warm)."""
-
-    @eqx.filter_jit
-    @eqx.debug.assert_max_traces(max_traces=1)
-    def f(base, cam, img, bg, init):
-        return refine_frame(base, cam, img, bg, CFG, init=init)
-
-    return f
-
-
-@pytest.fixture(scope="module")
-def cold(scene, run):
+def cold(scene):
+    """Per-frame cold refinements (refine_frame_jit: test_refine's compiled program)."""
     base, cam, frames = scene
-    zero = jnp.zeros(CFG.coeff_shape)
-    return [run(base, cam, f["img"], f["bg"], zero) for f in frames]
+    return [refine_frame_jit(base, cam, f["img"], f["bg"], CFG) for f in frames]
 
 
 def test_stops_on_its_criterion_before_max_steps(scene, cold):
@@ -86,6 +62,8 @@ def test_stops_on_its_criterion_before_max_steps(scene, cold):
         assert bool(r.ok)
         # the last solve ended on the convergence test (status successful), not max_steps
         assert int(r.status) == int(optx.RESULTS.successful._value)
+        # measured on this scene (six render-noise seeds of both frames): 54-67 steps of 100, the
+        # last (level-0) solve 17-21 of its 40; IoU 0.92-0.94
         assert int(r.num_steps) < 0.8 * MAX_STEPS, np.asarray(r.steps_per_level)
         assert float(iou(r.masks[0], f["mask"])) > 0.85
         assert float(r.energy.total) < float(r.energy.total_nominal)
@@ -117,11 +95,13 @@ def test_warm_start_from_the_answer_takes_fewer_steps(scene, cold):
         )
         assert int(w.num_steps) < int(r.num_steps), (int(w.num_steps), int(r.num_steps))
         # and stays near the answer. Not exactly at it: the band of the warm solve is chosen
-        # at the answer, not where the cold level-0 solve started, and on this 2-px-wide tube
-        # the band changes the soft energy enough to move the weakly observed out-of-plane
-        # row by ~0.1-0.2 (measured: mask IoU to the cold answer 0.93-0.96, to the truth
-        # 0.93 -> 0.91 and 0.93 -> 0.87). Stated tolerance: IoU to the cold mask > 0.9 and
-        # to the truth within 0.07 of the cold one.
+        # at the answer, not where the cold level-0 solve started, and on this thin tube the
+        # band changes the soft energy enough to move the weakly observed out-of-plane row
+        # (measured over six render-noise seeds of both frames: warm 10-11 steps against the cold
+        # 54-67; mask IoU to the cold answer 0.926-0.943, to the truth 0.92-0.95 -> 0.90-0.91;
+        # 128x96 before the move to the canonical scene: 0.93-0.96 and 0.93 -> 0.87).
+        # Stated tolerance: IoU to the cold mask > 0.9 and to the truth within 0.07 of the
+        # cold one.
         assert float(iou(w.masks[0], r.masks[0])) > 0.9
         assert float(iou(w.masks[0], f["mask"])) > float(iou(r.masks[0], f["mask"])) - 0.07
 
@@ -144,13 +124,17 @@ def test_sequence_equals_per_frame_cold_then_warm(scene, cold, sequence):
 
 
 def test_vmap_and_map_agree_with_per_frame(scene, cold):
-    """lax.map (default) equals the per-frame results exactly; vmap equals them up to float32
-    rounding in batched reductions, which moves the converged answer by well under a pixel
-    here: stated tolerance mask IoU > 0.95 and projected centreline within 0.5 px."""
+    """lax.map (default) equals the per-frame results exactly (test_refine); vmap equals them
+    up to float32 rounding in batched reductions, which moves the converged answer by well
+    under a pixel here (measured over six render-noise seeds: IoU 1.0, at most 0.016 px): stated
+    tolerance mask IoU > 0.95 and projected centreline within 0.5 px. The batch has
+    test_refine's vmap batch size (the two frames repeated), so it runs that program."""
     base, cam, frames = scene
-    bases = jax.tree.map(lambda *x: jnp.stack(x), base, base)
-    imgs = jnp.stack([f["img"] for f in frames])
-    bgs = jnp.stack([f["bg"] for f in frames])
+    F = refine_scene.VMAP_BATCH
+    picks = [frames[k % 2] for k in range(F)]
+    bases = jax.tree.map(lambda *x: jnp.stack(x), *[base] * F)
+    imgs = jnp.stack([f["img"] for f in picks])
+    bgs = jnp.stack([f["bg"] for f in picks])
     vm = refine_batch(bases, cam, imgs, bgs, CFG, mode="vmap")
     for k, r in enumerate(cold):
         assert float(iou(vm.masks[0][k], r.masks[0])) > 0.95
