@@ -290,13 +290,14 @@ def test_tip_pixels_two_views_with_pose_and_prior():
     from jaxcr.camera import Camera, project_points
     from jaxcr.kinematics.fit import fit_tip_pixels
 
-    model = SingleSegment.make(0.1, 0.003, n_points=16)
+    model = SingleSegment.make(0.1, 0.003, n_points=24)  # the other tests' FK program
     cams = (
         Camera.look_at([0.0, -0.3, 0.05], [0.0, 0.0, 0.05], [0.0, 0.0, 1.0], 300.0, (320, 240)),
         Camera.look_at([0.3, 0.0, 0.05], [0.0, 0.0, 0.05], [0.0, 0.0, 1.0], 300.0, (320, 240)),
     )
     tip = _cold_forward(model, jnp.array([0.7, 0.3])).centreline.p[-1:]
-    uv = jnp.stack([project_points(c, tip)[0][0] for c in cams])
+    project = jax.jit(project_points)  # one program for both views
+    uv = jnp.stack([project(c, tip)[0][0] for c in cams])
     res = fit_tip_pixels(model, cams, uv, fit_pose=True, prior_weight=1.0)
     assert bool(res.ok), res.result
     # linearised, the prior leaves r = w^2 (J J^T + w^2)^-1 r0: with w = 1 and J's singular
