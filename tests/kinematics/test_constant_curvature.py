@@ -120,6 +120,7 @@ def test_gradient_finite_at_straight_and_matches_fd():
         robot = ConstantCurvature.make(
             length=[0.05, 0.04], radius=[3e-3, 2e-3], n_points=9, dtype=jnp.float64
         )
+
         def tip_fn(q):
             return robot.forward(q).centreline.p[-1]
 

@@ -158,6 +158,7 @@ def test_gradient_matches_finite_differences():
         rng = np.random.default_rng(1)
         u0 = jnp.asarray(rng.normal(scale=10.0, size=(M, 3)))
         h = jnp.full((M,), 0.004)
+
         def tip(u):
             return integrate_steps(u, h)[0][-1]
 

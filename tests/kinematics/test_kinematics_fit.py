@@ -15,8 +15,8 @@ from jaxcr.kinematics import ConstantCurvature, SingleSegment
 from jaxcr.kinematics.ctr import TEST_CTR, ConcentricTubeRobot
 from jaxcr.kinematics.ctr_mechanics import telescoping_ok
 from jaxcr.kinematics.fit import (
-    backbone_residual,
     _cold_forward,
+    backbone_residual,
     canonical_joints,
     closest_points_on_polyline,
     fit_backbone,
@@ -200,11 +200,11 @@ def _cov_tolerance_fd(centreline, q_true, points, sigma, h, k=5.0, solver_rtol=1
 
 @pytest.mark.slow
 def test_recovers_ctr_q_from_noisy_backbone():
-    import equinox as eqx
 
     model = _ctr()
     q_true = np.array([-0.22, -0.15, -0.06, 0.2, -0.8, 1.2])
     sigma = 1e-4
+
     # one compiled FK (the cold equilibrium solve) for the truth, the 12 difference points
     # and the fit's own warm starts (the same compiled function)
     def centreline(q):
