@@ -408,6 +408,14 @@ def _solve(
     return q, T, r, tip, fk_ok, sol.result, jnp.asarray(sol.stats["num_steps"], jnp.int32)
 
 
+@eqx.filter_jit
+def _cold_forward(model, q: Float[Array, " m"]):
+    """``model.forward(q)`` (cold start: a CTR's least-energy branch), compiled once per model
+    structure and dtype: the CTR fit's warm starts, and anyone who needs the same compiled
+    forward kinematics (the tests' synthetic backbones) without compiling it again."""
+    return model.forward(q)
+
+
 def _tolerances(dtype, rtol, atol, model=None):
     # float32: the cost's relative resolution is ~eps32 = 1.2e-7, so a step test much below
     # ~1e-6 never triggers; float64 can go to 1e-10. A CTR's equilibrium is itself solved
@@ -455,10 +463,9 @@ def _fit(
     )
     if model.kind != "ctr" or model.n_tubes == 1:
         return _solve(model, data, q0, T0, None, **kw)
-    cold = eqx.filter_jit(lambda m, q: m.forward(q).state)
     q, steps, out = q0, 0, None
     for _ in range(max(1, rounds)):
-        guess = cold(model, q)
+        guess = _cold_forward(model, q).state
         out = _solve(model, data, q0, T0, guess, **kw)
         steps += int(out[-1])
         q = out[0]
@@ -521,9 +528,7 @@ def fit_backbone(
         atol=atol,
         rounds=rounds,
     )
-    k = points.shape[0]
-    errors = _norm(r[: 3 * k].reshape(k, 3))
-    return _result(model, q, T, errors, _norm(points[-1] - tip), r, result, steps, fk_ok)
+    return _backbone_result(model, points, q, T, r, tip, fk_ok, result, steps)
 
 
 def fit_tip_pixels(
@@ -566,7 +571,22 @@ def fit_tip_pixels(
         atol=atol,
         rounds=rounds,
     )
-    v = len(cameras)
+    return _tips_result(model, len(cameras), q, T, r, fk_ok, result, steps)
+
+
+# The summaries below are compiled (one small program per model structure and data shape):
+# run eagerly, their ~30 operations were each compiled on their own at every new shape.
+
+
+@eqx.filter_jit
+def _backbone_result(model, points, q, T, r, tip, fk_ok, result, steps) -> FitResult:
+    k = points.shape[0]
+    errors = _norm(r[: 3 * k].reshape(k, 3))
+    return _result(model, q, T, errors, _norm(points[-1] - tip), r, result, steps, fk_ok)
+
+
+@eqx.filter_jit
+def _tips_result(model, v: int, q, T, r, fk_ok, result, steps) -> FitResult:
     errors = _norm(r[: 2 * v].reshape(v, 2))
     return _result(model, q, T, errors, jnp.max(errors), r, result, steps, fk_ok)
 

@@ -291,8 +291,8 @@ def _lm(theta0, args, max_iterations: int, ftol: float, xtol: float):
         better = c_new < c
         small = (jnp.abs(c - c_new) <= ftol * c + atol) | (jnp.max(jnp.abs(step)) <= xtol)
         done = small | (jnp.minimum(c, c_new) <= atol)
-        if ftol == 0.0 and xtol == 0.0:  # the fixed-iteration reference
-            done = jnp.asarray(False)
+        # the fixed-iteration reference (ftol and xtol are traced: one program for both)
+        done = done & ~((ftol == 0.0) & (xtol == 0.0))
         return (
             i + 1,
             jnp.where(better, th_new, th),
@@ -309,10 +309,11 @@ def _lm(theta0, args, max_iterations: int, ftol: float, xtol: float):
     return th, r, done, i
 
 
-@functools.partial(jax.jit, static_argnames=("passes", "max_iterations", "ftol", "xtol"))
+@functools.partial(jax.jit, static_argnames=("passes", "max_iterations"))
 def _robust_solve(theta0, args0, w, huber_px, passes: int, max_iterations: int,
-                  ftol: float, xtol: float):  # fmt: skip
-    """All Huber reweighting passes of :func:`fit_chain` in one compiled call: each pass
+                  ftol: Array, xtol: Array):  # fmt: skip
+    """All Huber reweighting passes of :func:`fit_chain` in one compiled call (``ftol`` and
+    ``xtol`` traced, so the fixed-iteration reference shares the program): each pass
     solves with weights ``w * huber`` (:func:`_lm`) and recomputes the Huber factors
     (scale ``huber_px``) from the unweighted normal residuals. Returns ``(theta,
     unweighted residuals (2, n), Huber factors (2, n), converged in every pass, total
@@ -388,7 +389,8 @@ def fit_chain(
     theta = jnp.concatenate([jnp.zeros(5, dt), jnp.asarray(curvatures0, dt).ravel() / _U_SCALE])
     theta, r, robust, ok, steps = _robust_solve(
         theta, tuple(args0), w, jnp.asarray(huber_px, dt), passes=max(reweight, 1),
-        max_iterations=int(max_iterations), ftol=float(ftol), xtol=float(xtol),
+        max_iterations=int(max_iterations), ftol=jnp.asarray(ftol, dt),
+        xtol=jnp.asarray(xtol, dt),
     )  # fmt: skip
     r = np.asarray(r)
     base, R0, curv, kappa, normal = _finish(theta, args0[0], args0[1], args0[2], k)

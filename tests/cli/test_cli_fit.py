@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from jaxcr.camera import project_points
 from jaxcr.cli import main
 from jaxcr.io.dataset import load_dataset
 from jaxcr.io.robot import load_robot
+from jaxcr.kinematics.fit import _cold_forward
 from tests.helpers.datasets import make_dataset
 
 SS = {"kind": "single_segment", "length": 0.1, "radius": 0.003, "n_points": 24}
@@ -24,7 +26,7 @@ def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("fit")
     (d / "ss.json").write_text(json.dumps(SS))
     model = load_robot(d / "ss.json")
-    p = np.asarray(model.forward(jnp.asarray(Q_TRUE)).centreline.p, np.float64)
+    p = np.asarray(_cold_forward(model, jnp.asarray(Q_TRUE)).centreline.p, np.float64)
     rng = np.random.default_rng(3)
     pts = p[np.r_[0 : len(p) : 3, len(p) - 1]] + rng.normal(scale=1e-4, size=(9, 3))
     with open(d / "bb_mm.csv", "w") as fh:
@@ -60,7 +62,8 @@ def test_mm_and_m_give_the_same_q(files, capsys):
     assert main(["fk", str(files / "ss.json"), str(files / "a" / "q.csv"), "-o", str(out)]) == 0
     tips = np.loadtxt(out / "tips.csv", delimiter=",", skiprows=2)
     model = load_robot(files / "ss.json")
-    tip = np.asarray(model.forward(jnp.asarray(fits[0]["q"], jnp.float32)).centreline.p[-1])
+    fk = _cold_forward(model, jnp.asarray(fits[0]["q"], jnp.float32))
+    tip = np.asarray(fk.centreline.p[-1])
     np.testing.assert_allclose(tips[2:5], tip, atol=1e-6)  # float32 on 0.1 m: ~1e-8, margin
     assert "rms" in capsys.readouterr().out
 
@@ -105,8 +108,10 @@ def test_tip_pixels_fit_updates_the_dataset_frame(tmp_path, capsys):
     ds = load_dataset(root)
     cam = ds.cameras["main"]
     q_true = jnp.asarray([9.0, 0.6])  # kappa (1/m), phi (rad) of the 5 cm section
-    tip = ds.robot.forward(q_true).centreline.p[-1:]
-    uv = np.asarray(project_points(cam, tip)[0][0], np.float64)
+    # compiled FK and projection (run eagerly, ~50 operations were compiled one by one)
+    project = jax.jit(project_points)
+    tip = _cold_forward(ds.robot, q_true).centreline.p[-1:]
+    uv = np.asarray(project(cam, tip)[0][0], np.float64)
     tips = tmp_path / "tips.json"
     tips.write_text(json.dumps({"tips": {"main": uv.tolist()}}))
     code = main(
@@ -123,8 +128,8 @@ def test_tip_pixels_fit_updates_the_dataset_frame(tmp_path, capsys):
     fr = again.frame("000001")
     np.testing.assert_allclose(fr.q, rec["q"])
     assert fr.meta["fit"]["mode"] == "tips"
-    p = again.robot.forward(jnp.asarray(fr.q, jnp.float32)).centreline.p[-1:]
-    np.testing.assert_allclose(np.asarray(project_points(cam, p)[0][0]), uv, atol=1e-2)
+    p = _cold_forward(again.robot, jnp.asarray(fr.q, jnp.float32)).centreline.p[-1:]
+    np.testing.assert_allclose(np.asarray(project(cam, p)[0][0]), uv, atol=1e-2)
     # unknown camera in the tips file: one line, exit 2
     tips.write_text(json.dumps({"tips": {"left": [1, 2]}}))
     assert main(["fit", str(root), "--tips", str(tips), "-o", str(tmp_path / "o2")]) == 2

@@ -19,7 +19,7 @@ from jaxcr.io.calibration import load_stereo, save_stereo
 from jaxcr.io.dataset import load_dataset
 from jaxcr.io.robot import load_robot
 from jaxcr.kinematics import ConstantCurvature
-from jaxcr.kinematics.fit import backbone_residual, pose_start, start_set
+from jaxcr.kinematics.fit import _cold_forward, backbone_residual, pose_start, start_set
 
 SS = {"kind": "single_segment", "length": 0.1, "radius": 0.003, "n_points": 24}
 Q_TRUE = [0.55, 0.8]
@@ -40,7 +40,7 @@ def rig(tmp_path_factory):
     d = tmp_path_factory.mktemp("fit_rig")
     (d / "ss.json").write_text(json.dumps(SS))
     model = load_robot(d / "ss.json")
-    p = np.asarray(model.forward(jnp.asarray(Q_TRUE)).centreline.p, np.float64)
+    p = np.asarray(_cold_forward(model, jnp.asarray(Q_TRUE)).centreline.p, np.float64)
     rng = np.random.default_rng(5)
     pts = p[np.r_[0 : len(p) : 3, len(p) - 1]] + rng.normal(scale=1e-4, size=(9, 3))
     np.save(d / "bb_robot.npy", pts)

@@ -249,7 +249,8 @@ def test_branches_match_reference_branches():
 
 def test_total_torsional_moment_is_zero_along_s():
     res = FWD(MODEL, Q0)
-    s, uz = MODEL.twist_profile(Q0, res.state)
+    # compiled: run eagerly, its ~80 operations were compiled one by one
+    s, uz = eqx.filter_jit(lambda m, q, x: m.twist_profile(q, x))(MODEL, Q0, res.state)
     GJ = np.asarray(MODEL.mechanics().GJ)
     total = np.asarray(uz) @ GJ
     scale = np.max(np.abs(np.asarray(uz) * GJ))
@@ -489,7 +490,11 @@ def test_shooting_map_is_fourth_order_x64():
         model = make_test_ctr(dtype=jnp.float64)
         q = jnp.asarray(Q0, jnp.float64)
         x = jnp.asarray([0.7, -1.2], jnp.float64)
-        r = {n: np.asarray(model._shooting(q, n)(x)[0]) for n in (49, 97, 769)}
+        ns = (49, 97, 769)
+        # one compiled program for the three grids (run eagerly, ~150 operations were
+        # compiled one by one)
+        shoot = eqx.filter_jit(lambda m, q, x: [m._shooting(q, n)(x)[0] for n in ns])
+        r = dict(zip(ns, (np.asarray(v) for v in shoot(model, q, x)), strict=True))
     e49, e97 = (np.max(np.abs(r[n] - r[769])) for n in (49, 97))
     print(f"base-angle error: N=49 {e49:.2e}, N=97 {e97:.2e} rad, ratio {e49 / e97:.1f}")
     assert e97 < 1e-5  # the float32 solver tolerance (tol / 10): the default grid resolves it

@@ -4,6 +4,7 @@ synthetic backbones for every robot kind."""
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,6 +15,7 @@ from jaxcr.kinematics import ConstantCurvature, SingleSegment
 from jaxcr.kinematics.ctr import TEST_CTR, ConcentricTubeRobot
 from jaxcr.kinematics.ctr_mechanics import telescoping_ok
 from jaxcr.kinematics.fit import (
+    _cold_forward,
     backbone_residual,
     canonical_joints,
     closest_points_on_polyline,
@@ -67,38 +69,52 @@ def test_ctr_reparametrisation_covers_the_joint_limits():
     model = _ctr()
     rng = np.random.default_rng(1)
     z = jnp.asarray(rng.normal(scale=3.0, size=(200, 6)), jnp.float32)
-    q = jax.vmap(lambda zz: joints_from_free(model, zz))(z)
-    tubes = model.mechanics()
-    ok = jax.vmap(lambda qq: telescoping_ok(tubes, qq[:3]))(q)
-    assert bool(jnp.all(ok))
+
+    @eqx.filter_jit  # one program (run eagerly, its ~80 operations compiled one by one)
+    def maps(model, z):
+        q = jax.vmap(lambda zz: joints_from_free(model, zz))(z)
+        tubes = model.mechanics()
+        ok = jax.vmap(lambda qq: telescoping_ok(tubes, qq[:3]))(q)
+        back = jax.vmap(lambda qq: joints_from_free(model, free_from_joints(model, qq)))(q)
+        return q, ok, back
+
+    q, ok, back = (np.asarray(x) for x in maps(model, z))
+    assert np.all(ok)
     # round trip inside the limits: float32 logit/sigmoid, |d beta| <= eps32 x L / (f (1-f))
     # with f >= 0.05 for |z| <= 3: ~1e-7 x 0.4 / 0.05 -> 1e-5 with margin
-    q_in = q[jnp.all(jnp.abs(z) < 3.0, axis=1)]
-    back = jax.vmap(lambda qq: joints_from_free(model, free_from_joints(model, qq)))(q_in)
-    np.testing.assert_allclose(np.asarray(back), np.asarray(q_in), atol=1e-5)
+    inside = np.all(np.abs(np.asarray(z)) < 3.0, axis=1)
+    np.testing.assert_allclose(back[inside], q[inside], atol=1e-5)
 
 
-def _cov_tolerance(model, q_true, points, sigma, k=5.0, solver_rtol=1e-6):
+@eqx.filter_jit  # one program per model (run eagerly, ~100 operations compiled one by one)
+def _residual_jacobian(model, q, pts, base_weight):
+    eye = jnp.eye(4, dtype=q.dtype)
+    return jax.jacfwd(lambda q: backbone_residual(model, q, eye, pts, 1.0, None, base_weight))(q)
+
+
+def _cov_tolerance(model, q_true, points, sigma, k=5.0, solver_rtol=1e-6, base_weight=0.0):
     """k-sigma per joint from the Gauss-Newton covariance sigma^2 (J^T J)^-1 of the residual at
-    the truth (J = d residual / d q), plus the float32 solver's resolution (its rtol on
-    ~unit-scale parameters, x100 margin)."""
+    the truth (J = d residual / d q, the fit's residual with its ``base_weight``), plus the
+    float32 solver's resolution (its rtol on ~unit-scale parameters, x100 margin)."""
     # float32 J (relative error ~1e-6) is ample for a tolerance; the model stays float32
     pts = jnp.asarray(points, jnp.float32)
-    J = jax.jacfwd(lambda q: backbone_residual(model, q, jnp.eye(4, dtype=q.dtype), pts))(
-        jnp.asarray(q_true, jnp.float32)
-    )
+    J = _residual_jacobian(model, jnp.asarray(q_true, jnp.float32), pts, float(base_weight))
     J = np.asarray(J, np.float64)
     cov = sigma**2 * np.linalg.pinv(J.T @ J)
     return k * np.sqrt(np.diag(cov)) + 100 * solver_rtol * (1.0 + np.abs(q_true))
 
 
-def _noisy_backbone(model, q, sigma, seed):
-    p = np.asarray(model.forward(jnp.asarray(q, jnp.float32)).centreline.p, np.float64)
-    return _noisy_points(p, sigma, seed)
+def _noisy_backbone(model, q, sigma, seed, stride=2):
+    p = np.asarray(_cold_forward(model, jnp.asarray(q, _model_dtype(model))).centreline.p)
+    return _noisy_points(p.astype(np.float64), sigma, seed, stride)
 
 
-def _noisy_points(p, sigma, seed):
-    idx = np.unique(np.r_[np.arange(0, len(p), 2), len(p) - 1])  # every other sample + the tip
+def _model_dtype(model):
+    return jax.tree_util.tree_leaves(model)[0].dtype
+
+
+def _noisy_points(p, sigma, seed, stride=2):
+    idx = np.unique(np.r_[np.arange(0, len(p), stride), len(p) - 1])  # every stride-th + tip
     rng = np.random.default_rng(seed)
     return p[idx] + rng.normal(scale=sigma, size=(len(idx), 3))
 
@@ -126,22 +142,26 @@ def _same_shape_joints(model, q):
 def test_recovers_q_from_noisy_backbone(case):
     kind, q_true = case
     if kind == "single_segment":
-        model = SingleSegment.make(0.1, 0.003, n_points=32)
+        # The problem `jaxcr fit` solves in tests/cli (24 samples, 9 points, base term on):
+        # one compiled solver for both (a Levenberg-Marquardt solve compiles for ~6 s of CPU).
+        model, stride, base_weight = SingleSegment.make(0.1, 0.003, n_points=24), 3, 1.0
     else:
         model = ConstantCurvature.make(
             [0.05, 0.05], [0.003] * 2, joints=("kappa", "phi"), n_points=33
         )
+        stride, base_weight = 2, 0.0
     sigma = 2e-4  # 0.2 mm tracker noise
     for seed in (11, 12):  # fresh seeds (the configurations were chosen on seed 0)
-        pts = _noisy_backbone(model, q_true, sigma, seed)
-        res = fit_backbone(model, jnp.asarray(pts, jnp.float32))
+        pts = _noisy_backbone(model, q_true, sigma, seed, stride)
+        res = fit_backbone(model, jnp.asarray(pts, jnp.float32), base_weight=base_weight)
         assert bool(res.ok), res.result
-        tol = _cov_tolerance(model, np.asarray(q_true), pts, sigma)
+        tol = _cov_tolerance(model, np.asarray(q_true), pts, sigma, base_weight=base_weight)
         err = np.abs(_same_shape_joints(model, res.q) - _same_shape_joints(model, q_true))
         err = np.minimum(err, 2 * np.pi - err) if kind == "single_segment" else err
         assert np.all(err <= tol), (err, tol)
         # point-to-polyline keeps the normal part of the noise: rms ~ sigma sqrt(2); a fit
-        # within 3x of that (chi-square with >= 30 dof stays well inside)
+        # within 3x of that (9x the expected sum of squares: chi-square with >= 16 dof, 9 or
+        # 17 points with 2 normal components each less the fitted joints, stays well inside)
         assert float(res.rms) < 3 * sigma * np.sqrt(2)
 
 
@@ -180,16 +200,16 @@ def _cov_tolerance_fd(centreline, q_true, points, sigma, h, k=5.0, solver_rtol=1
 
 @pytest.mark.slow
 def test_recovers_ctr_q_from_noisy_backbone():
-    import equinox as eqx
 
     model = _ctr()
     q_true = np.array([-0.22, -0.15, -0.06, 0.2, -0.8, 1.2])
     sigma = 1e-4
-    # one compiled FK (the cold equilibrium solve) for the truth and the 12 difference points
-    fk = eqx.filter_jit(lambda m, q: m.forward(q).centreline.p)
 
+    # one compiled FK (the cold equilibrium solve) for the truth, the 12 difference points
+    # and the fit's own warm starts (the same compiled function)
     def centreline(q):
-        return np.asarray(fk(model, jnp.asarray(q, jnp.float32)), np.float64)
+        p = _cold_forward(model, jnp.asarray(q, jnp.float32)).centreline.p
+        return np.asarray(p, np.float64)
 
     pts = _noisy_points(centreline(q_true), sigma, seed=21)
     res = fit_backbone(model, jnp.asarray(pts, jnp.float32), max_steps=60, rounds=2)
@@ -212,12 +232,21 @@ def test_same_optimum_as_scipy_least_squares():
         q0 = np.array([1.0, 0.0, 1.0, 0.0])
         res = fit_backbone(model, pts, q0=q0)
         eye = jnp.eye(4, dtype=jnp.float64)
-        fun = jax.jit(lambda q: backbone_residual(model, q, eye, pts))
-        jac = jax.jit(jax.jacfwd(lambda q: backbone_residual(model, q, eye, pts)))
+        # residual and Jacobian in one compiled program
+        both = jax.jit(
+            jax.jacfwd(lambda q: (backbone_residual(model, q, eye, pts),) * 2, has_aux=True)
+        )
+
+        def fun(q):
+            return both(jnp.asarray(q))[1]
+
+        def jac(q):
+            return both(jnp.asarray(q))[0]
+
         ref = scipy.optimize.least_squares(
-            lambda q: np.asarray(fun(jnp.asarray(q))),
+            lambda q: np.asarray(fun(q)),
             q0,
-            jac=lambda q: np.asarray(jac(jnp.asarray(q))),
+            jac=lambda q: np.asarray(jac(q)),
             method="trf",
             xtol=1e-14,
             ftol=1e-14,
@@ -236,15 +265,18 @@ def test_same_optimum_as_scipy_least_squares():
 
 def test_fit_pose_recovers_a_shifted_base():
     """Points measured in a frame shifted by 2 cm and turned about x: the fitted base pose maps
-    the model back onto them (residual at noise level) and its translation is the shift."""
-    model = SingleSegment.make(0.1, 0.003, n_points=32)
+    the model back onto them (residual at noise level) and its translation is the shift.
+    The problem `jaxcr fit --fit-pose` solves in tests/cli (24 samples, 9 points, base term
+    on): one compiled solver for both."""
+    model = SingleSegment.make(0.1, 0.003, n_points=24)
     q_true = jnp.array([0.5, 0.4])
-    p = np.asarray(model.forward(q_true).centreline.p, np.float64)
+    p = np.asarray(_cold_forward(model, q_true).centreline.p, np.float64)
+    p = p[np.r_[0 : len(p) : 3, len(p) - 1]]
     a = 0.1
     R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
     t = np.array([0.02, -0.01, 0.005])
     pts = p @ R.T + t
-    res = fit_backbone(model, jnp.asarray(pts, jnp.float32), fit_pose=True)
+    res = fit_backbone(model, jnp.asarray(pts, jnp.float32), fit_pose=True, base_weight=1.0)
     assert bool(res.ok)
     # noiseless: float32 residual resolution ~ eps32 x 0.1 m, x1000 margin for LM stopping
     assert float(res.max) < 1e-5
@@ -258,13 +290,14 @@ def test_tip_pixels_two_views_with_pose_and_prior():
     from jaxcr.camera import Camera, project_points
     from jaxcr.kinematics.fit import fit_tip_pixels
 
-    model = SingleSegment.make(0.1, 0.003, n_points=16)
+    model = SingleSegment.make(0.1, 0.003, n_points=24)  # the other tests' FK program
     cams = (
         Camera.look_at([0.0, -0.3, 0.05], [0.0, 0.0, 0.05], [0.0, 0.0, 1.0], 300.0, (320, 240)),
         Camera.look_at([0.3, 0.0, 0.05], [0.0, 0.0, 0.05], [0.0, 0.0, 1.0], 300.0, (320, 240)),
     )
-    tip = model.forward(jnp.array([0.7, 0.3])).centreline.p[-1:]
-    uv = jnp.stack([project_points(c, tip)[0][0] for c in cams])
+    tip = _cold_forward(model, jnp.array([0.7, 0.3])).centreline.p[-1:]
+    project = jax.jit(project_points)  # one program for both views
+    uv = jnp.stack([project(c, tip)[0][0] for c in cams])
     res = fit_tip_pixels(model, cams, uv, fit_pose=True, prior_weight=1.0)
     assert bool(res.ok), res.result
     # linearised, the prior leaves r = w^2 (J J^T + w^2)^-1 r0: with w = 1 and J's singular

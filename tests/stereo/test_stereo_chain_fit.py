@@ -119,13 +119,13 @@ def test_straight_segment_finite_gradient():
         return jnp.sum(chain_points(jnp.zeros(3), jnp.eye(3), c, seg, s)[0] ** 2)
 
     c0 = np.array([[3.0, -2.0], [1.0, 4.0]], np.float32)
-    g = np.asarray(jax.jit(jax.grad(fx))(jnp.asarray(c0)))
-    fj = jax.jit(fx)
+    vg = jax.jit(jax.value_and_grad(fx))  # value and gradient: one compiled program
+    g = np.asarray(vg(jnp.asarray(c0))[1])
     fd = np.zeros_like(c0)
     for idx in np.ndindex(c0.shape):
         e = np.zeros_like(c0)
         e[idx] = 0.05
-        fd[idx] = (float(fj(jnp.asarray(c0 + e))) - float(fj(jnp.asarray(c0 - e)))) / 0.1
+        fd[idx] = (float(vg(jnp.asarray(c0 + e))[0]) - float(vg(jnp.asarray(c0 - e))[0])) / 0.1
     np.testing.assert_allclose(g, fd, rtol=2e-3, atol=1e-7)
 
 
@@ -142,7 +142,9 @@ def test_jit_and_vmap():
         np.asarray(jax.jit(chain_points)(*args, s)[0]), np.asarray(eager), atol=1e-7
     )
     batch = jnp.stack([args[2], 0.5 * args[2], -args[2]])
-    vm = jax.vmap(lambda c: chain_points(args[0], args[1], c, args[3], s)[0])(batch)
+    # compiled (jit equals eager is checked above; run eagerly, the vmapped chain's ~60
+    # operations were compiled one by one)
+    vm = jax.jit(jax.vmap(lambda c: chain_points(args[0], args[1], c, args[3], s)[0]))(batch)
     for b in range(3):
         np.testing.assert_allclose(
             np.asarray(vm[b]),
@@ -186,7 +188,10 @@ def test_fit_chain_recovers_parameters(cams):
     P, cs, ns = _views(cams, s, rng, 0.2)
     # Start from points off by up to 0.3 mm, smoothly (as the smoothed triangulation).
     base0, R0, curv0 = init_chain(s, P + _smooth_error(s), SEG)
-    fit = fit_chain(cams[0], cams[1], s, cs, ns, np.ones((2, len(s))), SEG, base0, R0, curv0)
+    # two Huber passes (fit_segments_jointly's): the compiled solver of the tests below
+    fit = fit_chain(
+        cams[0], cams[1], s, cs, ns, np.ones((2, len(s))), SEG, base0, R0, curv0, reweight=2
+    )
     assert fit["ok"]
     np.testing.assert_allclose(fit["kappa"], np.linalg.norm(CURV, axis=1), rtol=0.01)
     _, n_true = _csp(jnp.zeros(3), jnp.asarray(_R0()), jnp.asarray(CURV), jnp.asarray(SEG))
@@ -206,7 +211,7 @@ def test_fit_chain_with_one_view_dropped_on_a_segment(cams):
     w = np.ones((2, len(s)))
     w[0, s > SEG[2]] = 0.0
     base0, R0, curv0 = init_chain(s, P + _smooth_error(s), SEG)
-    fit = fit_chain(cams[0], cams[1], s, cs, ns, w, SEG, base0, R0, curv0)
+    fit = fit_chain(cams[0], cams[1], s, cs, ns, w, SEG, base0, R0, curv0, reweight=2)
     # One view of a 20 mm arc: its out-of-image bending is only weakly observed (3.5 %).
     np.testing.assert_allclose(fit["kappa"], np.linalg.norm(CURV, axis=1), rtol=0.05)
 
