@@ -276,17 +276,26 @@ def trim_unexplained_tail(
     evidence = _beyond_evidence(traces[j], tips[j], low, probe_widths)
     if not evidence < absent:
         return None
-    K0, K1 = (np.asarray(c.K, np.float64) for c in cams)
-    F = fundamental_from_poses(K0, np.asarray(cams[0].T_cam_robot, np.float64),
-                               K1, np.asarray(cams[1].T_cam_robot, np.float64))  # fmt: skip
-
-    def epi(ts):
-        a, b = (undistort_pixels(c, t)[0] for c, t in zip(cams, ts, strict=True))
-        return max(epipolar_distances(F, a, b))
+    epi = _epipolar_gap(cams)
 
     new = [t.copy() for t in tips]
     new[k] = np.asarray(consistency.samples[k][tails[k]], np.float64)
     return TipConsistency(new, "trimmed", k, evidence, epi(tips), epi(new))
+
+
+def _epipolar_gap(cams):
+    """A function of a tip pair ``(t0, t1)`` (distorted (u, v) in the two views): the larger
+    distance in px of each undistorted tip from the other's epipolar line, for the two
+    calibrated cameras ``cams``."""
+    K0, K1 = (np.asarray(c.K, np.float64) for c in cams)
+    T0, T1 = (np.asarray(c.T_cam_robot, np.float64) for c in cams)
+    F = fundamental_from_poses(K0, T0, K1, T1)
+
+    def gap(ts):
+        a, b = (undistort_pixels(c, t)[0] for c, t in zip(cams, ts, strict=True))
+        return max(epipolar_distances(F, a, b))
+
+    return gap
 
 
 def _beyond_evidence(trace, tip, low: float, probe_widths: float) -> float:
@@ -320,13 +329,7 @@ def _trim_open_end(cams, traces, tips, consistency, tails, *, low, absent, probe
     if best is None:
         return None
     k, i, _, evidence = best
-    K0, K1 = (np.asarray(c.K, np.float64) for c in cams)
-    F = fundamental_from_poses(K0, np.asarray(cams[0].T_cam_robot, np.float64),
-                               K1, np.asarray(cams[1].T_cam_robot, np.float64))  # fmt: skip
-
-    def epi(ts):
-        a, b = (undistort_pixels(c, t)[0] for c, t in zip(cams, ts, strict=True))
-        return max(epipolar_distances(F, a, b))
+    epi = _epipolar_gap(cams)
 
     new = [t.copy() for t in tips]
     new[k] = np.asarray(consistency.samples[k][i], np.float64)
