@@ -16,11 +16,12 @@ import it.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from tests.helpers.datasets import spoil_joint_values
 
 W, H = 96, 72
 ROBOT = {
@@ -87,11 +88,6 @@ def make_frames(root: Path, n_frames: int, bad: tuple[int, ...] = (), seed: int 
             mask = draw(cam, p, ROBOT["sections"][0]["radius"])
             w.add_frame(k, q[k].tolist(), {"main": render(mask, rng)}, masks={"main": mask},
                         truth={"centreline": p})  # fmt: skip
-    if bad:  # the writer refuses such values; the loader accepts them, segment fails the frame
-        path = Path(root) / "dataset.json"
-        d = json.loads(path.read_text())
-        for f in d["frames"]:
-            if int(f["id"]) in bad:
-                f["q"][0] = 1e39
-        path.write_text(json.dumps(d))
+    if bad:
+        spoil_joint_values(root, bad)
     return Path(root)

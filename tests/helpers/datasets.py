@@ -46,3 +46,15 @@ def edit_json(root: Path, fn) -> None:
     d = json.loads(p.read_text())
     fn(d)
     p.write_text(json.dumps(d))
+
+
+def spoil_joint_values(root: Path, bad) -> None:
+    """Give frames ``bad`` (ids) a joint value of 1e39 in dataset.json: the writer refuses such
+    values, the loader accepts them, and ``jaxcr segment`` fails those frames."""
+
+    def spoil(d):
+        for f in d["frames"]:
+            if int(f["id"]) in bad:
+                f["q"][0] = 1e39
+
+    edit_json(root, spoil)

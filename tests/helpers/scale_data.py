@@ -5,10 +5,11 @@ more than the nominal joints say (a model error for the refinement to correct)."
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
+
+from tests.helpers.datasets import spoil_joint_values
 
 ROBOT = {
     "kind": "constant_curvature",
@@ -52,11 +53,6 @@ def make_segment_dataset(root: Path, n_frames: int = 12, seed: int = 0,
             img, mask = render_tube(cl, cam, seed * 1000 + i, SIZE)
             w.add_frame(i, q[i].tolist(), {"main": img}, masks={"main": mask},
                         truth={"centreline": np.asarray(cl.p)})  # fmt: skip
-    if bad:  # the writer refuses such values; the loader accepts them, segment fails the frame
-        path = Path(root) / "dataset.json"
-        d = json.loads(path.read_text())
-        for f in d["frames"]:
-            if int(f["id"]) in bad:
-                f["q"][0] = 1e39
-        path.write_text(json.dumps(d))
+    if bad:
+        spoil_joint_values(root, bad)
     return Path(root)
