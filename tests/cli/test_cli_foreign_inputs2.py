@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 
+from tests.helpers import cli_scene
 from tests.helpers.datasets import H, W, make_dataset
 
 
@@ -86,7 +87,9 @@ def test_evaluate_counts_a_frame_with_damaged_outputs_as_failed(tmp_path, capsys
     assert all(rows[f]["ok"] == "False" for f in ("000001", "000002", "000003"))
 
 
-FAST = ["--levels", "1", "--max-steps", "2", "--batch-size", "1", "--no-overlays", "--quiet"]
+#: tests/helpers/cli_scene.py's options: the refinement program test_cli_segment compiles,
+#: loaded from the run's compilation cache
+FAST = [*cli_scene.FAST, "--no-overlays", "--quiet"]
 
 
 def test_segment_retry_failed_reruns_a_frame_whose_image_was_fixed(tmp_path, capsys):
@@ -95,7 +98,7 @@ def test_segment_retry_failed_reruns_a_frame_whose_image_was_fixed(tmp_path, cap
     from jaxcr.cli import main
     from jaxcr.io import results as R
 
-    root = make_dataset(tmp_path / "d", n_frames=2)
+    root = cli_scene.make_frames(tmp_path / "d", n_frames=2)
     img = root / "images" / "main" / "000001.png"
     good = img.read_bytes()
     img.write_bytes(b"not a png")

@@ -11,24 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage as ndi
 
-from jaxcr.camera import Camera
 from jaxcr.cli import main
 from jaxcr.io.dataset import DatasetWriter
 from jaxcr.kinematics.robots import robot_from_dict
+from tests.helpers import cli_scene
 
-W, H = 96, 72
-ROBOT = {
-    "kind": "constant_curvature",
-    "sections": [{"length": 0.08, "radius": 0.003}],
-    "joints": ["kappa", "phi"],
-    "n_points": 24,
-}
-#: as tests/cli/test_cli_segment.py's FAST (one refinement program for both modules)
-FAST = ["--levels", "1", "--max-steps", "4", "--batch-size", "2", "--quiet"]
-
-
-def _cam():
-    return Camera.look_at((-0.15, 0.0, 0.04), (0.0, 0.0, 0.04), (0.0, -1.0, 0.0), 110.0, (W, H))
+#: tests/helpers/cli_scene.py's scene and options (one refinement program with test_cli_segment)
+FAST = [*cli_scene.FAST, "--quiet"]
+W, H, ROBOT, _cam = cli_scene.W, cli_scene.H, cli_scene.ROBOT, cli_scene.camera
 
 
 def _draw(camera, p):
