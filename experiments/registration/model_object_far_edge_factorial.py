@@ -321,10 +321,7 @@ def main() -> None:
             f"| {n} | {len(ok)} | {mm.mean():.2f} | {np.sqrt((mm**2).mean()):.2f} | "
             f"{mm.max():.2f} | {dg.mean():.3f} |"
         )
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{a.name}.md").write_text("\n".join(md) + "\n")
-    (out / f"{a.name}.json").write_text(json.dumps(recs, indent=1) + "\n")
+    _write(a, md, recs)
 
 
 def write_links(a, recs, variants, load0, t0, c0) -> None:
@@ -379,6 +376,11 @@ def write_links(a, recs, variants, load0, t0, c0) -> None:
             f"| {n} | {len(recs)} | {lk.mean():.2f} | {np.sqrt((lk**2).mean()):.2f} | "
             f"{mm.mean():.2f} | {mm.max():.2f} | {np.nanmean(wi):.2f} | {np.nanmax(wi):.2f} |"
         )
+    _write(a, md, recs)
+
+
+def _write(a, md: list[str], recs) -> None:
+    """``<out>/<name>.md`` (the report's lines) and ``<out>/<name>.json`` (the records)."""
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{a.name}.md").write_text("\n".join(md) + "\n")
