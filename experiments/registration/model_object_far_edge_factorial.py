@@ -90,13 +90,18 @@ def render(sim: RgbdSimulator, T: np.ndarray, clean: bool, key) -> tuple:
         sim.cfg["depth_noise"] = noise
 
 
-def run_scene(task, seed, scratch, far, pairs, draws) -> list[dict]:
+def _scene(task, seed, scratch):
+    """The task's simulator, its intrinsics and the point the cameras look at (the object's
+    mid-height on the turntable axis)."""
     scene = generate_task(scratch / f"task{task}_seed{seed}", task, seed)
     sim = RgbdSimulator(scene, seed=seed)
-    K = sim.K
     obj = sim.cfg["object"]
     height = 2 * obj["half"][2] if obj["kind"] == "box" else obj["height"]
-    target = np.array([0.0, 0.0, 0.5 * height])
+    return sim, sim.K, np.array([0.0, 0.0, 0.5 * height])
+
+
+def run_scene(task, seed, scratch, far, pairs, draws) -> list[dict]:
+    sim, K, target = _scene(task, seed, scratch)
     rng = np.random.default_rng([seed, int(task), 17])
     cfg = PipelineConfig()
     gate = (cfg.closure_gate_deg, cfg.closure_gate_m)
@@ -189,12 +194,7 @@ def run_links(task, seed, scratch, far, links, draws, variants) -> list[dict]:
     azimuth offset deg), each near view its own noise draw: the far camera's world pose from
     each link and from their mean (equal weights, as a pose graph with alike edges would),
     against the truth. Per variant (PipelineConfig overrides)."""
-    scene = generate_task(scratch / f"task{task}_seed{seed}", task, seed)
-    sim = RgbdSimulator(scene, seed=seed)
-    K = sim.K
-    obj = sim.cfg["object"]
-    height = 2 * obj["half"][2] if obj["kind"] == "box" else obj["height"]
-    target = np.array([0.0, 0.0, 0.5 * height])
+    sim, K, target = _scene(task, seed, scratch)
     rng = np.random.default_rng([seed, int(task), 19])
     out = []
     az = rng.uniform(0, 2 * np.pi)
