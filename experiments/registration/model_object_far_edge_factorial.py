@@ -272,9 +272,7 @@ def main() -> None:
         for seed in range(s0, s1 + 1):
             recs += run_scene(task, seed, Path(a.scratch), a.far, pairs, a.draws)
             print(f"task {task} seed {seed} done", flush=True)
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-    ).stdout.strip()
+    commit = _commit()
     cmd = (
         f"python experiments/registration/model_object_far_edge_factorial.py --seeds {a.seeds} "
         f"--tasks {' '.join(a.tasks)} --far {a.far} --pairs {' '.join(a.pairs)} "
@@ -325,9 +323,7 @@ def main() -> None:
 
 
 def write_links(a, recs, variants, load0, t0, c0) -> None:
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-    ).stdout.strip()
+    commit = _commit()
     cmd = (
         f"python experiments/registration/model_object_far_edge_factorial.py --seeds {a.seeds} "
         f"--tasks {' '.join(a.tasks)} --far {a.far} --links {' '.join(a.links)} "
@@ -377,6 +373,13 @@ def write_links(a, recs, variants, load0, t0, c0) -> None:
             f"{mm.mean():.2f} | {mm.max():.2f} | {np.nanmean(wi):.2f} | {np.nanmax(wi):.2f} |"
         )
     _write(a, md, recs)
+
+
+def _commit() -> str:
+    """The checkout's short commit (empty outside a git checkout)."""
+    return subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
 
 
 def _write(a, md: list[str], recs) -> None:
