@@ -93,7 +93,13 @@ from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
-from jaxcr.stereo.tip_consistency import TipConsistency, reconcile_tips, trim_unexplained_tail
+from jaxcr.stereo.tip_consistency import (
+    TipConsistency,
+    epipolar_gap_px,
+    reconcile_tips,
+    trim_unexplained_tail,
+    undistort_pixels,
+)
 from jaxcr.stereo.tip_geometry import (
     end_face_lengths,
     epipolar_distances,
@@ -282,13 +288,6 @@ def _tip_epipolar_px(cams, vrec) -> float:
     return round(max(epipolar_distances(F, und[0], und[1])), 2)
 
 
-def _undistort_px(cam: Camera, uv) -> np.ndarray:
-    """Undistorted pixels (n, 2) of ``uv`` through ``cam`` (cv2.undistortPoints, P = K)."""
-    K = np.asarray(cam.K, np.float64)
-    pts = np.asarray(uv, np.float64).reshape(-1, 1, 2)
-    return cv2.undistortPoints(pts, K, np.asarray(cam.dist, np.float64), P=K).reshape(-1, 2)
-
-
 def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | None:
     """Each view's traced tip corrected with the end face's length from both views (issue 16
     item 2, method ``trace_stereo`` of experiments/segmentation/real_like_tip.py).
@@ -320,8 +319,8 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
             return None
         ends.append(e)
         dirs.append(d)
-    eu = [_undistort_px(c, e)[0] for c, e in zip(cams, ends, strict=True)]
-    du = [_undistort_px(c, e + 5.0 * d)[0] - x
+    eu = [undistort_pixels(c, e)[0] for c, e in zip(cams, ends, strict=True)]
+    du = [undistort_pixels(c, e + 5.0 * d)[0] - x
           for c, e, d, x in zip(cams, ends, dirs, eu, strict=True)]  # fmt: skip
     res = end_face_lengths(
         np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
@@ -367,7 +366,7 @@ def _tip_step(cams, traces, tips, src, flag_px: float):
     if not all(np.all(np.isfinite(t)) for t in tips):
         return tips, src, None, traces
     res = None
-    if _epi_px(cams, tips) > flag_px:
+    if epipolar_gap_px(cams, tips) > flag_px:
         bc = backbone_consistency(
             cams, _ending_at(traces[0].backbone, tips[0]), _ending_at(traces[1].backbone, tips[1])
         )
@@ -376,8 +375,8 @@ def _tip_step(cams, traces, tips, src, flag_px: float):
             j, tip_j, _ = fold
             new = [np.asarray(t, np.float64) for t in tips]
             new[j] = tip_j
-            res = TipConsistency(new, "folded", j, float("nan"), _epi_px(cams, tips),
-                                 _epi_px(cams, new))  # fmt: skip
+            res = TipConsistency(new, "folded", j, float("nan"), epipolar_gap_px(cams, tips),
+                                 epipolar_gap_px(cams, new))  # fmt: skip
         else:
             res = trim_unexplained_tail(cams, traces, tips, bc, tails=open_end_tails(cams, bc))
     if res is None:
@@ -389,7 +388,7 @@ def _branch_step(cams, traces, flag_px: float):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source)."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
-    if _epi_px(cams, tips) > flag_px and all(
+    if epipolar_gap_px(cams, tips) > flag_px and all(
         getattr(t, "retrace", None) is not None for t in traces
     ):
         cands = [[t] + trace_alternatives(t) for t in traces]
@@ -426,16 +425,6 @@ def _stereo_or_own_tips(cams, traces) -> tuple[list[np.ndarray], str]:
     if st is not None:
         return [np.asarray(t, np.float64) for t in st[0]], "trace_stereo"
     return [np.asarray(t.tip, np.float64) for t in traces], "trace"
-
-
-def _epi_px(cams, tips) -> float:
-    """Epipolar distance (px, undistorted) of two distorted tips; inf if one is not finite."""
-    if not all(np.all(np.isfinite(t)) for t in tips):
-        return float("inf")
-    und = [_undistort_px(c, t)[0] for c, t in zip(cams, tips, strict=True)]
-    F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
-                               np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
-    return float(max(epipolar_distances(F, und[0], und[1])))
 
 
 def _ending_near(uv: np.ndarray, tip) -> np.ndarray:

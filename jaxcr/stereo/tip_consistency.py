@@ -157,13 +157,7 @@ def reconcile_tips(
     T0, T1 = (np.asarray(c.T_cam_robot, np.float64) for c in cams)
     F = fundamental_from_poses(K0, T0, K1, T1)
 
-    def epi(ts):
-        if not all(np.all(np.isfinite(t)) for t in ts):
-            return float("inf")
-        a, b = (undistort_pixels(c, t)[0] for c, t in zip(cams, ts, strict=True))
-        return max(epipolar_distances(F, a, b))
-
-    e0 = epi(tips)
+    e0 = epipolar_gap_px(cams, tips)
     if not np.isfinite(e0) or e0 <= flag_px:
         return TipConsistency(tips, "consistent" if np.isfinite(e0) else "kept", None,
                               float("nan"), e0, e0)  # fmt: skip
@@ -221,7 +215,7 @@ def reconcile_tips(
         action, view = "extended", j
     else:
         return TipConsistency(tips, "kept", None, evidence, e0, e0)
-    return TipConsistency(new, action, view, evidence, e0, epi(new))
+    return TipConsistency(new, action, view, evidence, e0, epipolar_gap_px(cams, new))
 
 
 def trim_unexplained_tail(
@@ -276,26 +270,24 @@ def trim_unexplained_tail(
     evidence = _beyond_evidence(traces[j], tips[j], low, probe_widths)
     if not evidence < absent:
         return None
-    epi = _epipolar_gap(cams)
 
     new = [t.copy() for t in tips]
     new[k] = np.asarray(consistency.samples[k][tails[k]], np.float64)
-    return TipConsistency(new, "trimmed", k, evidence, epi(tips), epi(new))
+    return TipConsistency(
+        new, "trimmed", k, evidence, epipolar_gap_px(cams, tips), epipolar_gap_px(cams, new)
+    )
 
 
-def _epipolar_gap(cams):
-    """A function of a tip pair ``(t0, t1)`` (distorted (u, v) in the two views): the larger
-    distance in px of each undistorted tip from the other's epipolar line, for the two
-    calibrated cameras ``cams``."""
+def epipolar_gap_px(cams, tips) -> float:
+    """The larger distance (px) of each of two tips from the other's epipolar line, with the
+    lens distortion removed: ``tips`` are distorted (u, v) in the two calibrated views
+    ``cams``; inf when a tip is not finite."""
+    if not all(np.all(np.isfinite(t)) for t in tips):
+        return float("inf")
     K0, K1 = (np.asarray(c.K, np.float64) for c in cams)
-    T0, T1 = (np.asarray(c.T_cam_robot, np.float64) for c in cams)
-    F = fundamental_from_poses(K0, T0, K1, T1)
-
-    def gap(ts):
-        a, b = (undistort_pixels(c, t)[0] for c, t in zip(cams, ts, strict=True))
-        return max(epipolar_distances(F, a, b))
-
-    return gap
+    F = fundamental_from_poses(K0, cams[0].T_cam_robot, K1, cams[1].T_cam_robot)
+    a, b = (undistort_pixels(c, t)[0] for c, t in zip(cams, tips, strict=True))
+    return float(max(epipolar_distances(F, a, b)))
 
 
 def _beyond_evidence(trace, tip, low: float, probe_widths: float) -> float:
@@ -329,8 +321,9 @@ def _trim_open_end(cams, traces, tips, consistency, tails, *, low, absent, probe
     if best is None:
         return None
     k, i, _, evidence = best
-    epi = _epipolar_gap(cams)
 
     new = [t.copy() for t in tips]
     new[k] = np.asarray(consistency.samples[k][i], np.float64)
-    return TipConsistency(new, "trimmed", k, evidence, epi(tips), epi(new))
+    return TipConsistency(
+        new, "trimmed", k, evidence, epipolar_gap_px(cams, tips), epipolar_gap_px(cams, new)
+    )
