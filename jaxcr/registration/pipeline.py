@@ -185,6 +185,15 @@ class PipelineConfig:
     # (the denoised and the raw registration, each with half its information: the two
     # estimates come from the same images, and their biases, of either sign, partly cancel).
     far_source_mode: str = "both"
+    # The same for the edges of the views left out of the ring (:func:`outside_view_edges`:
+    # their forward registrations and their links to ring views): "both" (the denoised and
+    # the raw registration of a far source, half information each, as ``far_source_mode``)
+    # or "raw" (the raw one only, the behaviour before 2026-12-03). Dev Task 1 seeds 0-9,
+    # the 21 registrations of a first capture (0.59 m) to nearer views, from their pipeline
+    # estimates: error against the truth mean / RMS / max 1.28 / 1.43 / 2.63 mm raw, 0.98 /
+    # 1.22 / 2.96 denoised, 0.86 / 0.98 / 2.00 for the mean of the two
+    # (experiments/results/registration/model_object_outside_both.md).
+    outside_far_mode: str = "both"
     # Cauchy-reweighted pose-graph solves after the calibrated one
     # (:func:`jaxcr.registration.pose_graph.optimize_pose_graph` ``robust_rounds``).
     robust_rounds: int = 0
@@ -864,7 +873,11 @@ def outside_view_edges(
     ``cfg.outside_links`` ring views nearest to it in nominal viewing direction, seeded from
     the chained poses, kept when they agree with them within the closure gate (like
     :func:`extra_edges`) and have keypoint consensus (ICP-alone ones only when none has). A view thus rests on several registrations, not on the one
-    forward registration its chain starts with. No views, no Algorithm 2 result or
+    forward registration its chain starts with. A registration whose source is more than
+    ``cfg.far_source_ratio`` farther from the scene than its target uses the raw source
+    points (:func:`register_views`); with ``cfg.outside_far_mode == "both"`` the denoised
+    one (for a forward edge: the run's own registration) joins it, each with half its
+    information, when the two agree within the closure gate. No views, no Algorithm 2 result or
     ``cfg.outside_links <= 0``: nothing (such views stay chained in the evaluation)."""
     ring, m = result.ring, len(result.ring)
     pos = {k: n for n, k in enumerate(ring)}
@@ -878,10 +891,38 @@ def outside_view_edges(
         return [], [], []
     ring_poses = result.alg2_result.poses
 
+    if cfg.outside_far_mode not in ("raw", "both"):
+        raise ValueError(f"outside_far_mode must be 'raw' or 'both', got {cfg.outside_far_mode!r}")
+
+    def is_far(a, b):
+        fa, fb = _capture(result.runs, a).frame, _capture(result.runs, b).frame
+        return cfg.geometric_points == "plane" and median_depth(fa) > (
+            cfg.far_source_ratio * median_depth(fb)
+        )
+
     def register(a, b, prior, seed_ab, gate=None):
         """T_{b <- a}: raw source points when a is much farther than b (see cfg)."""
         fa, fb = _capture(result.runs, a).frame, _capture(result.runs, b).frame
         return register_views(cfg, fa, fb, K, prior, seed_ab, gate)
+
+    def halves(na, nb, raw, denoised):
+        """Edges (na, nb) of a far source: the raw registration, and with
+        ``outside_far_mode == "both"`` the denoised one too (when it agrees with the raw one
+        within the closure gate), each with half its information (the same images twice)."""
+        if (
+            cfg.outside_far_mode == "raw"
+            or denoised is None
+            or raw.information is None
+            or denoised.information is None
+            or not all(x <= g for x, g in zip(pose_error(denoised.T, raw.T), gate, strict=True))
+        ):
+            return [(na, nb, raw)]
+        return [
+            (na, nb, dataclasses.replace(p, information=0.5 * p.information))
+            for p in (raw, denoised)
+        ]
+
+    gate = (cfg.closure_gate_deg, cfg.closure_gate_m)
 
     node = dict(pos)
     node.update({k: m + n for n, k in enumerate(outside)})
@@ -893,17 +934,16 @@ def outside_view_edges(
         for k, pair in enumerate(run.pairs[: len(run.captures) - 1]):
             a, b = (r, k), (r, k + 1)
             if a in node and b in node and (a not in pos or b not in pos):
-                fa, fb = run.captures[k].frame, run.captures[k + 1].frame
-                if cfg.geometric_points == "plane" and median_depth(fa) > (
-                    cfg.far_source_ratio * median_depth(fb)
-                ):
+                new = [(node[a], node[b], pair)]
+                if is_far(a, b):
                     try:
-                        pair = register(a, b, pair.T, seed + 3000 + k)
+                        # the run's registration (denoised source) is the other half
+                        raw = register(a, b, pair.T, seed + 3000 + k)
+                        new = halves(node[a], node[b], raw, pair)
                     except RegistrationFailed:
                         pass  # keep the run's registration
-                edges.append((node[a], node[b], pair))
+                edges += new
                 linked.add(frozenset((node[a], node[b])))
-    gate = (cfg.closure_gate_deg, cfg.closure_gate_m)
     for n, key in enumerate(outside):
         cap = _capture(result.runs, key)
         # nearest ring views by the angle between the nominal optical axes
@@ -927,8 +967,23 @@ def outside_view_edges(
                 continue
             r_err, t_err = pose_error(pair.T, prior)
             if r_err <= gate[0] and t_err <= gate[1]:
-                (seeded if pair.seeded_by_keypoints else alone).append((m + n, j, pair))
-        edges += seeded or alone[: cfg.outside_links]
+                denoised = None
+                if cfg.outside_far_mode == "both" and is_far(key, ring[j]):
+                    try:
+                        denoised = cfg.register(
+                            cap.frame,
+                            _capture(result.runs, ring[j]).frame,
+                            K,
+                            prior,
+                            seed + 2000 + 100 * n + j,
+                            prior_gate=gate,
+                        )
+                    except RegistrationFailed:
+                        pass
+                link = halves(m + n, j, pair, denoised)
+                (seeded if pair.seeded_by_keypoints else alone).append(link)
+        for link in seeded or alone[: cfg.outside_links]:
+            edges += link
     return outside, init, edges
 
 

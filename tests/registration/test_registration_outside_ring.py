@@ -119,23 +119,32 @@ def _errors_mm(result, outside):
     return {v["index"]: 1000 * v["trans_m"] for v in errs}
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_outside_views_rest_on_several_registrations(world, seed):
-    cfg = OracleConfig(world=tuple(world), extra_gaps=(2,))
+@pytest.mark.parametrize("seed,mode", [(0, "raw"), (1, "raw"), (2, "both")])
+def test_outside_views_rest_on_several_registrations(world, seed, mode):
+    cfg = OracleConfig(world=tuple(world), extra_gaps=(2,), outside_far_mode=mode)
     CALLS.clear()
     result = optimize_pose_graph_stage(_result(world, seed), np.eye(3), cfg, seed=seed)
     assert result.outside == [(0, 0), (0, 1)]
     # each outside view: its forward registrations plus outside_links ring registrations,
-    # none to the view whose registrations slid without keypoint consensus
+    # none to the view whose registrations slid without keypoint consensus; every source
+    # here is far from its target (0.6 / 0.47 m against 0.47 / 0.3 m), so "both" doubles
+    # every edge (the denoised and the raw registration)
     ring_slid = SLID - K0
     linked = {i for e in result.outside_edges for i in e[:2] if i < N - K0}
-    assert len(result.outside_edges) == 2 + 2 * cfg.outside_links
+    assert len(result.outside_edges) == (2 + 2 * cfg.outside_links) * (2 if mode == "both" else 1)
     assert len(linked) >= cfg.outside_links and ring_slid not in linked
     # a source farther than its target by > far_source_ratio: raw source points (views 0
-    # and 1 to the ring, 0 -> 1 re-registered); every other registration denoised
+    # and 1 to the ring, 0 -> 1 re-registered), and in "both" mode its links denoised too;
+    # every other registration denoised
     for src, tgt, points in CALLS:
         far = DEPTH[src] > cfg.far_source_ratio * DEPTH[tgt]
-        assert points == ("raw" if far else "plane"), (src, tgt, points)
+        assert points in (
+            ("raw", "plane")
+            if far and mode == "both" and tgt >= K0
+            else ("raw",)
+            if far
+            else ("plane",)
+        ), (src, tgt, points, mode)
     assert (0, 1, "raw") in CALLS
     chained = _errors_mm(result, None)
     graph = _errors_mm(result, result.outside_poses)
@@ -158,3 +167,44 @@ def test_no_links_keeps_the_chain(world):
 
     cfg = OracleConfig(world=tuple(world), outside_links=0)
     assert outside_view_edges(_result(world, 0), np.eye(3), cfg) == ([], [], [])
+
+
+def test_both_mode_edges_are_the_two_registrations_at_half_information(world):
+    """``outside_far_mode="both"`` (the default): every edge of a far source is the raw and
+    the denoised registration, each with half its stated information. Reference: the
+    oracle's registrations recomputed here (its transform depends on the source, target
+    and seed only; the seed of a link is ``2000 + 100 n + j``), and the run's forward
+    registrations (the denoised half of a forward edge). Exact: the edges hold the
+    registrations' own arrays and 0.5 * INFO is exact in floating point."""
+    cfg = OracleConfig(world=tuple(world), extra_gaps=(2,))
+    assert cfg.outside_far_mode == "both"
+    res = _result(world, 0)
+    out = optimize_pose_graph_stage(res, np.eye(3), cfg, seed=0)
+    m = N - K0
+    node_view = {n: K0 + n for n in range(m)} | {m + n: n for n in range(K0)}
+    by_pair: dict = {}
+    for i, j, p in out.outside_edges:
+        by_pair.setdefault((i, j), []).append(p)
+    assert by_pair, "no outside edges"
+    for (i, j), pairs in by_pair.items():
+        src, tgt = node_view[i], node_view[j]
+        assert DEPTH[src] > cfg.far_source_ratio * DEPTH[tgt]  # every one is far here
+        assert len(pairs) == 2, (src, tgt)
+        for p in pairs:
+            np.testing.assert_array_equal(p.information, 0.5 * INFO)
+        if tgt == src + 1:  # forward: the raw one (seed 3000 + k) and the run's registration
+            run_T = res.runs[0].pairs[src].T
+            ref = OracleConfig.register(cfg, _frame(src), _frame(tgt), None, None, 3000 + src).T
+            expect = [ref, run_T]
+        else:  # a link: the same oracle registration, raw and denoised (same seed)
+            seed_ij = 2000 + 100 * (i - m) + j
+            ref = OracleConfig.register(cfg, _frame(src), _frame(tgt), None, None, seed_ij).T
+            expect = [ref, ref]
+        for p, T in zip(pairs, expect, strict=True):
+            np.testing.assert_array_equal(p.T, T)
+
+
+def test_outside_far_mode_is_checked(world):
+    cfg = OracleConfig(world=tuple(world), outside_far_mode="plane")
+    with pytest.raises(ValueError, match="outside_far_mode"):
+        optimize_pose_graph_stage(_result(world, 0), np.eye(3), cfg, seed=0)
