@@ -267,17 +267,18 @@ def test_refine_tip_when_the_path_overshoots_the_end():
 
 @pytest.mark.parametrize("angle_deg", [0.0, 35.0])
 def test_refine_tip_where_the_tube_ends_on_a_weaker_background(angle_deg):
-    """A tube 8 px wide whose score is 3.0 up to 12 px before its flat end and 0.6 over the
-    last 12 px, 1.5 widths (a grey tube is a strong cue over a black dot or tape and a weak one over a
-    white board; real_like dev seeds 4104, 4116, 4119, 4133, 4143 at 1280x720, where the
-    tip stopped 16-24 px short at the step), over a background of 0.1, 8x8 supersampled,
-    blurred 1.2 px. The half level of the stretch 1-3 widths behind, mostly strong (1.6),
-    lies above the weak stretch (the end was placed at the step, 12 px short); the end's half level is taken between the background and the weak level
-    instead. Reference: the drawn end, within 0.5 px (the 0.3 px of
-    test_refine_tip_on_drawn_ends; the weak level is measured 2-8 px before the end, where
-    the blur leaves > 95 % of it, so the half level moves < 0.03 of the step, < 0.1 px).
-    A faint patch beyond the end (0.3: under the background plus ``low``, 0.4) is
-    background texture, not more tube: the tip stays at the drawn end."""
+    """A tube 8 px wide whose score is 3.0 up to 12 px (1.5 widths) before its flat end
+    and 0.6 over the last 12 px (a grey tube is a strong cue over a black dot or tape and a
+    weak one over a white board; real_like dev seeds 4104, 4116, 4119, 4133, 4143 at
+    1280x720, where the tip stopped 16-24 px short at the step), over a background of 0.1,
+    8x8 supersampled, blurred 1.2 px. The half level of the stretch 1-3 widths behind,
+    mostly strong (1.6), lies above the weak stretch: the end was placed at the step, 12 px
+    short. The end's half level is now taken between the background and the weak level.
+    Reference: the drawn end, within 0.5 px (the 0.3 px of test_refine_tip_on_drawn_ends;
+    the weak level is measured 2-8 px before the end, where the blur leaves > 95 % of it,
+    so the half level moves by < 1 % of the step, < 0.1 px). A faint patch beyond the end
+    (0.3: under the background plus ``low``, 0.4) is background texture, not more tube:
+    the tip stays at the drawn end."""
     h, w, ss = 80, 100, 8
     th = np.radians(angle_deg)
     d = np.array([np.cos(th), np.sin(th)])
