@@ -25,7 +25,9 @@ scipy on float RGB in [0, 1] (no cv2, no file I/O):
    re-centres across the tube. Where the tube matches the background (tape, shadows,
    creases) the mask breaks; the walker then looks straight on (within
    ``gap_turn_deg``) up to ``max_gap_px`` pixels for the mask to resume and bridges the
-   gap. Beyond that, the tube ends: the tip is the last mask pixel along the path.
+   gap. Beyond that, the tube ends: the tip is the last mask pixel along the path (a
+   walker that turned round the end face and back along the tube is cut back to its
+   farthest point: a tube cannot reverse within its own width).
    Output: the robot mask (mask pixels near the path plus the bridges drawn at the tube's
    width), the ordered 2-D backbone and the tip pixel.
 
@@ -740,6 +742,14 @@ def trace_tube(
         theta = float(np.arctan2(hd[1], hd[0])) if np.linalg.norm(hd) > 1e-6 else theta
         p = q
     bb = np.array(path)
+    width = float(np.median(widths)) if widths else 3.0
+    cut = _turn_back_index(bb, width)
+    if cut is not None:
+        bb = bb[: cut + 1]
+        gaps = [g for g in gaps if g[1] <= cut]
+        junctions = [j for j in junctions if j[0] <= cut]
+        hd = bb[-1] - bb[max(cut - 3, 0)]
+        theta = float(np.arctan2(hd[1], hd[0])) if np.linalg.norm(hd) > 1e-6 else theta
     # Tip: march on along the heading while on the mask (0.25 px steps).
     tip = bb[-1].copy()
     hd = _unit(theta)
@@ -750,9 +760,43 @@ def trace_tube(
             break
     if np.linalg.norm(tip - bb[-1]) > 1e-9:
         bb = np.vstack([bb, tip])
-    width = float(np.median(widths)) if widths else 3.0
     out = _path_mask(mask, bb, gaps, width)
     return TubeTrace(out, bb, tip, entry, gaps, width_px=width, junctions=junctions)
+
+
+def _turn_back_index(path: np.ndarray, width: float) -> int | None:
+    """Where the walker turned round at the tube's end and walked back along the tube it
+    had traced: the index of the path's farthest point before that, or None. A walker
+    reaching the round end face of a tube wider than its look length can turn across the
+    face and follow the tube's other edge back (real_like dev seeds 4016, 4073, 4139: a
+    15 px tube traced at full resolution, the tip 15-25 px back). A tube cannot reverse
+    within its own width: where a point's direction is opposite (over 135 deg) to that of
+    an earlier point within half a width plus 1 px of it, and the path stays that near the
+    path before from there to its end, the walker walked back along the tube; the path is
+    cut at its farthest point along the earlier direction between the two."""
+    pts = np.asarray(path, np.float64)
+    n = len(pts)
+    if n < 5:
+        return None
+    tan = pts[np.minimum(np.arange(n) + 1, n - 1)] - pts[np.maximum(np.arange(n) - 1, 0)]
+    tan = tan / np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-9)
+    rad = 0.5 * width + 1.0
+    for i in range(2, n):
+        m = np.arange(i - 1)
+        near = np.sum((pts[m] - pts[i]) ** 2, axis=1) <= rad * rad
+        back = tan[m] @ tan[i] < np.cos(np.radians(135.0))
+        hit = np.flatnonzero(near & back)
+        if len(hit):
+            j0 = int(hit[-1])
+            # Back along the tube to the path's end (not onto something crossing it at a
+            # sharp corner, which leaves the tube: a branch, not the end).
+            rest = pts[i:]
+            d2 = np.sum((rest[:, None] - pts[None, : j0 + 1]) ** 2, axis=2).min(1)
+            if np.any(d2 > rad * rad):
+                return None
+            prog = (pts[j0 : i + 1] - pts[j0]) @ tan[j0]
+            return j0 + int(np.argmax(prog))
+    return None
 
 
 def _note_junction(junctions, sup, cands, j, cfg, index, p, dirs) -> None:
@@ -858,7 +902,9 @@ def refine_tip_details(
     Levels: inside ``S_in`` (median on the centre line 1-3 widths behind the end) and
     background ``S_bg`` (median beside the tube). Along the centre line the silhouette's
     end ``s_end`` is where the score falls to the half level ``(S_in + S_bg)/2`` (a blurred
-    step's half level is its edge, whatever the blur). The tube's end face is a disc: seen
+    step's half level is its edge, whatever the blur); where the tube's last stretch is a
+    weaker cue than the stretch behind (what lies behind the tube changes), the levels are
+    taken on that last width instead (comment in the body). The tube's end face is a disc: seen
     at an angle, the silhouette ends in a half-ellipse of width ``w`` and length ``a``
     beyond the end point (``a = r |sin|`` of the axis' tilt out of the image plane), so the
     end point is ``s_end - a``. ``a`` follows from the soft area ``T`` (the score
@@ -916,44 +962,44 @@ def _refine_on_grid(score, cen, nrm, ss, tt, d, w, cfg):
     # level ``low``) and above the background beside it.
     if not (s_in > s_bg and s_in >= cfg.low):
         return None
-    half = 0.5 * (s_in + s_bg)
     prof = g[:, centre].mean(1)
-    # First crossing below the half level after the end region starts (s >= -w); if the
-    # centre line is below it there already (the path overshot the silhouette's end), the
-    # last crossing behind: interpolate only between a sample at or above the half level
-    # and the next one below it.
     k0 = int(np.searchsorted(ss, -w))
-    if prof[k0] < half:
-        above = np.flatnonzero(prof[:k0] >= half)
-        if not len(above):
-            return None
-        k = int(above[-1]) + 1
-    else:
-        below = np.flatnonzero(prof[k0:] < half)
-        if not len(below):
-            return None
-        k = k0 + int(below[0])
-        # A dip below the half level that rises above it again within a width (the score
-        # varies along the tube: a highlight ending, a section's step) is not the end: the
-        # end is the outermost such crossing.
-        reach = int(round(w / 0.25))
-        while True:
-            again = np.flatnonzero(prof[k : k + reach] >= half)
-            if not len(again):
-                break
-            nxt = np.flatnonzero(prof[k + int(again[-1]) :] < half)
-            if not len(nxt):
-                break
-            k = k + int(again[-1]) + int(nxt[0])
+    reach = int(round(w / 0.25))
+    # The tube's score varies along it with what lies behind it (a grey tube is a strong
+    # cue over a black dot or tape, a weak one over a white board), so the level 1-3 widths
+    # back need not be the level at the end, and a step down to a weaker stretch is not the
+    # end (real_like dev seeds 4104, 4116, 4119, 4133, 4143: 16-24 px short). The tube
+    # goes on while the centre line stands out from the background beside it (at the same
+    # distance along it) by the hysteresis level ``low``, dips that rise again within a
+    # width passed. The level before that end is the lower median over 1/4-1 and 1/4-1/2
+    # width back (inside the edge's blur; a weak stretch may be shorter than a width, seed
+    # 4092, or hold a short strong spot, seed 4104: both are what lies behind the tube);
+    # where it is still tube (over the background by ``low``, not texture) but under the
+    # half level behind, the end's half level and the width are taken there.
+    s_top, rows = s_in, behind
+    contrast = prof - np.median(g[:, np.abs(tt) >= w], axis=1)
+    k_low = _level_end(contrast, cfg.low, k0, reach) if s_bg < cfg.low else None
+    if k_low is not None:
+        for lo in (1.0, 0.5):
+            near = (ss >= ss[k_low] - lo * w) & (ss <= ss[k_low] - 0.25 * w)
+            if not near.any():
+                continue
+            s_loc = float(np.median(prof[near]))
+            if cfg.low <= s_loc - s_bg and s_loc < min(s_top, 0.5 * (s_in + s_bg)):
+                s_top, rows = s_loc, near
+    half = 0.5 * (s_top + s_bg)
+    k = _level_end(prof, half, k0, reach)
+    if k is None:
+        return None
     f = (prof[k - 1] - half) / max(prof[k - 1] - prof[k], 1e-12)
     s_end = float(ss[k - 1] + f * (ss[k] - ss[k - 1]))
 
     def at(s_):
         return np.array([np.interp(s_, ss, cen[:, 0]), np.interp(s_, ss, cen[:, 1])])
 
-    soft = np.clip((g - s_bg) / (s_in - s_bg), None, 1.0)
+    soft = np.clip((g - s_bg) / (s_top - s_bg), None, 1.0)
     band = np.abs(tt) <= 0.75 * w
-    w_full = float(np.median(soft[behind][:, band].sum(1) * 0.25))
+    w_full = float(np.median(soft[rows][:, band].sum(1) * 0.25))
     if not w_full > 0:
         return None
     if cfg.tip_cap <= 0:
@@ -963,6 +1009,29 @@ def _refine_on_grid(score, cen, nrm, ss, tt, d, w, cfg):
     a = (s_end + w - T / w_full) / (1.0 - np.pi / 4.0)
     a = float(np.clip(a, 0.0, cfg.tip_cap * w_full / 2.0))
     return at(s_end - a), a, d, w_full / 2.0
+
+
+def _level_end(prof: np.ndarray, level: float, k0: int, reach: int) -> int | None:
+    """Index of the first sample below ``level`` of the centre-line profile ``prof`` from
+    index ``k0`` on (the next one after the last at or above it behind ``k0`` where
+    ``prof[k0]`` is below already: the path overshot the silhouette's end), passing dips
+    that rise to the level again within ``reach`` samples (the score varies along the
+    tube: a highlight ending, a section's step); None where there is no such crossing."""
+    if prof[k0] < level:
+        above = np.flatnonzero(prof[:k0] >= level)
+        return int(above[-1]) + 1 if len(above) else None
+    below = np.flatnonzero(prof[k0:] < level)
+    if not len(below):
+        return None
+    k = k0 + int(below[0])
+    while True:
+        again = np.flatnonzero(prof[k : k + reach] >= level)
+        if not len(again):
+            return k
+        nxt = np.flatnonzero(prof[k + int(again[-1]) :] < level)
+        if not len(nxt):
+            return k
+        k = k + int(again[-1]) + int(nxt[0])
 
 
 def _end_frame(bb: np.ndarray, ss: np.ndarray, d: np.ndarray, w: float):

@@ -265,6 +265,70 @@ def test_refine_tip_when_the_path_overshoots_the_end():
     assert np.all(np.isfinite(tip)) and np.linalg.norm(tip - end) < 0.5, tip
 
 
+@pytest.mark.parametrize("angle_deg", [0.0, 35.0])
+def test_refine_tip_where_the_tube_ends_on_a_weaker_background(angle_deg):
+    """A tube 8 px wide whose score is 3.0 up to 12 px (1.5 widths) before its flat end
+    and 0.6 over the last 12 px (a grey tube is a strong cue over a black dot or tape and a
+    weak one over a white board; real_like dev seeds 4104, 4116, 4119, 4133, 4143 at
+    1280x720, where the tip stopped 16-24 px short at the step), over a background of 0.1,
+    8x8 supersampled, blurred 1.2 px. The half level of the stretch 1-3 widths behind,
+    mostly strong (1.6), lies above the weak stretch: the end was placed at the step, 12 px
+    short. The end's half level is now taken between the background and the weak level.
+    Reference: the drawn end, within 0.5 px (the 0.3 px of test_refine_tip_on_drawn_ends;
+    the weak level is measured 2-8 px before the end, where the blur leaves > 95 % of it,
+    so the half level moves by < 1 % of the step, < 0.1 px). A faint patch beyond the end
+    (0.3: under the background plus ``low``, 0.4) is background texture, not more tube:
+    the tip stays at the drawn end."""
+    h, w, ss = 80, 100, 8
+    th = np.radians(angle_deg)
+    d = np.array([np.cos(th), np.sin(th)])
+    n = np.array([-d[1], d[0]])
+    end = np.array([60.3, 38.6])
+    yy, xx = (np.mgrid[0 : h * ss, 0 : w * ss] + 0.5) / ss - 0.5
+    rel = np.stack([xx - end[0], yy - end[1]], -1)
+    s_, t_ = rel @ d, rel @ n
+    across = np.abs(t_) <= 4.0
+    strong = across & (s_ >= -60) & (s_ < -12)
+    weak = across & (s_ >= -12) & (s_ <= 0)
+    patch = across & (s_ >= 6) & (s_ <= 14)
+
+    def score_of(level):
+        return 0.1 + ndi.gaussian_filter(level.reshape(h, ss, w, ss).mean((1, 3)), 1.2)
+
+    score = score_of(3.0 * strong + 0.6 * weak)
+    backbone = end[None] + np.arange(-40.0, 0.5, 2.0)[:, None] * d[None]
+    for sc in (score, score + score_of(0.2 * patch) - 0.1):
+        tip0, a0 = refine_tip(sc, backbone, 8.0, PlateForegroundConfig(tip_cap=0.0))
+        assert np.linalg.norm(tip0 - end) < 0.5, (tip0, end)
+        tip, a = refine_tip(sc, backbone, 8.0)
+        assert np.linalg.norm(tip - end) < 0.5 and a < 0.5, (tip, a)
+
+
+def test_trace_does_not_walk_back_round_the_end_face():
+    """A straight tube 15 px wide (twice the width the walker's lengths are set for) with a
+    round end, drawn on a pixel mask at 20 deg. The walker reaches the end face, turns
+    across it and, before this check, walked 22 px back along the tube's other edge (as on
+    real_like dev seeds 4016, 4073, 4139 traced at full resolution). Reference: the drawn
+    end face. The tip must lie on it (past the straight part's end, within half a width of
+    the face's apex: the march along the heading from a re-centred path lands off the axis
+    by at most a few px, < 3 px measured) and the path never falls back by more than 1 px
+    (a pixel's re-centring) from its farthest point along the tube."""
+    h, w, width = 80, 140, 15.0
+    th = np.radians(20.0)
+    d = np.array([np.cos(th), np.sin(th)])
+    n = np.array([-d[1], d[0]])
+    end = np.array([100.3, 40.4])
+    yy, xx = np.mgrid[0:h, 0:w]
+    rel = np.stack([xx - end[0], yy - end[1]], -1)
+    s_, t_ = rel @ d, rel @ n
+    mask = ((s_ <= 0) & (s_ >= -200) & (np.abs(t_) <= width / 2)) | (np.hypot(s_, t_) <= width / 2)
+    tr = trace_tube(mask, end - 90 * d, d, PlateForegroundConfig(start_spread_deg=0.0))
+    apex = end + width / 2 * d
+    assert (tr.tip - end) @ d > 0 and np.linalg.norm(tr.tip - apex) < width / 2, tr.tip
+    prog = (tr.backbone - tr.backbone[0]) @ d
+    assert np.all(np.maximum.accumulate(prog) - prog <= 1.0)
+
+
 def test_refine_tip_on_a_tube_curving_into_its_end():
     """A tube 8 px wide bent on a circle of radius 20 px (centre line) up to a flat end
     (cut across the tangent), 8x8 supersampled, blurred 1.2 px; the traced path is the
