@@ -1115,8 +1115,8 @@ def refine_frame(
     datas0 = tuple(region_data_from_level(*p[0], 0, config.tile) for p in pyramids)
     k0 = config.tiles_at(0)
 
-    def outputs(params):
-        cl, tubes = tubes_of(params)
+    def tube_outputs(tubes):
+        """Masks, exactness and hard terms (summed over cameras) of one shape's tubes."""
         masks, exact = [], jnp.asarray(True)
         e = {"e_in": 0.0, "e_out": 0.0, "e_pen": 0.0, "J": 0.0}
         for tube, data in zip(tubes, datas0, strict=True):
@@ -1134,14 +1134,22 @@ def refine_frame(
                 / (area_ref * jnp.maximum(var, 1e-8))
                 + weights.g_pen * t.e_pen / area_ref
             )
-        e["e_reg"] = regularisation(params["c"], base.s, config.torsion)
-        e["J"] = e["J"] + reg_of(params)
-        return cl, tuple(masks), exact, e
+        return tuple(masks), exact, e
 
     finite_out = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(params)]))
     params = jax.tree.map(lambda x: jnp.where(finite_out, x, 0.0), params)
-    cl, masks, exact, e = outputs(params)
-    _, nominal_masks, _, e_nom = outputs(zeros)
+    cl, tubes = tubes_of(params)
+    # the refined and the nominal shape's outputs by one traced body (issue 18: the output
+    # stage is a large part of the program; compiling it once instead of twice)
+    pair = jax.tree.map(lambda a, b: jnp.stack([a, b]), tubes, nominal_tubes)
+    masks2, exact2, e2 = jax.lax.map(tube_outputs, pair)
+    masks = tuple(m[0] for m in masks2)
+    nominal_masks = tuple(m[1] for m in masks2)
+    exact = exact2[0]
+    e = {k: v[0] for k, v in e2.items()}
+    e["e_reg"] = regularisation(params["c"], base.s, config.torsion)
+    e["J"] = e["J"] + reg_of(params)
+    e_nom = {"J": e2["J"][1] + reg_of(zeros)}
 
     failure = jnp.where(
         ~finite_in,
