@@ -454,8 +454,11 @@ def _tube_area(tube: TubeImage, camera: Camera) -> Float[Array, ""]:
     return jnp.sum(jnp.where(inside & tube.valid, a, 0.0))
 
 
-def _hard_terms(tube: TubeImage, band: Band, data: RegionData, local: bool, robust: float):
-    m = band_margin(tube, data.grid, band)
+def _hard_terms(
+    tube: TubeImage, band: Band, data: RegionData, local: bool, robust: float, m=None
+):
+    """Region terms of the hard mask; ``m``: the band's margins if already computed."""
+    m = band_margin(tube, data.grid, band) if m is None else m
     return region_terms((m > 0).astype(m.dtype), band, data, local, robust)
 
 
@@ -524,9 +527,10 @@ def _rig_corrections_to_params(cameras, corr, z_ref, residual: bool) -> Float[Ar
     return jnp.concatenate(rows, axis=0)
 
 
-def _mask(tube: TubeImage, band: Band, data: RegionData) -> Bool[Array, "h w"]:
+def _mask(tube: TubeImage, band: Band, data: RegionData, m=None) -> Bool[Array, "h w"]:
+    """The hard mask (h, w); ``m``: the band's margins if already computed."""
     grid = data.grid
-    m = band_margin(tube, grid, band)
+    m = band_margin(tube, grid, band) if m is None else m
     tiles = jnp.broadcast_to(band.inside[:, None], (grid.n_tiles, grid.n_pix))
     return grid.from_tiles(tiles.at[band.tiles].set(m > 0))
 
@@ -1125,9 +1129,10 @@ def refine_frame(
         e = {"e_in": 0.0, "e_out": 0.0, "e_pen": 0.0, "J": 0.0}
         for tube, data in zip(tubes, datas0, strict=True):
             band = select_band(tube, data.grid, k0, config.seg_merge * config.k_seg)
-            masks.append(_mask(tube, band, data))
+            m = band_margin(tube, data.grid, band)  # once for the mask and the terms
+            masks.append(_mask(tube, band, data, m))
             exact = exact & band.exact
-            t = _hard_terms(tube, band, data, config.local, config.robust)
+            t = _hard_terms(tube, band, data, config.local, config.robust, m)
             var = data.total_s2 / jnp.maximum(data.total_w, 1e-6)
             e["e_in"] = e["e_in"] + t.e_in
             e["e_out"] = e["e_out"] + t.e_out
