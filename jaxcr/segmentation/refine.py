@@ -454,9 +454,7 @@ def _tube_area(tube: TubeImage, camera: Camera) -> Float[Array, ""]:
     return jnp.sum(jnp.where(inside & tube.valid, a, 0.0))
 
 
-def _hard_terms(
-    tube: TubeImage, band: Band, data: RegionData, local: bool, robust: float, m=None
-):
+def _hard_terms(tube: TubeImage, band: Band, data: RegionData, local: bool, robust: float, m=None):
     """Region terms of the hard mask; ``m``: the band's margins if already computed."""
     m = band_margin(tube, data.grid, band) if m is None else m
     return region_terms((m > 0).astype(m.dtype), band, data, local, robust)
