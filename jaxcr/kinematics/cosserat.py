@@ -111,23 +111,13 @@ def integrate_steps_doubling(
     Rs = jax.vmap(so3_exp)(w)
     ts = jax.vmap(lambda wi, h: so3_left_jacobian(wi) @ (h * e3))(w, ds)
     m = w.shape[0]
-    k = jnp.arange(m)
-    eye = jnp.eye(3, dtype=dtype)
-
-    def round_(r, poses):
-        # pose k becomes (pose k - d) o (pose k), d = 2**r; the first d have nothing before
-        # them (the identity). One traced round in a loop rather than ceil(log2 m) unrolled
-        # rounds: the refinement compiles this in every differentiated copy of its objective
-        # (issue 18); the same operations on the same values as the unrolled rounds.
-        Rs, ts = poses
-        src = k - jnp.left_shift(1, r)
-        before = src >= 0
-        idx = jnp.maximum(src, 0)
-        Ra = jnp.where(before[:, None, None], Rs[idx], eye)
-        ta = jnp.where(before[:, None], ts[idx], 0.0)
-        return Ra @ Rs, jnp.einsum("...ij,...j->...i", Ra, ts) + ta
-
-    Rs, ts = jax.lax.fori_loop(0, (m - 1).bit_length(), round_, (Rs, ts))
+    d = 1
+    while d < m:
+        # pose k becomes (pose k - d) o (pose k); the first d have nothing before them
+        Ra = jnp.concatenate([jnp.broadcast_to(jnp.eye(3, dtype=dtype), (d, 3, 3)), Rs[:-d]])
+        ta = jnp.concatenate([jnp.zeros((d, 3), dtype), ts[:-d]])
+        Rs, ts = Ra @ Rs, jnp.einsum("...ij,...j->...i", Ra, ts) + ta
+        d *= 2
     ps = p0 + ts @ R0.T
     return jnp.concatenate([p0[None], ps]), jnp.concatenate([R0[None], R0 @ Rs])
 
