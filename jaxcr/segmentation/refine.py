@@ -847,9 +847,9 @@ def refine_frame(
     def _tube_jacobian(params):
         """The projected tubes and their Jacobian (forward mode) w.r.t. the flat params:
         per camera a TubeImage of values and one whose float fields are (m, n) Jacobians.
-        One jacfwd serves both the motion Jacobian and the first gradient of each solve
-        (:func:`_motion_jacobian`, ``g0``), so the centreline is differentiated once per
-        solve set-up instead of twice (forward for the motion, reverse for ``g0``)."""
+        One forward-mode Jacobian serves both the motion Jacobian and the first gradient of
+        each solve (:func:`_motion_jacobian`, ``g0``), so the centreline is differentiated
+        once per solve set-up instead of twice (forward for the motion, reverse for ``g0``)."""
         flat, unravel = jax.flatten_util.ravel_pytree(jax.lax.stop_gradient(params))
 
         def fields(f):
