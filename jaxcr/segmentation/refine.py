@@ -856,11 +856,7 @@ def refine_frame(
             _, tubes = tubes_of(unravel(f))
             return tuple((t.ax, t.ay, t.bx, t.by, t.ra, t.rb) for t in tubes), tubes
 
-        # the columns by a loop over the linearised map, not jacfwd's vmap: the batched
-        # tangent of the centreline integration compiled to twice the operations (issue 18)
-        _, lin, tubes = jax.linearize(fields, flat, has_aux=True)
-        cols = jax.lax.map(lin, jnp.eye(flat.shape[0], dtype=flat.dtype))
-        jacs = jax.tree.map(lambda c: jnp.moveaxis(c, 0, -1), cols)
+        jacs, tubes = jax.jacfwd(fields, has_aux=True)(flat)
         return jax.lax.stop_gradient(tubes), jax.lax.stop_gradient(jacs)
 
     def _motion_jacobian(tubes, jacs, level):
