@@ -12,6 +12,12 @@ leaves differ between two such files (e.g. before and after a change to refine.p
     python experiments/segmentation/refine_compile_cost.py --save /tmp/after.npz
     python experiments/segmentation/refine_compile_cost.py --compare /tmp/before.npz /tmp/after.npz
     python experiments/segmentation/refine_compile_cost.py --solver gn   # RefineConfig.solver
+    python experiments/segmentation/refine_compile_cost.py --breakdown 30
+
+``--breakdown N`` also prints where the program comes from: the N jaxcr source lines with the
+most jaxpr equations traced under them (inclusive: an equation counts for every jaxcr frame of
+its traceback) and the N ``op_name`` scopes (first four levels) with the most optimised HLO
+instructions (experiments/results/segmentation/refine_compile_r27.md).
 
 The persistent compilation cache is switched off (``jax_enable_compilation_cache``, when run) so
 that XLA really compiles. Results: experiments/results/suite_time.md.
@@ -20,6 +26,7 @@ that XLA really compiles. Results: experiments/results/suite_time.md.
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import os
 import re
@@ -65,6 +72,33 @@ def count_equations(jaxpr) -> int:
     return n
 
 
+def jaxcr_lines(jaxpr, counts: collections.Counter) -> None:
+    """Count equations (nested jaxprs included) per jaxcr source line of their traceback."""
+    for eqn in jaxpr.eqns:
+        tb = eqn.source_info.traceback
+        frames = [] if tb is None else tb.frames
+        for f in {(f.file_name, f.line_num, f.function_name) for f in frames}:
+            if "/jaxcr/" in f[0]:
+                counts[f"{f[0].split('/jaxcr/')[-1]}:{f[1]} {f[2]}"] += 1
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (list, tuple)) else [p]:
+                if isinstance(sub, jax_core.ClosedJaxpr):
+                    jaxcr_lines(sub.jaxpr, counts)
+                elif isinstance(sub, jax_core.Jaxpr):
+                    jaxcr_lines(sub, counts)
+
+
+def hlo_scopes(txt: str, depth: int = 4) -> collections.Counter:
+    """Optimised HLO instructions per ``op_name`` scope (its first ``depth`` levels)."""
+    counts = collections.Counter()
+    for line in txt.splitlines():
+        if HLO_LINE.match(line):
+            op = re.search(r'op_name="([^"]+)"', line)
+            scope = "/".join(op.group(1).split("/")[1 : depth + 1]) if op else "(no op_name)"
+            counts[re.sub(r"\[.*?\]", "", scope)] += 1
+    return counts
+
+
 def truth_centreline(base, c):
     """The true shape: ``base`` bent by coefficients ``c``, integrated by the kinematics'
     own integrator (not the refinement's), so that the images do not change with it."""
@@ -93,7 +127,7 @@ def scene():
     return base, cam, frames
 
 
-def measure(save: str | None) -> None:
+def measure(save: str | None, breakdown: int = 0) -> None:
     base, cam, frames = scene()
     print(f"solver {CFG.solver}")
 
@@ -105,6 +139,12 @@ def measure(save: str | None) -> None:
     jaxpr = jax.make_jaxpr(f)(*args)
     t1 = time.perf_counter()
     print(f"jaxpr equations {count_equations(jaxpr.jaxpr)}, trace {t1 - t0:.1f} s wall")
+    if breakdown:
+        lines = collections.Counter()
+        jaxcr_lines(jaxpr.jaxpr, lines)
+        print("jaxpr equations per jaxcr source line (inclusive):")
+        for k, n in lines.most_common(breakdown):
+            print(f"  {n:6d} {k}")
     t0, c0 = time.perf_counter(), time.process_time()
     compiled = jax.jit(f).lower(*args).compile()
     t1, c1 = time.perf_counter(), time.process_time()
@@ -113,6 +153,10 @@ def measure(save: str | None) -> None:
     n_hlo = sum(1 for line in txt.splitlines() if HLO_LINE.match(line))
     n_fus = len(re.findall(r"\bfusion\(", txt))
     print(f"optimised HLO instructions {n_hlo}, fusions {n_fus}")
+    if breakdown:
+        print("optimised HLO instructions per op_name scope:")
+        for k, n in hlo_scopes(txt).most_common(breakdown):
+            print(f"  {n:6d} {k}")
     c0 = time.process_time()
     outs = jax.block_until_ready([compiled(base, *fr) for fr in frames])
     print(f"run two frames {time.process_time() - c0:.2f} s CPU")
@@ -157,9 +201,10 @@ if __name__ == "__main__":
     ap.add_argument("--save", help="store the outputs of two refined frames (.npz)")
     ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two --save files")
     ap.add_argument("--solver", default=CFG.solver, help="RefineConfig.solver (default bfgs)")
+    ap.add_argument("--breakdown", type=int, default=0, metavar="N", help="top-N sources")
     ns = ap.parse_args()
     CFG = dataclasses.replace(CFG, solver=ns.solver)
     if ns.compare:
         compare(*ns.compare)
     else:
-        measure(ns.save)
+        measure(ns.save, ns.breakdown)

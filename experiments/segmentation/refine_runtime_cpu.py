@@ -6,9 +6,12 @@ Loads a jaxcr dataset, compiles ``refine_batch`` (``mode="map"``) for its frames
 runs it ``--repeats`` times and prints the median CPU and wall seconds per frame, the steps
 per frame and the load average. Run it in two checkouts side by side to compare them; with
 ``--per-level`` it also compiles ``RefineConfig(share_levels=False)`` in the same process and
-alternates the timed calls of the two programs.
+alternates the timed calls of the two programs. ``--save F.npz`` stores every output leaf of
+the default program's last call, and ``--compare A.npz B.npz`` says which leaves differ between
+two such files (e.g. two checkouts: a change meant to be bit-identical).
 
     python experiments/segmentation/refine_runtime_cpu.py DS/orthogonal --frames 6 --repeats 5
+    python experiments/segmentation/refine_runtime_cpu.py --compare A.npz B.npz
 """
 
 from __future__ import annotations
@@ -17,6 +20,8 @@ import argparse
 import os
 import time
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -27,11 +32,18 @@ def main(argv=None) -> int:
     from experiments.segmentation.eval_segment import colour_masks, load_frames
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset")
+    ap.add_argument("dataset", nargs="?")
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--per-level", action="store_true", help="also share_levels=False")
+    ap.add_argument("--save", help="store the default program's outputs (.npz)")
+    ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two --save files")
     a = ap.parse_args(argv)
+    if a.compare:
+        x, y = np.load(a.compare[0]), np.load(a.compare[1])
+        diff = [k for k in x.files if not np.array_equal(x[k], y[k], equal_nan=True)]
+        print(f"{len(x.files)} output leaves, {len(diff)} differ: {diff}")
+        return 0
     ds, names, frames, fk, imgs, *_ = load_frames(a.dataset, a.frames)
     cams = tuple(ds.cameras[n] for n in names)
     bgs, ims = colour_masks(imgs, names)
@@ -52,6 +64,10 @@ def main(argv=None) -> int:
             outs[name] = refine_batch(*args, cfg)
             cpu[name].append((time.process_time() - c0) / len(frames))
             wall[name].append((time.perf_counter() - t0) / len(frames))
+    if a.save:
+        # time_s (wall clock) is not a result
+        out = eqx.tree_at(lambda r: r.time_s, outs["default"], jnp.zeros(()))
+        np.savez(a.save, *[np.asarray(x) for x in jax.tree.leaves(out)])
     for name, out in outs.items():
         c, w = cpu[name], wall[name]
         print(

@@ -68,8 +68,8 @@ class RegionData(eqx.Module):
         """Pixels of the given tiles: w (k, p), b (k, p), img (k, p, 3), p = tile**2, in
         row-major order within each tile (as :meth:`TileGrid.pixel_offsets`)."""
         t = self.grid.tile
-        r0 = (tiles // self.grid.cols) * t
-        c0 = (tiles % self.grid.cols) * t
+        row, col = self.grid.row_col(tiles)
+        r0, c0 = row * t, col * t
         stack = jnp.concatenate([self.w[..., None], self.b[..., None], self.img], axis=-1)
 
         def one(r, c):

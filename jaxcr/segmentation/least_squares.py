@@ -95,8 +95,9 @@ def winner_margins(
     dtype = tube.ax.dtype
     t = grid.tile
     ox, oy = grid.pixel_offsets(dtype)
-    px = (band.tiles % grid.cols).astype(dtype)[:, None] * t + ox[None]
-    py = (band.tiles // grid.cols).astype(dtype)[:, None] * t + oy[None]
+    row, col = grid.row_col(band.tiles)
+    px = col.astype(dtype)[:, None] * t + ox[None]
+    py = row.astype(dtype)[:, None] * t + oy[None]
     fields = (tube.ax, tube.ay, tube.bx, tube.by, tube.ra, tube.rb)
     valid = tube.valid[band.segs][:, None, :]
     cand = [a[band.segs][:, None, :] for a in fields]

@@ -454,8 +454,9 @@ def _tube_area(tube: TubeImage, camera: Camera) -> Float[Array, ""]:
     return jnp.sum(jnp.where(inside & tube.valid, a, 0.0))
 
 
-def _hard_terms(tube: TubeImage, band: Band, data: RegionData, local: bool, robust: float):
-    m = band_margin(tube, data.grid, band)
+def _hard_terms(tube: TubeImage, band: Band, data: RegionData, local: bool, robust: float, m=None):
+    """Region terms of the hard mask; ``m``: the band's margins if already computed."""
+    m = band_margin(tube, data.grid, band) if m is None else m
     return region_terms((m > 0).astype(m.dtype), band, data, local, robust)
 
 
@@ -524,9 +525,10 @@ def _rig_corrections_to_params(cameras, corr, z_ref, residual: bool) -> Float[Ar
     return jnp.concatenate(rows, axis=0)
 
 
-def _mask(tube: TubeImage, band: Band, data: RegionData) -> Bool[Array, "h w"]:
+def _mask(tube: TubeImage, band: Band, data: RegionData, m=None) -> Bool[Array, "h w"]:
+    """The hard mask (h, w); ``m``: the band's margins if already computed."""
     grid = data.grid
-    m = band_margin(tube, grid, band)
+    m = band_margin(tube, grid, band) if m is None else m
     tiles = jnp.broadcast_to(band.inside[:, None], (grid.n_tiles, grid.n_pix))
     return grid.from_tiles(tiles.at[band.tiles].set(m > 0))
 
@@ -845,9 +847,9 @@ def refine_frame(
     def _tube_jacobian(params):
         """The projected tubes and their Jacobian (forward mode) w.r.t. the flat params:
         per camera a TubeImage of values and one whose float fields are (m, n) Jacobians.
-        One jacfwd serves both the motion Jacobian and the first gradient of each solve
-        (:func:`_motion_jacobian`, ``g0``), so the centreline is differentiated once per
-        solve set-up instead of twice (forward for the motion, reverse for ``g0``)."""
+        One forward-mode Jacobian serves both the motion Jacobian and the first gradient of
+        each solve (:func:`_motion_jacobian`, ``g0``), so the centreline is differentiated
+        once per solve set-up instead of twice (forward for the motion, reverse for ``g0``)."""
         flat, unravel = jax.flatten_util.ravel_pytree(jax.lax.stop_gradient(params))
 
         def fields(f):
@@ -1115,15 +1117,16 @@ def refine_frame(
     datas0 = tuple(region_data_from_level(*p[0], 0, config.tile) for p in pyramids)
     k0 = config.tiles_at(0)
 
-    def outputs(params):
-        cl, tubes = tubes_of(params)
+    def tube_outputs(tubes):
+        """Masks, exactness and hard terms (summed over cameras) of one shape's tubes."""
         masks, exact = [], jnp.asarray(True)
         e = {"e_in": 0.0, "e_out": 0.0, "e_pen": 0.0, "J": 0.0}
         for tube, data in zip(tubes, datas0, strict=True):
             band = select_band(tube, data.grid, k0, config.seg_merge * config.k_seg)
-            masks.append(_mask(tube, band, data))
+            m = band_margin(tube, data.grid, band)  # once for the mask and the terms
+            masks.append(_mask(tube, band, data, m))
             exact = exact & band.exact
-            t = _hard_terms(tube, band, data, config.local, config.robust)
+            t = _hard_terms(tube, band, data, config.local, config.robust, m)
             var = data.total_s2 / jnp.maximum(data.total_w, 1e-6)
             e["e_in"] = e["e_in"] + t.e_in
             e["e_out"] = e["e_out"] + t.e_out
@@ -1134,14 +1137,22 @@ def refine_frame(
                 / (area_ref * jnp.maximum(var, 1e-8))
                 + weights.g_pen * t.e_pen / area_ref
             )
-        e["e_reg"] = regularisation(params["c"], base.s, config.torsion)
-        e["J"] = e["J"] + reg_of(params)
-        return cl, tuple(masks), exact, e
+        return tuple(masks), exact, e
 
     finite_out = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(params)]))
     params = jax.tree.map(lambda x: jnp.where(finite_out, x, 0.0), params)
-    cl, masks, exact, e = outputs(params)
-    _, nominal_masks, _, e_nom = outputs(zeros)
+    cl, tubes = tubes_of(params)
+    # the refined and the nominal shape's outputs by one traced body (issue 18: the output
+    # stage is a large part of the program; compiling it once instead of twice)
+    pair = jax.tree.map(lambda a, b: jnp.stack([a, b]), tubes, nominal_tubes)
+    masks2, exact2, e2 = jax.lax.map(tube_outputs, pair)
+    masks = tuple(m[0] for m in masks2)
+    nominal_masks = tuple(m[1] for m in masks2)
+    exact = exact2[0]
+    e = {k: v[0] for k, v in e2.items()}
+    e["e_reg"] = regularisation(params["c"], base.s, config.torsion)
+    e["J"] = e["J"] + reg_of(params)
+    e_nom = {"J": e2["J"][1] + reg_of(zeros)}
 
     failure = jnp.where(
         ~finite_in,

@@ -259,6 +259,13 @@ class TileGrid(eqx.Module):
         x = x.reshape((self.rows * t, self.cols * t) + tiles.shape[2:])
         return x[: self.height, : self.width]
 
+    def row_col(self, tiles: Int[Array, "..."]) -> tuple[Int[Array, "..."], Int[Array, "..."]]:
+        """Row and column of tile indices ``tiles`` (>= 0): truncating integer division, the
+        same values as ``//`` and ``%`` on non-negative indices without their sign fix-ups
+        (fewer operations in every compiled copy of the band energy)."""
+        cols = jnp.asarray(self.cols, tiles.dtype)
+        return jax.lax.div(tiles, cols), jax.lax.rem(tiles, cols)
+
     def tile_centres(self, dtype=jnp.float32) -> tuple[Array, Array]:
         """(n_tiles,) x and y of each tile's centre (pixel coordinates)."""
         t = self.tile
@@ -374,16 +381,25 @@ def band_margin(tube: TubeImage, grid: TileGrid, band: Band) -> Float[Array, "k 
     dtype = tube.ax.dtype
     t = grid.tile
     ox, oy = grid.pixel_offsets(dtype)
-    tx = (band.tiles % grid.cols).astype(dtype) * t
-    ty = (band.tiles // grid.cols).astype(dtype) * t
+    row, col = grid.row_col(band.tiles)
+    tx = col.astype(dtype) * t
+    ty = row.astype(dtype) * t
     px = tx[:, None] + ox[None]  # (k, p)
     py = ty[:, None] + oy[None]
     fields = (tube.ax, tube.ay, tube.bx, tube.by, tube.ra, tube.rb)
-    valid = tube.valid[band.segs][:, None, :]  # (k, 1, c)
-    cand = [jax.lax.stop_gradient(a)[band.segs][:, None, :] for a in fields]
+    valid = _take(tube.valid, band.segs)[:, None, :]  # (k, 1, c)
+    cand = [_take(jax.lax.stop_gradient(a), band.segs)[:, None, :] for a in fields]
     m_all = capsule_margin(px[..., None], py[..., None], *cand, valid)  # (k, p, c)
-    seg = jnp.take_along_axis(band.segs, jnp.argmax(m_all, axis=-1), axis=1)  # (k, p)
-    return capsule_margin(px, py, *(a[seg] for a in fields), tube.valid[seg])
+    best = jnp.argmax(m_all, axis=-1)
+    seg = jnp.take_along_axis(band.segs, best, axis=1, mode="promise_in_bounds")  # (k, p)
+    return capsule_margin(px, py, *(_take(a, seg) for a in fields), _take(tube.valid, seg))
+
+
+def _take(a: Array, idx: Int[Array, "..."]) -> Array:
+    """``a[idx]`` for indices known to be in bounds and non-negative (segment indices from
+    ``top_k``/``argmax``): the same gather without the wrapping of negative indices and the
+    out-of-bounds fill, which every compiled copy of the band energy would otherwise carry."""
+    return a.at[idx].get(mode="promise_in_bounds", wrap_negative_indices=False)
 
 
 def rasterise(
