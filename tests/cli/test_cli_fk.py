@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -23,6 +24,10 @@ CC = {
     "n_points": 9,
 }
 Q_SS = [[0.3, -2.0], [np.pi / 2, 0.0], [1.0, 0.5]]
+
+# The references: model.forward compiled (run eagerly, its ~15 operations were compiled one by
+# one in each test)
+_forward = eqx.filter_jit(lambda model, q: model.forward(q))
 
 
 @pytest.fixture
@@ -53,7 +58,7 @@ def test_outputs_match_forward(files, capsys):
     assert first == f"# format: {FORMAT}"
     assert list(rows[0]) == ["row", "ok", "x", "y", "z", "rx", "ry", "rz", "residual", "energy"]
     for i, q in enumerate(Q_SS):
-        res = model.forward(jnp.asarray(q, jnp.float32))
+        res = _forward(model, jnp.asarray(q, jnp.float32))
         np.testing.assert_allclose(z["p"][i], res.centreline.p, atol=1e-7)
         np.testing.assert_allclose(z["rho"][i], res.centreline.rho)
         tip = [float(rows[i][k]) for k in "xyz"]
@@ -224,7 +229,7 @@ def test_batch_forward_traces_once_across_chunks():
     batch_forward(model, q + 0.1, chunk=2, progress=False)  # new values, same shapes
     assert len(traces) == 1
     for i in range(5):
-        ref = SingleSegment.make(length=0.03, radius=1e-3, n_points=7).forward(
-            jnp.asarray(q[i], jnp.float32)
+        ref = _forward(
+            SingleSegment.make(length=0.03, radius=1e-3, n_points=7), jnp.asarray(q[i], jnp.float32)
         )
         np.testing.assert_allclose(out["p"][i], ref.centreline.p, atol=1e-7)

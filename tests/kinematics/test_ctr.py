@@ -261,7 +261,8 @@ def test_total_torsional_moment_is_zero_along_s():
 
 def test_perturb_centreline_reproduces_forward():
     c = FWD(MODEL, Q0).centreline
-    again = perturb_centreline(c, jnp.zeros_like(c.u[1:]))
+    # compiled (run eagerly, its operations were compiled one by one)
+    again = jax.jit(perturb_centreline)(c, jnp.zeros_like(c.u[1:]))
     np.testing.assert_allclose(np.asarray(again.p), np.asarray(c.p), atol=1e-7)
     np.testing.assert_allclose(np.asarray(again.R), np.asarray(c.R), atol=1e-6)
 
@@ -313,13 +314,15 @@ def test_steps_shared_in_proportion_to_piece_lengths():
         for b in bps:
             assert np.min(np.abs(s - b)) < 1e-6
     assert clipped > 0  # some q had a curved part starting behind s = 0 (an empty piece)
+    # compiled (run eagerly, its ~15 operations were compiled one by one at each shape)
+    alloc = jax.jit(allocate_steps, static_argnums=1)
     lengths = jnp.asarray([0.0, 0.1, 0.0, 0.3, 0.05, 0.0])
-    counts = np.asarray(allocate_steps(lengths, 12))
+    counts = np.asarray(alloc(lengths, 12))
     # one step each for the 3 non-empty pieces, the other 9 by rounded cumulative shares
     # round(9 * [0, 2/9, 2/9, 8/9, 1, 1]) = [0, 2, 2, 8, 9, 9]
     np.testing.assert_array_equal(counts, [0, 3, 0, 7, 2, 0])
-    assert np.asarray(allocate_steps(jnp.zeros(4), 7)).tolist() == [7, 0, 0, 0]
-    tiny = np.asarray(allocate_steps(jnp.asarray([1e-9, 1.0, 1e-9]), 5))
+    assert np.asarray(alloc(jnp.zeros(4), 7)).tolist() == [7, 0, 0, 0]
+    tiny = np.asarray(alloc(jnp.asarray([1e-9, 1.0, 1e-9]), 5))
     assert tiny.tolist() == [1, 3, 1]
 
 

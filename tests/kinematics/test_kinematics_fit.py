@@ -16,7 +16,6 @@ from jaxcr.kinematics.ctr import TEST_CTR, ConcentricTubeRobot
 from jaxcr.kinematics.ctr_mechanics import telescoping_ok
 from jaxcr.kinematics.fit import (
     _cold_forward,
-    backbone_residual,
     canonical_joints,
     closest_points_on_polyline,
     fit_backbone,
@@ -46,7 +45,8 @@ def test_closest_points_match_loop():
     poly = np.cumsum(rng.normal(size=(9, 3)), axis=0)
     poly[4] = poly[3]  # a zero-length segment
     pts = rng.normal(size=(40, 3)) * 3
-    got = np.asarray(closest_points_on_polyline(jnp.asarray(pts), jnp.asarray(poly)))
+    # compiled (run eagerly, its ~25 operations were compiled one by one)
+    got = np.asarray(jax.jit(closest_points_on_polyline)(jnp.asarray(pts), jnp.asarray(poly)))
     # float32 arithmetic on coordinates of size ~10: a few eps32 x 10 (1e-5 with margin)
     np.testing.assert_allclose(got, _closest_loop(pts, poly), atol=1e-4)
 
@@ -54,7 +54,8 @@ def test_closest_points_match_loop():
 def test_closest_points_gradient_finite_on_polyline():
     poly = jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 1.0]])
     pts = jnp.array([[0.0, 0.0, 0.5], [0.0, 0.0, 1.0]])  # on a segment and on a vertex
-    g = jax.grad(lambda P: jnp.sum((pts - closest_points_on_polyline(pts, P)) ** 2))(poly)
+    # compiled: the eager gradient compiled ~60 operations one by one
+    g = jax.jit(jax.grad(lambda P: jnp.sum((pts - closest_points_on_polyline(pts, P)) ** 2)))(poly)
     assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -86,24 +87,6 @@ def test_ctr_reparametrisation_covers_the_joint_limits():
     np.testing.assert_allclose(back[inside], q[inside], atol=1e-5)
 
 
-@eqx.filter_jit  # one program per model (run eagerly, ~100 operations compiled one by one)
-def _residual_jacobian(model, q, pts, base_weight):
-    eye = jnp.eye(4, dtype=q.dtype)
-    return jax.jacfwd(lambda q: backbone_residual(model, q, eye, pts, 1.0, None, base_weight))(q)
-
-
-def _cov_tolerance(model, q_true, points, sigma, k=5.0, solver_rtol=1e-6, base_weight=0.0):
-    """k-sigma per joint from the Gauss-Newton covariance sigma^2 (J^T J)^-1 of the residual at
-    the truth (J = d residual / d q, the fit's residual with its ``base_weight``), plus the
-    float32 solver's resolution (its rtol on ~unit-scale parameters, x100 margin)."""
-    # float32 J (relative error ~1e-6) is ample for a tolerance; the model stays float32
-    pts = jnp.asarray(points, jnp.float32)
-    J = _residual_jacobian(model, jnp.asarray(q_true, jnp.float32), pts, float(base_weight))
-    J = np.asarray(J, np.float64)
-    cov = sigma**2 * np.linalg.pinv(J.T @ J)
-    return k * np.sqrt(np.diag(cov)) + 100 * solver_rtol * (1.0 + np.abs(q_true))
-
-
 def _noisy_backbone(model, q, sigma, seed, stride=2):
     p = np.asarray(_cold_forward(model, jnp.asarray(q, _model_dtype(model))).centreline.p)
     return _noisy_points(p.astype(np.float64), sigma, seed, stride)
@@ -119,9 +102,13 @@ def _noisy_points(p, sigma, seed, stride=2):
     return p[idx] + rng.normal(scale=sigma, size=(len(idx), 3))
 
 
+# compiled (run eagerly, its ~15 operations were compiled one by one)
+_canonical_joints = eqx.filter_jit(canonical_joints)
+
+
 def _same_shape_joints(model, q):
     """Canonical joints with CC's signed kappa made positive ((k, phi) == (-k, phi + pi))."""
-    q = np.array(canonical_joints(model, jnp.asarray(q)), np.float64)
+    q = np.array(_canonical_joints(model, jnp.asarray(q)), np.float64)
     if model.kind == "constant_curvature":
         qs = q.reshape(model.n_sections, len(model.joints))
         k, f = model.joints.index("kappa"), model.joints.index("phi")
@@ -151,11 +138,23 @@ def test_recovers_q_from_noisy_backbone(case):
         )
         stride, base_weight = 2, 0.0
     sigma = 2e-4  # 0.2 mm tracker noise
+
+    def centreline(q):  # the compiled FK of the noisy backbones (fit._cold_forward)
+        p = _cold_forward(model, jnp.asarray(q, jnp.float32)).centreline.p
+        return np.asarray(p, np.float64)
+
     for seed in (11, 12):  # fresh seeds (the configurations were chosen on seed 0)
         pts = _noisy_backbone(model, q_true, sigma, seed, stride)
         res = fit_backbone(model, jnp.asarray(pts, jnp.float32), base_weight=base_weight)
         assert bool(res.ok), res.result
-        tol = _cov_tolerance(model, np.asarray(q_true), pts, sigma, base_weight=base_weight)
+        # J by central differences of the slow reference residual (_cov_tolerance_fd; no
+        # Jacobian program of its own). Against the jacfwd J of the fit's residual that this
+        # used before (2.5 s of compilation per model): tolerance ratio 0.998-1.001 per joint
+        # on both seeds at h = 3e-4, 1e-3 and 3e-3 (3 December 2026)
+        tol = _cov_tolerance_fd(
+            centreline, np.asarray(q_true, np.float64), pts, sigma, h=1e-3,
+            base_weight=base_weight,
+        )  # fmt: skip
         err = np.abs(_same_shape_joints(model, res.q) - _same_shape_joints(model, q_true))
         err = np.minimum(err, 2 * np.pi - err) if kind == "single_segment" else err
         assert np.all(err <= tol), (err, tol)
@@ -165,33 +164,46 @@ def test_recovers_q_from_noisy_backbone(case):
         assert float(res.rms) < 3 * sigma * np.sqrt(2)
 
 
-def _backbone_residual_loop(points, p, tip_weight=1.0):
+def _backbone_residual_loop(points, p, tip_weight=1.0, base_weight=0.0):
     """Slow float64 reference of backbone_residual (identity base pose): each point minus its
-    closest point on the polyline ``p`` (:func:`_closest_loop`), then the tip term."""
+    closest point on the polyline ``p`` (:func:`_closest_loop`), the tip term, and with
+    ``base_weight`` the base term."""
     c = _closest_loop(points, p)
-    return np.concatenate([(points - c).reshape(-1), tip_weight * (points[-1] - p[-1])])
+    parts = [(points - c).reshape(-1), tip_weight * (points[-1] - p[-1])]
+    if base_weight:
+        parts.append(base_weight * (points[0] - p[0]))
+    return np.concatenate(parts)
 
 
-def _cov_tolerance_fd(centreline, q_true, points, sigma, h, k=5.0, solver_rtol=1e-6):
-    """:func:`_cov_tolerance` with J = d residual / d q by central differences (step ``h``) of
-    the slow reference residual around ``centreline``, a compiled q -> (N, 3) FK.
+def _cov_tolerance_fd(
+    centreline, q_true, points, sigma, h, k=5.0, solver_rtol=1e-6, base_weight=0.0
+):
+    """k-sigma per joint from the Gauss-Newton covariance sigma^2 (J^T J)^-1 of the fit's
+    residual at the truth (with its ``base_weight``), plus the float32 solver's resolution
+    (its rtol on ~unit-scale parameters, x100 margin). J = d residual / d q by central
+    differences (step ``h``) of the slow reference residual around ``centreline``, a
+    compiled q -> (N, 3) FK.
 
-    Why: jacfwd executed eagerly through the CTR's equilibrium solve cost ~48 s of CPU here
-    (its primitives and loops compiled one by one); the compiled FK it uses instead is the one
-    the noisy backbone needs anyway. Error of J: truncation h^2 |d3r/dq3| / 6 (negligible at
-    h = 1e-3 m or rad on these smooth shapes) plus the FK's noise delta / h: float32 and the
-    equilibrium tolerance (tip angles to ~1e-5 rad over ~0.1 m) give delta ~1e-6 m, so
-    ~1e-3 m per unit of q against columns of ~0.03-1 m per unit. Measured on the CTR case
-    below against the jacfwd tolerance (2 December 2026): ratio 0.92-1.01 per joint at
-    h = 1e-3, the same within 0.03 at h = 3e-4 and 3e-3 (so not noise: the kinks of the
-    closest-point map, which jacfwd takes one-sided); k = 5 sigma stays >= 4.6 sigma."""
+    Why: a Jacobian program of the fit's residual cost ~2.5 s of compilation per model (and
+    jacfwd executed eagerly through the CTR's equilibrium solve ~48 s of CPU); the compiled
+    FK used instead is the one the noisy backbone needs anyway. Error of J: truncation
+    h^2 |d3r/dq3| / 6 (negligible at h = 1e-3 m, rad or 1/m on these smooth shapes) plus
+    the FK's noise delta / h: closed-form models in float32 give delta ~ eps32 x 0.1 m ~
+    1e-8 m, so ~1e-5 m per unit of q against columns of >= ~1e-3 m per unit (a section's
+    kappa); a CTR's float32 equilibrium tolerance (tip angles to ~1e-5 rad over ~0.1 m)
+    gives delta ~1e-6 m, so ~1e-3 m per unit of q against columns of ~0.03-1 m per unit.
+    Measured against the jacfwd tolerance: on the CTR case below (2 December 2026) ratio
+    0.92-1.01 per joint at h = 1e-3, the same within 0.03 at h = 3e-4 and 3e-3 (so not
+    noise: the kinks of the closest-point map, which jacfwd takes one-sided), k = 5 sigma
+    stays >= 4.6 sigma; on the single-segment and constant-curvature cases (3 December
+    2026) 0.998-1.001."""
     q_true = np.asarray(q_true, np.float64)
     cols = []
     for i in range(len(q_true)):
         dq = np.zeros_like(q_true)
         dq[i] = h
-        rp = _backbone_residual_loop(points, centreline(q_true + dq))
-        rm = _backbone_residual_loop(points, centreline(q_true - dq))
+        rp = _backbone_residual_loop(points, centreline(q_true + dq), base_weight=base_weight)
+        rm = _backbone_residual_loop(points, centreline(q_true - dq), base_weight=base_weight)
         cols.append((rp - rm) / (2 * h))
     J = np.stack(cols, axis=1)
     cov = sigma**2 * np.linalg.pinv(J.T @ J)
@@ -223,40 +235,36 @@ def test_recovers_ctr_q_from_noisy_backbone():
 
 def test_same_optimum_as_scipy_least_squares():
     """Same residual (float64), minimised by optimistix LM and by scipy's trust-region
-    reflective least squares from the same start: same cost and same q."""
+    reflective least squares from the same start: same cost and same q. scipy minimises the
+    slow reference residual (:func:`_backbone_residual_loop`) of the compiled float64 FK
+    that made the points, with its own 3-point difference Jacobian (no program of ours
+    but that FK: a compiled residual + jacfwd program cost ~3 s of compilation)."""
     with jax.enable_x64(True):
         model = ConstantCurvature.make(
             [0.05, 0.05], [0.003] * 2, joints=("kappa", "phi"), n_points=33, dtype=jnp.float64
         )
-        pts = jnp.asarray(_noisy_backbone(model, [7.0, 0.3, 5.0, -0.8], 3e-4, seed=5))
+        pts = _noisy_backbone(model, [7.0, 0.3, 5.0, -0.8], 3e-4, seed=5)
         q0 = np.array([1.0, 0.0, 1.0, 0.0])
-        res = fit_backbone(model, pts, q0=q0)
-        eye = jnp.eye(4, dtype=jnp.float64)
-        # residual and Jacobian in one compiled program
-        both = jax.jit(
-            jax.jacfwd(lambda q: (backbone_residual(model, q, eye, pts),) * 2, has_aux=True)
-        )
+        res = fit_backbone(model, jnp.asarray(pts), q0=q0)
 
         def fun(q):
-            return both(jnp.asarray(q))[1]
+            p = _cold_forward(model, jnp.asarray(q, jnp.float64)).centreline.p
+            return _backbone_residual_loop(pts, np.asarray(p, np.float64))
 
-        def jac(q):
-            return both(jnp.asarray(q))[0]
+        def jac(q):  # central differences (h = 1e-6: error ~1e-12 + eps64 |r| / h ~1e-12)
+            h = 1e-6
+            return np.stack([(fun(q + h * e) - fun(q - h * e)) / (2 * h) for e in np.eye(4)], 1)
 
+        # 3-point differences: relative error ~eps64^(2/3) ~ 1e-11 in J, which moves the
+        # stopping point by far less than the 1e-8 relative cost tolerance below
         ref = scipy.optimize.least_squares(
-            lambda q: np.asarray(fun(q)),
-            q0,
-            jac=lambda q: np.asarray(jac(q)),
-            method="trf",
-            xtol=1e-14,
-            ftol=1e-14,
-            gtol=1e-14,
+            fun, q0, jac="3-point", method="trf", xtol=1e-14, ftol=1e-14, gtol=1e-14
         )
         assert bool(res.ok)
         # Both stop where the relative cost decrease is ~1e-10: costs agree to that.
         assert abs(float(res.cost) - ref.cost) <= 1e-8 * ref.cost
         # q: a cost gap dC bounds |dq| by sqrt(2 dC / lambda_min(J^T J)) near the optimum
-        J = np.asarray(jac(jnp.asarray(ref.x)))
+        J = jac(ref.x)
         lam = np.linalg.eigvalsh(J.T @ J)[0]
         qtol = np.sqrt(2 * 1e-8 * ref.cost / lam)
         dq = _same_shape_joints(model, res.q) - _same_shape_joints(model, ref.x)

@@ -49,15 +49,19 @@ def test_angles_round_trip_over_workspace(theta_L, delta):
 
 
 def test_straight_configuration_is_finite_and_documented():
-    R = angles_to_rotation(jnp.float32(np.pi / 2), jnp.float32(1.3))
+    R = _a2r(jnp.float32(np.pi / 2), jnp.float32(1.3))
     np.testing.assert_allclose(R, np.eye(3), atol=1e-6)
-    th, de = rotation_to_angles(jnp.eye(3))
+    th, de = _r2a(jnp.eye(3))
     assert float(th) == pytest.approx(np.pi / 2, abs=1e-7) and float(de) == 0.0
-    J = jax.jacrev(rotation_to_angles)(jnp.eye(3))
+    # both Jacobians in one compiled program (run eagerly, ~50 operations were compiled
+    # one by one)
+    J, Jf = jax.jit(
+        lambda R, q: (
+            jax.jacrev(rotation_to_angles)(R),
+            jax.jacfwd(lambda q: rotation_to_angles(angles_to_rotation(q[0], q[1])))(q),
+        )
+    )(jnp.eye(3), jnp.array([np.pi / 2, 0.7], jnp.float32))
     assert np.all(np.isfinite(J))
-    Jf = jax.jacfwd(lambda q: rotation_to_angles(angles_to_rotation(q[0], q[1])))(
-        jnp.array([np.pi / 2, 0.7], jnp.float32)
-    )
     assert np.all(np.isfinite(Jf))
 
 
@@ -99,8 +103,19 @@ def test_forward_tip_frame_and_arc(fwd, q):
 def test_gradient_at_straight_is_finite_and_matches_fd():
     with jax.enable_x64(True):
         robot = SingleSegment.make(length=L, radius=2e-3, n_points=9, dtype=jnp.float64)
-        tip = eqx.filter_jit(lambda q: robot.forward(q).centreline.p[-1])
-        jac = jax.jit(jax.jacfwd(tip))
+
+        def tip_fn(q):
+            return robot.forward(q).centreline.p[-1]
+
+        # the tip and its Jacobian in one compiled program (one compile instead of two)
+        both = jax.jit(lambda q: (tip_fn(q), jax.jacfwd(tip_fn)(q)))
+
+        def tip(q):
+            return both(q)[0]
+
+        def jac(q):
+            return both(q)[1]
+
         for q0 in (jnp.array([np.pi / 2, 0.4]), jnp.array([0.2, 2.0])):
             J = jac(q0)
             assert np.all(np.isfinite(J))
@@ -116,7 +131,10 @@ def test_gradient_at_straight_is_finite_and_matches_fd():
         )
         np.testing.assert_allclose(J[:, 1], 0.0, atol=1e-12)
     robot32 = SingleSegment.make(length=L, radius=2e-3, n_points=5)
-    g = jax.grad(lambda q: jnp.sum(robot32.forward(q).centreline.p))(jnp.array([np.pi / 2, 0.0]))
+    # compiled (run eagerly, its ~30 operations were compiled one by one)
+    g = eqx.filter_jit(jax.grad(lambda q, m: jnp.sum(m.forward(q).centreline.p)))(
+        jnp.array([np.pi / 2, 0.0]), robot32
+    )
     assert np.all(np.isfinite(g))
 
 

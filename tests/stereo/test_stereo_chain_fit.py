@@ -111,15 +111,19 @@ def test_straight_segment_finite_gradient():
         k, n = chain_segment_parameters(jnp.zeros(3), jnp.eye(3), c, seg)
         return jnp.sum(X**2) + jnp.sum(k) + jnp.sum(n)
 
-    g = jax.jit(jax.grad(f))(jnp.zeros((2, 2)))
-    assert np.all(np.isfinite(np.asarray(g)))
-
     # Away from zero, the gradient of the positions vs central differences.
     def fx(c):
         return jnp.sum(chain_points(jnp.zeros(3), jnp.eye(3), c, seg, s)[0] ** 2)
 
+    # both gradients and the value: one compiled program (instead of two)
+    grads = jax.jit(lambda c: (jax.grad(f)(c), *jax.value_and_grad(fx)(c)))
+    g = grads(jnp.zeros((2, 2)))[0]
+    assert np.all(np.isfinite(np.asarray(g)))
+
+    def vg(c):
+        return grads(c)[1:]
+
     c0 = np.array([[3.0, -2.0], [1.0, 4.0]], np.float32)
-    vg = jax.jit(jax.value_and_grad(fx))  # value and gradient: one compiled program
     g = np.asarray(vg(jnp.asarray(c0))[1])
     fd = np.zeros_like(c0)
     for idx in np.ndindex(c0.shape):
@@ -303,39 +307,52 @@ def test_early_stopped_fit_equals_fixed_iterations(cams):
     np.testing.assert_allclose(early["rms_px"], fixed["rms_px"], rtol=1e-3)
 
 
+@jax.jit
+def _observations_by_hand(c, a, kp, P, t):
+    """observations_from_profiles at every sample, its inputs measured as the pipeline's
+    diameter stage does (one compiled program: run eagerly, its ~60 operations were
+    compiled one by one)."""
+    from jaxcr.stereo.chain_fit import observations_from_profiles
+    from jaxcr.stereo.diameter import profile_widths
+
+    uv0, ok = project_points(c, P)
+    uv1, _ = project_points(c, P + 1e-4 * t)
+    du = uv1 - uv0
+    nrm = jnp.stack([-du[:, 1], du[:, 0]], axis=1)
+    nrm = nrm / jnp.linalg.norm(nrm, axis=1, keepdims=True)
+    wdt, off = profile_widths(a, uv0, nrm, kp)
+    clean = edge_clearance(a, uv0, nrm, wdt, off)
+    return observations_from_profiles(c, P, t, uv0, ok, nrm, wdt, off, clean)
+
+
 def test_joint_fit_with_precomputed_observations_equals_measuring():
     """fit_segments_jointly given observations_from_profiles at every sample (as the
     pipeline's diameter stage measures them: tangents by np.gradient over the index)
     equals measuring them itself at the subsampled observations (uniform arclength)."""
-    from jaxcr.stereo.chain_fit import fit_segments_jointly, observations_from_profiles
-    from jaxcr.stereo.diameter import profile_widths
+    from jaxcr.stereo.chain_fit import fit_segments_jointly
 
-    # 160x120 views of the chain; the silhouette drawn as a 5 px polyline (float alpha).
-    c1 = Camera.look_at([0.35, 0.0, 0.1], [0.02, 0.0, 0.05], [0, 0, 1], 180.0, (160, 120))
-    c2 = Camera.look_at([0.0, 0.35, 0.1], [0.0, 0.02, 0.05], [0, 0, 1], 180.0, (160, 120))
+    # 640x480 views of the chain (the size of the `cams` fixture, so that the chain fit's
+    # compiled solver is the one the tests above use); the silhouette drawn as a 20 px
+    # polyline (float alpha): 4x the scale of the 160x120 views this test used before.
+    c1 = Camera.look_at([0.35, 0.0, 0.1], [0.02, 0.0, 0.05], [0, 0, 1], 720.0, (640, 480))
+    c2 = Camera.look_at([0.0, 0.35, 0.1], [0.0, 0.02, 0.05], [0, 0, 1], 720.0, (640, 480))
     s = np.linspace(0.0, 0.09, 181)  # uniform, 0.5 mm
     P = _ode_reference(s + 1e-12)
     alphas = []
     for c in (c1, c2):
         T = np.asarray(c.T_cam_robot, np.float64)
         uv = cv2.projectPoints(P, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], np.asarray(c.K, np.float64), np.zeros(5))[0].reshape(-1, 2)  # fmt: skip
-        im = np.zeros((120, 160), np.uint8)
-        cv2.polylines(im, [np.round(uv * 16).astype(np.int32)], False, 255, 5, cv2.LINE_AA, 4)
+        im = np.zeros((480, 640), np.uint8)
+        cv2.polylines(im, [np.round(uv * 16).astype(np.int32)], False, 255, 20, cv2.LINE_AA, 4)
         alphas.append(cv2.GaussianBlur(im.astype(np.float32) / 255.0, (3, 3), 0.6))
     kps = [1.0 - a for a in alphas]
     tang = np.gradient(P, axis=0)
     tang /= np.linalg.norm(tang, axis=1, keepdims=True)
     Pj, tj = jnp.asarray(P, jnp.float32), jnp.asarray(tang, jnp.float32)
-    obs = []
-    for c, a, kp in zip((c1, c2), alphas, kps, strict=True):
-        uv0, ok = project_points_jit(c, Pj)
-        uv1, _ = project_points_jit(c, Pj + 1e-4 * tj)
-        du = uv1 - uv0
-        nrm = jnp.stack([-du[:, 1], du[:, 0]], axis=1)
-        nrm = nrm / jnp.linalg.norm(nrm, axis=1, keepdims=True)
-        wdt, off = profile_widths(jnp.asarray(a), uv0, nrm, jnp.asarray(kp))
-        clean = edge_clearance(jnp.asarray(a), uv0, nrm, wdt, off)
-        obs.append(observations_from_profiles(c, Pj, tj, uv0, ok, nrm, wdt, off, clean))
+    obs = [
+        _observations_by_hand(c, jnp.asarray(a), jnp.asarray(kp), Pj, tj)
+        for c, a, kp in zip((c1, c2), alphas, kps, strict=True)
+    ]
     obs = tuple(np.stack([np.asarray(o[i]) for o in obs]) for i in range(4))
     assert (obs[2] > 0).mean() > 0.5  # most observations usable
     args = ((c1, c2), alphas, kps, s, P, SEG[1:])
@@ -343,10 +360,12 @@ def test_joint_fit_with_precomputed_observations_equals_measuring():
     given = fit_segments_jointly(*args, observations=obs)
     np.testing.assert_allclose(given["weights"], measured["weights"], atol=1e-5)
     # The observations agree to float32 rounding (~1e-5 px, measured); the float32 LM's
-    # result moves by ~2e-4 relative under such perturbations (measured 2.2e-4).
+    # result moves by ~2e-4 relative under such perturbations (measured 2.2e-4 on the
+    # 160x120 views, 7e-6 and 3e-4 deg on these).
     np.testing.assert_allclose(given["kappa"], measured["kappa"], rtol=1e-3)
     np.testing.assert_allclose(given["angles_deg"], measured["angles_deg"], atol=0.02)
-    # Sanity only: a 5 px polyline at ~1.7 px/mm is a coarse silhouette (measured 5.8 %).
+    # Sanity only: a 20 px polyline at ~7 px/mm is a coarse silhouette (measured 0.5 %;
+    # 5.8 % on the 160x120 views).
     np.testing.assert_allclose(given["kappa"], np.linalg.norm(CURV, axis=1), rtol=0.1)
 
 
