@@ -20,6 +20,7 @@
 # %%
 import os
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
@@ -38,7 +39,10 @@ qs = jnp.array(
         [-0.12, -0.06, -0.01, 0.0, 3.0, -1.5],
     ]
 )
-fk = jax.jit(jax.vmap(robot.forward))(qs)  # one compile; leading axis B = 4
+# The model is a pytree (an equinox Module): pass it to the compiled function as an argument
+# rather than closing over it, so one compiled program serves every robot of the same
+# structure (other tube lengths, stiffnesses, precurvatures: no recompile)
+fk = eqx.filter_jit(lambda m, q: jax.vmap(m.forward)(q))(robot, qs)  # leading axis B = 4
 centrelines = fk.centreline.p  # (B, N, 3), robot frame, metres
 print("converged:", np.asarray(fk.ok), "tips (mm):\n", np.round(1e3 * centrelines[:, -1], 2))
 

@@ -85,7 +85,8 @@ LONGEST_FIRST = (
     "tests/segmentation/test_energy.py",  # (48)
     "tests/scale/test_ray_equality.py",  # (48)
     "tests/segmentation/test_refine_multicam.py",  # (45)
-    "tests/cli/test_cli_bench_wheel.py",  # (38)
+    # (38) after test_examples: its bench loads the example's CTR program
+    "tests/cli/test_cli_bench_wheel.py",
     "tests/segmentation/test_uncertainty.py",  # (23)
     "tests/segmentation/test_segmentation_api.py",  # (65 before; loads test_refine's programs)
 )

@@ -1409,11 +1409,15 @@ def refine_sequence(
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     f = bases.p.shape[0]
     dtype = bases.p.dtype
-    cold_first = init is None
+    warm_config = config.warm() if warm_config is None else warm_config
+    # A cold first frame differs from a warm one only in its schedule (and a zero start):
+    # when config is its own warm schedule (one pyramid level, e.g. `jaxcr segment --levels
+    # 1 --warm-start`), the first frame is one more step of the warm scan, so a sequence's
+    # chunks (the first cold, the others warm-started) run one compiled program, not two
+    cold_first = init is None and warm_config != config
     init = jnp.zeros(config.coeff_shape, dtype) if init is None else init
     valid = jnp.ones(f, bool) if valid is None else jnp.asarray(valid, bool)
     cam0 = _cam_init(init_cam, (), len(cameras), dtype)
-    warm_config = config.warm() if warm_config is None else warm_config
     n_flat = config.coeff_shape[0] * config.coeff_shape[1] + (
         6 * _cam_rows(config, len(cameras)) if config.camera_correction else 0
     )

@@ -60,10 +60,12 @@ def main() -> None:
     # compiled program as the 2-device run's first block, so only device 1's copy compiles
     # anew (the padding path is covered by fk's 5 rows above). "The same program" needs the
     # same arguments as map_frames gives device 0's copy: every array committed to device 0
-    # (jit compiles an uncommitted argument separately from a committed one: measured, three
-    # refinement compiles instead of two), including the zero starts refine_batch would make
+    # (jit compiles an uncommitted argument separately from a committed one), including the
+    # step budgets refine_batch makes itself (_steps_apart), hence the commit in ``jit_call``
+    # (refine_batch's hook for calling its compiled function) rather than on the inputs:
+    # measured, three refinement compiles with the budgets uncommitted, two with this
     cam = Camera.look_at([0.0, -0.2, 0.03], [0.0, 0.0, 0.03], [0.0, 0.0, 1.0], 90.0, (48, 36))
-    fk = jax.vmap(robot.forward)(jnp.asarray(q[:4], jnp.float32))
+    fk = jax.jit(jax.vmap(robot.forward))(jnp.asarray(q[:4], jnp.float32))
     imgs = jnp.asarray(rng.random((4, 36, 48, 3)), jnp.float32)
     bgs = jnp.asarray(rng.random((4, 36, 48)) > 0.7)
     cfg = RefineConfig(levels=(0,), steps=(3,), outer=(1,), tau=(0.8,), n_coeffs=2,
@@ -76,12 +78,9 @@ def main() -> None:
 
     def part(a, b):
         cl = jax.tree.map(lambda x: x[a:b], fk.centreline)
-        n = b - a
         return refine_batch(
-            on0(cl), on0((cam,)), (on0(imgs[a:b]),), (on0(bgs[a:b]),), cfg,
-            inits=on0(jnp.zeros((n,) + cfg.coeff_shape, jnp.float32)),
-            valid=on0(jnp.ones(n, bool)),
-            init_cams=on0(jnp.zeros((n, 1, 6), jnp.float32)), devices=1,
+            cl, (cam,), (imgs[a:b],), (bgs[a:b],), cfg, devices=1,
+            jit_call=lambda fn, *args: fn(*on0(args)),
         )  # fmt: skip
 
     r1 = jax.tree.map(lambda x, y: jnp.concatenate([x, y]), part(0, 2), part(2, 4))
