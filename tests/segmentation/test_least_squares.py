@@ -17,7 +17,6 @@ from jaxcr.segmentation.energy import (
     Weights,
     chan_vese_energy,
     chan_vese_soft,
-    prepare_region_data,
 )
 from jaxcr.segmentation.least_squares import (
     band_normal_terms,
@@ -28,9 +27,11 @@ from jaxcr.segmentation.least_squares import (
 from jaxcr.segmentation.metrics import iou
 from jaxcr.segmentation.refine import refine_frame_jit
 from jaxcr.segmentation.shape import perturbed_centreline
-from jaxcr.segmentation.silhouette import band_margin, project_tube, scale_tube, select_band
+from jaxcr.segmentation.silhouette import band_margin, project_tube, scale_tube
 from tests.helpers import refine_scene
-from tests.helpers.jitted import integrate_centreline  # compiled: input construction only
+
+# compiled: input construction only (shared with test_energy's x64 scene through the cache)
+from tests.helpers.jitted import integrate_centreline, prepare_region_data, select_band
 from tests.helpers.tube_render import tube_frames
 
 W, H = 96, 72
