@@ -26,7 +26,7 @@ from tests.helpers.jitted import integrate_centreline  # compiled: input constru
 
 # The rasterisers and band selection compiled (one program per image and band size; the
 # dense one and select_band shared with other modules through the run's compilation cache):
-# run op by op, each primitive was its own XLA compilation per shape (~450 programs in this
+# run op by op, each primitive was its own XLA compilation per shape (~270 more programs in this
 # module). refine_frame only runs them jitted; test_vmap_equals_loop keeps the eager
 # rasteriser (the loop) against the jitted vmap.
 from tests.helpers.jitted import rasterise_dense as _rasterise_dense
