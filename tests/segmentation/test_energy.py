@@ -7,22 +7,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcr.camera import Camera
-from jaxcr.segmentation.energy import (
-    Weights,
-    chan_vese_energy,
-    downsample,
-    prepare_region_data,
-    region_terms,
-)
+from jaxcr.segmentation.energy import Weights, chan_vese_energy, downsample, region_terms
 from jaxcr.segmentation.shape import perturbed_centreline
-from jaxcr.segmentation.silhouette import (
+from jaxcr.segmentation.silhouette import project_tube, scale_tube
+
+# compiled (one program each per shape, shared with the other segmentation modules through
+# the run's compilation cache), not op by op: the inputs of the terms under test
+from tests.helpers.jitted import (
     band_margin,
-    project_tube,
+    integrate_centreline,
+    prepare_region_data,
     rasterise_dense,
-    scale_tube,
     select_band,
 )
-from tests.helpers.jitted import integrate_centreline  # compiled: input construction only
 
 W, H = 96, 72
 

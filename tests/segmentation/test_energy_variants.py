@@ -7,15 +7,18 @@ import pytest
 
 from jaxcr.camera import Camera
 from jaxcr.errors import InputError
-from jaxcr.segmentation.energy import (
-    Weights,
-    chan_vese_energy,
-    prepare_region_data,
-    residual_variance,
-)
+from jaxcr.segmentation.energy import Weights, chan_vese_energy, residual_variance
 from jaxcr.segmentation.refine import RefineConfig
-from jaxcr.segmentation.silhouette import project_tube, rasterise_dense, select_band
-from tests.helpers.jitted import integrate_centreline  # compiled: input construction only
+from jaxcr.segmentation.silhouette import project_tube
+
+# compiled (one program each per shape, shared with test_energy through the run's compilation
+# cache), not op by op: the inputs of the terms under test
+from tests.helpers.jitted import (
+    integrate_centreline,
+    prepare_region_data,
+    rasterise_dense,
+    select_band,
+)
 
 W, H = 96, 72
 
@@ -100,7 +103,7 @@ def test_robust_envelope_gradient_is_per_pixel_welsch_cost():
     import jax
 
     from jaxcr.segmentation.energy import region_terms
-    from jaxcr.segmentation.silhouette import band_margin
+    from tests.helpers.jitted import band_margin
 
     cl, cam = _scene()
     img, bg = _image(13)

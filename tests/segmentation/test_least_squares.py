@@ -17,7 +17,6 @@ from jaxcr.segmentation.energy import (
     Weights,
     chan_vese_energy,
     chan_vese_soft,
-    prepare_region_data,
 )
 from jaxcr.segmentation.least_squares import (
     band_normal_terms,
@@ -28,9 +27,11 @@ from jaxcr.segmentation.least_squares import (
 from jaxcr.segmentation.metrics import iou
 from jaxcr.segmentation.refine import refine_frame_jit
 from jaxcr.segmentation.shape import perturbed_centreline
-from jaxcr.segmentation.silhouette import band_margin, project_tube, scale_tube, select_band
+from jaxcr.segmentation.silhouette import band_margin, project_tube, scale_tube
 from tests.helpers import refine_scene
-from tests.helpers.jitted import integrate_centreline  # compiled: input construction only
+
+# compiled: input construction only (shared with test_energy's x64 scene through the cache)
+from tests.helpers.jitted import integrate_centreline, prepare_region_data, select_band
 from tests.helpers.tube_render import tube_frames
 
 W, H = 96, 72
@@ -102,17 +103,18 @@ def _fast_normal_terms(scene, c, e):
     return m, band_normal_terms(m, dfield, slot, fj.reshape(6, -1, 6), band, e, TAU)
 
 
-def _half_sq(scene, c, e):
-    return 0.5 * jnp.sum(_resid(scene, c, e) ** 2)
+def _margin_and_resid(scene, c, e):
+    return _margin(scene, c), _resid(scene, c, e)
 
 
 # compiled once for both curvatures (the scene is an argument; its non-array leaves static)
 _margin_j = eqx.filter_jit(_margin)
 _resid_j = eqx.filter_jit(_resid)
 _grad_image_energy = eqx.filter_jit(jax.grad(_image_energy, argnums=1))
-_jac_resid = eqx.filter_jit(jax.jacfwd(_resid, argnums=1))
-_jac_margin = eqx.filter_jit(jax.jacfwd(_margin, argnums=1))
-_grad_half_sq = eqx.filter_jit(jax.grad(_half_sq, argnums=1))
+# the margin and residual Jacobians in one forward-mode pass (the residuals are a per-pixel
+# function of the margins: one program instead of two that each pushed the six tangents
+# through the rasteriser, ~3.5 s of CPU each)
+_jac_margin_and_resid = eqx.filter_jit(jax.jacfwd(_margin_and_resid, argnums=1))
 _grad_bfgs = eqx.filter_jit(jax.grad(_bfgs_energy, argnums=1))
 _fast_normal_terms_j = eqx.filter_jit(_fast_normal_terms)
 
@@ -130,7 +132,8 @@ def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
         e = _grad_image_energy(scene, soft0)
         assert float(jnp.max(jnp.abs(e))) > 0 and bool(jnp.any(e == 0))  # padding: e = 0
 
-        jr = np.asarray(_jac_resid(scene, c0, e)).reshape(-1, 6)
+        dm, jr = _jac_margin_and_resid(scene, c0, e)
+        jr = np.asarray(jr).reshape(-1, 6)
         assert np.all(np.isfinite(jr))
         # 1) residual Jacobian vs central differences. Error of a central difference:
         #    eps^2/6 |r'''| (truncation) + 2 * 1e-16 |r| / eps (x64 rounding). Margins move
@@ -151,11 +154,13 @@ def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
         # 2) grad 1/2 |r|^2 (means fixed) == grad of the BFGS energy (means re-estimated):
         #    the envelope theorem makes them equal in exact arithmetic; float64 sums of
         #    ~1e3 terms: rtol 1e-9
-        g_ls = np.asarray(_grad_half_sq(scene, c0, e)).ravel()
+        #    (grad 1/2 |r|^2 = J_r^T r by definition, with J_r checked against finite
+        #    differences above: float64 products, no reverse-mode program of its own)
+        g_ls = jr.T @ r0
         g_cv = np.asarray(_grad_bfgs(scene, c0)).ravel()
         np.testing.assert_allclose(g_ls, g_cv, rtol=1e-9, atol=1e-12 * np.abs(g_cv).max())
         # 3) normal_terms (closed form, no square root) == (J_r^T r, J_r^T J_r)
-        dm = _jac_margin(scene, c0).reshape(*m0.shape, 6)
+        dm = dm.reshape(*m0.shape, 6)
         g, G = normal_terms(m0, dm, e, TAU)
         np.testing.assert_allclose(np.asarray(g), g_cv, rtol=1e-9, atol=1e-12 * np.abs(g_cv).max())
         np.testing.assert_allclose(

@@ -28,8 +28,8 @@ from jaxcr.segmentation.refine import (
     _rig_corrections_to_params,
     refine_frame,
 )
-from jaxcr.segmentation.shape import perturbed_centreline
 from jaxcr.segmentation.silhouette import project_tube
+from tests.helpers.jitted import perturbed_centreline  # compiled: input construction only
 from tests.helpers.tube_render import arc_base, render_tube
 
 W, H = 160, 120
@@ -86,6 +86,12 @@ def _z_ref(base, cams):
     return tuple(jnp.mean(base.p @ c.R[2] + c.t[2]) for c in cams)
 
 
+# The library's pose helpers compiled (one program per signature) instead of run op by op:
+# eager, each primitive of the SO(3) maps was its own XLA compilation (~130 programs, ~5 s of
+# CPU in this module). jit == eager needs no check here: refine_frame only ever runs them jitted.
+_rig_cameras_j = eqx.filter_jit(_rig_cameras)
+
+
 @pytest.fixture(scope="module")
 def scene():
     base = arc_base(2.5e-3)
@@ -131,18 +137,18 @@ def test_rig_keeps_relative_poses_closed_form(scene):
         for i in range(2)
     ]
     T0, T1 = _T(cams[0]), _T(cams[1])
-    rigid = _rig_cameras(cams, p, z, residual=False)
+    rigid = _rig_cameras_j(cams, p, z, residual=False)
     ref0 = _E(phys[0]) @ T0
     ref1 = T1 @ np.linalg.inv(T0) @ _E(phys[0]) @ T0
     np.testing.assert_allclose(_T(rigid[0]), ref0, atol=2e-6)
     np.testing.assert_allclose(_T(rigid[1]), ref1, atol=2e-6)
     rel = _T(rigid[1]) @ np.linalg.inv(_T(rigid[0]))
     np.testing.assert_allclose(rel, T1 @ np.linalg.inv(T0), atol=2e-6)
-    with_res = _rig_cameras(cams, p, z, residual=True)
+    with_res = _rig_cameras_j(cams, p, z, residual=True)
     np.testing.assert_allclose(_T(with_res[0]), ref0, atol=2e-6)
     np.testing.assert_allclose(_T(with_res[1]), _E(phys[1]) @ ref1, atol=2e-6)
     # exactly the calibrated cameras at zero correction
-    zero = _rig_cameras(cams, jnp.zeros((2, 6)), z, residual=True)
+    zero = _rig_cameras_j(cams, jnp.zeros((2, 6)), z, residual=True)
     for c, c0 in zip(zero, cams, strict=True):
         assert np.array_equal(np.asarray(c.T_cam_robot), np.asarray(c0.T_cam_robot))
 
@@ -232,12 +238,13 @@ def test_gradient_finite_at_zero_correction(scene):
         return sum(jnp.sum(project_tube(c, cl).ax) for c in out)
 
     p0 = jnp.zeros((2, 6))
-    g = np.asarray(jax.grad(f)(p0))
+    f_j = jax.jit(f)  # one program each for f and its gradient, not one per primitive
+    g = np.asarray(jax.jit(jax.grad(f))(p0))
     assert np.all(np.isfinite(g)) and np.any(g != 0)
     h = 1e-2
     for i, j in ((0, 1), (0, 3), (1, 2), (1, 5)):
         e = jnp.zeros((2, 6)).at[i, j].set(h)
-        fd = (float(f(p0 + e)) - float(f(p0 - e))) / (2 * h)
+        fd = (float(f_j(p0 + e)) - float(f_j(p0 - e))) / (2 * h)
         assert abs(fd - g[i, j]) < 0.02 * abs(g).max(), (i, j, fd, g[i, j])
 
     def corr(p):
@@ -247,7 +254,7 @@ def test_gradient_finite_at_zero_correction(scene):
             for c, c0 in zip(out, cams, strict=True)
         )
 
-    assert np.all(np.isfinite(np.asarray(jax.grad(corr)(p0))))
+    assert np.all(np.isfinite(np.asarray(jax.jit(jax.grad(corr))(p0))))
 
 
 def test_bad_mode_raises_input_error():

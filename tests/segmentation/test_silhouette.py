@@ -2,6 +2,7 @@
 rasterisation vs dense, margins and gradients."""
 
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,11 +20,19 @@ from jaxcr.segmentation.silhouette import (
     margin_dense,
     project_tube,
     rasterise,
-    rasterise_dense,
     scale_tube,
-    select_band,
 )
 from tests.helpers.jitted import integrate_centreline  # compiled: input construction only
+
+# The rasterisers and band selection compiled (one program per image and band size; the
+# dense one and select_band shared with other modules through the run's compilation cache):
+# run op by op, each primitive was its own XLA compilation per shape (~270 more programs in this
+# module). refine_frame only runs them jitted; test_vmap_equals_loop keeps the eager
+# rasteriser (the loop) against the jitted vmap.
+from tests.helpers.jitted import rasterise_dense as _rasterise_dense
+from tests.helpers.jitted import select_band as _select_band
+
+_rasterise = eqx.filter_jit(rasterise)
 
 
 def _scene(w=640, h=480, rho=1.5e-3):
@@ -48,8 +57,8 @@ def scene640():
 def test_capsules_match_rasterised_surface(scene640):
     """Union of 2-D capsules vs eq. 7 surface points projected and filled per segment."""
     cl, cam = scene640
-    pts = surface_points(cl, 24)  # (N, 24, 3)
-    uv, _ = project_points(cam, pts.reshape(-1, 3))
+    pts = jax.jit(surface_points, static_argnums=1)(cl, 24)  # (N, 24, 3)
+    uv, _ = eqx.filter_jit(project_points)(cam, pts.reshape(-1, 3))
     uv = np.asarray(uv).reshape(pts.shape[0], 24, 2)
     ref = np.zeros((cam.height, cam.width), np.uint8)
     for i in range(pts.shape[0] - 1):
@@ -58,15 +67,15 @@ def test_capsules_match_rasterised_surface(scene640):
         # pixels whose centre lies inside the hull (cv2.fillPoly would also take edge pixels)
         rr, cc = polygon(hull[:, 1], hull[:, 0], ref.shape)
         ref[rr, cc] = 1
-    mask = np.asarray(jax.jit(lambda t: rasterise_dense(t, 480, 640))(project_tube(cam, cl)))
+    mask = np.asarray(_rasterise_dense(project_tube(cam, cl), 480, 640))
     assert _iou(mask, ref.astype(bool)) > 0.97
 
 
 def test_band_rasterise_equals_dense(scene640):
     cl, cam = scene640
     tube = project_tube(cam, cl)
-    dense = np.asarray(rasterise_dense(tube, 480, 640))
-    band, exact = rasterise(tube, 480, 640, k_tiles=600)
+    dense = np.asarray(_rasterise_dense(tube, 480, 640))
+    band, exact = _rasterise(tube, 480, 640, k_tiles=600)
     assert bool(exact)
     assert (np.asarray(band) != dense).sum() == 0
 
@@ -155,8 +164,8 @@ def test_coarsen_tube_keeps_the_silhouette(scene640):
     np.testing.assert_allclose(c.ax[0], tube.ax[0])
     np.testing.assert_allclose(c.bx[-1], tube.bx[-1])
     np.testing.assert_allclose(c.rb[-1], tube.rb[-1])
-    a = np.asarray(rasterise_dense(tube, 480, 640))
-    b = np.asarray(rasterise_dense(c, 480, 640))
+    a = np.asarray(_rasterise_dense(tube, 480, 640))
+    b = np.asarray(_rasterise_dense(c, 480, 640))
     # sag: distance of every original joint from its merged capsule's axis
     px, py = np.asarray(tube.ax), np.asarray(tube.ay)
     idx = np.arange(px.size) // 4
@@ -190,11 +199,11 @@ def test_band_flags_incomplete_candidates(scene640):
     cl, cam = scene640
     tube = scale_tube(project_tube(cam, cl), 2)  # 160x120 grid, segments ~2-3 px long
     grid = TileGrid(120, 160, 8)
-    dense = np.asarray(rasterise_dense(tube, 120, 160))
-    few = select_band(tube, grid, grid.n_tiles, 1)
-    many = select_band(tube, grid, grid.n_tiles, 47)
-    m_few, ex_few = rasterise(tube, 120, 160, tile=8, k_tiles=grid.n_tiles, k_seg=1)
-    m_many, ex_many = rasterise(tube, 120, 160, tile=8, k_tiles=grid.n_tiles, k_seg=47)
+    dense = np.asarray(_rasterise_dense(tube, 120, 160))
+    few = _select_band(tube, grid, grid.n_tiles, 1)
+    many = _select_band(tube, grid, grid.n_tiles, 47)
+    m_few, ex_few = _rasterise(tube, 120, 160, tile=8, k_tiles=grid.n_tiles, k_seg=1)
+    m_many, ex_many = _rasterise(tube, 120, 160, tile=8, k_tiles=grid.n_tiles, k_seg=47)
     assert not bool(few.exact) and not bool(ex_few)
     assert (np.asarray(m_few) != dense).sum() > 0
     assert bool(many.exact) and bool(ex_many)
@@ -228,7 +237,7 @@ def test_band_margin_value_and_gradient_equal_max_over_candidates(scene640):
     cl, cam = scene640
     t0 = level_tube(project_tube(cam, cl), 1, 2)  # 320x240, merged capsules
     grid = TileGrid(240, 320, 8)
-    band = select_band(t0, grid, 40, 3)
+    band = _select_band(t0, grid, 40, 3)
     pts = (jnp.append(t0.ax, t0.bx[-1]), jnp.append(t0.ay, t0.by[-1]), jnp.append(t0.ra, t0.rb[-1]))
 
     def loss(fn, pts):

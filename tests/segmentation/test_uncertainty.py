@@ -12,6 +12,7 @@ experiments/segmentation/uncertainty_calibration.py.
 
 import cv2
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -229,7 +230,10 @@ def test_laplace_covariance_singular_and_non_finite():
     # rank-1 information: one observable direction, one unobservable
     v = np.array([3.0, 4.0]) / 5.0
     info = jnp.asarray(np.outer(v, v) * 50.0, jnp.float32)
-    lam, dirs, cov, null = laplace_covariance(info)
+    # compiled once for both calls (same shape): op by op its eigendecomposition and guards
+    # were ~45 XLA compilations; shape_uncertainty only ever runs it jitted
+    laplace = jax.jit(laplace_covariance)
+    lam, dirs, cov, null = laplace(info)
     assert int(np.sum(np.asarray(null))) == 1
     # the finite part is a generalised inverse (H G H = H), so any quantity the information
     # sees (a in range(H)) has the variance of numpy's Moore-Penrose inverse (float64)
@@ -239,5 +243,5 @@ def test_laplace_covariance_singular_and_non_finite():
     assert v @ G @ v == pytest.approx(v @ np.linalg.pinv(H) @ v, rel=1e-4)
     nd = np.asarray(dirs)[:, np.asarray(null)][:, 0]
     assert abs(nd @ v) < 1e-3  # the null direction is orthogonal to the observed one
-    lam, dirs, cov, null = laplace_covariance(jnp.full((2, 2), jnp.nan))
+    lam, dirs, cov, null = laplace(jnp.full((2, 2), jnp.nan))
     assert np.all(np.asarray(null)) and np.all(np.asarray(cov) == 0)
