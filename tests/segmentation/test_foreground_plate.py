@@ -212,6 +212,18 @@ def test_gap_bridged_only_where_the_tube_matches_the_background():
     assert len(tr2.gaps) == 1 and abs(tr2.tip[0] - 140.0) < 3.0 and abs(tr2.tip[1] - 60.0) < 1.0
 
 
+def _along_across(h, w, ss, angle_deg, end):
+    """Unit direction ``d`` of a tube at ``angle_deg``, its normal ``n``, and, on an ``ss``-times supersampled
+    ``h`` x ``w`` pixel grid (pixel centres), each sample's coordinate along ``d`` from
+    ``end`` and across it (for drawing a tube that ends at ``end``)."""
+    th = np.radians(angle_deg)
+    d = np.array([np.cos(th), np.sin(th)])
+    n = np.array([-d[1], d[0]])
+    yy, xx = (np.mgrid[0 : h * ss, 0 : w * ss] + 0.5) / ss - 0.5
+    rel = np.stack([xx - end[0], yy - end[1]], -1)
+    return d, n, rel @ d, rel @ n
+
+
 @pytest.mark.parametrize("angle_deg, cap", [(0.0, 0.0), (30.0, 2.0), (-60.0, 3.5)])
 def test_refine_tip_on_drawn_ends(angle_deg, cap):
     """A tube of width 8 px drawn (8x8 supersampled) with its end point at a known sub-pixel
@@ -224,13 +236,8 @@ def test_refine_tip_on_drawn_ends(angle_deg, cap):
     (measured 0.83-0.88 px for a 2 px cap, 1.97 px for 3.5 px; bound: at least 35 % of the
     cap removed, overshoot < 0.3 px)."""
     h, w, ss = 80, 100, 8
-    th = np.radians(angle_deg)
-    d = np.array([np.cos(th), np.sin(th)])
-    n = np.array([-d[1], d[0]])
     end = np.array([55.3, 41.7])
-    yy, xx = (np.mgrid[0 : h * ss, 0 : w * ss] + 0.5) / ss - 0.5
-    rel = np.stack([xx - end[0], yy - end[1]], -1)
-    s_, t_ = rel @ d, rel @ n
+    d, n, s_, t_ = _along_across(h, w, ss, angle_deg, end)
     body = (s_ <= 0) & (s_ >= -60) & (np.abs(t_) <= 4.0)
     capm = (s_ > 0) & ((s_ / max(cap, 1e-9)) ** 2 + (t_ / 4.0) ** 2 <= 1.0) if cap else False
     shape = (body | capm).reshape(h, ss, w, ss).mean((1, 3))
@@ -280,13 +287,8 @@ def test_refine_tip_where_the_tube_ends_on_a_weaker_background(angle_deg):
     (0.3: under the background plus ``low``, 0.4) is background texture, not more tube:
     the tip stays at the drawn end."""
     h, w, ss = 80, 100, 8
-    th = np.radians(angle_deg)
-    d = np.array([np.cos(th), np.sin(th)])
-    n = np.array([-d[1], d[0]])
     end = np.array([60.3, 38.6])
-    yy, xx = (np.mgrid[0 : h * ss, 0 : w * ss] + 0.5) / ss - 0.5
-    rel = np.stack([xx - end[0], yy - end[1]], -1)
-    s_, t_ = rel @ d, rel @ n
+    d, n, s_, t_ = _along_across(h, w, ss, angle_deg, end)
     across = np.abs(t_) <= 4.0
     strong = across & (s_ >= -60) & (s_ < -12)
     weak = across & (s_ >= -12) & (s_ <= 0)
@@ -314,13 +316,8 @@ def test_trace_does_not_walk_back_round_the_end_face():
     by at most a few px, < 3 px measured) and the path never falls back by more than 1 px
     (a pixel's re-centring) from its farthest point along the tube."""
     h, w, width = 80, 140, 15.0
-    th = np.radians(20.0)
-    d = np.array([np.cos(th), np.sin(th)])
-    n = np.array([-d[1], d[0]])
     end = np.array([100.3, 40.4])
-    yy, xx = np.mgrid[0:h, 0:w]
-    rel = np.stack([xx - end[0], yy - end[1]], -1)
-    s_, t_ = rel @ d, rel @ n
+    d, _, s_, t_ = _along_across(h, w, 1, 20.0, end)
     mask = ((s_ <= 0) & (s_ >= -200) & (np.abs(t_) <= width / 2)) | (np.hypot(s_, t_) <= width / 2)
     tr = trace_tube(mask, end - 90 * d, d, PlateForegroundConfig(start_spread_deg=0.0))
     apex = end + width / 2 * d
