@@ -33,7 +33,6 @@ import argparse
 import copy
 import json
 import os
-import subprocess
 from pathlib import Path
 
 os.environ.setdefault(
@@ -42,6 +41,7 @@ os.environ.setdefault(
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from model_object_far_edge_factorial import _commit  # noqa: E402
 from model_object_outside_both import recorded, truth  # noqa: E402
 
 from jaxcr.registration.clouds import Cloud, pad_cloud  # noqa: E402
@@ -190,9 +190,7 @@ def analyse(task: str, seed: int, res, K) -> list[dict]:
 
 
 def report(recs, out: Path, cmd: str) -> None:
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-    ).stdout.strip()
+    commit = _commit()
     md = [
         "# The first capture registered to the fused ring model (issue 17 item 10; rejected)",
         "",
