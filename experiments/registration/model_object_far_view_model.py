@@ -29,7 +29,6 @@ Writes experiments/results/registration/model_object_far_view_model.md (+ .json)
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import os
@@ -42,7 +41,7 @@ os.environ.setdefault(
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from model_object_far_edge_factorial import _commit  # noqa: E402
-from model_object_outside_both import recorded, truth  # noqa: E402
+from model_object_outside_both import case_args, read_records, recorded, truth  # noqa: E402
 
 from jaxcr.registration.clouds import Cloud, pad_cloud  # noqa: E402
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, no_keypoints  # noqa: E402
@@ -236,13 +235,7 @@ def report(recs, out: Path, cmd: str) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--record", default="/tmp/model_object_outside_both")
-    ap.add_argument("--cases", nargs="+", default=[f"1:{s}" for s in range(10)])
-    ap.add_argument("--jsonl", required=True)
-    ap.add_argument("--report-only", action="store_true")
-    ap.add_argument("--out", default=str(OUT))
-    a = ap.parse_args()
+    a = case_args(OUT)
     jl = Path(a.jsonl)
     if not a.report_only:
         for case in a.cases:
@@ -253,7 +246,7 @@ def main() -> None:
                 fh.write("".join(json.dumps(r) + "\n" for r in rows))
             print(f"{case}: {len(rows)} first captures", flush=True)
         return
-    recs = [json.loads(x) for x in jl.read_text().splitlines() if x.strip()]
+    recs = read_records(jl)
     cmd = (
         "python experiments/registration/model_object_far_view_model.py --record REC --cases "
         "1:0 ... 1:9 --jsonl J (two processes), then --jsonl J --report-only"

@@ -218,14 +218,26 @@ def report(recs: list[dict], out: Path, cmd: str) -> None:
     print("\n".join(md))
 
 
-def main() -> None:
+def case_args(out: Path) -> argparse.Namespace:
+    """The command line of this script and of the scripts that analyse its recorded runs:
+    ``--record DIR`` (the pickled runs), ``--cases TASK:SEED ...``, ``--jsonl F`` (records,
+    appended), ``--report-only``, ``--out DIR`` (default ``out``)."""
     ap = argparse.ArgumentParser()
     ap.add_argument("--record", default="/tmp/model_object_outside_both")
     ap.add_argument("--cases", nargs="+", default=[f"1:{s}" for s in range(10)])
     ap.add_argument("--jsonl", required=True, help="records, appended (JSON lines)")
     ap.add_argument("--report-only", action="store_true")
-    ap.add_argument("--out", default=str(OUT))
-    a = ap.parse_args()
+    ap.add_argument("--out", default=str(out))
+    return ap.parse_args()
+
+
+def read_records(jsonl: Path) -> list[dict]:
+    """The records of a ``--jsonl`` file (one JSON object per non-empty line)."""
+    return [json.loads(x) for x in jsonl.read_text().splitlines() if x.strip()]
+
+
+def main() -> None:
+    a = case_args(OUT)
     jl = Path(a.jsonl)
     if not a.report_only:
         record = Path(a.record)
@@ -240,7 +252,7 @@ def main() -> None:
                     fh.write(json.dumps(r) + "\n")
             print(f"{case}: {len(rows) - 1} far links", flush=True)
         return
-    recs = [json.loads(x) for x in jl.read_text().splitlines() if x.strip()]
+    recs = read_records(jl)
     cmd = (
         "python experiments/registration/model_object_outside_both.py --record REC --cases "
         "1:0 ... 1:9 2:0 ... 2:9 --jsonl J (several processes), then --jsonl J --report-only"
