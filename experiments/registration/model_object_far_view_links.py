@@ -86,9 +86,7 @@ def far_links(task: str, seed: int, res, K, n_links: int) -> list[dict]:
         return [others]
     rows = [others]
     for k, view in zip(keys, v, strict=True):
-        if not depth[k] > cfg.far_source_ratio * ref or pos.get(k) == m - 1:
-            continue
-        if view["T"] is None:
+        if k not in far or view["T"] is None:
             continue
         cap = _capture(r.runs, k)
         axis = cap.T_nominal[:3, 2]
