@@ -88,7 +88,6 @@ LONGEST_FIRST = (
     # (38) after test_examples: its bench loads the example's CTR program
     "tests/cli/test_cli_bench_wheel.py",
     "tests/segmentation/test_uncertainty.py",  # (23)
-    "tests/segmentation/test_segmentation_api.py",  # (65 before; loads test_refine's programs)
 )
 
 

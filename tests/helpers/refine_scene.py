@@ -6,8 +6,8 @@ the run-wide persistent compilation cache (tests/conftest.py) serves a program t
 process and module only when it is the very same program: same image size, config, camera
 count, batch size F and the same jitted function. tests/segmentation/test_refine.py compiles
 :func:`jaxcr.segmentation.refine.refine_frame_jit` and ``refine_batch(..., mode="map")`` on
-F = 2 frames with this setup; tests/segmentation/test_segmentation_api.py calls the public
-front doors on the same shapes, so it loads both programs instead of compiling two more.
+F = 2 frames with this setup, and calls the public front doors (jcr.refine, jcr.refine_batch)
+on the same shapes in the same module (no reload of both programs from the run's cache).
 tests/segmentation/test_refine_convergence.py runs the per-frame program and test_refine's
 vmap program (VMAP_BATCH frames) with a config that differs from CFG only in ``steps``, which
 the compiled entry points take as a traced argument: the same programs.

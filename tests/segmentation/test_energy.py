@@ -9,10 +9,11 @@ import numpy as np
 from jaxcr.camera import Camera
 from jaxcr.segmentation.energy import Weights, chan_vese_energy, downsample, region_terms
 from jaxcr.segmentation.shape import perturbed_centreline
-from jaxcr.segmentation.silhouette import project_tube, scale_tube
+from jaxcr.segmentation.silhouette import project_tube
 
 # compiled (one program each per shape, shared with the other segmentation modules through
 # the run's compilation cache), not op by op: the inputs of the terms under test
+from tests.helpers.energy_x64 import energy_value_and_grad, smooth_scene
 from tests.helpers.jitted import (
     band_margin,
     integrate_centreline,
@@ -109,42 +110,34 @@ def test_pixel_units_consistent_across_levels():
     np.testing.assert_allclose(np.asarray(d1.centre), np.asarray(d0.centre), atol=1e-5)
 
 
-def _assert_grad_matches_fd(J, eps=1e-5):
-    """jax.grad of J at a random (2, 3) point vs central differences (rtol 1e-4, x64), and
-    not trivially flat."""
+def _assert_grad_matches_fd(scene, reg_weight, local=False, robust=0.0, eps=1e-5):
+    """jax.grad of J(c) = energy_x64.band_energy(scene, c, ...) at a random (2, 3) point vs
+    central differences (rtol 1e-4, x64), and not trivially flat.
+
+    One compiled value-and-gradient program (tests/helpers/energy_x64.py, shared with
+    test_least_squares) gives both the gradient and the values of the differences; jit ==
+    eager is checked in test_jit_equals_eager_and_vmap_equals_loop."""
     c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
-    # jitted: one compilation each instead of op-by-op eager dispatch (eager tracing of the
-    # gradient alone took ~30 s); jit == eager is checked in test_jit_equals_eager_...
-    g = np.asarray(jax.jit(jax.grad(J))(c0))
-    Jj = jax.jit(J)
+    w = jnp.asarray(reg_weight, jnp.float64)
+
+    def J(c):
+        return energy_value_and_grad(scene, c, w, local, robust)
+
+    g = np.asarray(J(c0)[1])
     fd = np.zeros_like(g)
     for i in range(2):
         for j in range(3):
             e = jnp.zeros((2, 3)).at[i, j].set(eps)
-            fd[i, j] = (Jj(c0 + e) - Jj(c0 - e)) / (2 * eps)
+            fd[i, j] = (float(J(c0 + e)[0]) - float(J(c0 - e)[0])) / (2 * eps)
     np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-7)
     assert np.abs(g).max() > 1e-4
 
 
 def test_energy_gradient_vs_finite_differences():
     with jax.enable_x64(True):
-        cl, cam = _scene(jnp.float64)
-        cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64) if hasattr(x, "dtype") else x, cam)
-        rng = np.random.default_rng(4)
-        # a smooth image so that the energy is smooth at the scale of the FD step
-        img = cv2.GaussianBlur(rng.random((H, W, 3)), (0, 0), 3).astype(np.float64)
-        img[..., 0] += np.linspace(0, 0.5, W)[None]
-        bg = np.zeros((H, W), bool)
-        bg[:, :10] = True
-        d = prepare_region_data(jnp.asarray(img), jnp.asarray(bg), 1, 8)
-        tube0 = scale_tube(project_tube(cam, cl), 1)
-        band = select_band(tube0, d.grid, 30, 8)
-
-        def J(c):
-            t = scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
-            return chan_vese_energy(t, band, d, jnp.sum(c**2), Weights(), 1.5, 500.0)[0]
-
-        _assert_grad_matches_fd(J)
+        # the 8 / 3 1/m arc of _scene, a smooth image, 10 background columns; regulariser
+        # sum(c**2) with weight 1
+        _assert_grad_matches_fd(smooth_scene([8.0, 3.0, 0.0]), 1.0)
 
 
 def test_jit_equals_eager_and_vmap_equals_loop():
@@ -213,17 +206,6 @@ def test_robust_inside_term_matches_reference_and_limits():
 
 def test_robust_energy_gradient_vs_finite_differences():
     with jax.enable_x64(True):
-        cl, cam = _scene(jnp.float64)
-        cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64) if hasattr(x, "dtype") else x, cam)
-        rng = np.random.default_rng(4)
-        img = cv2.GaussianBlur(rng.random((H, W, 3)), (0, 0), 3).astype(np.float64)
-        img[..., 0] += np.linspace(0, 0.5, W)[None]
-        bg = np.zeros((H, W), bool)
-        d = prepare_region_data(jnp.asarray(img), jnp.asarray(bg), 1, 8)
-        band = select_band(scale_tube(project_tube(cam, cl), 1), d.grid, 30, 8)
-
-        def J(c):
-            t = scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
-            return chan_vese_energy(t, band, d, 0.0, Weights(), 1.5, 500.0, True, 1.0)[0]
-
-        _assert_grad_matches_fd(J)
+        # no background, local mu_out, Welsch scale 1, no regulariser
+        scene = smooth_scene([8.0, 3.0, 0.0], background_cols=0)
+        _assert_grad_matches_fd(scene, 0.0, local=True, robust=1.0)

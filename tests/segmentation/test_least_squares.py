@@ -5,17 +5,15 @@ on the suite's canonical refinement scene (one new compiled program)."""
 
 import dataclasses
 
-import cv2
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcr.camera import Camera, project_xy
+from jaxcr.camera import project_xy
 from jaxcr.segmentation.energy import (
     Weights,
-    chan_vese_energy,
     chan_vese_soft,
 )
 from jaxcr.segmentation.least_squares import (
@@ -26,48 +24,24 @@ from jaxcr.segmentation.least_squares import (
 )
 from jaxcr.segmentation.metrics import iou
 from jaxcr.segmentation.refine import refine_frame_jit
-from jaxcr.segmentation.shape import perturbed_centreline
-from jaxcr.segmentation.silhouette import band_margin, project_tube, scale_tube
-from tests.helpers import refine_scene
-
-# compiled: input construction only (shared with test_energy's x64 scene through the cache)
-from tests.helpers.jitted import integrate_centreline, prepare_region_data, select_band
+from jaxcr.segmentation.silhouette import band_margin
+from tests.helpers import energy_x64, refine_scene
 from tests.helpers.tube_render import tube_frames
 
-W, H = 96, 72
-TAU = 1.5
-AREA = 500.0
+TAU = energy_x64.TAU
 
 
 def _tiny(curvature: float):
     """A 12 cm tube (curvature ``curvature`` 1/m; 0 = straight) seen at level 1 of a smooth
-    96x72 image (smooth so the energy is smooth at the finite-difference step), x64: the
-    scene ``(centreline, camera, region data, band)``. The compiled functions below take it
-    as an argument instead of closing over it (closed-over arrays are constants of a
-    program), so both curvatures run the same eight compiled programs; each curvature
-    compiled all eight again before (~15 s of CPU)."""
-    n = 33
-    s = jnp.linspace(0.0, 0.12, n, dtype=jnp.float64)
-    u = jnp.tile(jnp.array([curvature, 0.5 * curvature, 0.0], jnp.float64), (n - 1, 1))
-    R0 = jnp.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]], jnp.float64)
-    cl = integrate_centreline(
-        s, u, jnp.full(n, 4e-3, jnp.float64), jnp.array([-0.05, 0.0, 0.0], jnp.float64), R0
-    )
-    cam = Camera.look_at([0, 0, -0.3], [0, 0, 0], [0, -1, 0], fx=120.0, size=(W, H))
-    cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64) if hasattr(x, "dtype") else x, cam)
-    rng = np.random.default_rng(4)
-    img = cv2.GaussianBlur(rng.random((H, W, 3)), (0, 0), 3).astype(np.float64)
-    img[..., 0] += np.linspace(0, 0.5, W)[None]
-    bg = np.zeros((H, W), bool)
-    bg[:, :10] = True  # background pixels: e_p = g_pen/A > 0 there, 0 on the padding
-    d = prepare_region_data(jnp.asarray(img), jnp.asarray(bg), 1, 8)
-    band = select_band(scale_tube(project_tube(cam, cl), 1), d.grid, 30, 8)
-    return cl, cam, d, band
+    96x72 image, x64 (tests/helpers/energy_x64.py, test_energy's scene): ``(centreline,
+    camera, region data, band)``. The compiled functions below take it as an argument
+    instead of closing over it (closed-over arrays are constants of a program), so both
+    curvatures run the same compiled programs."""
+    return energy_x64.smooth_scene([curvature, 0.5 * curvature, 0.0])
 
 
 def _tube(scene, c):
-    cl, cam, _, _ = scene
-    return scale_tube(project_tube(cam, perturbed_centreline(cl, c)), 1)
+    return energy_x64.level_tube(scene, c)
 
 
 def _margin(scene, c):
@@ -75,19 +49,9 @@ def _margin(scene, c):
     return band_margin(_tube(scene, c), d.grid, band)
 
 
-def _resid(scene, c, e):
-    return region_residuals(_margin(scene, c), e, TAU).ravel()
-
-
 def _image_energy(scene, soft):
     _, _, d, band = scene
-    return chan_vese_soft(soft, band, d, Weights(), AREA)[0]
-
-
-def _bfgs_energy(scene, c):
-    """What the BFGS solver minimises (regulariser left out)."""
-    _, _, d, band = scene
-    return chan_vese_energy(_tube(scene, c), band, d, 0.0, Weights(), TAU, AREA)[0]
+    return chan_vese_soft(soft, band, d, Weights(), energy_x64.AREA)[0]
 
 
 def _fast_normal_terms(scene, c, e):
@@ -104,18 +68,17 @@ def _fast_normal_terms(scene, c, e):
 
 
 def _margin_and_resid(scene, c, e):
-    return _margin(scene, c), _resid(scene, c, e)
+    m = _margin(scene, c)
+    mr = (m, region_residuals(m, e, TAU).ravel())
+    return mr, mr
 
 
-# compiled once for both curvatures (the scene is an argument; its non-array leaves static)
-_margin_j = eqx.filter_jit(_margin)
-_resid_j = eqx.filter_jit(_resid)
+# compiled once for both curvatures (the scene is an argument; its non-array leaves static).
+# The margins and residuals with their Jacobians in one forward-mode pass (the residuals are
+# a per-pixel function of the margins): the same program gives the values at c0 and those of
+# the central differences (the primal of the pass), instead of two more programs.
+_margin_resid_and_jac = eqx.filter_jit(jax.jacfwd(_margin_and_resid, argnums=1, has_aux=True))
 _grad_image_energy = eqx.filter_jit(jax.grad(_image_energy, argnums=1))
-# the margin and residual Jacobians in one forward-mode pass (the residuals are a per-pixel
-# function of the margins: one program instead of two that each pushed the six tangents
-# through the rasteriser, ~3.5 s of CPU each)
-_jac_margin_and_resid = eqx.filter_jit(jax.jacfwd(_margin_and_resid, argnums=1))
-_grad_bfgs = eqx.filter_jit(jax.grad(_bfgs_energy, argnums=1))
 _fast_normal_terms_j = eqx.filter_jit(_fast_normal_terms)
 
 
@@ -126,13 +89,16 @@ def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
         c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
         if curvature == 0.0:
             c0 = jnp.zeros((2, 3))  # the straight tube itself: the singular point to guard
-        m0 = _margin_j(scene, c0)
+        # the margins at c0 (they do not depend on the pixel weights: zero weights of the
+        # margins' shape give them, from the program below)
+        shape = jax.eval_shape(_margin, scene, c0)
+        _, (m0, _) = _margin_resid_and_jac(scene, c0, jnp.zeros(shape.shape, shape.dtype))
         soft0 = jax.nn.sigmoid(m0 / TAU)
         # the pixel weights at c0, held fixed (the region means of c0)
         e = _grad_image_energy(scene, soft0)
         assert float(jnp.max(jnp.abs(e))) > 0 and bool(jnp.any(e == 0))  # padding: e = 0
 
-        dm, jr = _jac_margin_and_resid(scene, c0, e)
+        (dm, jr), (_, r0) = _margin_resid_and_jac(scene, c0, e)
         jr = np.asarray(jr).reshape(-1, 6)
         assert np.all(np.isfinite(jr))
         # 1) residual Jacobian vs central differences. Error of a central difference:
@@ -142,12 +108,13 @@ def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
         #    = 3e5 |r|, and eps = 1e-6 gives <~ 5e-8 |r| + 2e-10 |r|: atol 1e-6 max |r|.
         #    Pixels whose margin switches winning segment or capsule end within eps (a kink
         #    of the max) would differ; none does at this seed.
-        r0 = np.asarray(_resid_j(scene, c0, e))
+        r0 = np.asarray(r0)
         eps = 1e-6
         fd = np.zeros_like(jr)
         for i in range(6):
             dc = jnp.zeros(6).at[i].set(eps).reshape(2, 3)
-            hi, lo = _resid_j(scene, c0 + dc, e), _resid_j(scene, c0 - dc, e)
+            hi = _margin_resid_and_jac(scene, c0 + dc, e)[1][1]
+            lo = _margin_resid_and_jac(scene, c0 - dc, e)[1][1]
             fd[:, i] = (np.asarray(hi) - np.asarray(lo)) / (2 * eps)
         np.testing.assert_allclose(jr, fd, rtol=1e-5, atol=1e-6 * np.abs(r0).max())
         assert np.abs(jr).max() > 1e-3  # not trivially flat
@@ -157,7 +124,10 @@ def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
         #    (grad 1/2 |r|^2 = J_r^T r by definition, with J_r checked against finite
         #    differences above: float64 products, no reverse-mode program of its own)
         g_ls = jr.T @ r0
-        g_cv = np.asarray(_grad_bfgs(scene, c0)).ravel()
+        # (the BFGS energy J without its regulariser: test_energy's compiled value-and-
+        # gradient program of tests/helpers/energy_x64.py, regulariser weight 0)
+        _, g_cv = energy_x64.energy_value_and_grad(scene, c0, jnp.asarray(0.0, jnp.float64))
+        g_cv = np.asarray(g_cv).ravel()
         np.testing.assert_allclose(g_ls, g_cv, rtol=1e-9, atol=1e-12 * np.abs(g_cv).max())
         # 3) normal_terms (closed form, no square root) == (J_r^T r, J_r^T J_r)
         dm = dm.reshape(*m0.shape, 6)

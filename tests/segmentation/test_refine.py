@@ -25,8 +25,9 @@ from tests.helpers.tube_render import render_tube, tube_frames
 # The suite's canonical refinement setup (160x120, two levels, 3 coefficients, no camera
 # correction: the scenes below have an exact camera and a uniform background, so they test the
 # shape refinement of the paper alone; camera correction has its own test).
-# tests/segmentation/test_segmentation_api.py runs the same two programs (refine_frame_jit and
-# the F = 2 map batch), which the run's compilation cache then compiles once for both modules.
+# The front doors jcr.refine / jcr.refine_batch are tested here too (test_front_doors_...): they
+# run the same two programs (refine_frame_jit and the F = 2 map batch), which this process
+# then holds compiled (a separate module reloaded both from the run's cache, ~8 s of CPU).
 W, H, CFG = refine_scene.W, refine_scene.H, refine_scene.CFG
 # Row 0 bends about the body x axis, which points at the camera: an in-image-plane bend.
 TRUE_COEFFS = [
@@ -69,7 +70,7 @@ jax.monitoring.register_event_duration_secs_listener(_count_trace)
 @pytest.fixture(scope="module")
 def run_frame():
     """The library's compiled per-frame function (refine_frame_jit: what jcr.refine runs, hence
-    one program with test_segmentation_api); each call records how many traces it caused."""
+    one program with the front door jcr.refine); each call records how many traces it caused."""
     traces = []
 
     def run(base, cam, img, bg):
@@ -161,6 +162,7 @@ def batch_map(scene):
     bases = jax.tree.map(lambda *x: jnp.stack(x), base, base)
     imgs = jnp.stack([f["img"] for f in frames])
     bgs = jnp.stack([f["bg"] for f in frames])
+    assert len(frames) == refine_scene.BATCH
     return refine_batch(bases, cam, imgs, bgs, CFG, mode="map")
 
 
@@ -172,6 +174,33 @@ def test_batch_map_equals_per_frame(per_frame, batch_map):
             float(batch_map.energy.total[k]), float(r.energy.total), rtol=1e-6
         )
         assert bool(batch_map.ok[k])
+
+
+def test_front_doors_equal_refine_frame_jit_and_refine_batch(scene, per_frame, batch_map):
+    """jcr.refine / jcr.refine_batch (the keyword-only front doors of
+    jaxcr/segmentation/api.py) give exactly what the solvers they call give (bit-identical:
+    same compiled function, same inputs). Moved from test_segmentation_api.py, which ran the
+    same two programs on other frames of this scene."""
+    import jaxcr as jcr
+
+    base, cam, frames = scene
+    f = frames[0]
+    got = jcr.refine(base, cam, f["img"], f["bg"], config=CFG)
+    want = per_frame[0]  # refine_frame_jit(base, cam, f["img"], f["bg"], CFG)
+    assert isinstance(got, jcr.RefineResult)
+    np.testing.assert_array_equal(np.asarray(got.coeffs), np.asarray(want.coeffs))
+    np.testing.assert_array_equal(np.asarray(got.centreline.p), np.asarray(want.centreline.p))
+    # the batch front door on F = 2 stacked frames == refine_batch itself (the default mode)
+    F = refine_scene.BATCH
+    bases = jax.tree.map(lambda *a: jnp.stack(a), *[base] * F)
+    imgs = jnp.stack([g["img"] for g in frames[:F]])
+    bgs = jnp.stack([g["bg"] for g in frames[:F]])
+    gb = jcr.refine_batch(bases, cam, imgs, bgs, config=CFG)
+    wb = batch_map  # refine_batch(bases, cam, imgs, bgs, CFG, mode="map")
+    np.testing.assert_array_equal(np.asarray(gb.coeffs), np.asarray(wb.coeffs))
+    np.testing.assert_array_equal(np.asarray(gb.centreline.p), np.asarray(wb.centreline.p))
+    assert gb.coeffs.shape == (F,) + CFG.coeff_shape
+    assert jnp.isfinite(gb.coeffs).all()
 
 
 def test_batch_vmap_matches_per_frame_quality(scene, per_frame, batch):
