@@ -170,8 +170,12 @@ def test_batch_map_equals_per_frame(per_frame, batch_map):
     for k, r in enumerate(per_frame):
         np.testing.assert_array_equal(np.asarray(batch_map.masks[0][k]), np.asarray(r.masks[0]))
         np.testing.assert_allclose(np.asarray(batch_map.coeffs[k]), np.asarray(r.coeffs), atol=1e-6)
+        # The energy is a float32 sum over the band's pixels (N <= 160*120), reduced by two
+        # separately compiled programs whose summation order XLA may choose differently (a
+        # different XLA:CPU emitter gave 5.2e-7 absolute, ~2e-6 relative, stop 28): the
+        # reordering error of such a sum is ~sqrt(N)*eps ~ 139*6e-8 = 8e-6 relative, so 1e-5.
         np.testing.assert_allclose(
-            float(batch_map.energy.total[k]), float(r.energy.total), rtol=1e-6
+            float(batch_map.energy.total[k]), float(r.energy.total), rtol=1e-5
         )
         assert bool(batch_map.ok[k])
 
