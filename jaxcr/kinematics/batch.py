@@ -28,6 +28,23 @@ import numpy as np
 CHUNK = 1024
 
 
+@eqx.filter_jit
+def forward_batch(model, q):
+    """The :class:`~jaxcr.kinematics.base.FkResult` of every row of ``q`` (B, n_joints):
+    ``jax.vmap(model.forward)`` compiled once per model structure and B (jax arrays with a
+    leading axis B, e.g. the nominal centrelines :func:`jaxcr.refine_batch` takes).
+
+    The model is an argument, not a closure, so one program serves every robot of the same
+    structure; and it is the one batched forward program of the library (the synthetic-data
+    generator :mod:`jaxcr.synth` computes its shapes with it), so a notebook that calls it on
+    a robot jaxcr has already run, with the same B, reuses that compiled program instead of
+    compiling its own. For failure reasons and numpy outputs use :func:`forward`.
+    """
+    import jax
+
+    return jax.vmap(model.forward)(q)
+
+
 @functools.cache
 def _compiled_forward():
     """The jitted, vmapped forward pass (built once per process; one compile per model/shape)."""
