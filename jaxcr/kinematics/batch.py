@@ -185,7 +185,8 @@ class BatchFk(eqx.Module):
     --------
     >>> import numpy as np
     >>> import jaxcr as jcr
-    >>> robot = jcr.robot_from_dict({"kind": "single_segment", "length": 0.04, "radius": 0.002})
+    >>> d = {"kind": "single_segment", "length": 0.04, "radius": 0.002, "n_points": 9}
+    >>> robot = jcr.robot_from_dict(d)
     >>> q = np.tile([np.pi / 2, 0.0], (2, 1))  # theta_L = pi/2: straight (Reiter et al.)
     >>> fk = jcr.forward(robot, q)
     >>> isinstance(fk, jcr.BatchFk), fk.s.shape == (2, robot.n_points)
@@ -235,7 +236,8 @@ def forward(
     --------
     >>> import numpy as np
     >>> import jaxcr as jcr
-    >>> robot = jcr.robot_from_dict({"kind": "single_segment", "length": 0.04, "radius": 0.002})
+    >>> d = {"kind": "single_segment", "length": 0.04, "radius": 0.002, "n_points": 9}
+    >>> robot = jcr.robot_from_dict(d)
     >>> fk = jcr.forward(robot, np.array([[0.0, 0.0], [np.nan, 0.0]]))
     >>> fk.p.shape == (2, robot.n_points, 3), fk.ok.tolist()
     (True, [True, False])
