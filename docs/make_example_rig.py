@@ -66,18 +66,37 @@ def _board_pose(centre: np.ndarray, normal: np.ndarray, tilt: tuple[float, float
     return R, centre
 
 
+#: Sub-samples per pixel side of the board renderer.
+SUB = 3
+_rays_memo: dict[bytes, np.ndarray] = {}
+
+
+def _pixel_rays(K, dist, size) -> np.ndarray:
+    """(h * w * SUB * SUB, 3) rays (x, y, 1) of every pixel's sub-samples through the true lens:
+    the same for every board a camera sees, so computed once per camera."""
+    key = np.asarray(K, np.float64).tobytes() + np.asarray(dist, np.float64).tobytes()
+    key += np.asarray(size).tobytes()
+    if key not in _rays_memo:
+        w, h = size
+        n = SUB
+        off = (np.arange(n) + 0.5) / n - 0.5
+        uu, vv = np.meshgrid(np.arange(w), np.arange(h))
+        shape = (h, w, n, n)
+        su = np.broadcast_to(uu[..., None, None] + off[None, None, None, :], shape).ravel()
+        sv = np.broadcast_to(vv[..., None, None] + off[None, None, :, None], shape).ravel()
+        pts = np.stack([su, sv], 1).reshape(-1, 1, 2).astype(np.float64)
+        xy = cv2.undistortPoints(pts, K, dist).reshape(-1, 2)
+        if len(_rays_memo) >= 2:  # a rig's two cameras at a time (17 MB each at 320x240)
+            _rays_memo.pop(next(iter(_rays_memo)))
+        _rays_memo[key] = np.c_[xy, np.ones(len(xy))]
+    return _rays_memo[key]
+
+
 def _render_board(K, dist, T_cam_base, R_b, t_b, size, rng) -> np.ndarray:
     """8-bit RGB view of the chessboard (pose R_b, t_b in the base frame) on a grey wall."""
     w, h = size
-    n = 3  # sub-samples per pixel side
-    off = (np.arange(n) + 0.5) / n - 0.5
-    uu, vv = np.meshgrid(np.arange(w), np.arange(h))
-    shape = (h, w, n, n)
-    su = np.broadcast_to(uu[..., None, None] + off[None, None, None, :], shape).ravel()
-    sv = np.broadcast_to(vv[..., None, None] + off[None, None, :, None], shape).ravel()
-    pts = np.stack([su, sv], 1).reshape(-1, 1, 2).astype(np.float64)
-    xy = cv2.undistortPoints(pts, K, dist).reshape(-1, 2)
-    d_cam = np.c_[xy, np.ones(len(xy))]
+    n = SUB
+    d_cam = _pixel_rays(K, dist, size)
     # board plane in the camera frame
     R_cb = T_cam_base[:3, :3] @ R_b
     t_cb = T_cam_base[:3, :3] @ t_b + T_cam_base[:3, 3]

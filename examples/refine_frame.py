@@ -28,6 +28,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import jaxcr as jcr
+import jaxcr.kinematics.batch
 import jaxcr.synth.generate
 
 OUT = os.environ.get("JAXCR_EXAMPLES_OUT", ".")  # where the figure is written
@@ -49,10 +50,12 @@ truth = frame.load_mask(cam_name)  # (240, 320) bool: the robot's true silhouett
 # close enough for the fine level alone.
 
 # %%
-# jit the forward model: one compiled program (run op by op, the solver's loops compile
-# hundreds of small programs, about twice the CPU time)
-forward = jax.jit(lambda q: ds.robot.forward(q))
-base = forward(jnp.asarray(frame.q, jnp.float32)).centreline  # (N, 3) samples
+# the forward model, compiled: jcr.kinematics.batch.forward_batch is one jitted vmap of
+# robot.forward over a batch of joint vectors (here the frame's one), with the robot an
+# argument -- the very program `jaxcr synth` ran for this robot, so it is not compiled again
+# (run op by op, the solver's loops would compile hundreds of small programs instead)
+fk = jaxcr.kinematics.batch.forward_batch(ds.robot, jnp.asarray([frame.q], jnp.float32))
+base = jax.tree.map(lambda x: x[0], fk.centreline)  # (N, 3) samples of the one frame
 background, image = jcr.colour_mask(jnp.asarray(rgb))
 config = jcr.RefineConfig(levels=(0,), steps=(30,), outer=(1,), tau=(0.5,))
 result = jcr.refine(base, camera, image, background, config=config)

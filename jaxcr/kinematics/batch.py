@@ -28,6 +28,23 @@ import numpy as np
 CHUNK = 1024
 
 
+@eqx.filter_jit
+def forward_batch(model, q):
+    """The :class:`~jaxcr.kinematics.base.FkResult` of every row of ``q`` (B, n_joints):
+    ``jax.vmap(model.forward)`` compiled once per model structure and B (jax arrays with a
+    leading axis B, e.g. the nominal centrelines :func:`jaxcr.refine_batch` takes).
+
+    The model is an argument, not a closure, so one program serves every robot of the same
+    structure; and it is the one batched forward program of the library (the synthetic-data
+    generator :mod:`jaxcr.synth` computes its shapes with it), so a notebook that calls it on
+    a robot jaxcr has already run, with the same B, reuses that compiled program instead of
+    compiling its own. For failure reasons and numpy outputs use :func:`forward`.
+    """
+    import jax
+
+    return jax.vmap(model.forward)(q)
+
+
 @functools.cache
 def _compiled_forward():
     """The jitted, vmapped forward pass (built once per process; one compile per model/shape)."""
@@ -168,7 +185,8 @@ class BatchFk(eqx.Module):
     --------
     >>> import numpy as np
     >>> import jaxcr as jcr
-    >>> robot = jcr.robot_from_dict({"kind": "single_segment", "length": 0.04, "radius": 0.002})
+    >>> d = {"kind": "single_segment", "length": 0.04, "radius": 0.002, "n_points": 9}
+    >>> robot = jcr.robot_from_dict(d)
     >>> q = np.tile([np.pi / 2, 0.0], (2, 1))  # theta_L = pi/2: straight (Reiter et al.)
     >>> fk = jcr.forward(robot, q)
     >>> isinstance(fk, jcr.BatchFk), fk.s.shape == (2, robot.n_points)
@@ -218,7 +236,8 @@ def forward(
     --------
     >>> import numpy as np
     >>> import jaxcr as jcr
-    >>> robot = jcr.robot_from_dict({"kind": "single_segment", "length": 0.04, "radius": 0.002})
+    >>> d = {"kind": "single_segment", "length": 0.04, "radius": 0.002, "n_points": 9}
+    >>> robot = jcr.robot_from_dict(d)
     >>> fk = jcr.forward(robot, np.array([[0.0, 0.0], [np.nan, 0.0]]))
     >>> fk.p.shape == (2, robot.n_points, 3), fk.ok.tolist()
     (True, [True, False])

@@ -23,12 +23,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxcr.errors import InputError
+from jaxcr.kinematics.batch import forward_batch
 from jaxcr.synth.model_error import (
     ModelError,
     apply_tip_force,
@@ -102,11 +101,6 @@ def tissue_for(cfg: PresetConfig, texture) -> Tissue:
     return Tissue(np.asarray(cfg.tissue.origin, float), eu, ev, texture)
 
 
-@eqx.filter_jit
-def _forward_batch(model, q):
-    return jax.vmap(model.forward)(q)
-
-
 @dataclass
 class Shapes:
     """Centrelines of a batch of joint vectors (numpy, robot frame, metres)."""
@@ -125,7 +119,7 @@ def robot_shapes(
     from jaxcr.kinematics.robots import robot_from_dict
 
     model = robot_from_dict(robot)
-    res = _forward_batch(model, jnp.asarray(q, jnp.float32))
+    res = forward_batch(model, jnp.asarray(q, jnp.float32))
     cl = res.centreline
     p = np.asarray(cl.p, np.float64)
     if tip_force is not None and np.any(tip_force):

@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -42,25 +43,37 @@ def test_bench_runs_from_an_installed_wheel(tmp_path):
     cwd = tmp_path / "elsewhere"  # outside the checkout: neither it nor its parents hold jaxcr
     cwd.mkdir()
     env = {**os.environ, "PYTHONPATH": str(site)}
-    where = _run([sys.executable, "-c", "import jaxcr; print(jaxcr.__file__)"], cwd=cwd, env=env)
-    assert where.returncode == 0, where.stderr
-    assert Path(where.stdout.strip()).resolve().is_relative_to(site.resolve())
-
-    h = _run([sys.executable, "-m", "jaxcr", "bench", "--help"], cwd=cwd, env=env)
-    assert h.returncode == 0 and "segment" in h.stdout and "fk" in h.stdout, h.stderr
-
     out = cwd / "fk.md"
+    # One process (a Python + JAX start is seconds of CPU; this used to take three): which
+    # jaxcr it imports, then `python -m jaxcr bench --help` and `python -m jaxcr bench fk ...`
+    # run as jaxcr/__main__.py (runpy), the module `python -m jaxcr` runs.
     # --batch 4: the benchmark's cold program (TEST_CTR, 4 rows, the model an argument) is
     # examples/kinematics_projection.py's, which tests/core/test_examples.py compiles earlier
     # in the run (tests/conftest.py LONGEST_FIRST), so this process loads it from the run's
     # compilation cache (measured: its compile 14.1 -> 2.7 s of CPU, a load from the cache)
-    code = ("import sys, runpy, jaxcr; print('JAXCR', jaxcr.__file__); "
-            "sys.argv = ['jaxcr', 'bench', 'fk', '--batch', '4', '--repeats', '1', '-o', 'fk.md']; "
-            "runpy.run_module('jaxcr', run_name='__main__')")  # fmt: skip
+    code = textwrap.dedent("""
+        import contextlib, io, runpy, sys
+        import jaxcr
+        print("JAXCR", jaxcr.__file__)
+        def as_main(*argv):
+            sys.argv = ["jaxcr", *argv]
+            try:
+                runpy.run_module("jaxcr", run_name="__main__")
+            except SystemExit as e:
+                return e.code
+        text = io.StringIO()
+        with contextlib.redirect_stdout(text):
+            code = as_main("bench", "--help")
+        print("HELP", code, repr(text.getvalue()))
+        sys.exit(as_main("bench", "fk", "--batch", "4", "--repeats", "1", "-o", "fk.md"))
+    """)
     r = _run([sys.executable, "-c", code], cwd=cwd, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
     imported = next(ln for ln in r.stdout.splitlines() if ln.startswith("JAXCR "))[6:]
     assert Path(imported).resolve().is_relative_to(site.resolve())
+    h = next(ln for ln in r.stdout.splitlines() if ln.startswith("HELP "))[5:]
+    code, _, text = h.partition(" ")
+    assert code == "0" and "segment" in text and "fk" in text, h
     text = out.read_text()
     assert "jaxcr.benchmarks.fk:run_fk_benchmark" in text and "median per q" in text
 

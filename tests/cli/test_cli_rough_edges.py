@@ -475,12 +475,13 @@ def test_fk_says_why_rows_failed(tmp_path, capsys):
     assert reasons[2].startswith("outside the joint limits (beta_1 <= ... <= beta_n <= 0")
     assert reasons[3] == f"no converged solution (residual 1 > tolerance {ctr.tol:g})"
     assert reasons[4] == "non-finite centreline"
-    # through the command (a constant-curvature robot compiles quickly)
+    # through the command: the 9-sample single-segment robot and 2 rows of
+    # tests/scale/test_ray_equality.py's `jaxcr fk --chunk 2` (and tests/cli/test_cli_fk.py),
+    # so the compiled batch is loaded from the run's cache, not compiled again
     robot = tmp_path / "robot.json"
-    robot.write_text(json.dumps({"kind": "constant_curvature", "n_points": 8,
-                                 "sections": [{"length": 0.05, "radius": 0.001}],
-                                 "joints": ["kappa", "phi"]}))  # fmt: skip
-    (tmp_path / "q.csv").write_text("5,0\nnan,0\n")
+    robot.write_text(json.dumps({"kind": "single_segment", "length": 0.04, "radius": 0.002,
+                                 "n_points": 9}))  # fmt: skip
+    (tmp_path / "q.csv").write_text("0.3,-2.0\nnan,0.1\n")
     assert main(["fk", str(robot), str(tmp_path / "q.csv"), "-o", str(tmp_path / "o")]) == 1
     assert ("1/2 rows ok, 1 failed (row 1: non-finite joint values; ok = 0 in tips.csv)"
             in capsys.readouterr().out)  # fmt: skip

@@ -68,7 +68,11 @@ def test_import_is_cheap():
     assert out.stdout.strip() == "[]"
 
 
-SS = {"kind": "single_segment", "length": 0.04, "radius": 0.002}
+#: the robot and chunk of tests/scale/test_ray_equality.py's `jaxcr fk --chunk 2` (also
+#: tests/cli/test_cli_fk.py's robot): jcr.forward below runs the very same compiled batch
+#: program (run_chunk, 2 rows of this 9-sample robot), so it loads it from the run's
+#: compilation cache instead of compiling its own (the default 64 samples made another)
+SS = {"kind": "single_segment", "length": 0.04, "radius": 0.002, "n_points": 9}
 
 
 def test_forward_matches_a_loop_and_gives_reasons():

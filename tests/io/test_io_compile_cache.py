@@ -109,11 +109,20 @@ def test_off_writes_nothing(tmp_path, env_extra, flags):
     assert _entries(cache) == []
 
 
-def test_bad_switch_exits_2_one_line(tmp_path):
-    p = _fk(tmp_path, {"JAXCR_COMPILE_CACHE": "maybe", "JAXCR_CACHE_DIR": str(tmp_path / "c")})
-    assert p.returncode == 2
-    lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and "JAXCR_COMPILE_CACHE" in lines[0], p.stderr
+def test_bad_switch_exits_2_one_line(tmp_path, clean_env, capsys):
+    """In this process (cli.main reads the switch on every call, before anything else; a new
+    process would add a Python start and nothing to check)."""
+    from jaxcr.cli import main
+
+    (tmp_path / "ss.json").write_text(json.dumps(SS))
+    (tmp_path / "q.csv").write_text("0.3,-2.0\n1.0,0.5\n")
+    clean_env.setenv("JAXCR_COMPILE_CACHE", "maybe")
+    clean_env.setenv("JAXCR_CACHE_DIR", str(tmp_path / "c"))
+    argv = ["fk", str(tmp_path / "ss.json"), str(tmp_path / "q.csv"), "-o", str(tmp_path / "out")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "JAXCR_COMPILE_CACHE" in lines[0], err
     assert not (tmp_path / "out").exists()
 
 
