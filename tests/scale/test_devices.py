@@ -20,8 +20,10 @@ CHILD = Path(__file__).with_name("_devices_child.py")
 
 
 def test_two_host_devices_equal_one_bit_for_bit():
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
-           "JAX_PLATFORMS": "cpu", "JAXCR_COMPILE_CACHE": "0"}  # fmt: skip
+    # the suite's own XLA flags (tests/conftest.py, decisions T1) kept, two host devices added
+    flags = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu",
+           "JAXCR_COMPILE_CACHE": "0"}  # fmt: skip
     root = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
     r = subprocess.run([sys.executable, str(CHILD)], env=env, capture_output=True, text=True,
