@@ -160,6 +160,11 @@ def fit_colour_model(
         raise InputError(f"colour model needs an RGB image (H, W, 3), got shape {img.shape}")
     if not 2 <= k <= 64:
         raise InputError(f"number of colour clusters must be in 2..64, got {k}", field="k")
+    # every bad argument before the clustering (the work, and its compile)
+    if marker_index is not None and not 0 <= marker_index < k:
+        raise InputError(f"marker index must be in 0..{k - 1}, got {marker_index}")
+    if marker_index is None and marker_rgb is None:
+        raise InputError("give a marker colour or a marker cluster index")
     px = img.reshape(-1, 3)
     rng = np.random.default_rng(seed)
     if len(px) > max_pixels:
@@ -167,12 +172,8 @@ def fit_colour_model(
     ab = rgb_to_lab(jnp.asarray(px))[:, 1:]
     centres, _ = jax.jit(kmeans, static_argnums=(1, 3))(ab, k, jax.random.PRNGKey(seed), 30)
     if marker_index is not None:
-        if not 0 <= marker_index < k:
-            raise InputError(f"marker index must be in 0..{k - 1}, got {marker_index}")
         m = int(marker_index)
     else:
-        if marker_rgb is None:
-            raise InputError("give a marker colour or a marker cluster index")
         ref = rgb_to_lab(jnp.asarray(marker_rgb, jnp.float32))[1:]
         m = int(jnp.argmin(jnp.sum((centres - ref) ** 2, axis=1)))
     return ColourModel(centres=centres, marker=jnp.asarray(m, jnp.int32))

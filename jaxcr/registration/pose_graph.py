@@ -112,13 +112,18 @@ def solve_pose_graph(
     info: Float[Array, "e 6 6"],
     anchor: Int[Array, ""],
     iterations: int = 10,
+    n_poses: Int[Array, ""] | None = None,
 ):
     """Gauss-Newton on the pose graph (module docstring), ``iterations`` steps (static; a
     ``fori_loop``). Returns (poses (m, 4, 4), cost before, cost after, last step size).
-    Edges with zero information are inert (padding). Pure, jit-able."""
+    Edges with zero information are inert (padding). ``n_poses``: poses from this index on
+    are padding (no edge, held fixed like the anchor); default none. Pure, jit-able."""
     m = poses.shape[0]
     L = _factor(info)
-    free = (jnp.arange(m) != anchor).astype(poses.dtype)
+    free = jnp.arange(m) != anchor
+    if n_poses is not None:
+        free = free & (jnp.arange(m) < n_poses)
+    free = free.astype(poses.dtype)
     mask = jnp.repeat(free, 6)
 
     def step(_, carry):
@@ -147,9 +152,11 @@ def solve_pose_graph(
 solve_pose_graph_jit = jax.jit(solve_pose_graph, static_argnames=("iterations",))
 
 
-def _bucket(n: int) -> int:
-    """Edge count padded to a multiple of 16 (one compilation per bucket, not per graph)."""
-    return max(16, -(-n // 16) * 16)
+def _bucket(n: int, least: int = 16) -> int:
+    """Edge or pose count padded to a multiple of 16, at least ``least`` (one compilation
+    per bucket, not per graph: rings of 2-16 views with up to 32 edges, e.g. a ring of 13
+    and its edges two views apart, all use one program)."""
+    return max(least, -(-n // 16) * 16)
 
 
 edge_residuals_jit = jax.jit(jax.vmap(edge_residual))
@@ -224,7 +231,11 @@ def optimize_pose_graph(
             calibration=cal,
             stated_poses=first.poses,
         )
-    n = _bucket(len(edges))
+    n = _bucket(len(edges), least=32)
+    # Padding poses (identity, no edge) are held fixed: their rows of the normal equations
+    # are the identity and their step is 0, so they change neither the cost nor the others.
+    P0 = np.tile(np.eye(4, dtype=np.float32), (_bucket(m), 1, 1))
+    P0[:m] = np.stack(initial)
     src = np.zeros(n, np.int32)
     tgt = np.zeros(n, np.int32)
     Z = np.tile(np.eye(4, dtype=np.float32), (n, 1, 1))
@@ -236,13 +247,14 @@ def optimize_pose_graph(
         Z[k] = e.Z
         info[k] = np.asarray(e.info, np.float64) / scale
     P, c0, c1, last = solve_pose_graph_jit(
-        jnp.asarray(np.stack(initial), jnp.float32),
+        jnp.asarray(P0),
         jnp.asarray(src),
         jnp.asarray(tgt),
         jnp.asarray(Z),
         jnp.asarray(info),
         jnp.int32(anchor),
         iterations=int(iterations),
+        n_poses=jnp.int32(m),
     )
     ne = len(edges)
     for _ in range(int(robust_rounds)):
@@ -259,8 +271,9 @@ def optimize_pose_graph(
             jnp.asarray(info * w[:, None, None]),
             jnp.int32(anchor),
             iterations=int(iterations),
+            n_poses=jnp.int32(m),
         )
-    poses = [np.asarray(p, np.float64) for p in np.asarray(P)]
+    poses = [np.asarray(p, np.float64) for p in np.asarray(P)[:m]]
     return PoseGraphResult(
         poses,
         [np.asarray(p, np.float64).copy() for p in initial],

@@ -4,8 +4,10 @@ The reference for a batch is the single-video run (``jaxcr motion DATASET -o OUT
 the other motion tests check): each video's folder of a batch must hold the same files, and
 the shards' / Ray's folders the same files and records as the local batch's, apart from the
 timings (``time_s`` per record; ``wall_s``/``median_ms`` and the report's timing line per
-video; the summary's ``executor``). Videos are tiny (64x48, 6 frames) and one Ray instance
-serves the module (started by the first Ray run, shut down at the end).
+video; the summary's ``executor``). Videos are tiny (128x96, 6 frames; with the flags of FAST
+every run uses the programs test_motion_pipeline and the other motion tests compile, so
+the module compiles ~nothing of its own in a full run) and one Ray instance serves the
+module (started by the first Ray run, shut down at the end).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from jaxcr.cli import main
 
 TIMING = {"time_s", "wall_s", "median_ms"}
 # one motion model and no baseline: the batch machinery is under test, not the models
-FAST = ("--no-baseline", "--model", "translation")
+FAST = ("--no-baseline", "--model", "translation", "--superpixel-step", "8", "--flow-step", "4")
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +31,7 @@ def videos(tmp_path_factory):
     root = tmp_path_factory.mktemp("mbatch") / "videos"
     for seed in (0, 1, 2):
         assert main(["motion", "synth", "--preset", "pushed_static", "--seed", str(seed),
-                     "--size", "64x48", "--frames", "6", "-o", str(root / f"v{seed}")]) == 0  # fmt: skip
+                     "--size", "128x96", "--frames", "6", "-o", str(root / f"v{seed}")]) == 0  # fmt: skip
     (root / "v1" / "frames" / "000003.png").write_bytes(b"not a png")
     return root
 

@@ -19,7 +19,8 @@ from jaxcr.synth.motion_scenes import generate_motion_video
 @pytest.fixture(scope="module")
 def video(tmp_path_factory):
     d = tmp_path_factory.mktemp("mvb") / "push"
-    generate_motion_video(d, "pushed_static", seed=0, size=(160, 120), n_frames=12, speed_px=10)
+    # 128x96 with the flags below: the programs test_motion_pipeline compiles (run cache)
+    generate_motion_video(d, "pushed_static", seed=0, size=(128, 96), n_frames=12, speed_px=10)
     return d
 
 

@@ -20,7 +20,9 @@ from jaxcr.motion.pipeline import MotionConfig, MotionTracker, frame_update, res
 from jaxcr.motion.run import end_effector_pixels, run_baseline, run_motion
 from jaxcr.synth.motion_scenes import generate_motion_video
 
-CFG = MotionConfig(superpixel_step=8, slic_iters_first=4, flow=FlowConfig(step=4))
+# (the default 6 first SLIC iterations: the segment_first program of the translation-only
+# runs below and of test_motion_cli_baseline / _batch / _superpixels, one compile in all)
+CFG = MotionConfig(superpixel_step=8, flow=FlowConfig(step=4))
 
 
 @pytest.fixture(scope="module")

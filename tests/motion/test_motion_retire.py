@@ -24,7 +24,8 @@ def steps(tmp_path_factory):
     generate_motion_video(d, "pushed_changing", seed=3, size=(128, 96), n_frames=12, speed_px=10)
     ds = load_motion_dataset(d)
     uv, vis = end_effector_pixels(ds)
-    cfg = MotionConfig(superpixel_step=8, slic_iters_first=4, flow=FlowConfig(step=4))
+    # the configuration of test_motion_pipeline (its programs, run cache)
+    cfg = MotionConfig(superpixel_step=8, flow=FlowConfig(step=4))
     tr = None
     out = []
     for i, rgb, _ in ds.frames():

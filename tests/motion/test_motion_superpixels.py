@@ -145,8 +145,10 @@ def test_segment_first_at_working_scale_respects_regions():
     one colour region, all ids in range, and the full map is the repeated working map."""
     img, region = _regions(96, 128, 2)
     small = jnp.asarray(sp.working_rgb(img, 2))
-    gh, gw = sp.grid_shape(48, 64, 8)
-    work, full = sp.segment_first(small, gh * gw, 8, 10.0, 6, 2, 96, 128)
+    # step 4 working px at scale 2 on 96x128: the program test_tracker_at_working_scale_two's
+    # MotionTracker compiles (one compile for the module)
+    gh, gw = sp.grid_shape(48, 64, 4)
+    work, full = sp.segment_first(small, gh * gw, 4, 10.0, 6, 2, 96, 128)
     work, full = np.asarray(work), np.asarray(full)
     assert work.shape == (48, 64) and full.shape == (96, 128)
     np.testing.assert_array_equal(full, np.kron(work, np.ones((2, 2), np.int32)))
@@ -154,26 +156,27 @@ def test_segment_first_at_working_scale_respects_regions():
     for j in np.unique(full):
         assert len(np.unique(region[full == j])) == 1
     # compact: no segment grows beyond four seed cells
-    assert np.bincount(work.ravel(), minlength=gh * gw).max() <= 4 * 64
+    assert np.bincount(work.ravel(), minlength=gh * gw).max() <= 4 * 16
 
 
 def test_segment_track_follows_a_moving_block():
     """A block moved by 4 working px: the tracked labels move with it (ids kept) and still
-    respect the new image's regions."""
-    h, w, step = 48, 64, 8
+    respect the new image's regions. Working 48x64 at step 4, full size 96x128 (scale 2):
+    the programs test_tracker_at_working_scale_two's MotionTracker compiles."""
+    h, w, step = 48, 64, 4
     img = np.full((h, w, 3), 0.3, np.float32)
     img[16:32, 16:32] = [0.9, 0.2, 0.1]
     img2 = np.full((h, w, 3), 0.3, np.float32)
     img2[16:32, 20:36] = [0.9, 0.2, 0.1]
-    k = 6 * 8
-    work, _ = sp.segment_first(jnp.asarray(img), k, step, 10.0, 6, 1, h, w)
+    k = 12 * 16
+    work, _ = sp.segment_first(jnp.asarray(img), k, step, 10.0, 6, 2, 2 * h, 2 * w)
     flow = np.zeros((h, w, 2), np.float32)
     flow[16:32, 16:32, 0] = 4.0
     w2, full2 = sp.segment_track(
-        work, jnp.asarray(flow), jnp.asarray(img2), k, step, 10.0, 2, 1, h, w
+        work, jnp.asarray(flow), jnp.asarray(img2), k, step, 10.0, 2, 2, 2 * h, 2 * w
     )
     w2 = np.asarray(w2)
-    np.testing.assert_array_equal(np.asarray(full2), w2)
+    np.testing.assert_array_equal(np.asarray(full2), np.kron(w2, np.ones((2, 2), np.int32)))
     inside = set(np.unique(np.asarray(work)[16:32, 16:32]))
     assert set(np.unique(w2[16:32, 20:36])) == inside
     assert not (set(np.unique(w2[:, :20])) & inside)  # the wake went to the background
@@ -390,7 +393,11 @@ def test_tracker_at_working_scale_two(tmp_path):
     d = tmp_path / "push"
     generate_motion_video(d, "pushed_static", seed=0, size=(128, 96), n_frames=8, speed_px=10)
     ds = load_motion_dataset(d)
-    cfg = MotionConfig(superpixel_step=8, superpixel_scale=2, models=("translation",))
+    # flow step 4: the frame_update program of test_motion_pipeline / _cli_baseline / _batch
+    # (same frame size, segment count and flags; run cache), not one of its own
+    cfg = MotionConfig(
+        superpixel_step=8, superpixel_scale=2, models=("translation",), flow=fm.FlowConfig(step=4)
+    )
     res = run_motion(ds, cfg)
     assert res.labels_eval.shape == (96, 128)
     work = res.labels_eval[::2, ::2]

@@ -18,7 +18,9 @@ from jaxcr.synth.scene import look_at_pose
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    return generate_task(tmp_path_factory.mktemp("t2") / "scene", "2", seed=1, size=(96, 72))
+    # 160x120: register_pair's projective ICP / information programs then have the shapes
+    # test_registration_pairwise compiles (4096-point sample, 120x160 target; run cache)
+    return generate_task(tmp_path_factory.mktemp("t2") / "scene", "2", seed=1, size=(160, 120))
 
 
 def _pose(r, ang, z=0.15):
@@ -33,7 +35,7 @@ def test_scene_contract_and_depth_on_true_surface(scene):
     sim.cfg["depth_noise"].update(sigma0=0.0, sigma2=0.0, hole_rate=0.0)
     T = _pose(0.25, 0.3)
     rgb, depth = sim.capture(T)
-    assert rgb.shape == (72, 96, 3) and depth.shape == (72, 96)
+    assert rgb.shape == (120, 160, 3) and depth.shape == (120, 160)
     c = cloud_from_rgbd(rgb, depth, sim.K)
     world = c.points @ T[:3, :3].T + T[:3, 3]
     # depth quantisation is 0.5 mm

@@ -18,6 +18,7 @@ from jaxcr.registration.icp import CloudArrays, IcpConfig
 from jaxcr.registration.pose_graph import (
     GraphEdge,
     edge_residual,
+    edge_residuals_jit,
     graph_cost,
     inverted_edge,
     optimize_pose_graph,
@@ -142,16 +143,27 @@ def test_weights_give_the_closed_form_weighted_mean():
 
 
 def test_jit_equals_eager_and_residual_matches_numpy():
-    truth = _ring(4)
+    # The shapes optimize_pose_graph solves a ring of 8 with (16 poses, 32 edges: padding
+    # poses held fixed, padding edges with zero information; iterations=10): the program of
+    # the tests above (run cache), not one of its own.
+    truth = _ring(8)
     rng = np.random.default_rng(2)
+    # one loop: 48 residuals, 42 free parameters, so the minimum is ~6/48 of the cost at
+    # the truth (c1 < 0.5 c0 below)
     edges = _edges(truth, (1,), rng, noise=(0.001, 0.002))
+    poses = np.tile(np.eye(4), (16, 1, 1))
+    poses[:8] = np.stack(truth)
+    src, tgt = np.zeros(32, np.int32), np.zeros(32, np.int32)
+    Z, info = np.tile(np.eye(4), (32, 1, 1)), np.zeros((32, 6, 6))
+    for k, e in enumerate(edges):
+        src[k], tgt[k], Z[k], info[k] = e.i, e.j, e.Z, e.info
     args = (
-        jnp.asarray(np.stack(truth), jnp.float32),
-        jnp.asarray([e.i for e in edges]),
-        jnp.asarray([e.j for e in edges]),
-        jnp.asarray(np.stack([e.Z for e in edges]), jnp.float32),
-        jnp.asarray(np.stack([e.info for e in edges]), jnp.float32),
-        jnp.int32(3),
+        jnp.asarray(poses, jnp.float32),
+        jnp.asarray(src),
+        jnp.asarray(tgt),
+        jnp.asarray(Z, jnp.float32),
+        jnp.asarray(info, jnp.float32),
+        jnp.int32(7),
     )
     # The solver's jit == eager is covered through its pieces (an eager Gauss-Newton solve
     # costs ~15 s of op-by-op dispatch): the cost eager vs jit, the vmapped residual vs a
@@ -159,7 +171,9 @@ def test_jit_equals_eager_and_residual_matches_numpy():
     c_eager = graph_cost(*args[:5])
     c_jit = jax.jit(graph_cost)(*args[:5])
     np.testing.assert_allclose(float(c_eager), float(c_jit), rtol=1e-5)
-    r = np.asarray(jax.jit(jax.vmap(edge_residual))(args[0][args[1]], args[0][args[2]], args[3]))
+    # 16 edges: the shape the robust rounds below evaluate (one small program)
+    i, j, Zs = args[1][:16], args[2][:16], args[3][:16]
+    r = np.asarray(edge_residuals_jit(args[0][i], args[0][j], Zs))
     for k, e in enumerate(edges):
         np.testing.assert_allclose(r[k], _np_residual(truth[e.i], truth[e.j], e.Z), atol=2e-6)
     ref = sum(
@@ -169,8 +183,10 @@ def test_jit_equals_eager_and_residual_matches_numpy():
         for e in edges
     )
     np.testing.assert_allclose(float(c_jit), ref, rtol=1e-3)
-    P, c0, c1, _ = solve_pose_graph_jit(*args, iterations=3)
+    P, c0, c1, _ = solve_pose_graph_jit(*args, iterations=10, n_poses=jnp.int32(8))
     assert float(c1) < 0.5 * float(c0)
+    # the padding poses (index >= n_poses) are held fixed
+    np.testing.assert_array_equal(np.asarray(P)[8:], np.asarray(args[0])[8:])
 
 
 def test_residual_gradient_is_finite_at_zero_error():

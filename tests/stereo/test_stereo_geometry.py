@@ -209,13 +209,15 @@ def test_arc_fit_closed_form(R, sweep):
     np.testing.assert_allclose(float(r32["curvature"]), 1 / R, rtol=2e-3)
 
 
+# The arc tests use 60 points throughout (float32 and float64): fit_arc compiles once per
+# shape and dtype, so the shapes are shared instead of one compile per test.
 def test_arc_fit_noise_straight_padding_jit():
     rot = _rot(4)
-    P = _arc(0.03, 1.0, 80, rot, np.zeros(3), noise=2e-5)
+    P = _arc(0.03, 1.0, 60, rot, np.zeros(3), noise=2e-5)
     r = fit_arc(jnp.asarray(P, jnp.float32))
     assert abs(float(r["curvature"]) * 0.03 - 1) < 0.02
     # Straight line: zero curvature, the line's length, no NaN; gradient finite.
-    L = np.c_[np.zeros(30), np.zeros(30), np.linspace(0, 0.03, 30)]
+    L = np.c_[np.zeros(60), np.zeros(60), np.linspace(0, 0.03, 60)]
     r = fit_arc(jnp.asarray(L, jnp.float32))
     assert float(r["curvature"]) < 1e-3 and abs(float(r["arc_length"]) - 0.03) < 1e-6
     g = jax.grad(lambda x: fit_arc(x)["curvature"])(
@@ -224,7 +226,7 @@ def test_arc_fit_noise_straight_padding_jit():
     assert np.all(np.isfinite(np.asarray(g)))
     # Zero-weight padding does not change the result.
     pad = np.concatenate([P, np.repeat(P[-1:], 20, 0)])
-    w = np.r_[np.ones(80), np.zeros(20)]
+    w = np.r_[np.ones(60), np.zeros(20)]
     rp = fit_arc(jnp.asarray(pad, jnp.float32), jnp.asarray(w, jnp.float32))
     r0 = fit_arc(jnp.asarray(P, jnp.float32))
     np.testing.assert_allclose(float(rp["curvature"]), float(r0["curvature"]), rtol=1e-4)
@@ -234,17 +236,17 @@ def test_arc_fit_noise_straight_padding_jit():
 def test_arc_fit_gradient_vs_fd_and_vmap():
     rot = _rot(5)
     with jax.enable_x64(True):
-        P = jnp.asarray(_arc(0.03, 1.0, 20, rot, np.zeros(3), noise=1e-4))
+        P = jnp.asarray(_arc(0.03, 1.0, 60, rot, np.zeros(3), noise=1e-4))
         f = lambda x: fit_arc(x)["curvature"]  # noqa: E731
         g = np.asarray(jax.grad(f)(P))
         h = 1e-8
-        for idx in [(0, 0), (7, 2), (19, 1)]:
+        for idx in [(0, 0), (7, 2), (59, 1)]:  # both ends and an interior point
             e = np.zeros(P.shape)
             e[idx] = h
             fd = (f(P + e) - f(P - e)) / (2 * h)
             np.testing.assert_allclose(g[idx], fd, rtol=1e-3, atol=1e-3)
     Ps = jnp.asarray(
-        np.stack([_arc(0.02 + 0.01 * k, 1.0, 30, _rot(k), np.zeros(3)) for k in range(3)]),
+        np.stack([_arc(0.02 + 0.01 * k, 1.0, 60, _rot(k), np.zeros(3)) for k in range(3)]),
         jnp.float32,
     )
     batched = jax.vmap(fit_arc)(Ps)
