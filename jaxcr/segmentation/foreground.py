@@ -1377,12 +1377,13 @@ def trace_alternatives(
     go on for two look lengths, onwards (within 60 deg of the start direction there), end
     inside the image, and end more than 1.5 px (traced scale) from every tip kept before
     (the original's included).
-    A re-trace that ends behind its junction (along the heading arriving there) is the way
-    back of a hook: a tube does not reverse at a junction, it went on along the trace to
-    the hook's apex and came back beside itself, the two merged into one wide run (where
-    the junction was seen). Its path is then the trace out to the apex (its farthest point
-    along that heading, :func:`_hook_apex`) followed by the re-trace from its point nearest
-    the apex on, so that a second view, which sees the whole hook, can explain it.
+    A re-trace that ends behind its junction (along the heading arriving there) may be the
+    way back of a hook: the tube went on along the trace to the hook's apex and came back
+    beside itself, the two merged into one wide run (where the junction was seen). It is
+    then offered twice: as it is (the tube turned back at the junction, a bend seen nearly
+    end-on) and as the trace out to the apex (its farthest point along that heading,
+    :func:`_hook_apex`) followed by the re-trace from its point nearest the apex on, so
+    that a second view, which sees the whole hook, can explain it.
     Each alternative's ``departure`` is its junction's index; its ``crossing_turn_deg`` the
     largest turn at the junctions it passes. [] for a trace without ``retrace`` state or
     junctions."""
@@ -1435,28 +1436,29 @@ def trace_alternatives(
                 continue
             tips.append(sub.tip.copy())
             # Where the re-trace ends behind its junction (along the heading arriving
-            # there), the tube did not turn back at the junction: it went on along the
-            # trace and came back beside itself (a hook; the branch seen at the junction
-            # leads onto the way back). The path is then the trace out to its apex (its
-            # farthest point along that heading) and the re-trace from its point nearest
-            # the apex on.
+            # there), either the tube turned back there (a bend seen nearly end-on) or it
+            # went on along the trace and came back beside itself (a hook; the way out
+            # and the way back merged into the wide run where the junction was seen).
+            # Both paths are offered, the second the trace out to the hook's apex (its
+            # farthest point along that heading) and the re-trace from its point
+            # nearest the apex on; the second view tells which it sees.
             apex = _hook_apex(bb_all, i, head, sub.backbone[-1] - pj)
-            if apex is None:
-                stop, start, first = i, 1, [(i, pj, dv)]
-            else:
-                stop, first = apex, []
-                start = int(np.argmin(np.linalg.norm(sub.backbone - bb_all[apex], axis=1)))
-            bb = np.vstack([bb_all[: stop + 1], sub.backbone[start:]])
-            off = stop + 1 - start  # sub's index m is bb's m + off
-            gaps = [g for g in low.gaps if g[1] <= stop]
-            gaps += [(a + off, b + off) for a, b in sub.gaps if a >= start]
-            juncs = [j for j in low.junctions if j[0] < i or (apex is not None and j[0] <= stop)]
-            juncs += first + [(a + off, b, c) for a, b, c in sub.junctions if a >= start]
-            alt = TubeTrace(_path_mask(mask, bb, gaps, low.width_px), bb, bb[-1].copy(),
-                            low.entry, gaps, width_px=low.width_px, junctions=juncs)  # fmt: skip
-            alt.crossing_turn_deg = _path_turn(bb, [j[0] for j in juncs], cfg)
-            alt.crossings_followed = _path_through(mask, bb, [j[0] for j in juncs], cfg,
-                                                   low.width_px)  # fmt: skip
-            alt.departure = int(i)
-            out.append(_finish(alt, ctx))
+            splices = [(i, 1, [(i, pj, dv)])]
+            if apex is not None:
+                near = int(np.argmin(np.linalg.norm(sub.backbone - bb_all[apex], axis=1)))
+                splices.append((apex, near, []))
+            for stop, start, first in splices:
+                bb = np.vstack([bb_all[: stop + 1], sub.backbone[start:]])
+                off = stop + 1 - start  # sub's index m is bb's m + off
+                gaps = [g for g in low.gaps if g[1] <= stop]
+                gaps += [(a + off, b + off) for a, b in sub.gaps if a >= start]
+                juncs = [j for j in low.junctions if j[0] < i or (stop > i and j[0] <= stop)]
+                juncs += first + [(a + off, b, c) for a, b, c in sub.junctions if a >= start]
+                alt = TubeTrace(_path_mask(mask, bb, gaps, low.width_px), bb, bb[-1].copy(),
+                                low.entry, gaps, width_px=low.width_px, junctions=juncs)  # fmt: skip
+                alt.crossing_turn_deg = _path_turn(bb, [j[0] for j in juncs], cfg)
+                alt.crossings_followed = _path_through(mask, bb, [j[0] for j in juncs], cfg,
+                                                       low.width_px)  # fmt: skip
+                alt.departure = int(i)
+                out.append(_finish(alt, ctx))
     return out
