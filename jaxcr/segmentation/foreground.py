@@ -1345,6 +1345,19 @@ def _path_through(mask, bb, indices, cfg: PlateForegroundConfig, width_px: float
                    for i in indices if 0 < i < len(bb) - 1))  # fmt: skip
 
 
+def _hook_apex(bb: np.ndarray, i: int, heading: float, chord: np.ndarray) -> int | None:
+    """The index of ``bb`` (n, 2) beyond ``i`` farthest along ``heading`` (rad) from
+    ``bb[i]``, when ``chord`` (2,) (from ``bb[i]`` to the end of a branch leaving it) runs
+    against the heading (over 90 deg from it) and that point lies beyond ``bb[i]``; else
+    None."""
+    h = _unit(heading)
+    if not float(np.asarray(chord, np.float64) @ h) < 0.0:
+        return None
+    prog = (bb[i:] - bb[i]) @ h
+    m = int(np.argmax(prog))
+    return i + m if m > 0 and prog[m] > 0.0 else None
+
+
 def trace_alternatives(
     tr: TubeTrace, *, turns_deg=(0.0, 15.0, -15.0, 30.0, -30.0, 45.0, -45.0)
 ) -> list[TubeTrace]:
@@ -1364,6 +1377,13 @@ def trace_alternatives(
     go on for two look lengths, onwards (within 60 deg of the start direction there), end
     inside the image, and end more than 1.5 px (traced scale) from every tip kept before
     (the original's included).
+    A re-trace that ends behind its junction (along the heading arriving there) may be the
+    way back of a hook: the tube went on along the trace to the hook's apex and came back
+    beside itself, the two merged into one wide run (where the junction was seen). It is
+    then offered twice: as it is (the tube turned back at the junction, a bend seen nearly
+    end-on) and as the trace out to the apex (its farthest point along that heading,
+    :func:`_hook_apex`) followed by the re-trace from its point nearest the apex on, so
+    that a second view, which sees the whole hook, can explain it.
     Each alternative's ``departure`` is its junction's index; its ``crossing_turn_deg`` the
     largest turn at the junctions it passes. [] for a trace without ``retrace`` state or
     junctions."""
@@ -1415,16 +1435,30 @@ def trace_alternatives(
             if min(np.linalg.norm(sub.tip - t) for t in tips) <= 1.5:
                 continue
             tips.append(sub.tip.copy())
-            bb = np.vstack([bb_all[: i + 1], sub.backbone[1:]])
-            gaps = [g for g in low.gaps if g[1] <= i] + [(a + i, b + i) for a, b in sub.gaps]
-            juncs = [j for j in low.junctions if j[0] < i] + [(i, pj, dv)] + [
-                (a + i, b, c) for a, b, c in sub.junctions
-            ]  # fmt: skip
-            alt = TubeTrace(_path_mask(mask, bb, gaps, low.width_px), bb, bb[-1].copy(),
-                            low.entry, gaps, width_px=low.width_px, junctions=juncs)  # fmt: skip
-            alt.crossing_turn_deg = _path_turn(bb, [j[0] for j in juncs], cfg)
-            alt.crossings_followed = _path_through(mask, bb, [j[0] for j in juncs], cfg,
-                                                   low.width_px)  # fmt: skip
-            alt.departure = int(i)
-            out.append(_finish(alt, ctx))
+            # Where the re-trace ends behind its junction (along the heading arriving
+            # there), either the tube turned back there (a bend seen nearly end-on) or it
+            # went on along the trace and came back beside itself (a hook; the way out
+            # and the way back merged into the wide run where the junction was seen).
+            # Both paths are offered, the second the trace out to the hook's apex (its
+            # farthest point along that heading) and the re-trace from its point
+            # nearest the apex on; the second view tells which it sees.
+            apex = _hook_apex(bb_all, i, head, sub.backbone[-1] - pj)
+            splices = [(i, 1, [(i, pj, dv)])]
+            if apex is not None:
+                near = int(np.argmin(np.linalg.norm(sub.backbone - bb_all[apex], axis=1)))
+                splices.append((apex, near, []))
+            for stop, start, first in splices:
+                bb = np.vstack([bb_all[: stop + 1], sub.backbone[start:]])
+                off = stop + 1 - start  # sub's index m is bb's m + off
+                gaps = [g for g in low.gaps if g[1] <= stop]
+                gaps += [(a + off, b + off) for a, b in sub.gaps if a >= start]
+                juncs = [j for j in low.junctions if j[0] < i or (stop > i and j[0] <= stop)]
+                juncs += first + [(a + off, b, c) for a, b, c in sub.junctions if a >= start]
+                alt = TubeTrace(_path_mask(mask, bb, gaps, low.width_px), bb, bb[-1].copy(),
+                                low.entry, gaps, width_px=low.width_px, junctions=juncs)  # fmt: skip
+                alt.crossing_turn_deg = _path_turn(bb, [j[0] for j in juncs], cfg)
+                alt.crossings_followed = _path_through(mask, bb, [j[0] for j in juncs], cfg,
+                                                       low.width_px)  # fmt: skip
+                alt.departure = int(i)
+                out.append(_finish(alt, ctx))
     return out

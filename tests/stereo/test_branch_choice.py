@@ -153,3 +153,37 @@ def test_x_junction_the_other_view_picks_the_tube_not_the_cable():
     assert "+branch" in src and chosen[0] is tr0 and chosen[1] is not tr1
     assert np.linalg.norm(tips[1] - end1) < 2.0, (tips[1], end1)
     np.testing.assert_array_equal(tips[0], tr0.tip)
+
+
+def test_an_alternative_that_comes_back_holds_the_hook():
+    """A tube 7 px wide up from (60, 119) to (60, 25) that hooks round (a half circle of
+    radius 3.5 px: the way back touches the way out) and comes back down, diverging slowly,
+    to (74, 110). The tracer stops at the hook's apex; the re-trace from a junction of the
+    merged run that reaches the way back's end must hold the apex too (the path out and
+    back, :func:`jaxcr.segmentation.foreground.trace_alternatives`; a re-trace alone runs
+    from the junction straight onto the way back, 37 px below the apex, and the other view,
+    which sees the hook, cannot explain that path). Expected, against the drawn geometry:
+    two alternatives ending within 2 px of the way back's drawn end (the bound of the X-
+    junction test; both stories are offered: a bend seen end-on, a hook), one of them
+    with a path that passes within 4.5 px of the hook's apex on the centre line
+    (60 + 3.5, 25 - 3.5): the half width 3.5 px (the tracer re-centres on the merged run
+    of the two tubes, and marches on to the mask's end) plus 1 px for the nearest-pixel
+    sampling and the 2 px steps."""
+    m = np.zeros((120, 160), np.uint8)
+    cv2.line(m, (60, 119), (60, 25), 1, 7)
+    cv2.ellipse(m, (63, 25), (3, 3), 0, 180, 360, 1, 7)
+    cv2.line(m, (67, 25), (74, 110), 1, 7)
+    tr = _traced(m > 0)
+    apex = np.array([63.5, 21.5])
+    assert np.linalg.norm(tr.tip - apex) < 6.0  # the tracer alone stops at the hook
+    d = np.array([7.0, 85.0]) / np.hypot(7.0, 85.0)
+    end = np.array([74.0, 110.0]) + 3.5 * d  # cv2.line's round cap
+    good = [a for a in trace_alternatives(tr) if np.linalg.norm(a.tip - end) < 2.0]
+    assert len(good) == 2  # the re-trace as it is, and out to the apex and back
+
+    def apex_px(bb):
+        t = np.linspace(0.0, 1.0, 11)[:, None]
+        dense = np.concatenate([a + t * (b - a) for a, b in zip(bb[:-1], bb[1:], strict=True)])
+        return float(np.min(np.linalg.norm(dense - apex, axis=1)))
+
+    assert sorted(apex_px(a.backbone) for a in good)[0] < 4.5
