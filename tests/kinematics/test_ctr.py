@@ -40,15 +40,43 @@ with open(os.path.join(HERE, "..", "helpers", "data", "ctr_reference.json")) as 
 TRACES: dict = {}
 
 
-def _forward_cold(model, q):
+def _count_trace(model, q):
     key = (model.n_tubes, model.n_points, model.transmission_torsion, str(q.dtype))
     TRACES[key] = TRACES.get(key, 0) + 1  # runs once per trace, not per call
+
+
+def _forward_cold(model, q):
+    _count_trace(model, q)
     return model.forward(q)
 
 
+def _forward_batch(model, q):
+    # The name and body of jaxcr.synth.generate._forward_batch, which the synthetic scenes
+    # (tests/synth) run on TEST_CTR's tubes at 97 samples for 2 frames: the same program
+    # (the persistent compile cache keys on the lowered program, not on where the function
+    # is defined), so MODEL's cold solve is compiled once in the run, not once here and
+    # once there. The trace counter does not change the program.
+    _count_trace(model, q)
+    return jax.vmap(model.forward)(q)
+
+
 FWD = eqx.filter_jit(_forward_cold)
+_FWD_PAIR = eqx.filter_jit(_forward_batch)
 WARM = eqx.filter_jit(lambda model, q, guess: model.forward(q, guess))
 MODEL = make_test_ctr()
+
+
+def cold_solve(q):
+    """MODEL's cold solve of one q, as the first row of a batch of two (the synthetic
+    scenes' batch shape, above; that vmap equals a loop is test_vmap_equals_loop_and_no_
+    retracing's check, on the warm path). The other models' cold solves (transmission
+    torsion, one tube) are shared with nothing: unbatched (FWD), whose programs are smaller
+    (the batched cold solve of MODEL took ~1.3x the CPU of the unbatched one, 13.5 vs
+    10.4 s in two loaded runs)."""
+    res = _FWD_PAIR(MODEL, jnp.stack([q, q]))
+    return jax.tree.map(lambda a: a[0], res)
+
+
 MODEL_TT = make_test_ctr(transmission_torsion=True)
 N_FINE = 577  # 96 RK4 steps per piece: O(h^2) centreline error ~ 7e-4 mm on TEST_CTR
 
@@ -135,7 +163,7 @@ def test_single_tube_is_closed_form_arc(use_x64):
 def test_equal_rotations_are_piecewise_arcs(alpha):
     beta = np.array([-0.12, -0.08, -0.03])
     q = _q(*beta, alpha, alpha, alpha)
-    res = FWD(MODEL, q)
+    res = cold_solve(q)
     c = res.centreline
     arc = _planar_arcs(_rows(TEST_CTR), beta, alpha)
     want = np.stack([arc(s) for s in np.asarray(c.s, float)])
@@ -191,7 +219,9 @@ def test_reference_tips_float32(transmission_torsion):
     """Cold start (residual scan + Newton, least energy) against the scipy model's minimum."""
     model = MODEL_TT if transmission_torsion else MODEL
     cases = [c for c in REFERENCE if c["transmission_torsion"] == transmission_torsion]
-    err = _tip_errors(lambda q: FWD(model, q), cases, jnp.float32)
+    err = _tip_errors(
+        lambda q: FWD(model, q) if transmission_torsion else cold_solve(q), cases, jnp.float32
+    )
     print(
         f"float32 tt={transmission_torsion} max tip error over {len(cases)} q: {err.max():.2e} mm"
     )
@@ -203,18 +233,22 @@ def test_reference_tips_x64():
     transmission only: one x64 compile; transmission torsion is checked in float32)."""
     transmission_torsion = False
     cases = [c for c in REFERENCE if not c["transmission_torsion"]]
-    states = [np.asarray(FWD(MODEL, jnp.asarray(c["q"], jnp.float32)).state) for c in cases]
+    states = [np.asarray(cold_solve(jnp.asarray(c["q"], jnp.float32)).state) for c in cases]
     model = fine_x64(transmission_torsion)
     with jax.enable_x64(True):
         it = iter(states)
-        err = _tip_errors(lambda q: WARM(model, q, jnp.asarray(next(it), jnp.float64)), cases, None)
+        # the x64 program of the gradient tests below (the warm solve and its tip Jacobian:
+        # one x64 compile for the three tests instead of two)
+        err = _tip_errors(
+            lambda q: TIP_JAC_FK(model, q, jnp.asarray(next(it), jnp.float64))[1], cases, None
+        )
     print(f"x64 tt={transmission_torsion} max tip error over {len(cases)} q: {err.max():.2e} mm")
     assert err.max() < 1e-3
 
 
 def test_transmission_torsion_changes_the_shape():
     case = next(c for c in REFERENCE if c["transmission_torsion"])
-    rigid = FWD(MODEL, jnp.asarray(case["q"], jnp.float32)).centreline.p[-1]
+    rigid = cold_solve(jnp.asarray(case["q"], jnp.float32)).centreline.p[-1]
     assert np.linalg.norm(np.asarray(rigid) - case["tip"]) > 1e-3
 
 
@@ -240,7 +274,7 @@ def test_branches_match_reference_branches():
         assert energies[j] == pytest.approx(br["energy"], rel=1e-4)
         assert np.linalg.norm(tips[j] - br["tip"]) < 5e-5
     # forward returns the least-energy one
-    best = FWD(MODEL, q)
+    best = cold_solve(q)
     assert float(best.energy) == pytest.approx(min(b["energy"] for b in case["branches"]), rel=1e-4)
 
 
@@ -248,7 +282,7 @@ def test_branches_match_reference_branches():
 
 
 def test_total_torsional_moment_is_zero_along_s():
-    res = FWD(MODEL, Q0)
+    res = cold_solve(Q0)
     # compiled: run eagerly, its ~80 operations were compiled one by one
     s, uz = eqx.filter_jit(lambda m, q, x: m.twist_profile(q, x))(MODEL, Q0, res.state)
     GJ = np.asarray(MODEL.mechanics().GJ)
@@ -260,7 +294,7 @@ def test_total_torsional_moment_is_zero_along_s():
 
 
 def test_perturb_centreline_reproduces_forward():
-    c = FWD(MODEL, Q0).centreline
+    c = cold_solve(Q0).centreline
     # compiled (run eagerly, its operations were compiled one by one)
     again = jax.jit(perturb_centreline)(c, jnp.zeros_like(c.u[1:]))
     np.testing.assert_allclose(np.asarray(again.p), np.asarray(c.p), atol=1e-7)
@@ -268,7 +302,7 @@ def test_perturb_centreline_reproduces_forward():
 
 
 def test_frames_and_radius():
-    res = FWD(MODEL, Q0)
+    res = cold_solve(Q0)
     c = res.centreline
     assert c.p.shape == (MODEL.n_points, 3) and c.R.shape == (MODEL.n_points, 3, 3)
     np.testing.assert_allclose(np.asarray(c.p[0]), 0.0)
@@ -332,7 +366,7 @@ def test_joint_limit_violation_is_not_ok_but_finite():
         _q(-0.1, -0.05, 0.01, 0, 0, 0),  # beta_3 > 0
         _q(-0.2, -0.01, -0.005, 0, 0, 0),  # tube 2 extends beyond tube 1
     ):
-        res = FWD(MODEL, q)
+        res = cold_solve(q)
         assert not bool(res.ok)
         assert np.all(np.isfinite(np.asarray(res.centreline.p)))
 
@@ -355,7 +389,7 @@ def test_jit_equals_eager():
 
 def test_vmap_equals_loop_and_no_retracing():
     # every cold solve of MODEL in this file (several q) uses one trace
-    FWD(MODEL, Q0)
+    cold_solve(Q0)
     assert TRACES[(3, MODEL.n_points, False, "float32")] == 1
     qs = jnp.stack(
         [_q(-0.1, -0.05, 0.2, 0.5), _q(-0.05, -0.02, -0.4, -0.1), _q(-0.05, -0.01, 1.0, 1.3)]
@@ -373,10 +407,10 @@ def test_vmap_equals_loop_and_no_retracing():
 
 
 def test_warm_start_needs_fewer_iterations():
-    cold = FWD(MODEL, Q0)
+    cold = cold_solve(Q0)
     q1 = Q0 + _q(-0.002, 0.001, 0.0, 0.02, -0.03, 0.01)
     warm = WARM(MODEL, q1, cold.state)
-    cold1 = FWD(MODEL, q1)
+    cold1 = cold_solve(q1)
     assert bool(warm.ok)
     assert int(warm.num_steps) < int(cold1.num_steps)
     assert int(warm.num_steps) <= MODEL.warm_steps // 2
@@ -385,26 +419,33 @@ def test_warm_start_needs_fewer_iterations():
     )
 
 
-def _tip(model, qq, guess):
-    return model.forward(qq, guess).centreline.p[-1]
+def _tip_jacobian_and_fk(model, q, guess):
+    """d tip / d q (jacfwd through the warm solve's implicit derivative) and the warm solve
+    itself (the primal of the same program): the x64 tests' one program."""
+
+    def tip(qq):
+        res = model.forward(qq, guess)
+        return res.centreline.p[-1], res
+
+    return jax.jacfwd(tip, has_aux=True)(q)
 
 
-TIP_JAC = eqx.filter_jit(jax.jacfwd(_tip, argnums=1))
+TIP_JAC_FK = eqx.filter_jit(_tip_jacobian_and_fk)
 
 
 def test_gradient_matches_finite_differences_x64():
-    state = np.asarray(FWD(MODEL, Q0).state)
+    state = np.asarray(cold_solve(Q0).state)
     with jax.enable_x64(True):
         model = fine_x64()
         q = jnp.asarray(np.asarray(Q0, float))
         guess = jnp.asarray(state, jnp.float64)
-        J = np.asarray(TIP_JAC(model, q, guess))
+        J = np.asarray(TIP_JAC_FK(model, q, guess)[0])
         h = 1e-6
         fd = np.stack(
             [
                 (
-                    np.asarray(WARM(model, q.at[i].add(h), guess).centreline.p[-1])
-                    - np.asarray(WARM(model, q.at[i].add(-h), guess).centreline.p[-1])
+                    np.asarray(TIP_JAC_FK(model, q.at[i].add(h), guess)[1].centreline.p[-1])
+                    - np.asarray(TIP_JAC_FK(model, q.at[i].add(-h), guess)[1].centreline.p[-1])
                 )
                 / (2 * h)
                 for i in range(6)
@@ -426,9 +467,9 @@ def test_gradient_finite_at_straight_and_aligned():
         for model, q in ((curved, q_aligned), (straight, q_aligned), (straight, np.asarray(Q0))):
             q = jnp.asarray(q, jnp.float64)
             guess = q[4:] - q[3]
-            J = TIP_JAC(model, q, guess)
+            J, res = TIP_JAC_FK(model, q, guess)
             assert np.all(np.isfinite(np.asarray(J))), (model.kappa, q)
-            assert bool(WARM(model, q, guess).ok)
+            assert bool(res.ok)
 
 
 # ------------------------------------------------------------------ robot description

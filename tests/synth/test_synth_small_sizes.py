@@ -130,12 +130,16 @@ def test_generate_stereo_set_refuses_before_writing(tmp_path):
 def test_jaxcr_synth_tiny_size_works(tmp_path):
     """The Watson presets render at 32x24 (their camera intrinsics scale with the size)."""
     out = tmp_path / "ds"
-    argv = ["synth", "--preset", "orthogonal_occluded", "--frames", "1", "--size", "32x24"]
+    # 2 frames, as tests/synth/test_synth.py renders this preset: the same batch shape of
+    # the forward kinematics and model-error programs, loaded from the run's cache instead
+    # of compiled again for one frame
+    argv = ["synth", "--preset", "orthogonal_occluded", "--frames", "2", "--size", "32x24"]
     assert main([*argv, "--quiet", "-o", str(out)]) == 0
     meta = json.loads((out / "dataset.json").read_text())
-    assert len(meta["frames"]) == 1
-    for rel in meta["frames"][0]["images"].values():
-        assert cv2.imread(str(out / rel)).shape[:2] == (24, 32)
+    assert len(meta["frames"]) == 2
+    for frame in meta["frames"]:
+        for rel in frame["images"].values():
+            assert cv2.imread(str(out / rel)).shape[:2] == (24, 32)
 
 
 def test_jaxcr_synth_refuses_a_too_small_size(tmp_path, capsys):
