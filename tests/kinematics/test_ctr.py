@@ -50,8 +50,8 @@ def _forward_cold(model, q):
     return model.forward(q)
 
 
-def _forward_batch(model, q):
-    # The name and body of jaxcr.synth.generate._forward_batch, which the synthetic scenes
+def forward_batch(model, q):
+    # The name and body of jaxcr.kinematics.batch.forward_batch, which the synthetic scenes
     # (tests/synth) run on TEST_CTR's tubes at 97 samples for 2 frames: the same program
     # (the persistent compile cache keys on the lowered program, not on where the function
     # is defined), so MODEL's cold solve is compiled once in the run, not once here and
@@ -61,7 +61,7 @@ def _forward_batch(model, q):
 
 
 FWD = eqx.filter_jit(_forward_cold)
-_FWD_PAIR = eqx.filter_jit(_forward_batch)
+_FWD_PAIR = eqx.filter_jit(forward_batch)
 WARM = eqx.filter_jit(lambda model, q, guess: model.forward(q, guess))
 MODEL = make_test_ctr()
 
