@@ -27,12 +27,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxcr.camera import camera_from_arrays
 from jaxcr.errors import InputError
+from jaxcr.kinematics.batch import forward_batch
 from jaxcr.kinematics.single_segment import SingleSegment
 from jaxcr.synth.occluders import laparoscopic_instrument
 from jaxcr.synth.raycast import ray_capsule
@@ -121,9 +121,6 @@ class RobotParts:
     cap_a: np.ndarray
     cap_b: np.ndarray
     cap_r: np.ndarray
-
-
-_fk = jax.jit(jax.vmap(lambda m, q: m.forward(q).centreline, in_axes=(None, 0)))
 
 
 def robot_parts(p: np.ndarray, R: np.ndarray, s: np.ndarray) -> RobotParts:
@@ -381,7 +378,7 @@ def generate_irep(
     # bucket, not per frame count (bit-identical rows: checked for 4 and 14 frames)
     n_pad = -(-len(q) // 16) * 16
     qp = np.concatenate([q, np.repeat(q[-1:], n_pad - len(q), 0)])
-    cl = _fk(model, jnp.asarray(qp, jnp.float32))
+    cl = forward_batch(model, jnp.asarray(qp, jnp.float32)).centreline
     P, Rs, S = (np.asarray(a, np.float64)[: len(q)] for a in (cl.p, cl.R, cl.s))
     tool_rng = _rng(seed, split, _STREAM_TOOL)
     noise_rng = _rng(seed, split, _STREAM_NOISE)
