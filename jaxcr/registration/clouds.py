@@ -172,6 +172,38 @@ def plane_points(
     return np.where(valid[..., None], out, 0.0)
 
 
+def plane_residual_variance(
+    P: np.ndarray, normals: np.ndarray, valid: np.ndarray, window: int = 7
+) -> np.ndarray:
+    """Variance (H, W) (m^2) of the valid points of each pixel's ``window`` box about the
+    plane through their mean with the pixel's unit normal, ``n^T C n`` with ``C`` the
+    points' covariance: the local plane fit's residual, about sigma_z^2 (n . r)^2 (depth
+    noise along the normal, r the ray scaled to z = 1) on a plane, more where the window
+    straddles a crease or a curved patch (the fit's model error). 0 where ``normals`` or
+    the window mean is invalid. ``P``: camera-frame points of :func:`organised_cloud`."""
+    import cv2
+
+    P = np.asarray(P, np.float64)
+    valid = np.asarray(valid, bool)
+    X = np.where(valid[..., None], P, 0.0)
+    m = smooth_points(X, valid, window)
+    box = (window, window)
+    cnt = cv2.boxFilter(
+        valid.astype(np.float64), -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT
+    )
+    n = np.asarray(normals, np.float64)
+    var = np.zeros(P.shape[:2])
+    for a in range(3):
+        for b in range(a, 3):
+            s = cv2.boxFilter(
+                X[..., a] * X[..., b], -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT
+            )
+            c = s / np.maximum(cnt, 1.0) - m[..., a] * m[..., b]
+            var += (1.0 if a == b else 2.0) * n[..., a] * n[..., b] * c
+    ok = valid & np.all(np.isfinite(m), -1)
+    return np.where(ok, np.maximum(var, 0.0), 0.0)
+
+
 def depth_scaled_window(
     z: np.ndarray, focal: float, footprint: float, smallest: int = 3, largest: int = 7
 ) -> np.ndarray:

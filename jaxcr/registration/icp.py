@@ -69,6 +69,31 @@ class IcpConfig(eqx.Module):
     # The coarse stage's convergence tolerances are ``tol_*`` times this: its pose is only
     # the fine stage's start, and a sparser sample's step-to-step jitter is larger.
     coarse_tol_factor: float = eqx.field(static=True, default=1.0)
+    # Errors-in-variables weight of the point-to-plane pairs (projective association only,
+    # :func:`jaxcr.registration.projective.noise_weights`): "none" (the paper's weights), or
+    # each pair's paper weight times 1 / sigma_n^2, sigma_n^2 the variance of its
+    # point-to-plane residual from both points' depth noise along the target normal and the
+    # target normal's own error ("sensor"), plus the excess of the target's local plane
+    # fit residual over the sensor noise, i.e. the fit's model error at creases and on
+    # curved patches ("sensor+fit"); normalised so the total weight is unchanged (equal
+    # variances give the paper's weights exactly).
+    noise_weight: str = eqx.field(static=True, default="none")
+    # The depth sensor's axial noise sigma_z(z) = depth_sigma0 + depth_sigma2 (z - depth_z0)^2
+    # (m; z in m). Default: the Kinect structured-light model of Nguyen, Izadi & Lovell
+    # (3DIMPVT 2012; measured at 10-60 deg incidence); a scene that declares its sensor
+    # (``depth_noise`` of a jaxcr.rgbd_scene/1 file) replaces it
+    # (:func:`jaxcr.registration.pipeline.PipelineConfig.with_sensor`).
+    depth_sigma0: float = eqx.field(static=True, default=0.0012)
+    depth_sigma2: float = eqx.field(static=True, default=0.0019)
+    depth_z0: float = eqx.field(static=True, default=0.4)
+    # Standard deviation of the source positions' depth error as a fraction of sigma_z: 1 for
+    # raw back-projections, 0.2 for the denoised positions of a 7-pixel plane fit
+    # (:func:`jaxcr.registration.clouds.plane_points`: about sigma / window x 1.4).
+    source_noise_factor: float = eqx.field(static=True, default=1.0)
+    # Target normal error (rad) per unit of sigma_z f / z (pixel pitch z / f): the normals of
+    # :func:`jaxcr.registration.clouds.organised_cloud` (7 x 7 box mean differenced over
+    # +-2 px) tilt by sqrt(2 x 28) / 49 sigma_z over 4 pixel pitches, 0.153 / 4 = 0.038.
+    normal_noise_gain: float = eqx.field(static=True, default=0.038)
 
 
 DEFAULT_ICP = IcpConfig(

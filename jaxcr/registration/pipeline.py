@@ -207,6 +207,44 @@ class PipelineConfig:
     # modelling, dev Task 1 seeds 0-4, worst pose 1.99 -> 1.91 mm
     # (model_object_dev_t1_crop16_reg25.md). 32 px measured too: less of the saving.
     keypoint_crop: int | None = 16
+    # Errors-in-variables weight of the registrations' point-to-plane pairs
+    # (``IcpConfig.noise_weight``: "none", "sensor" or "sensor+fit"). The source positions'
+    # noise factor follows ``geometric_points`` (raw 1, denoised 0.2).
+    noise_weight: str = "none"
+    # The sensor's depth noise model (sigma0, sigma2, z0) (m, 1/m, m) of that weight:
+    # sigma_z(z) = sigma0 + sigma2 (z - z0)^2; None: ``icp``'s (Nguyen et al. 2012, Kinect).
+    # :func:`build_model` takes the one the scene declares (:meth:`with_sensor`).
+    depth_noise: tuple[float, float, float] | None = None
+
+    def with_sensor(self, depth_noise: dict | None) -> PipelineConfig:
+        """This configuration with the depth-noise model of a scene's ``depth_noise``
+        declaration (keys ``sigma0``, ``sigma2``, ``z0``; missing keys keep the defaults);
+        None or empty: as is."""
+        if not depth_noise:
+            return self
+        icp = self.icp
+        model = (
+            float(depth_noise.get("sigma0", icp.depth_sigma0)),
+            float(depth_noise.get("sigma2", icp.depth_sigma2)),
+            float(depth_noise.get("z0", icp.depth_z0)),
+        )
+        return dataclasses.replace(self, depth_noise=model)
+
+    def icp_config(self) -> IcpConfig:
+        """The ICP settings of this configuration's registrations: ``icp``, with
+        ``noise_weight`` on it the depth-noise model and the source noise factor of
+        ``geometric_points`` (off: ``icp`` itself, so the programs compiled stay the same)."""
+        if self.noise_weight == "none":
+            return self.icp
+        kw = {}
+        if self.depth_noise is not None:
+            kw = dict(zip(("depth_sigma0", "depth_sigma2", "depth_z0"), self.depth_noise))
+        return dataclasses.replace(
+            self.icp,
+            noise_weight=self.noise_weight,
+            source_noise_factor=1.0 if self.geometric_points == "raw" else 0.2,
+            **kw,
+        )
 
     def register(self, src, tgt, K, prior, seed: int, prior_gate=None) -> PairResult:
         """:func:`register_pair` with this configuration's ICP, keypoint and colour options."""
@@ -216,7 +254,7 @@ class PipelineConfig:
             K,
             prior=prior,
             prior_gate=prior_gate,
-            cfg=self.icp,
+            cfg=self.icp_config(),
             asift=self.asift,
             min_fitness=self.min_fitness,
             association=self.association,
@@ -456,6 +494,7 @@ def build_model(
     sim, cfg: PipelineConfig = PipelineConfig(), progress=None, seed: int = 0
 ) -> ModelResult:
     """Run every winding direction of the scene, then close the loop and optimise."""
+    cfg = cfg.with_sensor(sim.cfg.get("depth_noise"))
     runs = [
         run_direction(sim, r, cfg, progress, seed=seed + 100 * k)
         for k, r in enumerate(sim.cfg["runs"])

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcr._types import Array, Bool, Float, Mat4
+from jaxcr.registration.clouds import plane_residual_variance
 from jaxcr.registration.icp import (
     DEFAULT_ICP,
     CloudArrays,
@@ -54,6 +55,10 @@ class DepthImage(NamedTuple):
     gradient: Float[Array, "h w 2"]  # its d/du, d/dv (central differences, per pixel)
     chroma: Float[Array, "h w 2"]  # chromaticity r, g = (R, G) / (R + G + B), smoothed (1 px)
     chroma_gradient: Float[Array, "h w 2 2"]  # d/du, d/dv of each chromaticity channel
+    # Variance of each pixel's 7 x 7 window about its tangent plane (m^2,
+    # :func:`jaxcr.registration.clouds.plane_residual_variance`; the "sensor+fit" noise
+    # weight); None: not computed.
+    plane_var: Float[Array, "h w"] | None = None
 
 
 def _smooth_and_gradient(img: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
@@ -87,6 +92,7 @@ def depth_image(P, C, N, ok, K, blur: float = 1.0) -> DepthImage:
     ism, grad = _smooth_and_gradient(np.asarray(C, f).mean(-1), blur)
     ch = chromaticity(C)
     cs, cg = zip(*(_smooth_and_gradient(ch[..., k], blur) for k in range(2)), strict=True)
+    pv = plane_residual_variance(P, N, ok)
     return DepthImage(
         jnp.asarray(np.where(ok[..., None], P, 0.0), f),
         jnp.asarray(C, f),
@@ -97,6 +103,7 @@ def depth_image(P, C, N, ok, K, blur: float = 1.0) -> DepthImage:
         jnp.asarray(grad, f),
         jnp.asarray(np.stack(cs, -1), f),
         jnp.asarray(np.stack(cg, -2), f),
+        jnp.asarray(pv, f),
     )
 
 
@@ -305,6 +312,11 @@ def projective_correspondences(
 
 
 def _matches(T, src: CloudArrays, tgt: DepthImage, radius, cfg: IcpConfig, window: int):
+    return _matches_indexed(T, src, tgt, radius, cfg, window)[:6]
+
+
+def _matches_indexed(T, src: CloudArrays, tgt: DepthImage, radius, cfg: IcpConfig, window: int):
+    """:func:`_matches` plus the flat target pixel index of each pair."""
     R, t = T[:3, :3], T[:3, 3]
     ps, ns = src.points @ R.T + t, src.normals @ R.T
     j, found = projective_correspondences(ps, src.colours, tgt, window, cfg.colour_scale)
@@ -312,7 +324,54 @@ def _matches(T, src: CloudArrays, tgt: DepthImage, radius, cfg: IcpConfig, windo
     nq = tgt.normals.reshape(-1, 3)[j]
     cq = tgt.colours.reshape(-1, 3)[j]
     w, pl, keep = pair_weights(ps, ns, src.colours, q, nq, cq, src.mask & found, radius, cfg)
-    return ps, q, nq, w, pl, keep
+    return ps, q, nq, w, pl, keep, j
+
+
+def depth_sigma(z, cfg: IcpConfig):
+    """Axial depth noise (m) of the sensor model in ``cfg`` at depth ``z`` (m)."""
+    return cfg.depth_sigma0 + cfg.depth_sigma2 * (z - cfg.depth_z0) ** 2
+
+
+def residual_variance(T, src_points, ps, q, nq, plane_var, f, cfg: IcpConfig):
+    """Variance (m^2) of each pair's point-to-plane residual ``n . (p - q)`` (errors in
+    variables): the target point's depth noise along its ray, ``sigma_z(z_q) n . q / z_q``,
+    the source point's, ``source_noise_factor sigma_z(z_s) n . R p_s / z_s`` (``src_points``
+    p_s in the source frame), the target normal's error ``normal_noise_gain sigma_z(z_q)
+    f / z_q`` (rad; ``f`` the focal length in pixels) times the pair's offset in the
+    tangent plane, and with ``cfg.noise_weight == "sensor+fit"`` the excess of the
+    target's plane-fit residual variance ``plane_var`` (per pair) over its noise term."""
+    zq = jnp.maximum(q[:, 2], 1e-3)
+    zs = jnp.maximum(src_points[:, 2], 1e-3)
+    st, ss = depth_sigma(zq, cfg), cfg.source_noise_factor * depth_sigma(zs, cfg)
+    ct = jnp.sum(nq * q, -1) / zq
+    cs = jnp.sum(nq * ((ps - T[:3, 3]) / zs[:, None]), -1)
+    d = ps - q
+    tan2 = jnp.sum(d**2, -1) - jnp.sum(d * nq, -1) ** 2
+    sn = cfg.normal_noise_gain * st * f / zq
+    var = (st * ct) ** 2 + (ss * cs) ** 2 + sn**2 * jnp.maximum(tan2, 0.0)
+    if cfg.noise_weight == "sensor+fit":
+        var = var + jnp.maximum(plane_var - (st * ct) ** 2, 0.0)
+    return var
+
+
+def noise_weights(T, src_points, ps, q, nq, w, j, tgt: DepthImage, cfg: IcpConfig):
+    """The pair weights ``w`` of the geometric term with ``cfg.noise_weight`` applied: each
+    times 1 / (its :func:`residual_variance`), rescaled so that ``sum(w)`` is unchanged
+    (the balance against the keypoint and colour terms stays; equal variances give ``w``).
+    ``"none"``: ``w``. ``j``: the flat target pixel of each pair."""
+    if cfg.noise_weight == "none":
+        return w
+    if cfg.noise_weight not in ("sensor", "sensor+fit"):
+        raise ValueError(
+            f"noise_weight must be 'none', 'sensor' or 'sensor+fit', got {cfg.noise_weight!r}"
+        )
+    if tgt.plane_var is None and cfg.noise_weight == "sensor+fit":
+        raise ValueError("noise_weight 'sensor+fit' needs DepthImage.plane_var")
+    pv = 0.0 if tgt.plane_var is None else tgt.plane_var.reshape(-1)[j]
+    f = jnp.sqrt(jnp.abs(tgt.K[0, 0] * tgt.K[1, 1]))
+    var = residual_variance(T, src_points, ps, q, nq, pv, f, cfg)
+    wn = w / jnp.maximum(var, 1e-14)
+    return wn * (jnp.sum(w) / jnp.maximum(jnp.sum(wn), 1e-30))
 
 
 def projective_icp_step(
@@ -331,11 +390,12 @@ def projective_icp_step(
     term when the source values ``i_src`` (n, c) of the photometric ``channels`` are
     given, evaluated at ``photo_points`` (n, 3) (source frame) if given, else at the source
     points); returns the new ``T``."""
-    ps, q, nq, w, pl, keep = _matches(T, src, tgt, radius, cfg, window)
+    ps, q, nq, w, pl, keep, j = _matches_indexed(T, src, tgt, radius, cfg, window)
     extra = None
     if i_src is not None:
         pp = ps if photo_points is None else photo_points @ T[:3, :3].T + T[:3, 3]
         extra = photometric_terms(pp, i_src, tgt, w, pl, keep, channels)
+    w = noise_weights(T, src.points, ps, q, nq, w, j, tgt, cfg)
     return gauss_newton_update(T, ps, q, nq, w, pl, cfg, kp, extra)
 
 
@@ -518,13 +578,14 @@ def projective_information(
     weight of registrations of different overlap and texture in a pose graph. Pure,
     jit-able."""
     kp = no_keypoints() if kp is None else kp
-    ps, q, nq, w, pl, keep = _matches(T, src, tgt, cfg.min_dist, cfg, window)
+    ps, q, nq, w, pl, keep, j = _matches_indexed(T, src, tgt, cfg.min_dist, cfg, window)
     extra = None
     if src_image is not None:
         u, v, _ = project(src.points, src_image.K)
         i_src, _ = bilinear(photometric_channels(src_image, photometric)[0], u, v)
         pp = ps if photo_points is None else photo_points @ T[:3, :3].T + T[:3, 3]
         extra = photometric_terms(pp, i_src, tgt, w, pl, keep, photometric)
+    w = noise_weights(T, src.points, ps, q, nq, w, j, tgt, cfg)
     H, _ = normal_equations(T, ps, q, nq, w, pl, cfg, kp, extra)
     s2 = jnp.sum(w * pl**2) / jnp.maximum(jnp.sum(w), 1e-30)
     s2 = jnp.maximum(s2, 1e-12)

@@ -333,3 +333,165 @@ def test_coarse_to_fine_icp_equals_fixed_schedule(scene, icp_runs):
     r, t = pose_error(np.asarray(T, np.float64), scene["T"])
     assert r < 0.05 and t < 3e-4, (r, t)
     assert int(n1) >= 1 and 1 <= int(n2) and int(n1) + int(n2) <= 25
+
+
+# ---- errors-in-variables weight (IcpConfig.noise_weight; issue 17 item 10) ----
+
+EIV = IcpConfig(
+    iterations=25, max_dist=0.03, min_dist=0.004, keypoint_weight=0.0, noise_weight="sensor+fit"
+)
+
+
+def _slow_eiv_step(T, src, tgt, pv, j, keep, w_paper, cfg):
+    """float64 per-pair loop: residual variance of each accepted pair (target and source
+    depth noise along the target normal, the normal's error times the tangential offset, the
+    plane fit's excess), weights w / var rescaled to sum(w), the point-to-plane normal
+    equations and the damped Gauss-Newton step of icp.gauss_newton_update."""
+    R, t = T[:3, :3], T[:3, 3]
+    P = np.asarray(tgt.points, np.float64).reshape(-1, 3)
+    Nn = np.asarray(tgt.normals, np.float64).reshape(-1, 3)
+    f = np.sqrt(K[0, 0] * K[1, 1])
+
+    def sig(z):
+        return cfg.depth_sigma0 + cfg.depth_sigma2 * (z - cfg.depth_z0) ** 2
+
+    wn = np.zeros(len(j))
+    rows = []
+    for i in range(len(j)):
+        if not keep[i]:
+            continue
+        p_s = np.asarray(src.points[i], np.float64)
+        p = R @ p_s + t
+        q, n = P[j[i]], Nn[j[i]]
+        st, ss = sig(q[2]), cfg.source_noise_factor * sig(p_s[2])
+        var = (st * (n @ q) / q[2]) ** 2 + (ss * (n @ (R @ p_s)) / p_s[2]) ** 2
+        d = p - q
+        var += (cfg.normal_noise_gain * st * f / q[2]) ** 2 * (d @ d - (d @ n) ** 2)
+        var += max(pv[j[i]] - (st * (n @ q) / q[2]) ** 2, 0.0)
+        wn[i] = w_paper[i] / var
+        rows.append((i, np.concatenate([n, np.cross(p, n)]), n @ d))
+    wn *= w_paper.sum() / wn.sum()
+    H, g = np.zeros((6, 6)), np.zeros(6)
+    for i, J, r in rows:
+        H += wn[i] * np.outer(J, J)
+        g += wn[i] * J * r
+    Hd = H + cfg.damping * np.trace(H) / 6 * np.eye(6)
+    delta = -np.linalg.solve(Hd, g)
+    # first-order bound of the step's change per unit relative error of every weight:
+    # |d delta| <= |Hd^-1| sum_i w_i |J_i| |r_i + J_i . delta|
+    s = sum(wn[i] * np.abs(J) * abs(r + J @ delta) for i, J, r in rows)
+    return wn, delta, np.abs(np.linalg.inv(Hd)) @ s
+
+
+def test_noise_weighted_step_matches_slow_loop(scene):
+    from jaxcr.registration.icp import no_keypoints
+    from jaxcr.registration.projective import (
+        _matches_indexed,
+        noise_weights,
+        projective_icp_step,
+    )
+
+    src = scene["src"]
+    rng = np.random.default_rng(29)
+    # a plane-fit variance map with an excess over the sensor term on part of the pixels
+    pv = rng.uniform(0.0, 6e-6, H * W) * (rng.random(H * W) < 0.5)
+    tgt = scene["tgt"]._replace(plane_var=jnp.asarray(pv.reshape(H, W), jnp.float32))
+    T = jnp.asarray(_T([0.004, -0.003, 0.002], [0.002, -0.001, 0.003]) @ scene["T"], jnp.float32)
+    ps, q, nq, w, pl, keep, j = jax.jit(_matches_indexed, static_argnums=(4, 5))(
+        T, src, tgt, 0.01, EIV, 0
+    )
+    wj = jax.jit(noise_weights, static_argnums=(8,))(T, src.points, ps, q, nq, w, j, tgt, EIV)
+    T1 = jax.jit(projective_icp_step, static_argnums=(4, 6))(
+        T, 0.01, src, tgt, EIV, no_keypoints(), 0
+    )
+    Tn = np.asarray(T, np.float64)
+    pv32 = np.asarray(tgt.plane_var, np.float64).reshape(-1)
+    keep = np.asarray(keep)
+    w_ref, delta, sens = _slow_eiv_step(
+        Tn, src, tgt, pv32, np.asarray(j), keep, np.asarray(w, np.float64), EIV
+    )
+    assert keep.sum() > 1000
+    wj = np.asarray(wj, np.float64)
+    ratio = w_ref[keep] / np.asarray(w, np.float64)[keep]
+    assert ratio.max() > 2 * ratio.min()  # the weights do vary
+    # float32: each variance is a sum of a few products (~10 eps relative); the rescale
+    # sums ~1500 terms, bounded by n eps = 1500 x 1.2e-7 = 1.8e-4 relative: 3e-4.
+    np.testing.assert_allclose(wj[keep], w_ref[keep], rtol=3e-4)
+    assert np.all(wj[~keep] == 0.0)
+    # the step (v, w) of T1 = [exp(w), v] T: the weights' 3e-4 relative error (above; the
+    # float32 sums of H and g are bounded alike) moves it by at most 3e-4 x the first-order
+    # sensitivity `sens`, x2 margin; + 1e-6 for the float32 entries of T and T1 (~1e-7).
+    dT = np.asarray(T1, np.float64) @ np.linalg.inv(Tn)
+    got = np.concatenate([dT[:3, 3], Rotation.from_matrix(dT[:3, :3]).as_rotvec()])
+    tol = 6e-4 * sens + 1e-6
+    np.testing.assert_array_less(np.abs(got - delta), tol)
+    assert np.all(tol < 0.2 * np.abs(delta))  # the check resolves every component
+
+
+def test_noise_weight_with_equal_variances_is_the_paper_weight():
+    # A fronto-parallel plane (n . q / z = -1 at every pixel), a constant sensor noise and
+    # no source or normal terms: every pair has the same variance, so the weights are the
+    # paper's after the rescale to the same sum, and the step is today's. Tolerance: the
+    # rescale's float32 sums (n eps ~ 1e-3 relative for ~7000 pairs at worst) times the
+    # step (~3 mm) -> 3e-6 m; association flips at exact half pixels move it by less.
+    from jaxcr.registration.icp import no_keypoints
+    from jaxcr.registration.projective import projective_icp_step
+
+    src, tgt, src_img, _ = shifted_pair(_plane_view, K, 0.003)
+    tgt = tgt._replace(plane_var=jnp.zeros(tgt.mask.shape, jnp.float32))
+    T0 = jnp.asarray(_T([0.01, -0.02, 0.0], [0.0, 0.0, 0.003]), jnp.float32)
+    base = IcpConfig(iterations=25, max_dist=0.03, min_dist=0.004, keypoint_weight=0.0)
+    flat = IcpConfig(
+        iterations=25, max_dist=0.03, min_dist=0.004, keypoint_weight=0.0,
+        noise_weight="sensor", depth_sigma2=0.0, source_noise_factor=0.0, normal_noise_gain=0.0,
+    )  # fmt: skip
+    step = jax.jit(projective_icp_step, static_argnums=(4, 6))
+    a = step(T0, 0.02, src, tgt, base, no_keypoints(), 0)
+    b = step(T0, 0.02, src, tgt, flat, no_keypoints(), 0)
+    assert np.abs(np.asarray(a) - np.asarray(T0)).max() > 1e-3  # a real step
+    np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=3e-6)
+
+
+def test_plane_residual_variance_matches_window_covariance():
+    # against numpy's covariance of each window's points (population, ddof 0)
+    from jaxcr.registration.clouds import plane_residual_variance
+
+    rng = np.random.default_rng(3)
+    depth, rgb = _render()
+    depth = depth + rng.normal(0, 0.001, depth.shape)
+    P, _, N, ok = organised_cloud(rgb, depth, K)
+    pv = plane_residual_variance(P, N, ok)
+    for v, u in [(20, 30), (40, 50), (10, 80), (60, 12)]:
+        win = P[v - 3 : v + 4, u - 3 : u + 4].reshape(-1, 3)[
+            ok[v - 3 : v + 4, u - 3 : u + 4].ravel()
+        ]
+        ref = N[v, u] @ np.cov(win.T, ddof=0) @ N[v, u]
+        np.testing.assert_allclose(pv[v, u], ref, rtol=1e-6)  # float64 both ways
+    # a noisy plane's residual is about sigma^2 (n . r)^2 (here 1 mm, near-frontal)
+    assert 0.5e-6 < np.median(pv[ok]) < 2e-6
+    assert np.all(pv[~ok] == 0.0)
+
+
+def test_noise_weight_options_are_checked():
+    from jaxcr.registration.pipeline import PipelineConfig
+    from jaxcr.registration.projective import noise_weights
+
+    z = jnp.zeros((4, 3))
+    src, tgt, _, _ = shifted_pair(_plane_view, K, 0.003)
+    with pytest.raises(ValueError, match="noise_weight must be"):
+        noise_weights(
+            jnp.eye(4), z, z, z, z, jnp.ones(4), jnp.zeros(4, int), tgt,
+            IcpConfig(noise_weight="eiv"),
+        )  # fmt: skip
+    cfg = PipelineConfig(noise_weight="sensor").with_sensor({"sigma0": 0.002, "z0": 0.5})
+    icp = cfg.icp_config()
+    assert (icp.noise_weight, icp.depth_sigma0, icp.depth_sigma2, icp.depth_z0) == (
+        "sensor",
+        0.002,
+        PipelineConfig().icp.depth_sigma2,
+        0.5,
+    )
+    assert icp.source_noise_factor == 0.2  # denoised source positions
+    assert PipelineConfig(geometric_points="raw", noise_weight="sensor").icp_config(
+    ).source_noise_factor == 1.0  # fmt: skip
+    assert PipelineConfig().icp_config() is PipelineConfig().icp  # default: unchanged
