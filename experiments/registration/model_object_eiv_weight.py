@@ -219,7 +219,41 @@ def report(recs: list[dict], out: Path, name: str, cmd: str, selected=()) -> Non
                 )
     md += [
         "",
-        "## 2. Worst view per run (mm), per variant",
+        f"## 2. Paired change against '{variants[0]}' (same views), mm: mean +- standard error "
+        "(n views), and of the worst view per run",
+        "",
+        "| group | task | variant | far views | all views | worst per run |",
+        "|---|---|---|---|---|---|",
+    ]
+
+    def paired(a, b):
+        d = np.asarray(b, float) - np.asarray(a, float)
+        d = d[np.isfinite(d)]
+        if len(d) < 2:
+            return "-"
+        return f"{d.mean():+.3f} +- {d.std(ddof=1) / np.sqrt(len(d)):.3f} ({len(d)})"
+
+    for g in ("dev", "used fresh", "used fresh, selected by error"):
+        for task in sorted({c[0] for c in cases}):
+            cs = [c for c in cases if c[0] == task and group(c[1]) == g]
+            if not cs:
+                continue
+            ok = [c for c in cs if not any(by[(*c, v)].get("failed") for v in variants)]
+            for v in variants[1:]:
+                cols = []
+                for sel in (lambda x: x["far"], lambda x: True):
+                    a = [x["mm"] for c in ok for x in by[(*c, variants[0])]["views"] if sel(x)]
+                    b = [x["mm"] for c in ok for x in by[(*c, v)]["views"] if sel(x)]
+                    cols.append(paired(a, b))
+                cols.append(
+                    paired(
+                        [worst(by[(*c, variants[0])]) for c in ok], [worst(by[(*c, v)]) for c in ok]
+                    )
+                )
+                md.append(f"| {g} | {task} | {v} | " + " | ".join(cols) + " |")
+    md += [
+        "",
+        "## 3. Worst view per run (mm), per variant",
         "",
         "| group | task | seed | " + " | ".join(variants) + " |",
         "|---|---|---|" + "---|" * len(variants),

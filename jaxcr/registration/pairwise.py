@@ -83,12 +83,15 @@ def make_frame(
     label: str = "",
     sample_size: int = 4096,
     plane_footprint: float | None = None,
+    plane_var: bool = False,
 ) -> Frame:
     """Build a :class:`Frame` (raises :class:`jaxcr.errors.InputError` for an all-invalid
     depth image). ``size``: padded voxel cloud; ``sample_size``: padded random sample of
     the full-resolution pixels (the projective ICP source); ``plane_footprint`` (m): the
     denoised positions' plane fit spans this much of the surface at every depth
-    (:func:`jaxcr.registration.clouds.plane_points_scaled`), None: a fixed 7-pixel window."""
+    (:func:`jaxcr.registration.clouds.plane_points_scaled`), None: a fixed 7-pixel window;
+    ``plane_var``: the organised view's plane-fit residual variance too
+    (:func:`jaxcr.registration.projective.depth_image`)."""
     P, C, N, ok = organised_cloud(rgb, depth, K, frame=label or None)
     full = Cloud(P[ok], C[ok], N[ok])
     down = voxel_downsample(full, voxel)
@@ -102,7 +105,7 @@ def make_frame(
         focal = float(np.sqrt(abs(K[0][0] * K[1][1])))
         Pd = plane_points_scaled(P, N, ok, focal, plane_footprint)
     plane = pad_cloud(Cloud(Pd[ok], C[ok], N[ok]), sample_size, rng_sample)[0]
-    image = depth_image(P, C, N, ok, K)
+    image = depth_image(P, C, N, ok, K, plane_var=plane_var)
     return Frame(
         np.asarray(rgb), np.asarray(depth), full, arrays, label, image, sample, jnp.asarray(plane)
     )

@@ -238,7 +238,8 @@ class PipelineConfig:
             return self.icp
         kw = {}
         if self.depth_noise is not None:
-            kw = dict(zip(("depth_sigma0", "depth_sigma2", "depth_z0"), self.depth_noise))
+            names = ("depth_sigma0", "depth_sigma2", "depth_z0")
+            kw = dict(zip(names, self.depth_noise, strict=True))
         return dataclasses.replace(
             self.icp,
             noise_weight=self.noise_weight,
@@ -283,6 +284,7 @@ def capture_frame(rgb, depth, K, cfg: PipelineConfig, seed: int, label: str):
         label=label,
         sample_size=cfg.sample_size,
         plane_footprint=cfg.plane_footprint,
+        plane_var=cfg.noise_weight == "sensor+fit",
     )
 
 

@@ -483,6 +483,9 @@ def test_noise_weight_options_are_checked():
             jnp.eye(4), z, z, z, z, jnp.ones(4), jnp.zeros(4, int), tgt,
             IcpConfig(noise_weight="eiv"),
         )  # fmt: skip
+    assert tgt.plane_var is None  # computed on request only
+    with pytest.raises(ValueError, match="needs the target's plane_var"):
+        noise_weights(jnp.eye(4), z, z, z, z, jnp.ones(4), jnp.zeros(4, int), tgt, EIV)
     cfg = PipelineConfig(noise_weight="sensor").with_sensor({"sigma0": 0.002, "z0": 0.5})
     icp = cfg.icp_config()
     assert (icp.noise_weight, icp.depth_sigma0, icp.depth_sigma2, icp.depth_z0) == (
