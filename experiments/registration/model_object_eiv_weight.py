@@ -163,7 +163,11 @@ def report(recs: list[dict], out: Path, name: str, cmd: str, selected=()) -> Non
     variants = [v for v in VARIANTS if any(r["variant"] == v for r in recs)]
     by = {(r["task"], r["seed"], r["variant"]): r for r in recs}
     cases = sorted({(r["task"], r["seed"]) for r in recs}, key=lambda c: (c[0], c[1]))
-    cases = [c for c in cases if all((c[0], c[1], v) in by for v in variants)]
+    cases = [c for c in cases if (c[0], c[1], variants[0]) in by]
+
+    def present(cs):
+        """The variants run on every case of ``cs``."""
+        return [v for v in variants if all((t, s, v) in by for t, s in cs)]
 
     def group(seed: int) -> str:
         if seed < 100:
@@ -196,7 +200,7 @@ def report(recs: list[dict], out: Path, name: str, cmd: str, selected=()) -> Non
             cs = [c for c in cases if c[0] == task and group(c[1]) == g]
             if not cs:
                 continue
-            for v in variants:
+            for v in present(cs):
                 rows = [by[(t, s, v)] for t, s in cs]
                 views = [x for r in rows if not r.get("failed") for x in r["views"]]
                 far = [x for x in views if x["far"]]
@@ -238,8 +242,8 @@ def report(recs: list[dict], out: Path, name: str, cmd: str, selected=()) -> Non
             cs = [c for c in cases if c[0] == task and group(c[1]) == g]
             if not cs:
                 continue
-            ok = [c for c in cs if not any(by[(*c, v)].get("failed") for v in variants)]
-            for v in variants[1:]:
+            ok = [c for c in cs if not any(by[(*c, v)].get("failed") for v in present(cs))]
+            for v in present(cs)[1:]:
                 cols = []
                 for sel in (lambda x: x["far"], lambda x: True):
                     a = [x["mm"] for c in ok for x in by[(*c, variants[0])]["views"] if sel(x)]
@@ -261,7 +265,10 @@ def report(recs: list[dict], out: Path, name: str, cmd: str, selected=()) -> Non
     for t, s in cases:
         cells = []
         for v in variants:
-            r = by[(t, s, v)]
+            r = by.get((t, s, v))
+            if r is None:
+                cells.append("-")
+                continue
             if r.get("failed"):
                 cells.append("failed")
                 continue
