@@ -359,7 +359,9 @@ def residual_variance(T, src_points, ps, q, nq, plane_var, f, cfg: IcpConfig):
 def noise_weights(T, src_points, ps, q, nq, w, j, tgt: DepthImage, cfg: IcpConfig):
     """The pair weights ``w`` of the geometric term with ``cfg.noise_weight`` applied: each
     times 1 / (its :func:`residual_variance`), rescaled so that ``sum(w)`` is unchanged
-    (the balance against the keypoint and colour terms stays; equal variances give ``w``).
+    (the balance against the colour term and a "fraction" keypoint balance stays; the
+    "noise" keypoint balance follows the reweighted residual scale; equal variances give
+    ``w``).
     ``"none"``: ``w``. ``j``: the flat target pixel of each pair."""
     if cfg.noise_weight == "none":
         return w
