@@ -212,9 +212,16 @@ def _cov_tolerance_fd(
 
 @pytest.mark.slow
 def test_recovers_ctr_q_from_noisy_backbone():
-
-    model = _ctr()
-    q_true = np.array([-0.22, -0.15, -0.06, 0.2, -0.8, 1.2])
+    """A two-tube CTR (TEST_CTR's outer two tubes): the CTR path of the fit (the telescoping
+    reparametrisation of the translations, warm-started rounds from the cold equilibrium) is
+    the same code for any number of tubes, and its programs are a third smaller than the
+    three-tube robot's (fit + FK 17.5 vs 26.5 CPU-s, same loaded run, 3 December 2026); the
+    three-tube reparametrisation is test_ctr_reparametrisation_covers_the_joint_limits'."""
+    model = ConcentricTubeRobot.from_dict(
+        dict(TEST_CTR, tubes=TEST_CTR["tubes"][:2], n_points=13), scan_points=8, n_starts=2,
+        cold_steps=15,
+    )  # fmt: skip
+    q_true = np.array([-0.22, -0.15, 0.2, -0.8])
     sigma = 1e-4
 
     # one compiled FK (the cold equilibrium solve) for the truth, the 12 difference points
@@ -229,7 +236,7 @@ def test_recovers_ctr_q_from_noisy_backbone():
     # solver_rtol: the CTR default rtol
     tol = _cov_tolerance_fd(centreline, q_true, pts, sigma, h=1e-3, solver_rtol=1e-4)
     err = np.abs(np.asarray(res.q) - q_true)
-    err[3:] = np.minimum(err[3:], 2 * np.pi - err[3:])
+    err[2:] = np.minimum(err[2:], 2 * np.pi - err[2:])
     assert np.all(err <= tol), (err, tol)
 
 
