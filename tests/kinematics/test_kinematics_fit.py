@@ -192,8 +192,9 @@ def _cov_tolerance_fd(
     1e-8 m, so ~1e-5 m per unit of q against columns of >= ~1e-3 m per unit (a section's
     kappa); a CTR's float32 equilibrium tolerance (tip angles to ~1e-5 rad over ~0.1 m)
     gives delta ~1e-6 m, so ~1e-3 m per unit of q against columns of ~0.03-1 m per unit.
-    Measured against the jacfwd tolerance: on the CTR case below (2 December 2026) ratio
-    0.92-1.01 per joint at h = 1e-3, the same within 0.03 at h = 3e-4 and 3e-3 (so not
+    Measured against the jacfwd tolerance: on the CTR case below (its three-tube robot then,
+    2 December 2026) ratio 0.92-1.01 per joint at h = 1e-3, the same within 0.03 at h = 3e-4
+    and 3e-3 (so not
     noise: the kinks of the closest-point map, which jacfwd takes one-sided), k = 5 sigma
     stays >= 4.6 sigma; on the single-segment and constant-curvature cases (3 December
     2026) 0.998-1.001."""
