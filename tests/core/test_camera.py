@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
 from jaxcr.camera import (
     Camera,
@@ -27,10 +28,15 @@ from jaxcr.camera import (
     undistort_normalized,
     unproject,
 )
-from jaxcr.geometry import so3_exp
 from tests.helpers.jitted import integrate_centreline  # compiled: input construction only
 
 DIST = [-0.2, 0.05, 0.001, -0.002, 0.01]
+
+# Compiled once per point count and dtype: called eagerly, project_points compiled each of its
+# ~50 operations at every new shape (~480 small compilations in this module). Eager calls stay
+# where eager is the point (jit == eager, project_xy == project_points), all on the (64, 3)
+# float32 points, so their operations compile once.
+PROJECT = eqx.filter_jit(project_points)
 
 
 def make_camera(dist=DIST, size=(160, 120), eye=(0.1, -0.05, -0.3)):
@@ -59,7 +65,7 @@ def test_matches_opencv_x64():
     with jax.enable_x64(True):
         cam = make_camera()
         P = points()
-        uv, valid = project_points(cam, jnp.asarray(P))
+        uv, valid = PROJECT(cam, jnp.asarray(P))
         assert uv.dtype == jnp.float64
         ref = cv2_project(cam, P)
         assert np.asarray(valid).sum() > 40
@@ -69,7 +75,7 @@ def test_matches_opencv_x64():
 def test_matches_opencv_float32():
     cam = make_camera()
     P = points(seed=1)
-    uv, valid = project_points(cam, jnp.asarray(P, jnp.float32))
+    uv, valid = PROJECT(cam, jnp.asarray(P, jnp.float32))
     assert uv.dtype == jnp.float32
     ref = cv2_project(cam, P)
     v = np.asarray(valid)
@@ -84,8 +90,8 @@ def test_skew_is_applied():
     K[0, 1] = 2.5
     skewed = camera_from_arrays(K, cam.dist, cam.T_cam_robot, 160, 120)
     P = jnp.asarray(points(seed=1), jnp.float32)
-    uv0, _ = project_points(cam, P)
-    uv1, _ = project_points(skewed, P)
+    uv0, _ = PROJECT(cam, P)
+    uv1, _ = PROJECT(skewed, P)
     yd = (np.asarray(uv0[:, 1]) - K[1, 2]) / K[1, 1]
     np.testing.assert_allclose(np.asarray(uv1[:, 0] - uv0[:, 0]), 2.5 * yd, atol=2e-3)
     np.testing.assert_allclose(np.asarray(uv1[:, 1]), np.asarray(uv0[:, 1]), atol=1e-5)
@@ -120,7 +126,7 @@ def test_behind_camera_and_outside_image_masked_and_finite():
             [1e6, -1e6, 1e-3],  # far off: clamped
         ]
     )
-    uv, valid = project_points(cam, P)
+    uv, valid = PROJECT(cam, P)
     assert np.all(np.isfinite(np.asarray(uv)))
     np.testing.assert_array_equal(
         np.asarray(valid), [True, False, False, False, False, True, True, False, True, False, False]
@@ -128,7 +134,7 @@ def test_behind_camera_and_outside_image_masked_and_finite():
     assert np.all(np.asarray(uv[:, 0]) <= 200) and np.all(np.asarray(uv[:, 0]) >= -100)
     assert np.all(np.asarray(uv[:, 1]) <= 160) and np.all(np.asarray(uv[:, 1]) >= -80)
     # gradients stay finite for invalid points too
-    g = jax.grad(lambda p: project_points(cam, p)[0].sum())(P)
+    g = jax.jit(jax.grad(lambda p: project_points(cam, p)[0].sum()))(P)
     assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -143,7 +149,7 @@ def test_strong_barrel_distortion_never_folds_into_image():
     P = np.array([[1.6, 0.0, 1.0]])
     ref = cv2_project(cam, P)
     assert -0.5 <= ref[0, 0] < 99.5  # the fold-over we guard against
-    uv, valid = project_points(cam, jnp.asarray(P, jnp.float32))
+    uv, valid = PROJECT(cam, jnp.asarray(P, jnp.float32))
     assert not bool(valid[0])
     assert float(uv[0, 0]) > 99.5 or float(uv[0, 0]) < -0.5
 
@@ -163,25 +169,28 @@ def test_jit_equals_eager_and_single_trace():
 @pytest.mark.parametrize("n", [1, 7, 64])
 def test_shapes(n):
     cam = make_camera()
-    uv, valid = project_points(cam, jnp.zeros((n, 3)) + jnp.array([0.0, 0.0, 0.05]))
+    uv, valid = PROJECT(cam, jnp.asarray(np.zeros((n, 3), np.float32) + [0.0, 0.0, 0.05]))
     assert uv.shape == (n, 2) and valid.shape == (n,) and valid.dtype == jnp.bool_
 
 
 def test_vmap_over_cameras_and_point_sets_equals_loop():
     cams = [make_camera(eye=(0.1 * i, -0.05, -0.3)) for i in range(3)]
-    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *cams)
-    P = jnp.asarray(points(), jnp.float32)
-    uv_v, valid_v = jax.vmap(project_points, in_axes=(0, None))(stacked, P)
+    stacked = jax.tree.map(lambda *xs: np.stack(xs), *cams)
+    P = np.asarray(points(), np.float32)
+    # compiled vmaps (run eagerly, each compiled its operations one by one); the loop's
+    # single calls are PROJECT's (64, 3) float32 program
+    uv_v, valid_v = jax.jit(jax.vmap(project_points, in_axes=(0, None)))(stacked, P)
     for i, c in enumerate(cams):
-        uv_l, valid_l = project_points(c, P)
+        uv_l, valid_l = PROJECT(c, jnp.asarray(P))
         np.testing.assert_allclose(np.asarray(uv_v[i]), np.asarray(uv_l), rtol=1e-6, atol=1e-4)
         np.testing.assert_array_equal(np.asarray(valid_v[i]), np.asarray(valid_l))
-    Ps = jnp.stack([P, P * 1.1, P - 0.01])
-    uv_v, _ = jax.vmap(project_points, in_axes=(None, 0))(cams[0], Ps)
+    Ps = np.stack([P, P * np.float32(1.1), P - np.float32(0.01)])
+    uv_v, _ = jax.jit(jax.vmap(project_points, in_axes=(None, 0)))(cams[0], Ps)
     for i in range(3):
         np.testing.assert_allclose(
-            np.asarray(uv_v[i]), np.asarray(project_points(cams[0], Ps[i])[0]), rtol=1e-6, atol=1e-4
-        )
+            np.asarray(uv_v[i]), np.asarray(PROJECT(cams[0], jnp.asarray(Ps[i]))[0]), rtol=1e-6,
+            atol=1e-4,
+        )  # fmt: skip
 
 
 def test_grad_vs_finite_differences():
@@ -217,7 +226,7 @@ def test_grad_vs_finite_differences():
 def test_undistort_matches_opencv():
     with jax.enable_x64(True):
         cam = make_camera()
-        uv, valid = project_points(cam, jnp.asarray(points(seed=5)))
+        uv, valid = PROJECT(cam, jnp.asarray(points(seed=5)))  # test_matches_opencv_x64's
         xy = undistort_normalized(cam, uv)
         ref = cv2.undistortPoints(
             np.asarray(uv)[:, None],
@@ -264,7 +273,7 @@ def test_look_at_geometry():
     R = np.asarray(cam.R)
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
     assert np.linalg.det(R) > 0
-    uv, valid = project_points(cam, jnp.array([[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]]))
+    uv, valid = PROJECT(cam, jnp.array([[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]]))
     np.testing.assert_allclose(np.asarray(uv[0]), [50.0, 40.0], atol=1e-4)  # target at centre
     assert float(uv[1, 1]) < 40.0  # +up appears higher in the image (smaller row)
     with pytest.raises(ValueError):
@@ -283,17 +292,23 @@ def test_camera_from_arrays_dist_lengths():
         camera_from_arrays(K, [0.1, 0.2, 0], None, 20, 20)
 
 
+# compiled once per shape (the vmap == loop check is test_surface_points_jit_vmap_grad's)
+SURFACE = jax.jit(surface_points, static_argnums=1)
+R0 = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix().astype(np.float32)  # = so3_exp
+
+
 def _centreline(kappa=20.0, n=16):
-    s = jnp.linspace(0.0, 0.1, n)
-    u = jnp.tile(jnp.array([kappa, 0.0, 0.0]), (n - 1, 1))
-    rho = jnp.linspace(1e-3, 0.5e-3, n)
-    return integrate_centreline(s, u, rho, R0=so3_exp(jnp.array([0.1, -0.2, 0.3])))
+    # numpy inputs of the compiled integrate_centreline: no eager jnp op to compile
+    s = np.linspace(0.0, 0.1, n, dtype=np.float32)
+    u = np.tile(np.array([kappa, 0.0, 0.0], np.float32), (n - 1, 1))
+    rho = np.linspace(1e-3, 0.5e-3, n, dtype=np.float32)
+    return integrate_centreline(s, u, rho, R0=R0)
 
 
 def test_surface_points_eq7_loop_reference():
     cl = _centreline()
     n_phi = 6
-    S = surface_points(cl, n_phi)
+    S = np.asarray(SURFACE(cl, n_phi))
     assert S.shape == (16, n_phi, 3)
     p, R, rho = (np.asarray(a, np.float64) for a in (cl.p, cl.R, cl.rho))
     for i in range(16):
@@ -314,22 +329,22 @@ def test_surface_points_eq7_loop_reference():
 
 def test_surface_points_jit_vmap_grad():
     cls = [_centreline(k) for k in (0.0, 10.0, 30.0)]
-    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *cls)
-    f = jax.jit(surface_points, static_argnums=1)
-    Sv = jax.vmap(surface_points, in_axes=(0, None))(stacked, 8)
+    stacked = jax.tree.map(lambda *xs: np.stack(xs), *cls)
+    f = SURFACE
+    Sv = jax.jit(jax.vmap(surface_points, in_axes=(0, None)), static_argnums=1)(stacked, 8)
     for i, c in enumerate(cls):
         np.testing.assert_allclose(np.asarray(Sv[i]), np.asarray(f(c, 8)), atol=1e-6)
         np.testing.assert_allclose(np.asarray(f(c, 8)), np.asarray(surface_points(c, 8)), atol=1e-6)
     with jax.enable_x64(True):
         c = _centreline().__class__(
             *(
-                jnp.asarray(np.asarray(a), jnp.float64)
+                jnp.asarray(np.asarray(a, np.float64))
                 for a in (cls[1].s, cls[1].p, cls[1].R, cls[1].u, cls[1].rho)
             )
         )
-        g = jax.grad(
+        g = jax.jit(jax.grad(
             lambda rho: surface_points(eqx.tree_at(lambda x: x.rho, c, rho), 5)[..., 0].sum()
-        )(c.rho)
+        ))(c.rho)  # fmt: skip
         R = np.asarray(c.R)
         phi = 2 * np.pi * np.arange(5) / 5
         expected = (

@@ -22,19 +22,25 @@ L_LINEAR_GAP = 7.2e-5
 # by one ulp (6e-8), i.e. 500 * 1.2e-7 = 6e-5 in a*.
 JIT_ATOL = 1e-4
 
+# Compiled once per shape and dtype (called eagerly, rgb_to_lab compiled each of its ~20
+# operations at every new shape and dtype: ~310 small compilations in this module); eager calls
+# stay where eager is the point (test_jit_equals_eager_and_batch_shapes).
 _JIT = jax.jit(rgb_to_lab)
 
 
 def _old_rgb_to_lab(rgb):
-    """The implementation before this change (matmul over the colour axis, jnp.cbrt)."""
-    rgb = jnp.clip(rgb, 0.0, 1.0)
-    lin = jnp.where(rgb > 0.04045, ((rgb + 0.055) / 1.055) ** 2.4, rgb / 12.92)
-    M = jnp.asarray(colour._RGB2XYZ, rgb.dtype)
-    xyz = (lin @ M.T) / jnp.asarray(colour._WHITE, rgb.dtype)
+    """The implementation before this change (matmul over the colour axis, cube root), in
+    numpy in the input's dtype (float32 stays float32: numpy 2 keeps Python scalars weak)."""
+    rgb = np.clip(rgb, 0.0, 1.0)
+    lin = np.where(rgb > 0.04045, ((rgb + 0.055) / 1.055) ** 2.4, rgb / 12.92)
+    M = np.asarray(colour._RGB2XYZ, rgb.dtype)
+    xyz = (lin @ M.T) / np.asarray(colour._WHITE, rgb.dtype)
     eps = colour._EPS
-    f = jnp.where(xyz > eps, jnp.cbrt(jnp.maximum(xyz, eps)), 7.787 * xyz + 16.0 / 116.0)
-    L = jnp.where(xyz[..., 1] > eps, 116.0 * f[..., 1] - 16.0, 903.3 * xyz[..., 1])
-    return jnp.stack([L, 500.0 * (f[..., 0] - f[..., 1]), 200.0 * (f[..., 1] - f[..., 2])], -1)
+    f = np.where(xyz > eps, np.cbrt(np.maximum(xyz, eps)), 7.787 * xyz + 16.0 / 116.0)
+    L = np.where(xyz[..., 1] > eps, 116.0 * f[..., 1] - 16.0, 903.3 * xyz[..., 1])
+    out = np.stack([L, 500.0 * (f[..., 0] - f[..., 1]), 200.0 * (f[..., 1] - f[..., 2])], -1)
+    assert out.dtype == rgb.dtype
+    return out
 
 
 def _colours() -> np.ndarray:
@@ -61,14 +67,14 @@ def test_float32_matches_skimage_and_previous():
     ours = np.asarray(_JIT(jnp.asarray(x)))
     assert ours.dtype == np.float32
     np.testing.assert_allclose(ours, rgb2lab(x.astype(np.float64)), atol=ATOL32, rtol=0)
-    np.testing.assert_allclose(ours, np.asarray(_old_rgb_to_lab(jnp.asarray(x))), atol=ATOL32)
+    np.testing.assert_allclose(ours, _old_rgb_to_lab(x), atol=ATOL32)
 
 
 def test_float64_matches_skimage_and_previous():
     with jax.enable_x64(True):
         x = jnp.asarray(COLOURS, jnp.float64)
-        ours = np.asarray(rgb_to_lab(x))
-        old = np.asarray(_old_rgb_to_lab(x))
+        ours = np.asarray(_JIT(x))
+        old = _old_rgb_to_lab(COLOURS)
     assert ours.dtype == np.float64
     ref = rgb2lab(COLOURS)
     # CIELAB with skimage's constants (0.008856, 7.787) jumps by 3.3e-7 in f at the branch
@@ -94,45 +100,44 @@ def test_jit_equals_eager_and_batch_shapes():
     eager = np.asarray(rgb_to_lab(x))
     assert eager.shape == x.shape
     np.testing.assert_allclose(np.asarray(_JIT(x)), eager, atol=JIT_ATOL, rtol=0)
-    looped = np.stack([np.asarray(rgb_to_lab(p)) for p in x.reshape(-1, 3)])
+    # the loop of single pixels and the vmap compiled (one program each)
+    looped = np.stack([np.asarray(_JIT(p)) for p in np.asarray(x).reshape(-1, 3)])
     np.testing.assert_allclose(eager.reshape(-1, 3), looped, atol=JIT_ATOL, rtol=0)
-    vm = np.asarray(jax.vmap(rgb_to_lab)(x.reshape(-1, 3)))
+    vm = np.asarray(jax.jit(jax.vmap(rgb_to_lab))(np.asarray(x).reshape(-1, 3)))
     np.testing.assert_allclose(vm, looped, atol=JIT_ATOL, rtol=0)
 
 
 @pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16, jnp.float32])
 def test_dtype_follows_input(dtype):
-    assert rgb_to_lab(jnp.full((4, 3), 0.5, dtype)).dtype == dtype
+    # the traced output type (eval_shape: the same function, nothing compiled)
+    assert jax.eval_shape(rgb_to_lab, jax.ShapeDtypeStruct((4, 3), dtype)).dtype == dtype
 
 
 def test_exact_at_black_white_and_clipped():
-    np.testing.assert_array_equal(np.asarray(rgb_to_lab(jnp.zeros(3))), np.zeros(3))
-    np.testing.assert_array_equal(
-        np.asarray(rgb_to_lab(jnp.asarray([-0.5, -1.0, 0.0]))), np.zeros(3)
-    )
-    np.testing.assert_array_equal(
-        np.asarray(rgb_to_lab(jnp.asarray([1.5, 2.0, 1.0]))),
-        np.asarray(rgb_to_lab(jnp.ones(3))),
-    )
-    np.testing.assert_allclose(np.asarray(rgb_to_lab(jnp.ones(3))), rgb2lab(np.ones(3)), atol=1e-4)
+    # _JIT's single-pixel program (test_jit_equals_eager_and_batch_shapes' loop)
+    lab = lambda rgb: np.asarray(_JIT(np.asarray(rgb, np.float32)))  # noqa: E731
+    np.testing.assert_array_equal(lab(np.zeros(3)), np.zeros(3))
+    np.testing.assert_array_equal(lab([-0.5, -1.0, 0.0]), np.zeros(3))
+    np.testing.assert_array_equal(lab([1.5, 2.0, 1.0]), lab(np.ones(3)))
+    np.testing.assert_allclose(lab(np.ones(3)), rgb2lab(np.ones(3)), atol=1e-4)
 
 
 def test_lab_f_linear_segment_and_branch_point():
     eps = colour._EPS
-    t = jnp.asarray([0.0, 1e-4, 0.5 * eps, eps], jnp.float32)  # all on the linear segment
-    np.testing.assert_allclose(
-        np.asarray(colour._lab_f(t)), 7.787 * np.asarray(t) + 16 / 116, rtol=1e-7, atol=0
-    )
+    # one compiled program (the points padded to one shape)
+    t = np.asarray([0.0, 1e-4, 0.5 * eps, eps, eps, np.nextafter(np.float32(eps), 1)], np.float32)
+    f = np.asarray(jax.jit(colour._lab_f)(t))
+    np.testing.assert_allclose(f[:4], 7.787 * t[:4] + 16 / 116, rtol=1e-7, atol=0)
     # The CIE constants make f continuous at eps to ~1e-6 (not exactly: 0.008856, 7.787).
-    lo, hi = colour._lab_f(jnp.asarray([eps, np.nextafter(np.float32(eps), 1)], jnp.float32))
-    assert abs(float(hi - lo)) < 2e-6
+    lo, hi = f[4:]
+    assert abs(float(hi) - float(lo)) < 2e-6
 
 
 def test_cube_root_within_two_ulp():
     with jax.enable_x64(True):
         t = np.geomspace(colour._EPS, 1.2, 20001)
         exact = np.cbrt(t.astype(np.float32).astype(np.float64))
-    got = np.asarray(colour._cbrt_pos(jnp.asarray(t, jnp.float32)), np.float64)
+    got = np.asarray(jax.jit(colour._cbrt_pos)(t.astype(np.float32)), np.float64)
     ulp = np.spacing(exact.astype(np.float32)).astype(np.float64)
     assert np.max(np.abs(got - exact) / ulp) <= 2.0
 
@@ -150,7 +155,7 @@ def test_gradients_finite_at_singular_points():
         ],
         jnp.float32,
     )
-    jac = jax.vmap(jax.jacrev(rgb_to_lab))(pts)
+    jac = jax.jit(jax.vmap(jax.jacrev(rgb_to_lab)))(pts)
     assert np.all(np.isfinite(np.asarray(jac)))
 
 
@@ -158,15 +163,15 @@ def test_gradient_matches_finite_differences():
     # Interior points on both branches of sRGB and of f (dark: Y < 0.008856), away from kinks.
     pts = np.array([[0.02, 0.03, 0.01], [0.2, 0.6, 0.9], [0.7, 0.1, 0.3], [0.05, 0.5, 0.02]])
     with jax.enable_x64(True):
-        jac = jax.jacrev(rgb_to_lab)
+        jac = jax.jit(jax.jacrev(rgb_to_lab))
         h = 1e-6
         for p in pts:
-            p = jnp.asarray(p, jnp.float64)
             num = np.stack(
                 [
-                    (rgb_to_lab(p + h * e) - rgb_to_lab(p - h * e)) / (2 * h)
-                    for e in jnp.eye(3, dtype=jnp.float64)
+                    (np.asarray(_JIT(p + h * e)) - np.asarray(_JIT(p - h * e))) / (2 * h)
+                    for e in np.eye(3)
                 ],
                 -1,
             )
+            p = jnp.asarray(p, jnp.float64)
             np.testing.assert_allclose(np.asarray(jac(p)), num, rtol=1e-6, atol=1e-6)

@@ -34,7 +34,7 @@ def test_rgb_to_lab_matches_skimage():
 
 
 def test_rgb_to_lab_grad_finite_at_black():
-    g = jax.grad(lambda x: rgb_to_lab(x).sum())(jnp.zeros(3))
+    g = jax.jit(jax.grad(lambda x: rgb_to_lab(x).sum()))(jnp.zeros(3))  # compiled: one program
     assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -63,8 +63,9 @@ def test_kmeans_matches_cv2_on_separated_clusters():
 def test_kmeans_deterministic_per_key():
     rng = np.random.default_rng(2)
     x, _ = _blobs(rng, 100)
-    a = kmeans(jnp.asarray(x), 4, jax.random.PRNGKey(3), 10)[0]
-    b = kmeans(jnp.asarray(x), 4, jax.random.PRNGKey(3), 10)[0]
+    run = jax.jit(kmeans, static_argnums=(1, 3))  # one program (eagerly: op by op)
+    a = run(jnp.asarray(x), 4, jax.random.PRNGKey(3), 10)[0]
+    b = run(jnp.asarray(x), 4, jax.random.PRNGKey(3), 10)[0]
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
@@ -101,7 +102,9 @@ def test_label_batch_jit_vmap_equal_loop(scene):
     out = np.asarray(label_batch(model, jnp.asarray(batch)))
     loop = np.stack([np.asarray(label_image(model, jnp.asarray(b))) for b in batch])
     np.testing.assert_array_equal(out, loop)
-    vm = jax.vmap(label_image, in_axes=(None, 0))(model, jnp.asarray(batch))
+    # the vmap compiled (eagerly, its operations compiled one by one); the loop above stays
+    # eager (jit == eager)
+    vm = eqx.filter_jit(jax.vmap(label_image, in_axes=(None, 0)))(model, jnp.asarray(batch))
     np.testing.assert_array_equal(out, np.asarray(vm))
     # One trace for many frames of one shape.
     f = eqx.filter_jit(eqx.debug.assert_max_traces(label_image, max_traces=1))

@@ -4,6 +4,7 @@ findHomography), scipy/scikit-image, and slow loops. Small shapes, one compile e
 from __future__ import annotations
 
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,6 +29,24 @@ from jaxcr.motion.motion_models import (
 from jaxcr.motion.propagate import warp_labels
 from jaxcr.motion.superpixels import grid_labels, rgb_to_lab, slic, slic_step
 from tests.helpers.slic_reference import slic_step_loop
+
+# Compiled once per shape, dtype and static argument (called eagerly, each compiled its
+# operations one by one at every new shape and dtype: ~250 small compilations in this module).
+# No test here is about eager execution but test_arm_jit_vmap_grad's loop (end_effector,
+# joint_positions: eager).
+segment_homography = eqx.filter_jit(segment_homography)
+projection_dlt = eqx.filter_jit(projection_dlt)
+estimate_projection = eqx.filter_jit(estimate_projection)
+reprojection_residual = eqx.filter_jit(reprojection_residual)
+project_homogeneous = eqx.filter_jit(project_homogeneous)
+end_effector_image = eqx.filter_jit(end_effector_image)
+segment_translation = eqx.filter_jit(segment_translation)
+translation_error = eqx.filter_jit(translation_error)
+homography_error = eqx.filter_jit(homography_error)
+slic_step = eqx.filter_jit(slic_step)
+slic = eqx.filter_jit(slic)
+rgb_to_lab = eqx.filter_jit(rgb_to_lab)
+warp_labels = eqx.filter_jit(warp_labels)
 
 ARM = ArmModel()
 
@@ -77,20 +96,16 @@ def test_arm_jit_vmap_grad():
     loop = np.stack([np.asarray(end_effector(ARM, x)) for x in xs])
     np.testing.assert_allclose(np.asarray(f(xs)), loop, atol=1e-6)
     with jax.enable_x64(True):
-        x0 = jnp.asarray(np.array([0.2, 0.3, -0.5, -0.4, 0.1]))
-        J = np.asarray(jax.jacfwd(lambda x: end_effector(ARM, x))(x0))
+        x0 = np.array([0.2, 0.3, -0.5, -0.4, 0.1])
+        J = np.asarray(jax.jit(jax.jacfwd(lambda x: end_effector(ARM, x)))(x0))
         eps = 1e-6
+        ee = jax.jit(lambda x: end_effector(ARM, x))  # compiled (x64 ops, one by one before)
+        step = eps * np.eye(5)
         Jfd = np.stack(
-            [
-                (
-                    np.asarray(end_effector(ARM, x0.at[k].add(eps)))
-                    - np.asarray(end_effector(ARM, x0.at[k].add(-eps)))
-                )
-                / (2 * eps)
-                for k in range(5)
-            ],
+            [(np.asarray(ee(x0 + step[k])) - np.asarray(ee(x0 - step[k]))) / (2 * eps)
+             for k in range(5)],
             axis=1,
-        )
+        )  # fmt: skip
         np.testing.assert_allclose(J, Jfd, atol=1e-7)
 
 

@@ -119,9 +119,11 @@ def test_look_at_points_the_camera():
 
 # ------------------------------------------------------------------ collision
 def _slow_clearance(start, kappa, length, cloud, height, n):
+    # the arc in float64 numpy (arc_points_np: checked against arc_points above)
+    s = np.linspace(0, 1, n) * length
+    arc = arc_points_np(np.asarray(start, np.float64), np.array([kappa], np.float64), s[None])[0]
     best = np.inf
-    for s in np.linspace(0, 1, n) * length:
-        x, y, _ = np.asarray(arc_points(jnp.asarray(start), kappa, jnp.asarray([s])))[0]
+    for x, y, _ in arc:
         for p in cloud:
             best = min(best, float(np.linalg.norm(p - np.array([x, y, height]))))
     return best
@@ -141,7 +143,8 @@ def test_batch_clearance_matches_slow_loop_and_vmap():
     for i in range(5):
         ref = _slow_clearance(starts[i], ks[i], ls[i], cloud, 0.05, 48)
         assert abs(got[i] - ref) < 1e-4  # float32 vs float64, m
-        one = float(arc_clearance(starts[i], ks[i], ls[i], padded, mask, 0.05))
+        # the loop of single arcs compiled (one program; eager, its ops compiled one by one)
+        one = float(jax.jit(arc_clearance)(starts[i], ks[i], ls[i], padded, mask, 0.05))
         assert abs(one - got[i]) < 1e-6
     empty = np.asarray(
         batch_clearance(starts, ks, ls, padded, np.zeros(48, bool), jnp.float32(0.0))
@@ -218,7 +221,8 @@ def test_ransac_recovers_transform_with_outliers():
     r, t = pose_error(est, T)
     assert r < 0.3 and t < 5e-4
     assert n >= 0.9 * (~out).sum()
-    res = ransac_kabsch(
+    # compiled (run eagerly, its ~140 operations were compiled one by one)
+    res = jax.jit(ransac_kabsch, static_argnums=5)(
         jnp.asarray(src, jnp.float32),
         jnp.asarray(tgt, jnp.float32),
         jnp.ones(100, bool),
@@ -239,7 +243,8 @@ def test_ransac_sampling_is_uniform_over_the_valid_positions():
     binomial standard deviations (sqrt(30000 p (1 - p)) = 61) of 30000 / 7 = 4286."""
     mask = np.zeros(20, bool)
     mask[[0, 3, 4, 9, 12, 17, 19]] = True
-    idx = np.asarray(sample_valid(jax.random.PRNGKey(5), jnp.asarray(mask), (10000, 3)))
+    sample = jax.jit(sample_valid, static_argnums=2)  # one program (eager: op by op)
+    idx = np.asarray(sample(jax.random.PRNGKey(5), jnp.asarray(mask), (10000, 3)))
     assert idx.shape == (10000, 3)
     counts = np.bincount(idx.ravel(), minlength=20)
     assert counts[~mask].sum() == 0
@@ -382,7 +387,8 @@ def test_icp_vmap_equals_loop(icp_case):
     T0s = jnp.stack([jnp.eye(4), jnp.asarray(_T([0.01, 0, 0], [0.001, 0, 0]), jnp.float32)])
     from jaxcr.registration.icp import icp
 
-    batched = jax.vmap(lambda T0: icp(_arrays(*src), _arrays(*tgt), T0, cfg).T)(T0s)
+    # the vmap compiled (run eagerly, its operations were compiled one by one)
+    batched = jax.jit(jax.vmap(lambda T0: icp(_arrays(*src), _arrays(*tgt), T0, cfg).T))(T0s)
     for i in range(2):
         one = icp_jit(_arrays(*src), _arrays(*tgt), T0s[i], cfg, no_keypoints()).T
         np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(one), atol=1e-4)

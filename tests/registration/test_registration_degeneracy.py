@@ -67,11 +67,16 @@ def _screw(axis, c0):
     return np.r_[-np.cross(axis, c0), axis]
 
 
+# compiled once per point count and dtype (eagerly, each call compiled the filter's
+# operations one by one at every new shape); the eager filter is checked against the compiled
+# one in test_filter_is_unit_invariant_and_jit_equals_eager
+_FILTER = jax.jit(degeneracy_filter, static_argnums=(4,))
+_SCALED = jax.jit(scaled_coordinates)
+
+
 def _filter64(H, g, p, w):
     with jax.enable_x64(True):
-        Hf, gf, k = degeneracy_filter(
-            jnp.asarray(H), jnp.asarray(g), jnp.asarray(p), jnp.asarray(w), RATIO
-        )
+        Hf, gf, k = _FILTER(jnp.asarray(H), jnp.asarray(g), jnp.asarray(p), jnp.asarray(w), RATIO)
         return np.asarray(Hf), np.asarray(gf), int(k)
 
 
@@ -84,7 +89,7 @@ def test_scaled_coordinates_closed_form():
     w = rng.uniform(0.1, 1.0, 50)
     c = w @ p / w.sum()
     L = np.sqrt(w @ np.sum((p - c) ** 2, 1) / w.sum())
-    A = np.asarray(scaled_coordinates(jnp.asarray(p, jnp.float32), jnp.asarray(w, jnp.float32)))
+    A = np.asarray(_SCALED(jnp.asarray(p, jnp.float32), jnp.asarray(w, jnp.float32)))
     J = np.concatenate([n, np.cross(p, n)], 1)
     Js = np.concatenate([n, np.cross(p - c, n) / L], 1)
     for _ in range(5):
@@ -108,7 +113,7 @@ def test_cylinder_loses_exactly_its_axis_rotation():
     # ... while every delta with no screw component (orthogonal in the scaled metric) keeps
     # the original curvature and gradient.
     with jax.enable_x64(True):
-        A = np.asarray(scaled_coordinates(jnp.asarray(p), jnp.asarray(w)))
+        A = np.asarray(_SCALED(jnp.asarray(p), jnp.asarray(w)))
     u = A @ s / np.linalg.norm(A @ s)
     for _ in range(5):
         d = rng.normal(0, 1, 6)

@@ -76,7 +76,10 @@ def test_triangulation_vmap_loop_jit_and_gradient():
     P1 = jnp.asarray(np.asarray(c1.T_cam_robot)[:3], jnp.float32)
     P2 = jnp.asarray(np.asarray(c2.T_cam_robot)[:3], jnp.float32)
     batched = triangulate_points(P1, P2, x1, x2)
-    loop = jnp.stack([triangulate_point(P1, P2, x1[k], x2[k]) for k in range(8)])
+    # the loop's single points and the x64 gradient below compiled (eagerly, op by op: ~70
+    # small compilations); the eager batch is checked against the compiled one
+    one = jax.jit(triangulate_point)
+    loop = np.stack([np.asarray(one(P1, P2, x1[k], x2[k])) for k in range(8)])
     np.testing.assert_allclose(batched, loop, atol=1e-6)
     np.testing.assert_allclose(jax.jit(triangulate_points)(P1, P2, x1, x2), batched, atol=1e-6)
     with jax.enable_x64(True):
@@ -89,10 +92,11 @@ def test_triangulation_vmap_loop_jit_and_gradient():
                 jnp.asarray(x2[0], jnp.float64),
             )[0]  # noqa: E731
 
-        a0 = jnp.asarray(x1[0], jnp.float64)
-        g = jax.grad(f)(a0)
+        a0 = np.asarray(x1[0], np.float64)
+        g = jax.jit(jax.grad(f))(a0)
+        fj = jax.jit(f)
         h = 1e-7
-        fd = np.array([(f(a0 + h * e) - f(a0 - h * e)) / (2 * h) for e in np.eye(2)])
+        fd = np.array([(fj(a0 + h * e) - fj(a0 - h * e)) / (2 * h) for e in np.eye(2)])
         np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-8)
 
 
