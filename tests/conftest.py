@@ -215,6 +215,10 @@ def _release_compiled_code(request):
             log.write(f"{request.node.nodeid}\t{count}\t{_memory_map_count()}\n")
 
 
+# JAXCR_TESTS_MAPS_LOG=<folder>: each process appends, per module, its map count before and
+# after the fixture above. Measured with it, a full `pytest -n 2` run (stop 29, 1726 passed):
+# the largest module added ~5100 maps (test_refine: 6712 from a fresh worker); one worker
+# reached 32774 and cleared once (to 1517), the other ended at 18190 without clearing.
 _COMPILE_LOG_MAPS = os.environ.get("JAXCR_TESTS_MAPS_LOG")
 
 
