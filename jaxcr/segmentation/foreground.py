@@ -63,6 +63,7 @@ __all__ = [
     "downsample",
     "plate_foreground",
     "trace_alternatives",
+    "end_before_hop",
     "crossing_turn",
     "crosses_through",
 ]
@@ -1356,6 +1357,69 @@ def _hook_apex(bb: np.ndarray, i: int, heading: float, chord: np.ndarray) -> int
     prog = (bb[i:] - bb[i]) @ h
     m = int(np.argmax(prog))
     return i + m if m > 0 and prog[m] > 0.0 else None
+
+
+def end_before_hop(
+    trace: TubeTrace, near_uv, *, reach_widths: float = 2.0, min_widths: float = 0.25
+) -> np.ndarray | None:
+    """The silhouette's end (u, v) of a tube that ends before a hop of ``trace``'s path
+    across background behind its point nearest ``near_uv`` (2,) (u, v), or None where the
+    path hops across none there.
+
+    A tube's silhouette is continuous up to its end. The walker steps across a short
+    stretch of background where more foreground lies close ahead (its look ray needs only
+    ``support`` of its length on the mask), so where a tube ends a few pixels short of a
+    crossing cable or a shadow, the path hops onto that and goes on along it (real_like
+    dev seed 4167, view 2: a 9 px hop, the tube's end 3 px before it). A point of the path
+    beyond such a hop is not on the tube that ends there: where a second view says the
+    tube ends near a point past a hop (the cut of
+    :func:`jaxcr.stereo.tip_consistency.trim_unexplained_tail`), the tube ends before it.
+
+    A hop is a run of the full-resolution ``score`` on the path (sampled every 0.5 px,
+    bilinear) under the hysteresis level ``low`` of the trace's configuration, at least
+    ``min_widths`` tube widths (and 2 px) long, starting at most ``reach_widths`` widths
+    (``width_px``) behind the point nearest ``near_uv``, and not one of the gaps the trace
+    bridged (``gaps``: the tube matching the background). The end is the last crossing,
+    before the nearest such hop, of the half level between the path's median score 1-3
+    widths before the hop and the hop's median (a blurred step's half level is its edge),
+    linearly interpolated. It is the silhouette's end: the end face's foreshortened length
+    (:func:`refine_tip_details`) is not removed."""
+    if trace.score is None or len(trace.backbone) < 3:
+        return None
+    bb = np.asarray(trace.backbone, np.float64)
+    w = float(max(trace.width_px, 2.0))
+    low = trace.retrace.cfg.low if trace.retrace is not None else PlateForegroundConfig().low
+    cum = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(bb, axis=0), axis=1))]
+    a_near = float(
+        cum[int(np.argmin(np.linalg.norm(bb - np.asarray(near_uv, np.float64), axis=1)))]
+    )
+    a = np.arange(max(0.0, a_near - (reach_widths + 3.0) * w), a_near + 0.25, 0.5)
+    if len(a) < 4:
+        return None
+    pts = np.stack([np.interp(a, cum, bb[:, 0]), np.interp(a, cum, bb[:, 1])], 1)
+    sc = ndi.map_coordinates(np.asarray(trace.score, np.float64), [pts[:, 1], pts[:, 0]],
+                             order=1, mode="nearest")  # fmt: skip
+    off = sc < low
+    for g0, g1 in trace.gaps:
+        g0, g1 = min(int(g0), len(cum) - 1), min(int(g1), len(cum) - 1)
+        off &= ~((a >= cum[g0]) & (a <= cum[g1]))
+    edges = np.diff(np.r_[0, off.astype(np.int8), 0])
+    # Hops (first, last sample), with the 3 widths before each sampled for its level.
+    hops = [(i, j - 1) for i, j in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1),
+                                        strict=True)
+            if a[j - 1] - a[i] >= max(2.0, min_widths * w)
+            and a_near - reach_widths * w <= a[i] and a[i] >= a[0] + 3.0 * w]  # fmt: skip
+    if not hops:
+        return None
+    i, j = hops[-1]
+    before = (a >= a[i] - 3.0 * w) & (a <= a[i] - w)
+    half = 0.5 * (float(np.median(sc[before])) + float(np.median(sc[i : j + 1])))
+    above = np.flatnonzero(sc[:i] >= half)
+    if not len(above):
+        return None
+    m = int(above[-1])
+    end = a[m] + (sc[m] - half) / max(sc[m] - sc[m + 1], 1e-12) * (a[m + 1] - a[m])
+    return np.array([np.interp(end, cum, bb[:, 0]), np.interp(end, cum, bb[:, 1])])
 
 
 def trace_alternatives(

@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
+from jaxcr.segmentation.foreground import TubeTrace, end_before_hop
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
 
 __all__ = ["TipConsistency", "reconcile_tips", "trim_unexplained_tail"]
@@ -246,7 +247,10 @@ def trim_unexplained_tail(
     a view ``k`` has an unexplained tail when ``tail_px`` exceeds its tube width; of the
     views with one and no tube beyond the other view's tip (the test above), the one whose
     open-ended match costs less is cut back to its sample ``i`` (the better
-    explanation of the two backbones)."""
+    explanation of the two backbones), or, where its path hops across background within
+    two tube widths behind that sample, to the silhouette's end before the hop
+    (:func:`jaxcr.segmentation.foreground.end_before_hop`: a point past the hop is not on
+    the tube; docs/decisions.md S17)."""
     if tails is not None:
         return _trim_open_end(cams, traces, tips, consistency, tails, low=low, absent=absent,
                               probe_widths=probe_widths)  # fmt: skip
@@ -324,6 +328,10 @@ def _trim_open_end(cams, traces, tips, consistency, tails, *, low, absent, probe
 
     new = [t.copy() for t in tips]
     new[k] = np.asarray(consistency.samples[k][i], np.float64)
+    # A cut past a hop of the path across background: the tube ended before the hop.
+    hop = end_before_hop(traces[k], new[k]) if isinstance(traces[k], TubeTrace) else None
+    if hop is not None:
+        new[k] = np.asarray(hop, np.float64)
     return TipConsistency(
         new, "trimmed", k, evidence, epipolar_gap_px(cams, tips), epipolar_gap_px(cams, new)
     )

@@ -13,9 +13,11 @@ from skimage.filters import apply_hysteresis_threshold
 from jaxcr.cli import main
 from jaxcr.segmentation.foreground import (
     PlateForegroundConfig,
+    TubeTrace,
     align_plate,
     border_entry,
     close_score,
+    end_before_hop,
     foreground_cues,
     hysteresis,
     plate_foreground,
@@ -352,6 +354,43 @@ def test_refine_tip_on_a_tube_curving_into_its_end():
         tip, a, d, half = refine_tip_details(score, backbone, 8.0)
         assert np.linalg.norm(tip - end) < 1.0, (over_px, tip, end, a)
         assert abs(half - 4.0) < 1.0, half
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, -35.0])
+def test_end_before_hop_on_a_tube_ending_short_of_a_cable(angle_deg):
+    """A tube 8 px wide with a flat end, a cable 6 px wide crossing at 60 deg whose edge
+    passes 6 px beyond the tube's end (real_like dev seed 4167, view 2: a 9 px hop), score
+    3.0 on both over 0.1, 8x8 supersampled, blurred 1.2 px. The traced path runs along the
+    tube, hops across the background to the cable and goes on along it; a point on the
+    cable beyond the hop is the place a second view says the tube ends near. Reference: the
+    drawn end, within 0.3 px (the half level of a blurred step is its edge; the cable's
+    blur adds Phi(-6 / 1.2) < 1e-6 of its level there; linear interpolation of the erf on
+    0.5 px samples < 0.05 px; the 1/8 px supersampling < 0.07 px). Without the hop (the
+    point before it), or where the hop is a gap the trace bridged, there is no end."""
+    h, w, ss = 90, 120, 8
+    end = np.array([60.3, 45.6])
+    d, n, s_, t_ = _along_across(h, w, ss, angle_deg, end)
+    tube = (s_ <= 0) & (s_ >= -80) & (np.abs(t_) <= 4.0)
+    # The cable, 6 px wide, at 60 deg to the tube; its near edge crosses the tube's axis
+    # 6 px beyond the end (its centre line 6 + 3 / sin 60 px beyond).
+    c_dir = np.cos(np.radians(60.0)) * d + np.sin(np.radians(60.0)) * n
+    c_nrm = np.array([-c_dir[1], c_dir[0]])
+    centre = end + (6.0 + 3.0 / abs(c_nrm @ d)) * d
+    rel = np.stack([s_, t_], -1) @ np.stack([d, n])  # sample offsets from the end, (u, v)
+    cable = np.abs((rel - (centre - end)) @ c_nrm) <= 3.0
+    shape = (tube | cable).reshape(h, ss, w, ss).mean((1, 3))
+    score = 0.1 + 2.9 * ndi.gaussian_filter(shape, 1.2)
+    on_tube = end[None] + np.arange(-60.0, 0.1, 2.0)[:, None] * d[None]
+    hop_end = centre  # on the cable's centre line
+    on_cable = hop_end[None] + np.arange(2.0, 30.1, 2.0)[:, None] * c_dir[None]
+    path = np.vstack([on_tube, hop_end[None], on_cable])
+    tr = TubeTrace(np.zeros((h, w), bool), path, path[-1], path[0], score=score, width_px=8.0)
+    tip = end_before_hop(tr, on_cable[1])  # 1.5 widths past the hop's start
+    assert tip is not None and np.linalg.norm(tip - end) < 0.3, (tip, end)
+    assert end_before_hop(tr, end - 10.0 * d) is None  # no hop behind that point
+    bridged = TubeTrace(np.zeros((h, w), bool), path, path[-1], path[0], score=score,
+                        width_px=8.0, gaps=[(len(on_tube) - 1, len(on_tube) + 1)])  # fmt: skip
+    assert end_before_hop(bridged, on_cable[1]) is None
 
 
 def test_trace_leaves_a_crossing_cable_that_runs_out_of_the_image():
