@@ -171,23 +171,24 @@ _READ_FRAMES = (
     "from jaxcr.errors import InputError\n"
     "from jaxcr.io.motion_dataset import load_motion_dataset\n"
     "for d in sys.argv[1:]:\n"
-    "    print('DATASET', d)\n"
+    "    print('DATASET', d, flush=True)\n"
+    "    print('DATASET', d, file=sys.stderr, flush=True)\n"
     "    try:\n"
     "        ds = load_motion_dataset(d)\n"
     "    except InputError as e:\n"
     "        print('InputError:', e)\n"
-    "        print('EXIT 2')\n"
+    "        print('EXIT 2', flush=True)\n"
     "        continue\n"
     "    for i, img, why in ds.frames():\n"
     "        print(i, img is not None, why)\n"
-    "    print('EXIT 0')\n"
+    "    print('EXIT 0', flush=True)\n"
 )
 
 
 def _read_frames(*dirs):
     """Frames of the motion datasets ``dirs`` read in one fresh process (one Python start for
-    all of them): ([(exit code as the one-dataset script gave it, stdout lines)] per dataset,
-    the process's whole stderr, which must stay empty for every one of them)."""
+    all of them): per dataset (exit code as a one-dataset run gave it, stdout lines, what
+    reached stderr while it was read: a marker line on both streams splits them)."""
     import subprocess
     import sys
 
@@ -202,8 +203,10 @@ def _read_frames(*dirs):
             out.append((int(ln[5:]), lines))
         else:
             lines.append(ln)
-    assert len(out) == len(dirs), p.stdout
-    return out, p.stderr
+    errs = p.stderr.split("DATASET ")
+    assert errs[0] == "" and len(out) == len(dirs) == len(errs) - 1, (p.stdout, p.stderr)
+    # each part: "<dir>\n" then whatever that dataset's reading wrote to stderr
+    return [(c, ln, e.split("\n", 1)[1]) for (c, ln), e in zip(out, errs[1:], strict=True)]
 
 
 def test_truncated_video_is_quiet_and_fails_the_damaged_frames(motion_video, tmp_path, capfd):
@@ -225,16 +228,15 @@ def test_truncated_video_is_quiet_and_fails_the_damaged_frames(motion_video, tmp
     # a file cut inside its header
     (d_head / "video.avi").write_bytes(data[:300])
     # both read in one fresh process: its stderr (FFmpeg's and OpenCV's native writes) empty
-    ((code, lines), (code_head, lines_head)), err = _read_frames(d, d_head)
-    assert err == "", err
-    assert code == 0
+    (code, lines, err), (code_head, lines_head, err_head) = _read_frames(d, d_head)
+    assert code == 0 and err == "", err
     rows = [ln.split(" ", 2) for ln in lines]
     assert [r[1] for r in rows] == ["True"] * 3 + ["False"] * 5
     assert rows[3][2].startswith("corrupt video frame (decoder: ")
     assert rows[4][2] == (f"no such frame: the video ends after 4 frame(s) (file truncated: "
                           f"{cut} of {len(data)} bytes)")  # fmt: skip
     # the whole CLI: a file cut inside its header is bad input, one line, nothing else
-    assert code_head == 2
+    assert code_head == 2 and err_head == ""
     assert lines_head == [f"InputError: {d_head / 'video.avi'}: field 'source.video': not a "
                           f"readable video (the file is truncated (300 of {len(data)} bytes))"]  # fmt: skip
     # the command in this process (capfd: file descriptors 1 and 2, so FFmpeg's and OpenCV's
@@ -283,15 +285,13 @@ def test_video_extension_that_lies(motion_video, tmp_path):
     jpg = liars["jpeg"] / "video.avi.jpg"
     cv2.imwrite(str(jpg), cv2.imread(str(pngs[0])))
     (liars["jpeg"] / "video.avi").write_bytes(jpg.read_bytes())
-    results, err = _read_frames(*liars.values())
-    assert err == "", err
-    read = dict(zip(liars, results, strict=True))
+    read = dict(zip(liars, _read_frames(*liars.values()), strict=True))
     for name, kind in (("png", "a PNG image"), ("text", "not a readable video")):
-        code, lines = read[name]
+        code, lines, err = read[name]
         v = liars[name]
-        assert code == 2 and len(lines) == 1, (lines, err)
+        assert code == 2 and err == "" and len(lines) == 1, (lines, err)
         assert f"{v / 'video.avi'}: field 'source.video': " in lines[0] and kind in lines[0]
-    code, lines = read["jpeg"]
+    code, lines, _ = read["jpeg"]
     assert code == 2 and "is a JPEG image, not a video" in lines[0]
 
 
