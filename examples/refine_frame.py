@@ -15,8 +15,8 @@
 # stiffness, ...). `jcr.refine` bends it, with a smooth curvature correction, until its
 # rendered silhouette matches the image. The refined silhouette is the segmentation.
 #
-# The frame comes from `jaxcr synth` (preset "orthogonal", 320x240): a ray-cast image of the
-# robot over tissue, with the true robot mask beside it.
+# The frame comes from `jaxcr synth` (preset "orthogonal", 320x240, the first of two frames):
+# a ray-cast image of the robot over tissue, with the true robot mask beside it.
 
 # %%
 import os
@@ -33,7 +33,7 @@ import jaxcr.synth.generate
 
 OUT = os.environ.get("JAXCR_EXAMPLES_OUT", ".")  # where the figure is written
 path = jcr.synth.generate.generate(
-    "orthogonal", tempfile.mkdtemp(), seed=0, frames=1, size=(320, 240), progress=False
+    "orthogonal", tempfile.mkdtemp(), seed=0, frames=2, size=(320, 240), progress=False
 )
 ds = jcr.load_dataset(path)
 frame = ds.frames[0]
@@ -51,11 +51,13 @@ truth = frame.load_mask(cam_name)  # (240, 320) bool: the robot's true silhouett
 
 # %%
 # the forward model, compiled: jcr.kinematics.batch.forward_batch is one jitted vmap of
-# robot.forward over a batch of joint vectors (here the frame's one), with the robot an
-# argument -- the very program `jaxcr synth` ran for this robot, so it is not compiled again
-# (run op by op, the solver's loops would compile hundreds of small programs instead)
-fk = jaxcr.kinematics.batch.forward_batch(ds.robot, jnp.asarray([frame.q], jnp.float32))
-base = jax.tree.map(lambda x: x[0], fk.centreline)  # (N, 3) samples of the one frame
+# robot.forward over a batch of joint vectors (here the dataset's two frames), with the robot
+# an argument -- the very program `jaxcr synth` ran for this robot and batch, so it is not
+# compiled again (run op by op, the solver's loops would compile hundreds of small programs
+# instead)
+qs = jnp.asarray([f.q for f in ds.frames], jnp.float32)
+fk = jaxcr.kinematics.batch.forward_batch(ds.robot, qs)
+base = jax.tree.map(lambda x: x[0], fk.centreline)  # (N, 3) samples of the first frame
 background, image = jcr.colour_mask(jnp.asarray(rgb))
 config = jcr.RefineConfig(levels=(0,), steps=(30,), outer=(1,), tau=(0.5,))
 result = jcr.refine(base, camera, image, background, config=config)

@@ -15,7 +15,9 @@
 # matching along epipolar lines, triangulation and a base frame from ArUco markers.
 #
 # The pair comes from `jaxcr stereo synth` (the same as `jcr.synth.stereo_ctr.generate_stereo_set`),
-# a small 320x240 set with the true backbone stored beside the images.
+# a small 320x240 set with the true backbone stored beside the images: three tubes bent in
+# general directions (`kinds=("general",)`), the kind of scene docs/your-own-rig.md's
+# example rig is drawn from.
 
 # %%
 import os
@@ -30,7 +32,7 @@ import jaxcr.synth.stereo_ctr
 
 OUT = os.environ.get("JAXCR_EXAMPLES_OUT", ".")  # where the figure is written
 folder = jcr.synth.stereo_ctr.generate_stereo_set(
-    tempfile.mkdtemp(), n_frames=1, seed=4, size=(320, 240)
+    tempfile.mkdtemp(), n_frames=1, seed=4, size=(320, 240), kinds=("general",), n_tubes=3
 )
 ds = jcr.io.stereo_dataset.load_stereo_dataset(folder)  # calibration, config, frames
 frame = ds["frames"][0]

@@ -616,12 +616,17 @@ def test_manifold_train_reports_frames_the_loader_rejected(tmp_path, capsys):
     a 24-frame dataset and nothing named the frame."""
     from jaxcr.cli import main
 
+    # test_cli_rough_edges.py's manifold size and training options (160x120, --bins 24 --step
+    # 0.05): its programs and examples/eigen.py's colour k-means (160x120), loaded from the
+    # run's cache instead of compiled for 256x192 here
     d = tmp_path / "train"
-    argv = ["manifold", "synth", "-o", str(d), "--frames", "12", "--size", "256x192"]
+    argv = ["manifold", "synth", "-o", str(d), "--frames", "12", "--size", "160x120"]
     assert main(argv) == 0
     (d / "images" / "left" / "000003.png").unlink()
     capsys.readouterr()
-    assert main(["manifold", "train", str(d), "-o", str(tmp_path / "m.npz")]) == 1
+    args = ["manifold", "train", str(d), "-o", str(tmp_path / "m.npz"), "--bins", "24", "--step",
+            "0.05"]  # fmt: skip
+    assert main(args) == 1
     out, err = capsys.readouterr()
     assert "/12 frames" in out
     assert "1 bad frame(s) not used" in err and "000003" in err

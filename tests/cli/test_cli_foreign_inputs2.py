@@ -127,11 +127,16 @@ def test_motion_exits_1_when_a_frame_could_not_be_read(tmp_path, capsys):
     exit codes say 1 when some frames fail; pairs the method does not use are no failures."""
     from jaxcr.cli import main
 
+    # tests/motion/test_motion_batch.py's video v1 and options (FAST there): the same motion
+    # programs (image size, superpixel and flow steps, model), compiled once in the run and
+    # loaded by the later module (a 64x48 run of the default options compiled its own, ~9 s)
     src = tmp_path / "mo"
-    assert main(["motion", "synth", "-o", str(src), "--size", "64x48", "--frames", "6"]) == 0
+    assert main(["motion", "synth", "--preset", "pushed_static", "--seed", "1", "--size",
+                 "128x96", "--frames", "6", "-o", str(src)]) == 0  # fmt: skip
     (src / "frames" / "000003.png").write_bytes(b"not a png")
     capsys.readouterr()
-    assert main(["motion", str(src), "-o", str(tmp_path / "b"), "--no-baseline"]) == 1
+    fast = ["--no-baseline", "--model", "translation", "--superpixel-step", "8", "--flow-step", "4"]
+    assert main(["motion", str(src), "-o", str(tmp_path / "b"), *fast]) == 1
     assert "1 frame(s) failed: frame 3: unreadable image 000003.png" in capsys.readouterr().err
     summary = json.loads((tmp_path / "b" / "summary.json").read_text())
     assert list(summary["failed"]) == ["3"] and summary["used"] >= 3

@@ -170,27 +170,46 @@ _READ_FRAMES = (
     "import sys\n"
     "from jaxcr.errors import InputError\n"
     "from jaxcr.io.motion_dataset import load_motion_dataset\n"
-    "try:\n"
-    "    ds = load_motion_dataset(sys.argv[1])\n"
-    "except InputError as e:\n"
-    "    print('InputError:', e)\n"
-    "    sys.exit(2)\n"
-    "for i, img, why in ds.frames():\n"
-    "    print(i, img is not None, why)\n"
+    "for d in sys.argv[1:]:\n"
+    "    print('DATASET', d, flush=True)\n"
+    "    print('DATASET', d, file=sys.stderr, flush=True)\n"
+    "    try:\n"
+    "        ds = load_motion_dataset(d)\n"
+    "    except InputError as e:\n"
+    "        print('InputError:', e)\n"
+    "        print('EXIT 2', flush=True)\n"
+    "        continue\n"
+    "    for i, img, why in ds.frames():\n"
+    "        print(i, img is not None, why)\n"
+    "    print('EXIT 0', flush=True)\n"
 )
 
 
-def _read_frames(d):
-    """Frames of the motion dataset ``d`` read in a fresh process: (stdout lines, stderr)."""
+def _read_frames(*dirs):
+    """Frames of the motion datasets ``dirs`` read in one fresh process (one Python start for
+    all of them): per dataset (exit code as a one-dataset run gave it, stdout lines, what
+    reached stderr while it was read: a marker line on both streams splits them)."""
     import subprocess
     import sys
 
-    p = subprocess.run([sys.executable, "-c", _READ_FRAMES, str(d)], capture_output=True,
-                       text=True, timeout=900)  # fmt: skip
-    return p.returncode, p.stdout.splitlines(), p.stderr
+    p = subprocess.run([sys.executable, "-c", _READ_FRAMES, *map(str, dirs)],
+                       capture_output=True, text=True, timeout=900)  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    out, lines = [], None
+    for ln in p.stdout.splitlines():
+        if ln.startswith("DATASET "):
+            lines = []
+        elif ln.startswith("EXIT "):
+            out.append((int(ln[5:]), lines))
+        else:
+            lines.append(ln)
+    errs = p.stderr.split("DATASET ")
+    assert errs[0] == "" and len(out) == len(dirs) == len(errs) - 1, (p.stdout, p.stderr)
+    # each part: "<dir>\n" then whatever that dataset's reading wrote to stderr
+    return [(c, ln, e.split("\n", 1)[1]) for (c, ln), e in zip(out, errs[1:], strict=True)]
 
 
-def test_truncated_video_is_quiet_and_fails_the_damaged_frames(motion_video, tmp_path):
+def test_truncated_video_is_quiet_and_fails_the_damaged_frames(motion_video, tmp_path, capfd):
     """A truncated AVI: FFmpeg printed '[mjpeg @ 0x...] overread 8' and OpenCV's AVI reader
     'Unexpected element. Expected: LIST. Got: <raw bytes>' on stderr, and the frame cut short
     was used with its missing part grey. Now stderr stays empty, the cut frame and the missing
@@ -198,14 +217,18 @@ def test_truncated_video_is_quiet_and_fails_the_damaged_frames(motion_video, tmp
     import shutil
 
     data = (motion_video / "video.avi").read_bytes()
-    d = tmp_path / "cut"
+    d, d_head = tmp_path / "cut", tmp_path / "cut_header"
     shutil.copytree(motion_video, d)
+    shutil.copytree(motion_video, d_head)
     # cut in the middle of frame 3's JPEG data: find frame 3's JPEG start marker
     starts = [k for k in range(len(data) - 2) if data[k : k + 3] == b"\xff\xd8\xff"]
     assert len(starts) == 8
     cut = (starts[3] + starts[4]) // 2
     (d / "video.avi").write_bytes(data[:cut])
-    code, lines, err = _read_frames(d)
+    # a file cut inside its header
+    (d_head / "video.avi").write_bytes(data[:300])
+    # both read in one fresh process: its stderr (FFmpeg's and OpenCV's native writes) empty
+    (code, lines, err), (code_head, lines_head, err_head) = _read_frames(d, d_head)
     assert code == 0 and err == "", err
     rows = [ln.split(" ", 2) for ln in lines]
     assert [r[1] for r in rows] == ["True"] * 3 + ["False"] * 5
@@ -213,17 +236,17 @@ def test_truncated_video_is_quiet_and_fails_the_damaged_frames(motion_video, tmp
     assert rows[4][2] == (f"no such frame: the video ends after 4 frame(s) (file truncated: "
                           f"{cut} of {len(data)} bytes)")  # fmt: skip
     # the whole CLI: a file cut inside its header is bad input, one line, nothing else
-    (d / "video.avi").write_bytes(data[:300])
-    code, lines, err = _read_frames(d)
-    assert code == 2 and err == ""
-    assert lines == [f"InputError: {d / 'video.avi'}: field 'source.video': not a readable "
-                     f"video (the file is truncated (300 of {len(data)} bytes))"]  # fmt: skip
-    import subprocess
+    assert code_head == 2 and err_head == ""
+    assert lines_head == [f"InputError: {d_head / 'video.avi'}: field 'source.video': not a "
+                          f"readable video (the file is truncated (300 of {len(data)} bytes))"]  # fmt: skip
+    # the command in this process (capfd: file descriptors 1 and 2, so FFmpeg's and OpenCV's
+    # native writes would show too): exit 2, that line alone (a child cost a JAX start)
+    from jaxcr.cli import main
 
-    p = subprocess.run(["jaxcr", "motion", str(d), "-o", str(tmp_path / "o")],
-                       capture_output=True, text=True, timeout=900)  # fmt: skip
-    assert p.returncode == 2
-    assert p.stderr.splitlines() == [f"jaxcr motion: error: {lines[0][len('InputError: ') :]}"]
+    capfd.readouterr()
+    assert main(["motion", str(d_head), "-o", str(tmp_path / "o")]) == 2
+    err = capfd.readouterr().err
+    assert err.splitlines() == [f"jaxcr motion: error: {lines_head[0][len('InputError: ') :]}"]
 
 
 def test_video_extension_that_lies(motion_video, tmp_path):
@@ -253,17 +276,22 @@ def test_video_extension_that_lies(motion_video, tmp_path):
     # and nearer to it than to any other frame
     assert np.all(np.diag(diff) < 0.05), np.diag(diff)
     assert np.all(np.argmin(diff, axis=1) == np.arange(8)), diff
-    for src, kind in ((pngs[0], "a PNG image"), (None, "not a readable video")):
-        if src is None:
-            (d / "video.avi").write_text("not a video\n" * 50)
-        else:
-            shutil.copy(src, d / "video.avi")
-        code, lines, err = _read_frames(d)
+    # a PNG, a text file and a JPEG renamed .avi: three copies read in one fresh process
+    liars = {"png": tmp_path / "v_png", "text": tmp_path / "v_text", "jpeg": tmp_path / "v_jpeg"}
+    for v in liars.values():
+        shutil.copytree(d, v)
+    shutil.copy(pngs[0], liars["png"] / "video.avi")
+    (liars["text"] / "video.avi").write_text("not a video\n" * 50)
+    jpg = liars["jpeg"] / "video.avi.jpg"
+    cv2.imwrite(str(jpg), cv2.imread(str(pngs[0])))
+    (liars["jpeg"] / "video.avi").write_bytes(jpg.read_bytes())
+    read = dict(zip(liars, _read_frames(*liars.values()), strict=True))
+    for name, kind in (("png", "a PNG image"), ("text", "not a readable video")):
+        code, lines, err = read[name]
+        v = liars[name]
         assert code == 2 and err == "" and len(lines) == 1, (lines, err)
-        assert f"{d / 'video.avi'}: field 'source.video': " in lines[0] and kind in lines[0]
-    cv2.imwrite(str(d / "video.avi.jpg"), cv2.imread(str(pngs[0])))
-    (d / "video.avi").write_bytes((d / "video.avi.jpg").read_bytes())
-    code, lines, _ = _read_frames(d)
+        assert f"{v / 'video.avi'}: field 'source.video': " in lines[0] and kind in lines[0]
+    code, lines, _ = read["jpeg"]
     assert code == 2 and "is a JPEG image, not a video" in lines[0]
 
 
