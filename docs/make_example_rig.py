@@ -139,6 +139,20 @@ def _write(path: Path, rgb: np.ndarray) -> None:
     cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
 
 
+#: The robot: three constant-curvature sections, the stereo preset's tube diameters; joints
+#: kappa, phi, length per section (nominal lengths: the preset's mid-range).
+ROBOT = {
+    "kind": "constant_curvature",
+    "name": "example rig, 3 sections",
+    "sections": [
+        {"length": L, "radius": d / 2}
+        for L, d in zip((0.042, 0.034, 0.027), (0.0024, 0.0018, 0.0012), strict=True)
+    ],
+    "joints": ["kappa", "phi", "length"],
+    "n_points": 64,
+}
+
+
 def make_rig(out: str | Path, *, frames: int = 3, size=(160, 120), seed: int = 7) -> Path:
     """Write OUT/rig (the raw inputs) and OUT/truth (see the module docstring); return OUT."""
     from jaxcr.io.calibration import load_stereo
@@ -198,19 +212,7 @@ def make_rig(out: str | Path, *, frames: int = 3, size=(160, 120), seed: int = 7
                 "T_cam1_robot": (T1 @ T_base_robot).tolist(),
                 "length": float(z["s"][-1]),
             })  # fmt: skip
-        # The robot: three constant-curvature sections, the stereo preset's tube diameters;
-        # joints kappa, phi, length per section (nominal lengths: the preset's mid-range).
-        robot = {
-            "kind": "constant_curvature",
-            "name": "example rig, 3 sections",
-            "sections": [
-                {"length": L, "radius": d / 2}
-                for L, d in zip((0.042, 0.034, 0.027), (0.0024, 0.0018, 0.0012), strict=True)
-            ],
-            "joints": ["kappa", "phi", "length"],
-            "n_points": 64,
-        }
-        (rig / "robot.json").write_text(json.dumps(robot, indent=1) + "\n")
+        (rig / "robot.json").write_text(json.dumps(ROBOT, indent=1) + "\n")
         # Chessboard pairs, seen by both cameras: the board faces the bisector of the two
         # cameras, 3-5 cm above the base, 16 mm towards them.
         centres = [-T[:3, :3].T @ T[:3, 3] for T in (T_cam_base["cam1"], T_cam_base["cam2"])]

@@ -20,6 +20,7 @@ from jaxcr.io.dataset import load_dataset
 from jaxcr.io.robot import load_robot
 from jaxcr.kinematics import ConstantCurvature
 from jaxcr.kinematics.fit import _cold_forward, backbone_residual, pose_start, start_set
+from tests.helpers.example_rig import load_example_rig
 
 SS = {"kind": "single_segment", "length": 0.1, "radius": 0.003, "n_points": 24}
 Q_TRUE = [0.55, 0.8]
@@ -28,16 +29,7 @@ Q_TRUE = [0.55, 0.8]
 #: --max-steps 300) the pose fit is the tutorial's first `jaxcr fit` program, loaded from the
 #: run's compilation cache instead of compiled (tests/conftest.py LONGEST_FIRST runs the
 #: tutorial early); an SS pose fit of its own cost ~6 s of CPU
-CC3 = {
-    "kind": "constant_curvature",
-    "name": "example rig, 3 sections",
-    "sections": [
-        {"length": L, "radius": d / 2}
-        for L, d in zip((0.042, 0.034, 0.027), (0.0024, 0.0018, 0.0012), strict=True)
-    ],
-    "joints": ["kappa", "phi", "length"],
-    "n_points": 64,
-}
+CC3 = load_example_rig().ROBOT
 #: the true shape (kappa 1/m, phi rad, length m per section) and the start the tutorial's
 #: dataset gives (straight, nominal lengths)
 Q_CC3 = [8.0, 0.4, 0.040, 14.0, -0.9, 0.033, 20.0, 1.3, 0.025]

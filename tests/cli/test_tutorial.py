@@ -16,7 +16,6 @@ Measured on the test's rig (seed 7, development numbers): calibration baseline 0
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import json
 import os
 import re
@@ -27,6 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
+from tests.helpers.example_rig import load_example_rig
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "your-own-rig.md"
@@ -94,11 +95,7 @@ def run_doc(workdir: Path, capsys) -> dict[str, int]:
 
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
-    spec = importlib.util.spec_from_file_location(
-        "make_example_rig", DOC.parent / "make_example_rig.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_example_rig()
     out = tmp_path_factory.mktemp("tutorial")
     mod.make_rig(out, frames=3, size=(320, 240), seed=7)
     return out
