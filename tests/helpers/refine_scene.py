@@ -50,6 +50,7 @@ def camera():
     """The front camera, fx = 200 px, W x H."""
     return front_camera(200.0, (W, H))
 
+
 #: the suite's two-camera refinement program: one full-resolution level, the rig-level camera
 #: correction (tests/segmentation/test_refine_multicam.py). test_refine's two-camera test runs
 #: it too, at the same image size, with the same argument structure (``eqx.filter_jit(
