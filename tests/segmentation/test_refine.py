@@ -14,12 +14,12 @@ import pytest
 from jaxcr.camera import Camera, project_xy
 from jaxcr.errors import InputError
 from jaxcr.kinematics.cosserat import Centreline
-from jaxcr.segmentation.background import colour_mask
 from jaxcr.segmentation.metrics import iou
 from jaxcr.segmentation.refine import RefineConfig, refine_batch, refine_frame, refine_frame_jit
 from jaxcr.segmentation.shape import perturbed_centreline
 from jaxcr.segmentation.silhouette import project_tube, rasterise_dense
 from tests.helpers import refine_scene
+from tests.helpers.jitted import colour_mask  # compiled: input construction only
 from tests.helpers.tube_render import render_tube, tube_frames
 
 # The suite's canonical refinement setup (160x120, two levels, 3 coefficients, no camera

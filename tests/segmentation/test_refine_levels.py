@@ -18,7 +18,6 @@ import optimistix as optx
 import pytest
 
 import jaxcr.segmentation.refine as refine_mod
-from jaxcr.segmentation.background import colour_mask
 from jaxcr.segmentation.energy import (
     Weights,
     chan_vese_energy,
@@ -34,6 +33,7 @@ from jaxcr.segmentation.silhouette import (
     select_band,
 )
 from tests.helpers import refine_scene
+from tests.helpers.jitted import colour_mask  # compiled: input construction only
 from tests.helpers.tube_render import render_tube
 
 W, H, CFG = refine_scene.W, refine_scene.H, refine_scene.CFG

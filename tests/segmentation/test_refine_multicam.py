@@ -16,7 +16,6 @@ from scipy.spatial.transform import Rotation
 
 from jaxcr.camera import Camera
 from jaxcr.errors import InputError
-from jaxcr.segmentation.background import colour_mask
 from jaxcr.segmentation.metrics import iou, tip_error, tip_error_components
 from jaxcr.segmentation.refine import (
     CAM_ROT_UNIT,
@@ -30,7 +29,7 @@ from jaxcr.segmentation.refine import (
 )
 from jaxcr.segmentation.silhouette import project_tube
 from tests.helpers import refine_scene
-from tests.helpers.jitted import perturbed_centreline  # compiled: input construction only
+from tests.helpers.jitted import colour_mask, perturbed_centreline  # input construction
 from tests.helpers.tube_render import arc_base, render_tube
 
 W, H = refine_scene.W, refine_scene.H
