@@ -21,43 +21,49 @@ from experiments.segmentation.warm_schedule_check import TRUE, _old_module
 from tests.helpers import refine_scene as rs
 from tests.helpers.tube_render import tube_frames
 
-jax.config.update("jax_enable_compilation_cache", False)
-old = _old_module("0e5455b")
 
-base, cam = rs.base(), rs.camera()
-CFG = dataclasses.replace(rs.CFG, steps=(30, 40))
-fr = tube_frames(base, cam, TRUE * 3, (rs.W, rs.H))
-F = len(fr)
-seq = (
-    jax.tree.map(lambda *x: jnp.stack(x), *[base] * F),
-    cam,
-    jnp.stack([f["img"] for f in fr]),
-    jnp.stack([f["bg"] for f in fr]),
-)
-init = new.refine_frame_jit(base, cam, fr[0]["img"], fr[0]["bg"], CFG).coeffs
-print("load", os.getloadavg(), flush=True)
-res = {"old": [], "new": []}
-for m in (old, new):
-    m.refine_sequence(*seq, CFG, init=init)  # compile (warm-only chunk)
-for _ in range(5):
-    for name, m in (("old", old), ("new", new)):
-        t = time.process_time()
-        w = time.perf_counter()
-        r = m.refine_sequence(*seq, CFG, init=init)
-        res[name].append(
-            (time.process_time() - t, time.perf_counter() - w, int(np.sum(r.num_steps)))
-        )
-for k, v in res.items():
-    v = np.array(v)
-    print(
-        k,
-        "CPU s per 6-frame warm chunk median",
-        np.median(v[:, 0]),
-        "all",
-        np.round(v[:, 0], 3).tolist(),
-        "wall med",
-        np.median(v[:, 1]),
-        "steps",
-        v[0, 2],
+def main():
+    jax.config.update("jax_enable_compilation_cache", False)
+    old = _old_module("0e5455b")
+
+    base, cam = rs.base(), rs.camera()
+    CFG = dataclasses.replace(rs.CFG, steps=(30, 40))
+    fr = tube_frames(base, cam, TRUE * 3, (rs.W, rs.H))
+    F = len(fr)
+    seq = (
+        jax.tree.map(lambda *x: jnp.stack(x), *[base] * F),
+        cam,
+        jnp.stack([f["img"] for f in fr]),
+        jnp.stack([f["bg"] for f in fr]),
     )
-print("load", os.getloadavg())
+    init = new.refine_frame_jit(base, cam, fr[0]["img"], fr[0]["bg"], CFG).coeffs
+    print("load", os.getloadavg(), flush=True)
+    res = {"old": [], "new": []}
+    for m in (old, new):
+        m.refine_sequence(*seq, CFG, init=init)  # compile (warm-only chunk)
+    for _ in range(5):
+        for name, m in (("old", old), ("new", new)):
+            t = time.process_time()
+            w = time.perf_counter()
+            r = m.refine_sequence(*seq, CFG, init=init)
+            res[name].append(
+                (time.process_time() - t, time.perf_counter() - w, int(np.sum(r.num_steps)))
+            )
+    for k, v in res.items():
+        v = np.array(v)
+        print(
+            k,
+            "CPU s per 6-frame warm chunk median",
+            np.median(v[:, 0]),
+            "all",
+            np.round(v[:, 0], 3).tolist(),
+            "wall med",
+            np.median(v[:, 1]),
+            "steps",
+            v[0, 2],
+        )
+    print("load", os.getloadavg())
+
+
+if __name__ == "__main__":
+    main()
