@@ -1438,7 +1438,7 @@ def refine_sequence(
     ``init`` is given (e.g. the last answer of the previous chunk of a long sequence). With
     that default and several levels, every frame runs one compiled refinement of ``config``
     whose coarse budgets are 0 on warm frames (skipped levels), so a sequence's chunks, cold
-    or warm-started, share one program (each frame the computation of :func:`refine_frame_jit`)."""
+    or warm-started, share one program and each frame equals :func:`refine_frame_jit`'s."""
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     f = bases.p.shape[0]
     dtype = bases.p.dtype
