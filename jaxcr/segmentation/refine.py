@@ -1435,10 +1435,7 @@ def refine_sequence(
 
     Warm-started frames use ``warm_config`` (default ``config.warm()``: the finest pyramid
     level only, see :meth:`RefineConfig.warm`); the first frame uses ``config`` unless
-    ``init`` is given (e.g. the last answer of the previous chunk of a long sequence). With
-    that default and several levels, every frame runs one compiled refinement of ``config``
-    whose coarse budgets are 0 on warm frames (skipped levels), so a sequence's chunks, cold
-    or warm-started, share one program and each frame equals :func:`refine_frame_jit`'s."""
+    ``init`` is given (e.g. the last answer of the previous chunk of a long sequence)."""
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     f = bases.p.shape[0]
     dtype = bases.p.dtype
