@@ -1098,21 +1098,16 @@ def refine_frame(
         return (new, _result_int(sol.result), hinv, have_h), sol.stats["num_steps"]
 
     def solve(carry, xs, tables):
-        # A level with a zero step budget is skipped (the carry passes through unchanged, and
-        # outside vmap its solve is not run), and a level starts from the identity Hessian
-        # only after a solve with steps: with its coarse budgets 0 this program runs the
-        # finest-level-only schedule of RefineConfig.warm() (refine_sequence's warm frames
-        # run the cold frame's program)
+        # A level with a zero step budget is skipped (the carry passes through unchanged), and
+        # a level starts from the identity Hessian only after a solve with steps: with its
+        # coarse budgets 0 this program runs the finest-level-only schedule of
+        # RefineConfig.warm() (refine_sequence's warm frames run the cold frame's program)
         *state, ran = carry
         li, new_level = xs
+        out, n = solve_level(tuple(state), (li, new_level & ran), tables)
         skip = tables.steps[li] == 0
-
-        def run(st):
-            out, n = solve_level(st, (li, new_level & ran), tables)
-            return out, jnp.asarray(n, jnp.int32)
-
-        out, n = jax.lax.cond(skip, lambda st: (st, jnp.int32(0)), run, tuple(state))
-        return (*out, ran | ~skip), n
+        out = jax.tree.map(lambda a, b: jnp.where(skip, a, b), tuple(state), out)
+        return (*out, ran | ~skip), jnp.where(skip, 0, n)
 
     n_levels = len(config.levels)
     groups = [tuple(range(n_levels))] if config.share_levels else [(i,) for i in range(n_levels)]
