@@ -112,9 +112,7 @@ class RefineConfig(eqx.Module):
     levels : tuple[int, ...]
         pyramid levels visited, coarse to fine (0 = full resolution).
     steps : tuple[int, ...]
-        max BFGS steps per solve at each level; 0 skips the level (the shape and the
-        solver's Hessian stay as they were: with the coarse levels 0 a config runs
-        :meth:`warm`'s schedule).
+        max BFGS steps per solve at each level.
     outer : tuple[int, ...]
         solves per level; the band is re-selected before each solve.
     tau : tuple[float, ...]
@@ -1019,7 +1017,7 @@ def refine_frame(
     def draw(tube, lv):
         return level_tube_padded(tube, lv.level, config.seg_merge, lv.n_capsules)
 
-    def solve_level(carry, xs, tables):
+    def solve(carry, xs, tables):
         params, _, hinv, have_h = carry
         li, new_level = xs
         lv = jax.tree.map(lambda x: x[li], tables)
@@ -1097,21 +1095,9 @@ def refine_frame(
             have_h = have_h | keep
         return (new, _result_int(sol.result), hinv, have_h), sol.stats["num_steps"]
 
-    def solve(carry, xs, tables):
-        # A level with a zero step budget is skipped (the carry passes through unchanged), and
-        # a level starts from the identity Hessian only after a solve with steps: with its
-        # coarse budgets 0 this program runs the finest-level-only schedule of
-        # RefineConfig.warm() (refine_sequence's warm frames run the cold frame's program)
-        *state, ran = carry
-        li, new_level = xs
-        out, n = solve_level(tuple(state), (li, new_level & ran), tables)
-        skip = tables.steps[li] == 0
-        out = jax.tree.map(lambda a, b: jnp.where(skip, a, b), tuple(state), out)
-        return (*out, ran | ~skip), jnp.where(skip, 0, n)
-
     n_levels = len(config.levels)
     groups = [tuple(range(n_levels))] if config.share_levels else [(i,) for i in range(n_levels)]
-    carry = (params0, jnp.asarray(0, jnp.int32), hinv, have_h, jnp.asarray(False))
+    carry = (params0, jnp.asarray(0, jnp.int32), hinv, have_h)
     n_solve = []
     for group in groups:
         tables = _level_tables(pyramids, config, base.p.shape[0] - 1, dtype, group, steps)
@@ -1122,7 +1108,7 @@ def refine_frame(
         xs = (jnp.asarray([k for k, _ in rows], jnp.int32), jnp.asarray(new_level, bool))
         carry, n = jax.lax.scan(lambda c, x, t=tables: solve(c, x, t), carry, xs)
         n_solve.append(n)
-    params, status, hinv, have_h, _ = carry
+    params, status, hinv, have_h = carry
     n_solve = jnp.concatenate(n_solve)
     ends = [sum(config.outer[: li + 1]) for li in range(len(config.levels))]
     steps = [jnp.sum(n_solve[e - n : e]) for e, n in zip(ends, config.outer, strict=True)]
@@ -1369,13 +1355,12 @@ def refine_batch(
 
 @eqx.filter_jit
 def _refine_sequence_jit(
-    bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0, cold_first,
-    steps=None,
-):  # fmt: skip
+    bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0, cold_first
+):
     n_levels = len(config.levels)
 
-    def one(cfg, c_prev, cam_prev, h_prev, base, ims, bgs, v, s=None):
-        r = refine_frame(base, cameras, ims, bgs, cfg, c_prev, v, cam_prev, h_prev, steps=s)
+    def one(cfg, c_prev, cam_prev, h_prev, base, ims, bgs, v):
+        r = refine_frame(base, cameras, ims, bgs, cfg, c_prev, v, cam_prev, h_prev)
         # steps_per_level follows config's levels: levels a warm frame skips count 0 steps
         spl = r.steps_per_level
         pad = jnp.zeros((max(n_levels - spl.shape[0], 0),), spl.dtype)
@@ -1384,16 +1369,6 @@ def _refine_sequence_jit(
         cam_next = jnp.where(r.ok, r.camera_correction, cam_prev)
         h_next = jnp.where(r.ok, r.hessian_inv, h_prev)
         return (c_next, cam_next, h_next), r
-
-    if steps is not None:
-        # one refine_frame for every frame: per-frame step budgets (F, levels), the coarse
-        # ones 0 on warm frames (refine_frame skips a level without steps)
-        def step_budgets(prev, args):
-            return one(config, *prev, *args)
-
-        seq = (bases, images, backgrounds, valid, steps)
-        _, out = jax.lax.scan(step_budgets, (init, cam0, h0), seq)
-        return out
 
     def step(prev, args):
         return one(warm_config, *prev, *args)
@@ -1448,22 +1423,11 @@ def refine_sequence(
     )
     # NaN = no Hessian yet (refine_frame falls back to the identity): one compiled shape
     h0 = jnp.full((n_flat, n_flat), jnp.nan, dtype) if init_hessian is None else init_hessian
-    steps = None
-    if len(config.levels) > 1 and warm_config == config.warm():
-        # The default warm schedule is config's with the coarse levels' budgets 0, which
-        # refine_frame skips: every frame, cold or warm, runs one refine_frame (with the budgets
-        # as per-frame data), so the sequence program holds one refinement instead of two and
-        # a sequence's chunks (the first cold, the others warm-started) share it.
-        steps = [[0] * (len(config.levels) - 1) + [config.steps[-1]]] * f
-        steps[0] = list(config.steps) if cold_first else steps[0]
-        steps = jnp.asarray(steps, jnp.int32)
-        config = dataclasses.replace(config, steps=(1,) * len(config.steps))
-        warm_config, cold_first = None, False
     t0 = time.perf_counter()
     call = _direct if jit_call is None else jit_call
     out = call(
         _refine_sequence_jit, bases, cameras, images, backgrounds, config, warm_config, init,
-        valid, cam0, h0, cold_first, steps,
+        valid, cam0, h0, cold_first,
     )  # fmt: skip
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / max(f, 1)

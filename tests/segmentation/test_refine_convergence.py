@@ -7,10 +7,8 @@ level-0 step budget: CFG differs from refine_scene.CFG only in ``steps`` (the ca
 budget of 15 fine steps always runs out on these frames, so the stop on the image-space test
 could not be seen), and refine_frame_jit / refine_batch pass the budgets as a traced
 argument, so the per-frame program and the vmap batch program here are the ones
-tests/segmentation/test_refine.py compiles (served by the run's compilation cache). The warm
-schedule (CFG.warm(): the finest level only) is CFG with the coarse budget 0 (WARM), which
-refine_frame skips: the per-frame program again, and the one refinement of refine_sequence's
-program, the only program compiled here.
+tests/segmentation/test_refine.py compiles (served by the run's compilation cache). Compiled
+here: the warm schedule (CFG.warm()) and refine_sequence.
 """
 
 import dataclasses
@@ -38,11 +36,6 @@ from tests.helpers.tube_render import tube_frames
 W, H = refine_scene.W, refine_scene.H
 CFG = dataclasses.replace(refine_scene.CFG, steps=(30, 40))
 MAX_STEPS = 30 * 2 + 40
-#: the warm schedule as the cold program runs it (refine_sequence's warm frames): the coarse
-#: level skipped (refine_frame skips a level with a zero budget). CFG.warm()'s own program
-#: (the finest level only) gives the same solve up to float32 rounding: on this module's
-#: frames equal masks, coefficients within 1e-6 (experiments/segmentation/warm_schedule_check.py)
-WARM = dataclasses.replace(CFG, steps=(0,) + CFG.steps[1:])
 # easy frames: a small in-image-plane bend (row 0) of the nominal shape
 TRUE = [
     np.array([[0.15, -0.05, 0.0], [0.0, 0.0, 0.0]], np.float32),
@@ -91,13 +84,15 @@ def test_warm_start_from_the_answer_takes_fewer_steps(scene, cold):
     the cold coarse-to-fine one, and stays at the answer."""
     base, cam, frames = scene
     warm_cfg = CFG.warm()
-    assert warm_cfg.levels == (0,) and warm_cfg.steps == WARM.steps[-1:]
+    assert warm_cfg.levels == (0,) and warm_cfg.steps == (40,)
     for f, r in zip(frames, cold, strict=True):
-        # the warm schedule run by the cold program (WARM: coarse budget 0); without
-        # hessian_memory (off in CFG) an init_hessian would only pass through to hessian_inv
+        # init_hessian as in test_sequence_equals_per_frame_cold_then_warm, so both tests run
+        # one compiled warm program (a None and an array are two programs); without
+        # hessian_memory (off in CFG) it only passes through to hessian_inv, the solve is the same
         assert not warm_cfg.hessian_memory
-        w = refine_frame_jit(base, cam, f["img"], f["bg"], WARM, init=r.coeffs)
-        assert int(w.steps_per_level[0]) == 0  # the coarse level was skipped
+        w = refine_frame_jit(
+            base, cam, f["img"], f["bg"], warm_cfg, init=r.coeffs, init_hessian=r.hessian_inv
+        )
         assert int(w.num_steps) < int(r.num_steps), (int(w.num_steps), int(r.num_steps))
         # and stays near the answer. Not exactly at it: the band of the warm solve is chosen
         # at the answer, not where the cold level-0 solve started, and on this thin tube the
@@ -113,16 +108,16 @@ def test_warm_start_from_the_answer_takes_fewer_steps(scene, cold):
 
 def test_sequence_equals_per_frame_cold_then_warm(scene, cold, sequence):
     """refine_sequence: frame 0 is the cold per-frame result, frame 1 the warm per-frame
-    result started from frame 0's answer (slow-loop reference: one refine_frame per frame;
-    the solver Hessian it also passes on is unused without hessian_memory). Same compiled ops
-    up to the scan, so the tolerance is float32 rounding: mask IoU > 0.98. (Since
-    refine_sequence runs one refine_frame with per-frame step budgets, every output leaf
-    equals this reference bit for bit here; the tolerances stay, as two compiled programs
-    need not round alike on another CPU.)"""
+    result started from frame 0's answer and its solver Hessian (slow-loop reference: one
+    refine_frame per frame). Same compiled ops up to the scan, so the tolerance is float32
+    rounding: mask IoU > 0.98."""
     base, cam, frames = scene
     r0 = cold[0]
     np.testing.assert_allclose(sequence.coeffs[0], r0.coeffs, atol=1e-4)
-    w1 = refine_frame_jit(base, cam, frames[1]["img"], frames[1]["bg"], WARM, init=r0.coeffs)
+    w1 = refine_frame_jit(
+        base, cam, frames[1]["img"], frames[1]["bg"], CFG.warm(), init=r0.coeffs,
+        init_hessian=r0.hessian_inv,
+    )  # fmt: skip
     np.testing.assert_allclose(sequence.coeffs[1], w1.coeffs, atol=1e-3)
     assert float(iou(sequence.masks[0][1], w1.masks[0])) > 0.98
     assert np.asarray(sequence.steps_per_level).shape == (2, 2)  # padded to the cold schedule
