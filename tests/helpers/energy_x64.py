@@ -32,23 +32,30 @@ def smooth_scene(u, background_cols: int = 10):
     curvature ``u`` (3,) 1/m, the camera 0.3 m in front (fx = 120 px), a blurred random
     image with a horizontal red ramp, the first ``background_cols`` columns background, the
     region data and the band (30 tiles, 8 candidates) at level 1."""
+    # the inputs as numpy arrays and the tube drawn by one compiled program: built op by op
+    # in x64, every primitive was an XLA compilation of its own (~40 per module)
     n = 33
-    s = jnp.linspace(0.0, 0.12, n, dtype=jnp.float64)
-    u = jnp.tile(jnp.asarray(u, jnp.float64), (n - 1, 1))
-    R0 = jnp.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]], jnp.float64)
-    cl = integrate_centreline(
-        s, u, jnp.full(n, 4e-3, jnp.float64), jnp.array([-0.05, 0.0, 0.0], jnp.float64), R0
-    )
+    s = np.linspace(0.0, 0.12, n)
+    u = np.tile(np.asarray(u, np.float64), (n - 1, 1))
+    R0 = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+    cl = integrate_centreline(s, u, np.full(n, 4e-3), np.array([-0.05, 0.0, 0.0]), R0)
     cam = Camera.look_at([0, 0, -0.3], [0, 0, 0], [0, -1, 0], fx=120.0, size=(W, H))
-    cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64) if hasattr(x, "dtype") else x, cam)
+    cam = jax.tree.map(
+        lambda x: jnp.asarray(np.asarray(x, np.float64)) if hasattr(x, "dtype") else x, cam
+    )
     rng = np.random.default_rng(4)
     img = cv2.GaussianBlur(rng.random((H, W, 3)), (0, 0), 3).astype(np.float64)
     img[..., 0] += np.linspace(0, 0.5, W)[None]
     bg = np.zeros((H, W), bool)
     bg[:, :background_cols] = True  # background pixels: e_p = g_pen/A > 0 there
     d = prepare_region_data(jnp.asarray(img), jnp.asarray(bg), 1, 8)
-    band = select_band(scale_tube(project_tube(cam, cl), 1), d.grid, 30, 8)
+    band = select_band(_level1_tube(cam, cl), d.grid, 30, 8)
     return cl, cam, d, band
+
+
+@eqx.filter_jit
+def _level1_tube(cam, cl):
+    return scale_tube(project_tube(cam, cl), 1)
 
 
 def level_tube(scene, c):

@@ -12,6 +12,7 @@ import equinox as eqx
 import jax
 
 from jaxcr.kinematics.cosserat import integrate_centreline as _integrate_centreline
+from jaxcr.segmentation.background import colour_mask as _colour_mask
 from jaxcr.segmentation.energy import prepare_region_data as _prepare_region_data
 from jaxcr.segmentation.shape import perturbed_centreline as _perturbed_centreline
 from jaxcr.segmentation.silhouette import band_margin as _band_margin
@@ -30,3 +31,7 @@ prepare_region_data = eqx.filter_jit(_prepare_region_data)
 select_band = eqx.filter_jit(_select_band)
 band_margin = eqx.filter_jit(_band_margin)
 rasterise_dense = eqx.filter_jit(_rasterise_dense)
+
+# the background mask of the rendered test images (tests/helpers/tube_render.py and the
+# refinement tests' own renders): one program per image size instead of its primitives
+colour_mask = eqx.filter_jit(_colour_mask)

@@ -49,3 +49,23 @@ def base():
 def camera():
     """The front camera, fx = 200 px, W x H."""
     return front_camera(200.0, (W, H))
+
+
+#: the suite's two-camera refinement program: one full-resolution level, the rig-level camera
+#: correction (tests/segmentation/test_refine_multicam.py). test_refine's two-camera test runs
+#: it too, at the same image size, with the same argument structure (``eqx.filter_jit(
+#: refine_frame)(base, (cam_a, cam_b), images, backgrounds, RIG_CFG, init, True, init_cam)``):
+#: one compiled program for both modules (the run's compilation cache serves the second)
+RIG_CFG = RefineConfig(
+    n_coeffs=3,
+    levels=(0,),
+    steps=(40,),
+    outer=(1,),
+    tau=(0.8,),
+    band_tiles=96,
+    min_tiles=24,
+    g_reg=0.5,
+    local=False,
+    camera_correction=True,
+    camera_correction_mode="rig",
+)

@@ -6,20 +6,29 @@ grey over a noisy red background.
 """
 
 import cv2
+import equinox as eqx
 import numpy as np
 from skimage.draw import polygon
 
 from jaxcr.camera import project_points, surface_points
 
 
+@eqx.filter_jit
+def _surface_uv(cl, cam):
+    """Pixel positions (N, 16, 2) of the Watson eq. 7 surface rings: one compiled program per
+    shape (op by op, every primitive of the rings and the projection was an XLA compilation of
+    its own, in every module that renders)."""
+    pts = surface_points(cl, 16)
+    uv, _ = project_points(cam, pts.reshape(-1, 3))
+    return uv.reshape(pts.shape[0], 16, 2)
+
+
 def render_tube(cl, cam, seed: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Image (h, w, 3) float32 in [0, 1] and tube mask (h, w) bool for centreline ``cl``."""
     W, H = size
-    pts = surface_points(cl, 16)
-    uv, _ = project_points(cam, pts.reshape(-1, 3))
-    uv = np.asarray(uv).reshape(pts.shape[0], 16, 2)
+    uv = np.asarray(_surface_uv(cl, cam))
     mask = np.zeros((H, W), bool)
-    for i in range(pts.shape[0] - 1):
+    for i in range(uv.shape[0] - 1):
         hull = cv2.convexHull(np.concatenate([uv[i], uv[i + 1]]).astype(np.float32))[:, 0]
         rr, cc = polygon(hull[:, 1], hull[:, 0], mask.shape)
         mask[rr, cc] = True
@@ -58,8 +67,7 @@ def tube_frames(base, cam, coeffs, size: tuple[int, int]) -> list[dict]:
     ``truth``."""
     import jax.numpy as jnp
 
-    from jaxcr.segmentation.background import colour_mask
-    from tests.helpers.jitted import perturbed_centreline  # compiled: input construction only
+    from tests.helpers.jitted import colour_mask, perturbed_centreline  # input construction
 
     frames = []
     for k, c in enumerate(coeffs):

@@ -86,13 +86,15 @@ _fast_normal_terms_j = eqx.filter_jit(_fast_normal_terms)
 def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
     with jax.enable_x64(True):
         scene = _tiny(curvature)
-        c0 = jnp.asarray(np.random.default_rng(5).normal(0, 0.05, (2, 3)))
+        # numpy points and perturbations (float64): op by op, each jnp operation in x64 was
+        # an XLA compilation of its own
+        c0 = np.random.default_rng(5).normal(0, 0.05, (2, 3))
         if curvature == 0.0:
-            c0 = jnp.zeros((2, 3))  # the straight tube itself: the singular point to guard
+            c0 = np.zeros((2, 3))  # the straight tube itself: the singular point to guard
         # the margins at c0 (they do not depend on the pixel weights: zero weights of the
         # margins' shape give them, from the program below)
         shape = jax.eval_shape(_margin, scene, c0)
-        _, (m0, _) = _margin_resid_and_jac(scene, c0, jnp.zeros(shape.shape, shape.dtype))
+        _, (m0, _) = _margin_resid_and_jac(scene, c0, np.zeros(shape.shape, shape.dtype))
         soft0 = jax.nn.sigmoid(m0 / TAU)
         # the pixel weights at c0, held fixed (the region means of c0)
         e = _grad_image_energy(scene, soft0)
@@ -112,7 +114,9 @@ def test_residual_jacobian_gradient_and_gauss_newton_matrix(curvature):
         eps = 1e-6
         fd = np.zeros_like(jr)
         for i in range(6):
-            dc = jnp.zeros(6).at[i].set(eps).reshape(2, 3)
+            dc = np.zeros(6)
+            dc[i] = eps
+            dc = dc.reshape(2, 3)
             hi = _margin_resid_and_jac(scene, c0 + dc, e)[1][1]
             lo = _margin_resid_and_jac(scene, c0 - dc, e)[1][1]
             fd[:, i] = (np.asarray(hi) - np.asarray(lo)) / (2 * eps)

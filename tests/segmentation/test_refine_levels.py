@@ -10,6 +10,7 @@ is compiled here (tracing only), so the module costs seconds.
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,7 +18,6 @@ import optimistix as optx
 import pytest
 
 import jaxcr.segmentation.refine as refine_mod
-from jaxcr.segmentation.background import colour_mask
 from jaxcr.segmentation.energy import (
     Weights,
     chan_vese_energy,
@@ -33,6 +33,7 @@ from jaxcr.segmentation.silhouette import (
     select_band,
 )
 from tests.helpers import refine_scene
+from tests.helpers.jitted import colour_mask  # compiled: input construction only
 from tests.helpers.tube_render import render_tube
 
 W, H, CFG = refine_scene.W, refine_scene.H, refine_scene.CFG
@@ -63,18 +64,24 @@ def test_level_tube_padded_matches_level_tube(level, merge):
     assert not np.any(np.asarray(got.valid[n:]))
 
 
+@eqx.filter_jit
+def _level_inputs(base, cam, ip, bgm, level):
+    """The inputs of _scene_level by one compiled program (op by op, the pyramid, the tables
+    and the slicing were ~100 XLA compilations of single primitives)."""
+    pyr = pyramid(ip, bgm, 2)
+    tables = _level_tables([pyr], CFG, base.p.shape[0] - 1, jnp.float32)
+    lv = jax.tree.map(lambda x: x[CFG.levels.index(level)], tables)
+    ref_data = region_data_from_level(*pyr[level], level, CFG.tile)
+    return project_tube(cam, base), lv, ref_data
+
+
 def _scene_level(level):
     """Per-level data (the reference) and the padded, stacked tables of a two-level config."""
     base, cam = refine_scene.base(), refine_scene.camera()
     img, _ = render_tube(base, cam, 3, (W, H))
     bgm, ip = colour_mask(jnp.asarray(img))
-    pyr = pyramid(ip, bgm, 2)
-    tables = _level_tables([pyr], CFG, base.p.shape[0] - 1, jnp.float32)
-    size = tables.n_capsules
-    li = CFG.levels.index(level)
-    lv = jax.tree.map(lambda x: x[li], tables)
-    ref_data = region_data_from_level(*pyr[level], level, CFG.tile)
-    return project_tube(cam, base), lv, size, ref_data
+    tube, lv, ref_data = _level_inputs(base, cam, ip, bgm, level)
+    return tube, lv, lv.n_capsules, ref_data
 
 
 @pytest.mark.parametrize("local", [False, True])

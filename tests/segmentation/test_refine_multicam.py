@@ -16,7 +16,6 @@ from scipy.spatial.transform import Rotation
 
 from jaxcr.camera import Camera
 from jaxcr.errors import InputError
-from jaxcr.segmentation.background import colour_mask
 from jaxcr.segmentation.metrics import iou, tip_error, tip_error_components
 from jaxcr.segmentation.refine import (
     CAM_ROT_UNIT,
@@ -29,25 +28,16 @@ from jaxcr.segmentation.refine import (
     refine_frame,
 )
 from jaxcr.segmentation.silhouette import project_tube
-from tests.helpers.jitted import perturbed_centreline  # compiled: input construction only
+from tests.helpers import refine_scene
+from tests.helpers.jitted import colour_mask, perturbed_centreline  # input construction
 from tests.helpers.tube_render import arc_base, render_tube
 
-W, H = 160, 120
+W, H = refine_scene.W, refine_scene.H
 FX = 200.0
 BASELINE = 0.24  # m
-CFG = RefineConfig(  # one full-resolution level keeps the compile short
-    n_coeffs=3,
-    levels=(0,),
-    steps=(40,),
-    outer=(1,),
-    tau=(0.8,),
-    band_tiles=96,
-    min_tiles=24,
-    g_reg=0.5,
-    local=False,
-    camera_correction=True,
-    camera_correction_mode="rig",
-)
+# one full-resolution level keeps the compile short; shared with test_refine's two-camera
+# test (tests/helpers/refine_scene.py: the same compiled program)
+CFG = refine_scene.RIG_CFG
 
 # A bend about the body y axis (row 1): the tube leaves the arc's plane, i.e. moves along
 # the cameras' optical axes, which one view cannot see; plus a small in-plane part
