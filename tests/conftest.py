@@ -163,63 +163,22 @@ def _run_compile_cache():
     yield
 
 
-def _memory_map_count():
-    """Number of this process's memory mappings (Linux), or None where /proc has no maps."""
-    try:
-        with open("/proc/self/maps", "rb") as maps:
-            return maps.read().count(b"\n")
-    except OSError:
-        return None
-
-
-def _memory_map_limit():
-    try:
-        with open("/proc/sys/vm/max_map_count") as limit:
-            return int(limit.read())
-    except (OSError, ValueError):
-        return 65530  # the Linux default
-
-
-# Clear when a worker holds more than this fraction of its allowed maps. One module adds at
-# most a few thousand maps (measured: see _release_compiled_code), so half the limit leaves
-# room for the largest module with a wide margin. JAXCR_TESTS_CLEAR_FRACTION=0 clears after
-# every module, as before.
-_CLEAR_FRACTION = float(os.environ.get("JAXCR_TESTS_CLEAR_FRACTION", "0.5"))
-
-
 @pytest.fixture(autouse=True, scope="module")
-def _release_compiled_code(request):
-    """Drop JAX's compiled executables after a test module when the process holds many.
+def _release_compiled_code():
+    """Drop JAX's compiled executables after each test module.
 
     Every XLA:CPU executable keeps memory mappings for its machine code; one xdist worker that
     runs ~300 test modules' worth of compilations reached the kernel's per-process map limit
     (vm.max_map_count = 65530 here) near the end of the suite and crashed with "LLVM
     compilation error: Cannot allocate memory" / a segmentation fault. Module-scoped fixtures
     holding compiled functions are torn down before this runs, so their code is freed too.
-    Clearing after every module made each module compile again the small programs (eager
-    operations, shared helpers) the modules before it had compiled; so the caches are kept
-    until the process holds half its allowed maps (or always cleared where the count cannot
-    be read). A program needed again after a clear is loaded from the run's compilation cache
-    (above). Whether a program comes from memory, the disk cache or a new compilation, it is
-    the same executable, so results do not depend on the order of the modules.
+    A program needed again later is loaded from the run's compilation cache (above).
     """
     yield
     import jax
 
-    count = _memory_map_count()
-    if count is None or count > _CLEAR_FRACTION * _memory_map_limit():
-        jax.clear_caches()
+    jax.clear_caches()
     gc.collect()
-    if _COMPILE_LOG_MAPS:
-        with open(os.path.join(_COMPILE_LOG_MAPS, f"maps-{os.getpid()}.tsv"), "a") as log:
-            log.write(f"{request.node.nodeid}\t{count}\t{_memory_map_count()}\n")
-
-
-# JAXCR_TESTS_MAPS_LOG=<folder>: each process appends, per module, its map count before and
-# after the fixture above. Measured with it, a full `pytest -n 2` run (stop 29, 1726 passed):
-# the largest module added ~5100 maps (test_refine: 6712 from a fresh worker); one worker
-# reached 32774 and cleared once (to 1517), the other ended at 18190 without clearing.
-_COMPILE_LOG_MAPS = os.environ.get("JAXCR_TESTS_MAPS_LOG")
 
 
 # ----------------------------------------------------------- optional: where compile time goes
