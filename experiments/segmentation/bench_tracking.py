@@ -50,24 +50,6 @@ SOLVERS = {
 }
 
 
-def _warm(**kw):
-    """The package defaults for the cold frame, ``RefineConfig().warm()`` changed by ``kw``
-    for the tracked frames."""
-    return (RefineConfig(), dataclasses.replace(RefineConfig().warm(), **kw))
-
-
-#: ``--variants warm``: cheaper schedules for the tracked (warm-started) frames only (issue 18,
-#: engineer track29): fewer band tiles per step, one solve instead of two, a smaller budget
-WARM = {
-    "package defaults": RefineConfig(),
-    "warm band_tiles 192": _warm(band_tiles=192),
-    "warm band_tiles 128": _warm(band_tiles=128),
-    "warm outer 1": _warm(outer=(1,)),
-    "warm outer 1, band_tiles 128": _warm(outer=(1,), band_tiles=128),
-    "warm outer 3 x 10 steps, band_tiles 128": _warm(outer=(3,), steps=(10,), band_tiles=128),
-}
-
-
 def _scene(frames: int, seed: int, smooth: bool):
     base, cam, fr = bs.make_scene(frames, seed=seed, smooth=smooth)
     I, B = [], []
@@ -84,28 +66,18 @@ def run(frames: int, repeats: int, variants: dict) -> dict:
     ind = _scene(frames, 0, False)
     out: dict = {}
     variants = {k: v if isinstance(v, tuple) else (v, None) for k, v in variants.items()}
-    # every frame warm: frame 0 started from the first variant's cold answer (the steady
-    # state of a long video, without the cold first frame)
-    first = None
     for name, (cfg, warm) in variants.items():  # compile
         t0 = time.perf_counter()
-        r = refine_sequence(*seq[:4], cfg, warm_config=warm)
-        if first is None:
-            first = (r.coeffs[0], r.camera_correction[0])
+        refine_sequence(*seq[:4], cfg, warm_config=warm)
         t1 = time.perf_counter()
         refine_batch(*ind[:4], cfg)
-        t2 = time.perf_counter()
-        refine_sequence(*seq[:4], cfg, init=first[0], init_cam=first[1], warm_config=warm)
         out[name] = {
             "compile_s_sequence": t1 - t0,
-            "compile_s_batch": t2 - t1,
-            "compile_s_warm_only": time.perf_counter() - t2,
+            "compile_s_batch": time.perf_counter() - t1,
             "track_ms": [],
             "cold_ms": [],
-            "warm_ms": [],
             "track_cpu_ms": [],
             "cold_cpu_ms": [],
-            "warm_cpu_ms": [],
             "load": [],
         }
     for _ in range(repeats):
@@ -116,11 +88,6 @@ def run(frames: int, repeats: int, variants: dict) -> dict:
             out[name]["track_ms"].append(1e3 * float(r.time_s[0]))
             out[name]["track"] = r
             c0 = time.process_time()
-            w = refine_sequence(*seq[:4], cfg, init=first[0], init_cam=first[1], warm_config=warm)
-            out[name]["warm_cpu_ms"].append(1e3 * (time.process_time() - c0) / frames)
-            out[name]["warm_ms"].append(1e3 * float(w.time_s[0]))
-            out[name]["warm"] = w
-            c0 = time.process_time()
             c = refine_batch(*ind[:4], cfg)
             out[name]["cold_cpu_ms"].append(1e3 * (time.process_time() - c0) / frames)
             out[name]["cold_ms"].append(1e3 * float(c.time_s[0]))
@@ -130,9 +97,8 @@ def run(frames: int, repeats: int, variants: dict) -> dict:
     ref = next(iter(variants))
     for name in variants:
         o = out[name]
-        tr, co, wa = o.pop("track"), o.pop("cold"), o.pop("warm")
+        tr, co = o.pop("track"), o.pop("cold")
         tr_iou = [float(iou(tr.masks[0][k], m)) for k, m in enumerate(seq[4])]
-        wa_iou = [float(iou(wa.masks[0][k], m)) for k, m in enumerate(seq[4])]
         co_iou = [float(iou(co.masks[0][k], m)) for k, m in enumerate(ind[4])]
         res[name] = {
             **o,
@@ -147,11 +113,6 @@ def run(frames: int, repeats: int, variants: dict) -> dict:
             "track_iou_mean": float(np.mean(tr_iou)),
             "track_iou_per_frame": tr_iou,
             "cold_iou_mean": float(np.mean(co_iou)),
-            "warm_ms_median": float(np.median(o["warm_ms"])),
-            "warm_cpu_ms_median": float(np.median(o["warm_cpu_ms"])),
-            "warm_steps_mean": float(np.mean(np.asarray(wa.num_steps))),
-            "warm_iou_mean": float(np.mean(wa_iou)),
-            "warm_iou_per_frame": wa_iou,
         }
     for name in variants:
         res[name]["track_ratio_to_baseline"] = (
@@ -159,9 +120,6 @@ def run(frames: int, repeats: int, variants: dict) -> dict:
         )
         res[name]["cold_ratio_to_baseline"] = (
             res[name]["cold_ms_median"] / res[ref]["cold_ms_median"]
-        )
-        res[name]["warm_ratio_to_baseline"] = (
-            res[name]["warm_ms_median"] / res[ref]["warm_ms_median"]
         )
     return res
 
@@ -174,7 +132,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tag", default="")
     ap.add_argument(
         "--variants",
-        choices=("hessian", "solvers", "warm"),
+        choices=("hessian", "solvers"),
         default="hessian",
         help="hessian: hessian_memory off/on (the default); solvers: BFGS against Gauss-Newton",
     )
@@ -182,8 +140,7 @@ def main(argv=None) -> int:
     w, h = (int(x) for x in args.size.lower().split("x"))
     bs.W, bs.H = w, h  # make_scene draws at the module's size
     load0 = os.getloadavg()[0]
-    sets = {"hessian": VARIANTS, "solvers": SOLVERS, "warm": WARM}
-    res = run(args.frames, args.repeats, sets[args.variants])
+    res = run(args.frames, args.repeats, SOLVERS if args.variants == "solvers" else VARIANTS)
     load1 = os.getloadavg()[0]
     cmd = (
         "PYTHONPATH=$PWD python experiments/segmentation/bench_tracking.py "
@@ -204,9 +161,8 @@ def main(argv=None) -> int:
         "",
         "| variant | tracking ms/frame (ratio) | tracking CPU ms/frame | warm steps/frame | "
         "tracking IoU | cold ms/frame (ratio) | cold CPU ms/frame | cold steps/frame | "
-        "cold IoU | all-warm ms/frame (ratio) | all-warm CPU ms/frame | all-warm steps/frame | "
-        "all-warm IoU | compile s (seq / batch) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "cold IoU | compile s (seq / batch) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in res.items():
         lines.append(
@@ -216,9 +172,6 @@ def main(argv=None) -> int:
             f"{r['cold_ms_median']:.1f} ({r['cold_ratio_to_baseline']:.2f}) | "
             f"{r['cold_cpu_ms_median']:.1f} | "
             f"{r['cold_steps_mean']:.1f} | {r['cold_iou_mean']:.4f} | "
-            f"{r['warm_ms_median']:.1f} ({r['warm_ratio_to_baseline']:.2f}) | "
-            f"{r['warm_cpu_ms_median']:.1f} | {r['warm_steps_mean']:.1f} | "
-            f"{r['warm_iou_mean']:.4f} | "
             f"{r['compile_s_sequence']:.0f} / {r['compile_s_batch']:.0f} |"
         )
     lines += [
@@ -227,9 +180,7 @@ def main(argv=None) -> int:
         "cores, shared with other engineers' jobs: absolute ms scale with the load; the ratios "
         "(same process, interleaved repeats) and the step counts are the comparable figures.",
         "Tracking ms/frame includes the cold first frame (sequence total / frames). CPU "
-        "ms/frame: process CPU seconds (all threads) of the same calls / frames. All-warm: "
-        "the same sequence with every frame warm-started (frame 0 from the first variant's "
-        "cold answer): the per-frame cost of a long video without its cold first frame.",
+        "ms/frame: process CPU seconds (all threads) of the same calls / frames.",
         "1-min load at each repeat: "
         + "; ".join(f"{n}: {', '.join(f'{x:.1f}' for x in r['load'])}" for n, r in res.items()),
         "",

@@ -126,7 +126,10 @@ class RefineConfig(eqx.Module):
         ``min_tiles``); None: ``band_tiles``. The output masks always use ``band_tiles``
         (their band must reach every boundary tile to be exact, :attr:`RefineResult.band_exact`),
         while a solve's gradient lives within a few ``tau`` of the boundary: a smaller solve band
-        makes every solver step cheaper (it also narrows the ``local`` outside region).
+        makes every solver step cheaper (it also narrows the ``local`` outside region and what
+        a solve can see of a tube that moved). Not used by default: on the tracking benchmark
+        a 128-tile solve band cut the CPU per tracked frame to 0.57x but lost frames
+        (docs/decisions.md S17).
     tile : int
         tile size in pixels.
     k_seg : int
