@@ -53,12 +53,12 @@ def _scene(frames: int):
 
 
 #: warm schedules compared (``RefineConfig().warm()`` changed by these fields); the first is
-#: the reference (the package defaults)
+#: the reference (the package defaults). The narrower solve bands of
+#: ``profile_tracking_r1_*.md`` ran at commit af98ddc, whose ``RefineConfig.solve_tiles`` (the
+#: solves' band at level 0, the outputs keeping ``band_tiles``) was reverted as not adopted
+#: (docs/decisions.md S17)
 VARIANTS = {
     "defaults": {},
-    "solve_tiles 128": {"solve_tiles": 128},
-    "solve_tiles 128, outer 1": {"solve_tiles": 128, "outer": (1,)},
-    "solve_tiles 96, outer 3 x 10": {"solve_tiles": 96, "outer": (3,), "steps": (10,)},
     "outer 1": {"outer": (1,)},
     "steps 2 x 20": {"steps": (20,)},
     "xtol 0.3 px": {"xtol": 0.3},
@@ -109,7 +109,7 @@ def profile(frames: int, repeats: int, names: list[str]) -> dict:
         med = np.median(a, axis=(0, 1))
         n_steps = float(np.mean(a[0, :, 4]))
         per_step = (med[0] - med[2]) / max(n_steps, 1e-9)
-        pixels = warms[n].solve_tiles_at(0) * warms[n].tile ** 2
+        pixels = warms[n].tiles_at(0) * warms[n].tile ** 2
         out[n] = {
             "fields": {k: list(v) if isinstance(v, tuple) else v for k, v in VARIANTS[n].items()},
             "ms": float(med[0]),

@@ -121,15 +121,6 @@ class RefineConfig(eqx.Module):
         tiles in the band at level 0 (halved per level, at least ``min_tiles``).
     min_tiles : int
         smallest band (tiles) at coarse levels.
-    solve_tiles : int | None
-        tiles in the band of the solves at level 0 (halved per level, at least
-        ``min_tiles``); None: ``band_tiles``. The output masks always use ``band_tiles``
-        (their band must reach every boundary tile to be exact, :attr:`RefineResult.band_exact`),
-        while a solve's gradient lives within a few ``tau`` of the boundary: a smaller solve band
-        makes every solver step cheaper (it also narrows the ``local`` outside region and what
-        a solve can see of a tube that moved). Not used by default: on the tracking benchmark
-        a 128-tile solve band cut the CPU per tracked frame to 0.57x but lost frames
-        (docs/decisions.md S17).
     tile : int
         tile size in pixels.
     k_seg : int
@@ -240,7 +231,6 @@ class RefineConfig(eqx.Module):
     tau: tuple[float, ...] = eqx.field(static=True, default=(0.8, 0.5))
     band_tiles: int = eqx.field(static=True, default=384)
     min_tiles: int = eqx.field(static=True, default=48)
-    solve_tiles: int | None = eqx.field(static=True, default=None)
     tile: int = eqx.field(static=True, default=8)
     k_seg: int = eqx.field(static=True, default=4)
     seg_merge: int = eqx.field(static=True, default=2)
@@ -293,8 +283,6 @@ class RefineConfig(eqx.Module):
                 f"data_var must be 'image' or 'residual', got {self.data_var!r}",
                 field="RefineConfig",
             )
-        if self.solve_tiles is not None and self.solve_tiles < 1:
-            raise InputError("solve_tiles must be >= 1 or None", field="RefineConfig")
         if self.g_cam_rel is not None and not self.g_cam_rel > 0:
             raise InputError("g_cam_rel must be > 0 or None", field="RefineConfig")
 
@@ -308,11 +296,6 @@ class RefineConfig(eqx.Module):
 
     def tiles_at(self, level: int) -> int:
         return max(self.min_tiles, -(-self.band_tiles // (2**level)))
-
-    def solve_tiles_at(self, level: int) -> int:
-        """Band tiles of a solve at ``level`` (``solve_tiles``, else ``band_tiles``)."""
-        n = self.band_tiles if self.solve_tiles is None else self.solve_tiles
-        return max(self.min_tiles, -(-n // (2**level)))
 
     def warm(self) -> RefineConfig:
         """The schedule for a warm start (:func:`refine_sequence`): the finest level only.
@@ -750,7 +733,7 @@ def _level_tables(
             rds.append(eqx.tree_at(lambda d: d.pix_area, rd, jnp.asarray(4.0**level, dtype)))
             rows, cols = -(-h // tile), -(-wd // tile)
             oks.append((row < rows) & (col < cols))
-            ks.append(min(config.solve_tiles_at(level), rows * cols))
+            ks.append(min(config.tiles_at(level), rows * cols))
         datas.append(jax.tree.map(lambda *x: jnp.stack(x), *rds))
         tile_ok.append(jnp.stack(oks))
         k_active.append(jnp.asarray(ks, jnp.int32))

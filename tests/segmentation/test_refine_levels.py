@@ -17,7 +17,6 @@ import optimistix as optx
 import pytest
 
 import jaxcr.segmentation.refine as refine_mod
-from jaxcr.errors import InputError
 from jaxcr.segmentation.background import colour_mask
 from jaxcr.segmentation.energy import (
     Weights,
@@ -199,23 +198,3 @@ def test_padded_level_gradient_is_nan_free_on_a_straight_tube():
     g = jax.jit(jax.grad(energy))((x, y))
     assert all(bool(jnp.all(jnp.isfinite(a))) for a in g)
     assert any(bool(jnp.any(a != 0)) for a in g)
-
-
-@pytest.mark.parametrize("solve_tiles", [None, 30, 1000])
-def test_solve_band_size(solve_tiles):
-    """``RefineConfig.solve_tiles`` sets the solves' band (tables only, no compile): each
-    level's band size is ``max(min_tiles, ceil(solve_tiles / 2**level))`` clipped to the
-    level's tile count, ``band_tiles``'s when None (the output masks keep ``band_tiles``:
-    ``tiles_at`` is unchanged). Integer arithmetic: exact."""
-    cfg = dataclasses.replace(CFG, solve_tiles=solve_tiles)
-    img = jnp.zeros((H, W, 3))
-    pyr = pyramid(img, jnp.zeros((H, W), bool), 2)
-    tables = _level_tables([pyr], cfg, refine_scene.base().p.shape[0] - 1, jnp.float32)
-    n = cfg.band_tiles if solve_tiles is None else solve_tiles
-    for li, level in enumerate(cfg.levels):
-        rows, cols = -(-(H >> level) // cfg.tile), -(-(W >> level) // cfg.tile)
-        want = min(max(cfg.min_tiles, -(-n // 2**level)), rows * cols)
-        assert int(tables.k_active[0][li]) == want
-    assert cfg.tiles_at(0) == CFG.tiles_at(0)
-    with pytest.raises(InputError):
-        dataclasses.replace(CFG, solve_tiles=0)
