@@ -62,6 +62,8 @@ VARIANTS = {
     "outer 1": {"outer": (1,)},
     "steps 2 x 20": {"steps": (20,)},
     "xtol 0.3 px": {"xtol": 0.3},
+    "ftol 1e-3": {"ftol": 1e-3},
+    "xtol 0.3 px, ftol 1e-3": {"xtol": 0.3, "ftol": 1e-3},
 }
 
 
