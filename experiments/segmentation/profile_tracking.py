@@ -56,9 +56,11 @@ def _scene(frames: int):
 #: the reference (the package defaults). The narrower solve bands of
 #: ``profile_tracking_r1_*.md`` ran at commit af98ddc, whose ``RefineConfig.solve_tiles`` (the
 #: solves' band at level 0, the outputs keeping ``band_tiles``) was reverted as not adopted
-#: (docs/decisions.md S17)
+#: (docs/decisions.md S17). Runs r1-r3 predate S17: their "defaults" had ``ftol`` 1e-4 on
+#: the warm frames, the variant "ftol 1e-4 (before S17)" since
 VARIANTS = {
     "defaults": {},
+    "ftol 1e-4 (before S17)": {"ftol": 1e-4},
     "outer 1": {"outer": (1,)},
     "steps 2 x 20": {"steps": (20,)},
     "xtol 0.3 px": {"xtol": 0.3},
