@@ -98,6 +98,10 @@ FAILURES = {
 }
 
 
+#: the warm schedule's J-change tolerance relative to ``ftol`` (:meth:`RefineConfig.warm`)
+WARM_FTOL_FACTOR = 10.0
+
+
 class RefineConfig(eqx.Module):
     """Settings of the refinement (all static: a new config compiles a new function; only
     ``steps`` is passed traced by :func:`refine_frame_jit` and :func:`refine_batch`, so
@@ -145,7 +149,8 @@ class RefineConfig(eqx.Module):
         (see :class:`ImageSpaceBFGS`).
     ftol : float
         convergence tolerance on the change of the normalised objective J of an
-        accepted step (J is in units of the tube's area, see :mod:`jaxcr.segmentation.energy`).
+        accepted step (J is in units of the tube's area, see :mod:`jaxcr.segmentation.energy`);
+        ``WARM_FTOL_FACTOR`` times it for warm-started frames (:meth:`warm`).
     solver : str
         ``"bfgs"`` (:class:`ImageSpaceBFGS`, default), ``"lbfgs"``
         (:class:`ImageSpaceLBFGS`) or ``"gn"`` (Levenberg-Marquardt on the exact
@@ -304,13 +309,22 @@ class RefineConfig(eqx.Module):
         fine energy; a warm start from the previous frame's answer is already there, and the
         coarse energy's minimum differs from the fine one by up to a coarse pixel, so a
         coarse solve from the answer walks away and back (docs/decisions.md S11).
+
+        With several levels, the warm solves also stop on a J change ``WARM_FTOL_FACTOR``
+        times ``ftol``: tracked frames otherwise ran 51-60 of their 60 steps, and the looser
+        test cut them to ~40-44 at equal IoU (docs/decisions.md S18). A one-level config is
+        its own warm schedule, so that :func:`refine_sequence` runs its cold first frame in
+        the warm scan (one compiled program).
         """
+        if len(self.levels) == 1:
+            return self
         return dataclasses.replace(
             self,
             levels=self.levels[-1:],
             steps=self.steps[-1:],
             outer=self.outer[-1:],
             tau=self.tau[-1:],
+            ftol=WARM_FTOL_FACTOR * self.ftol,
         )
 
 

@@ -205,3 +205,13 @@ def test_padded_level_gradient_is_nan_free_on_a_straight_tube():
     g = jax.jit(jax.grad(energy))((x, y))
     assert all(bool(jnp.all(jnp.isfinite(a))) for a in g)
     assert any(bool(jnp.any(a != 0)) for a in g)
+
+
+def test_warm_schedule():
+    """RefineConfig.warm(): the finest level, its budget, solves and tau, and a J-change
+    tolerance WARM_FTOL_FACTOR times ftol (docs/decisions.md S18); a one-level config is its
+    own warm schedule (refine_sequence then runs one program). Config arithmetic: exact."""
+    warm = CFG.warm()
+    assert (warm.levels, warm.steps, warm.outer, warm.tau) == ((0,), (15,), (1,), (0.8,))
+    assert warm.ftol == refine_mod.WARM_FTOL_FACTOR * CFG.ftol and warm.xtol == CFG.xtol
+    assert warm.warm() is warm
