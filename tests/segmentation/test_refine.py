@@ -169,7 +169,13 @@ def batch_map(scene):
 def test_batch_map_equals_per_frame(per_frame, batch_map):
     for k, r in enumerate(per_frame):
         np.testing.assert_array_equal(np.asarray(batch_map.masks[0][k]), np.asarray(r.masks[0]))
-        np.testing.assert_allclose(np.asarray(batch_map.coeffs[k]), np.asarray(r.coeffs), atol=1e-6)
+        # The two programs' float32 sums may be ordered differently (another CPU's vector
+        # width reorders XLA's reductions), and the solve's stopping point moves with the
+        # energy's rounding: summing the region data in another order (stop 29, the stacked
+        # per-tile sums of experiments/segmentation/profile_fixed_cost.py, 1.2e-7 apart) moved
+        # these coefficients by up to 4.0e-6 (2.5e-5 relative); 10x that, 4e-5 (the masks
+        # stayed equal).
+        np.testing.assert_allclose(np.asarray(batch_map.coeffs[k]), np.asarray(r.coeffs), atol=4e-5)
         # The energy is a float32 sum over the band's pixels (N <= 160*120), reduced by two
         # separately compiled programs whose summation order XLA may choose differently (a
         # different XLA:CPU emitter gave 5.2e-7 absolute, ~2e-6 relative, stop 28): the
