@@ -34,11 +34,10 @@ import numpy as np
 
 import jaxcr.benchmarks.segment as bs
 from jaxcr.segmentation.background import colour_mask
-from jaxcr.segmentation.energy import RegionData, pyramid, region_data_from_level
+from jaxcr.segmentation.energy import RegionData, padded_level, pyramid, region_data_from_level
 from jaxcr.segmentation.refine import RefineConfig, _hard_terms, _mask
 from jaxcr.segmentation.shape import perturbed_centreline
 from jaxcr.segmentation.silhouette import (
-    TileGrid,
     band_margin,
     level_tube,
     project_tube,
@@ -50,15 +49,8 @@ OUT = Path(__file__).resolve().parents[1] / "results" / "segmentation"
 
 def region_data_stacked(img, w, b, level: int, tile: int) -> RegionData:
     """:func:`region_data_from_level` with the per-tile sums of one stacked array."""
-    h, wd = w.shape
-    grid = TileGrid(h, wd, tile)
-    H, W = grid.rows * tile, grid.cols * tile
-    w = jnp.pad(w, ((0, H - h), (0, W - wd)))
-    b = jnp.pad(b, ((0, H - h), (0, W - wd)))
-    img = jnp.pad(img, ((0, H - h), (0, W - wd), (0, 0)))
-    total_w = jnp.sum(w)
-    centre = jnp.sum(w[..., None] * img, axis=(0, 1)) / jnp.maximum(total_w, 1e-6)
-    img = jnp.where(w[..., None] > 0, img - centre, 0.0)
+    grid, img, w, b, total_w, centre = padded_level(img, w, b, tile)
+    W = grid.cols * tile
     wc = w[..., None]
     st = jnp.concatenate(
         [wc, b[..., None], wc * img, (w * jnp.sum(img * img, axis=-1))[..., None]], -1

@@ -116,14 +116,10 @@ def pyramid(
     return out
 
 
-def region_data_from_level(
-    img: Float[Array, "h w 3"],
-    w: Float[Array, "h w"],
-    b: Float[Array, "h w"],
-    level: int,
-    tile: int,
-) -> RegionData:
-    """:class:`RegionData` from one pyramid level ``(img, w, b)`` (see :func:`pyramid`)."""
+def padded_level(img, w, b, tile: int):
+    """One pyramid level ``(img, w, b)`` zero-padded to whole ``tile`` x ``tile`` tiles, and the
+    image I' centred on its ``w``-weighted mean (0 where ``w`` is 0): ``(grid, img, w, b,
+    total_w, centre)``, the inputs of :func:`region_data_from_level`'s per-tile sums."""
     h, wd = w.shape
     grid = TileGrid(h, wd, tile)
     H, W = grid.rows * tile, grid.cols * tile
@@ -134,6 +130,18 @@ def region_data_from_level(
     total_w = jnp.sum(w)
     centre = jnp.sum(wi, axis=(0, 1)) / jnp.maximum(total_w, 1e-6)
     img = jnp.where(w[..., None] > 0, img - centre, 0.0)
+    return grid, img, w, b, total_w, centre
+
+
+def region_data_from_level(
+    img: Float[Array, "h w 3"],
+    w: Float[Array, "h w"],
+    b: Float[Array, "h w"],
+    level: int,
+    tile: int,
+) -> RegionData:
+    """:class:`RegionData` from one pyramid level ``(img, w, b)`` (see :func:`pyramid`)."""
+    grid, img, w, b, total_w, centre = padded_level(img, w, b, tile)
 
     def tsum(x):
         return x.reshape((grid.rows, tile, grid.cols, tile) + x.shape[2:]).sum(axis=(1, 3))
