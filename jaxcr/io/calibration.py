@@ -512,6 +512,20 @@ def _write_fs(path: str, entries: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
+def _write_entries(path: str, entries: dict) -> None:
+    """Write calibration ``entries`` atomically, the format from the extension: YAML/XML via
+    ``cv2.FileStorage``, or JSON with the same key names."""
+    if path.lower().endswith(_FS_EXT):
+        _write_fs(path, entries)
+    elif path.lower().endswith(".json"):
+        js = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in entries.items()}
+        atomic_write_text(path, json.dumps(js, indent=2) + "\n")
+    else:
+        raise InputError(
+            "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path
+        )
+
+
 def save_camera(camera: Camera, path: str | os.PathLike) -> None:
     """Write a single-camera file; format from the extension (YAML/XML via
     ``cv2.FileStorage``, or JSON with the FileStorage key names). Atomic."""
@@ -524,15 +538,7 @@ def save_camera(camera: Camera, path: str | os.PathLike) -> None:
         "T_cam_robot": np.asarray(camera.T_cam_robot, np.float64),
         "unit": "m",
     }
-    if path.lower().endswith(_FS_EXT):
-        _write_fs(path, entries)
-    elif path.lower().endswith(".json"):
-        js = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in entries.items()}
-        atomic_write_text(path, json.dumps(js, indent=2) + "\n")
-    else:
-        raise InputError(
-            "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path
-        )
+    _write_entries(path, entries)
 
 
 def save_stereo(cam1: Camera, cam2: Camera, path: str | os.PathLike) -> None:
@@ -564,15 +570,7 @@ def save_stereo(cam1: Camera, cam2: Camera, path: str | os.PathLike) -> None:
         "T_cam_robot": T1,
         "unit": "m",
     }
-    if path.lower().endswith(_FS_EXT):
-        _write_fs(path, entries)
-    elif path.lower().endswith(".json"):
-        js = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in entries.items()}
-        atomic_write_text(path, json.dumps(js, indent=2) + "\n")
-    else:
-        raise InputError(
-            "unknown calibration file type (expected .yaml, .yml, .xml or .json)", file=path
-        )
+    _write_entries(path, entries)
 
 
 def save_calibration(res: dict, path: str) -> None:
