@@ -36,6 +36,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy import ndimage as ndi
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from jaxcr.segmentation.foreground import TubeTrace, end_before_hop
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
@@ -380,9 +382,6 @@ def _mask_paths_from(mask: np.ndarray, sources: np.ndarray, limit: float):
     """Geodesic distances (8-neighbour steps of 1 and sqrt 2) inside ``mask`` (h, w) bool
     from the nearest of ``sources`` (m, 2) (row, col) pixels of it, up to ``limit``, and the
     predecessor of each pixel (negative at a source or unreached); flat indices."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
-
     h, w = mask.shape
     idx = np.arange(h * w).reshape(h, w)
     pad = np.pad(mask, 1)
