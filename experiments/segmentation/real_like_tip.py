@@ -21,7 +21,9 @@ webcam noise, lens distortion, entry pixel with model error). Methods per view:
   to triangulate consistently, :mod:`jaxcr.stereo.backbone_consistency`; a view whose
   tube hooks back over its own silhouette gets its tip where the way back ends
   (``fold_back_tip``), else a view's trace whose end the other view does not explain is
-  cut back (``open_end_tails``), else the tips are re-searched
+  cut back (``open_end_tails``; where the path to cut passes no junction, gap or hop,
+  the other view's end is re-decided on its mask by the kept tip's epipolar line instead,
+  ``rebranched``), else the tips are re-searched
   along the tubes, :mod:`jaxcr.stereo.tip_consistency`). The epipolar distance of each
   method's two tips is recorded per frame (a frame over 5 px is flagged);
 * ``trace_r1`` -- the first round's foreground (commit cf4b1bb, from git);
@@ -366,7 +368,10 @@ def main(argv=None) -> int:
         "silhouette given the tip where the way back ends (folded, fold_back_tip), else a "
         "trace's end that the other view does not explain cut back (trimmed, placed by an "
         "open-ended match; before a hop of the path across background behind the cut, "
-        "the tube's end is before the hop, foreground.end_before_hop), else the tips "
+        "the tube's end is before the hop, foreground.end_before_hop; where the path to "
+        "cut passes no junction, gap or hop, the other view's end re-decided instead: the "
+        "end of the branch of its mask on the kept tip's epipolar line, rebranched), else "
+        "the tips "
         "re-searched along the traced tubes "
         "(jaxcr.stereo.tip_consistency; jaxcr.stereo.pipeline."
         "traced_stereo_tips, what `jaxcr stereo --segmentation trace` records), with the "

@@ -349,7 +349,8 @@ def traced_stereo_tips(
     the way back ends (:func:`jaxcr.stereo.backbone_consistency.fold_back_tip`, action
     ``"folded"``), else a view's backbone end that the other view does not explain is cut
     back (:func:`jaxcr.stereo.tip_consistency.trim_unexplained_tail` with
-    :func:`jaxcr.stereo.backbone_consistency.open_end_tails`, action ``"trimmed"``),
+    :func:`jaxcr.stereo.backbone_consistency.open_end_tails`, action ``"trimmed"``, or
+    ``"rebranched"`` where the path to cut left no tube and the other view's end moves),
     else the tips are re-searched along the traced tubes
     (:func:`jaxcr.stereo.tip_consistency.reconcile_tips`). ``traces``: the two
     :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
@@ -446,7 +447,7 @@ def _traced_tips(vrec: list[dict], traces, traced) -> None:
     length undetermined), else ``"skeleton"`` (no finite traced tip); ``"+branch"``
     appended for a view whose trace :func:`traced_stereo_tips` replaced by another branch
     (its ``backbone_px`` is then that trace's path, not the mask's skeleton), ``"+cut"`` or
-    ``"+extended"`` (or ``"+trimmed"``, ``"+folded"``) for the view its epipolar re-search moved.
+    ``"+extended"`` (or ``"+trimmed"``, ``"+rebranched"``, ``"+folded"``) for the view its epipolar re-search moved.
     ``traced``: :func:`traced_stereo_tips` of ``traces`` (computed before triangulation:
     the robot masks are the chosen traces' and the triangulated skeletons end at the
     tips, :func:`_ending_near`). The skeleton's end stays as ``tip_skeleton_px``; ``backbone_px`` loses its points beyond the new tip (along

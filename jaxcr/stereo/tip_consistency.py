@@ -36,6 +36,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy import ndimage as ndi
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from jaxcr.segmentation.foreground import TubeTrace, end_before_hop
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
@@ -48,7 +50,8 @@ class TipConsistency:
     """Result of :func:`reconcile_tips`: ``tips`` [(2,), (2,)] distorted (u, v) pixels;
     ``action`` one of ``"consistent"``, ``"cut"`` (the longer view moved back), ``"extended"``
     (the shorter view moved on), ``"kept"`` (flagged, no decision), ``"no_crossing"``;
-    ``"trimmed"`` (:func:`trim_unexplained_tail`) and ``"folded"``
+    ``"trimmed"`` and ``"rebranched"`` (the other view's end re-decided;
+    :func:`trim_unexplained_tail`) and ``"folded"``
     (:func:`jaxcr.stereo.pipeline.traced_stereo_tips` with
     :func:`jaxcr.stereo.backbone_consistency.fold_back_tip`);
     ``view`` the view (0 or 1) whose tip moved (None if none); ``evidence`` the fraction
@@ -250,7 +253,13 @@ def trim_unexplained_tail(
     explanation of the two backbones), or, where its path hops across background within
     two tube widths behind that sample, to the silhouette's end before the hop
     (:func:`jaxcr.segmentation.foreground.end_before_hop`: a point past the hop is not on
-    the tube; docs/decisions.md S17)."""
+    the tube; docs/decisions.md S17). Where instead ``k``'s path passes no junction and no
+    bridged gap from two widths behind that sample to its end (a tracer leaves a tube only
+    at a junction, across a gap or by such a hop), ``k``'s tip is taken as right and the
+    other view's end is re-decided: the end of the branch of its mask, near its traced end,
+    that crosses the epipolar line of ``k``'s tip and makes the two whole backbones
+    consistent (action ``"rebranched"``, the other view moved; docs/decisions.md S19);
+    where no branch does, ``k`` is cut as above."""
     if tails is not None:
         return _trim_open_end(cams, traces, tips, consistency, tails, low=low, absent=absent,
                               probe_widths=probe_widths)  # fmt: skip
@@ -332,6 +341,172 @@ def _trim_open_end(cams, traces, tips, consistency, tails, *, low, absent, probe
     hop = end_before_hop(traces[k], new[k]) if isinstance(traces[k], TubeTrace) else None
     if hop is not None:
         new[k] = np.asarray(hop, np.float64)
+    elif isinstance(traces[k], TubeTrace) and _tail_is_clean(traces[k], new[k]):
+        # k's trace left no tube on the way to its tip: the other view's end is the wrong
+        # one (docs/decisions.md S19).
+        redo = _end_on_epiline(cams, traces, tips, 1 - k)
+        if redo is not None:
+            new = [t.copy() for t in tips]
+            new[1 - k] = redo
+            return TipConsistency(new, "rebranched", 1 - k, evidence,
+                                  epipolar_gap_px(cams, tips), epipolar_gap_px(cams, new))  # fmt: skip
     return TipConsistency(
         new, "trimmed", k, evidence, epipolar_gap_px(cams, tips), epipolar_gap_px(cams, new)
     )
+
+
+def _tail_is_clean(trace, cut_uv, *, behind_widths: float = 2.0) -> bool:
+    """Whether ``trace``'s path beyond its point nearest ``cut_uv`` (and ``behind_widths``
+    tube widths behind it) passes no junction and no bridged gap: a tracer leaves a tube
+    only where something else touches it (a junction, :class:`jaxcr.segmentation.
+    foreground.TubeTrace`), across background (a gap it bridged), or by a hop onto
+    something just beyond the end (:func:`jaxcr.segmentation.foreground.end_before_hop`,
+    tested by the caller). Junctions within two look lengths of the trace's end are the
+    end's jitter, not branches (as :func:`jaxcr.segmentation.foreground.trace_alternatives`
+    skips them)."""
+    bb = np.asarray(trace.backbone, np.float64)
+    cum = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(bb, axis=0), axis=1))]
+    i_cut = int(np.argmin(np.linalg.norm(bb - np.asarray(cut_uv, np.float64)[None], axis=1)))
+    w = float(max(trace.width_px, 2.0))
+    start = cum[i_cut] - behind_widths * w
+    ctx = getattr(trace, "retrace", None)
+    look = (ctx.cfg.look_px if ctx is not None else 10.0) * int(getattr(trace, "scale", 1))
+    for jn in trace.junctions:
+        s = cum[min(int(jn[0]), len(cum) - 1)]
+        if s >= start and cum[-1] - s >= 2.0 * look:
+            return False
+    return not any(cum[min(int(g[1]), len(cum) - 1)] >= start for g in trace.gaps)
+
+
+def _mask_paths_from(mask: np.ndarray, sources: np.ndarray, limit: float):
+    """Geodesic distances (8-neighbour steps of 1 and sqrt 2) inside ``mask`` (h, w) bool
+    from the nearest of ``sources`` (m, 2) (row, col) pixels of it, up to ``limit``, and the
+    predecessor of each pixel (negative at a source or unreached); flat indices."""
+    h, w = mask.shape
+    idx = np.arange(h * w).reshape(h, w)
+    pad = np.pad(mask, 1)
+    ipad = np.pad(idx, 1, constant_values=-1)
+    rows, cols, wts = [], [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        ok = mask & pad[1 + dr : 1 + dr + h, 1 + dc : 1 + dc + w]
+        rows.append(idx[ok])
+        cols.append(ipad[1 + dr : 1 + dr + h, 1 + dc : 1 + dc + w][ok])
+        wts.append(np.full(int(ok.sum()), np.hypot(dr, dc)))
+    r, c, v = (np.concatenate(x) for x in (rows, cols, wts))
+    graph = coo_matrix((v, (r, c)), shape=(h * w, h * w)).tocsr()
+    src = np.unique(sources[:, 0] * w + sources[:, 1])
+    dist, pred, _ = dijkstra(graph, directed=False, indices=src, min_only=True,
+                          return_predecessors=True, limit=limit)  # fmt: skip
+    return dist.reshape(h, w), pred
+
+
+def _end_on_epiline(cams, traces, tips, j, *, reach_widths: float = 4.0,
+                    extent_widths: float = 6.0, end_widths: float = 1.0,
+                    min_angle_deg: float = 20.0):  # fmt: skip
+    """View ``j``'s tube end re-decided by the other view ``k``'s tip (docs/decisions.md
+    S19): the tip (2,) (distorted (u, v)), or None.
+
+    ``k``'s tip is taken as right (its trace left no tube on the way, :func:`_tail_is_clean`),
+    so the tube's end in ``j`` lies on the epipolar line of ``k``'s tip, at an end of ``j``'s
+    silhouette. The branches of ``j``'s hysteresis mask (``seed_mask``) near its traced end
+    are the geodesic paths inside the mask from ``j``'s path up to ``reach_widths`` tube
+    widths before its end (the branch the trace took, the one it missed at a junction, the
+    hook it stopped at) to the mask's extremities (local maxima of the geodesic distance
+    over half a width, beyond one width from the path, within ``reach_widths +
+    extent_widths`` widths). A branch is a candidate when its last crossing with the
+    epipolar line (undistorted; the path's direction over a width at least
+    ``min_angle_deg`` off the line, as in :func:`reconcile_tips`) is within
+    ``end_widths`` widths of its extremity (the tube ends there: the end face's cap is
+    under half a width, the rest is the calibration's error). Its tip is that crossing; of
+    the candidates whose whole backbone, with ``k``'s, leaves neither view a stretch longer
+    than its tube width unexplained (:func:`jaxcr.stereo.backbone_consistency.
+    open_end_tails`: the 3-D lengths agree), the one with the least inconsistent length
+    wins."""
+    # backbone_consistency imports this module (undistort_pixels): imported here.
+    from jaxcr.stereo.backbone_consistency import backbone_consistency, open_end_tails
+
+    tr, k = traces[j], 1 - j
+    if tr.seed_mask is None or len(tr.backbone) < 3:
+        return None
+    mask = np.asarray(tr.seed_mask, bool)
+    H, W = mask.shape
+    w = float(max(tr.width_px, 2.0))
+    bb = np.vstack([np.asarray(tr.backbone, np.float64)[:-1], np.asarray(tips[j], np.float64)])
+    bb = _densify(bb, 0.5)
+    cum = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(bb, axis=0), axis=1))]
+    keep = cum <= cum[-1] - reach_widths * w
+    if keep.sum() < 2:
+        return None
+    limit = (reach_widths + extent_widths) * w
+    near = bb[~keep]
+    r0, c0 = (int(max(np.floor(near[:, a].min() - limit), 0)) for a in (1, 0))
+    r1 = int(min(np.ceil(near[:, 1].max() + limit) + 1, H))
+    c1 = int(min(np.ceil(near[:, 0].max() + limit) + 1, W))
+    sub = mask[r0:r1, c0:c1]
+    src = np.round(bb[keep][:, ::-1]).astype(int) - [r0, c0]
+    inside = (src >= 0).all(1) & (src < sub.shape).all(1)
+    src = src[inside]
+    src = src[sub[src[:, 0], src[:, 1]]]
+    if not len(src):
+        return None
+    dist, pred = _mask_paths_from(sub, src, limit)
+    g = np.where(np.isfinite(dist), dist, -1.0)
+    rad = max(int(round(0.5 * w)), 1)
+    yy, xx = np.mgrid[-rad : rad + 1, -rad : rad + 1]
+    peak = (g >= ndi.maximum_filter(g, footprint=yy**2 + xx**2 <= rad**2)) & (g > w)
+    # A crop's cut edge (not the image's) makes false extremities.
+    edge = np.zeros_like(peak)
+    edge[:2, :] |= r0 > 0
+    edge[-2:, :] |= r1 < H
+    edge[:, :2] |= c0 > 0
+    edge[:, -2:] |= c1 < W
+    lab, n = ndi.label(peak & ~edge, structure=np.ones((3, 3)))
+    if not n:
+        return None
+    ends = ndi.maximum_position(g, lab, np.arange(1, n + 1))
+    K0, K1 = (np.asarray(c.K, np.float64) for c in cams)
+    F = fundamental_from_poses(K0, cams[0].T_cam_robot, K1, cams[1].T_cam_robot)
+    line = _epiline(F, undistort_pixels(cams[k], tips[k])[0], to_second=(j == 1))
+    sin_min = np.sin(np.radians(min_angle_deg))
+    flat_src = set((src[:, 0] * sub.shape[1] + src[:, 1]).tolist())
+    best = None
+    for e in ends:
+        node, path = int(e[0] * sub.shape[1] + e[1]), []
+        while node >= 0:
+            path.append(node)
+            if node in flat_src:
+                break
+            node = int(pred[node])
+        path = np.array(path[::-1])
+        uv = np.c_[path % sub.shape[1] + c0, path // sub.shape[1] + r0].astype(np.float64)
+        if len(uv) < 3:
+            continue
+        uv = _densify(uv, 0.5)
+        sd = undistort_pixels(cams[j], uv) @ line[:2] + line[2]
+        cross = np.flatnonzero(np.sign(sd[:-1]) * np.sign(sd[1:]) <= 0)
+        if not len(cross):
+            continue
+        i = int(cross[-1])
+        seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
+        if float(np.sum(seg[i:])) > end_widths * w:
+            continue
+        h = max(int(round(w)), 1)  # the direction over a width (a pixel path is a staircase)
+        d = uv[min(i + h, len(uv) - 1)] - uv[max(i - h, 0)]
+        if abs(d @ line[:2]) < sin_min * max(np.linalg.norm(d), 1e-9):
+            continue
+        f = sd[i] / (sd[i] - sd[i + 1]) if sd[i] != sd[i + 1] else 0.0
+        tip = (1 - f) * uv[i] + f * uv[i + 1]
+        # The new backbone: j's path to the branch's source, then the branch to the tip.
+        i_src = int(np.argmin(np.linalg.norm(bb[keep] - uv[0][None], axis=1)))
+        new_bb = np.vstack([bb[keep][: i_src + 1], uv[: i + 1], tip[None]])
+        pair = [None, None]
+        pair[j] = new_bb
+        pair[k] = np.vstack([np.asarray(traces[k].backbone, np.float64)[:-1], tips[k]])
+        bc = backbone_consistency(cams, pair[0], pair[1])
+        tails = open_end_tails(cams, bc)
+        widths = [float(max(t.width_px, 2.0)) for t in traces]
+        if any(tails[v][1] > widths[v] for v in range(2)):
+            continue
+        if best is None or bc.inconsistent_px < best[1]:
+            best = (tip, float(bc.inconsistent_px))
+    return None if best is None else best[0]
