@@ -27,7 +27,8 @@ scipy on float RGB in [0, 1] (no cv2, no file I/O):
    ``gap_turn_deg``) up to ``max_gap_px`` pixels for the mask to resume and bridges the
    gap. Beyond that, the tube ends: the tip is the last mask pixel along the path (a
    walker that turned round the end face and back along the tube is cut back to its
-   farthest point: a tube cannot reverse within its own width).
+   farthest point: a tube cannot reverse within its own width; a path that ran along one
+   edge near the end is moved onto the tube's axis first, :func:`centre_end_on_axis`).
    Output: the robot mask (mask pixels near the path plus the bridges drawn at the tube's
    width), the ordered 2-D backbone and the tip pixel.
 
@@ -1053,7 +1054,9 @@ def refine_tip_details(
     cfg: PlateForegroundConfig = PlateForegroundConfig(),
 ) -> tuple[np.ndarray, float, np.ndarray, float]:
     """Sub-pixel tip along the tube's end direction, from the cue ``score`` (H, W) near the
-    end of ``backbone`` (n, 2) (u, v), for a tube of width ``width_px``.
+    end of ``backbone`` (n, 2) (u, v), for a tube of width ``width_px``. The backbone's end
+    is first moved onto the tube's axis where the path left it
+    (:func:`centre_end_on_axis`).
 
     The score is sampled (bilinear) on a grid aligned with the end direction ``d`` (the
     quadratic fit of the last ``max(24, 3 w)`` px of the backbone), at 0.25 px steps.
