@@ -882,11 +882,11 @@ def _retrace_off_border(tr: TubeTrace, mask, cfg, frame, plate) -> TubeTrace:
 
 def _arc_sampler(bb: np.ndarray):
     """(arclength of each point of the polyline ``bb`` (n, 2) (n,), its length, a function
-    of arclength (m,) -> points (m, 2) on it, clamped to its ends); repeated points are
-    skipped."""
+    of arclength (m,) -> points (m, 2) on it, clamped to its ends); repeated points (steps
+    under 1e-9 px) are skipped and add no length."""
     seg = np.linalg.norm(np.diff(bb, axis=0), axis=1)
     keep = np.r_[True, seg > 1e-9]
-    cum = np.r_[0.0, np.cumsum(seg)]
+    cum = np.r_[0.0, np.cumsum(np.where(keep[1:], seg, 0.0))]
     cum_k, bb_k = cum[keep], bb[keep]
 
     def at(a):
@@ -967,7 +967,9 @@ def centre_end_on_axis(
     kept, a line fitted to the axis offsets (once more without residuals over 1 px) is
     the move; the last three widths of the path move across by it (tapering to 0 over the
     width before) when it is at least ``W / 4`` at the end (smaller offsets are within
-    the walker's re-centring and the edges' noise) and at most ``W``."""
+    the walker's re-centring and the edges' noise) and at most ``W``, the last row kept is
+    within 1.5 widths of the end (the axis is not extrapolated over a stretch where it was
+    not seen) and the moved line still runs on the silhouette."""
     bb = np.asarray(backbone, np.float64)
     w = float(max(width_px, 2.0))
     if len(bb) < 3:
@@ -1203,20 +1205,12 @@ def _end_frame(bb: np.ndarray, ss: np.ndarray, d: np.ndarray, w: float):
     and 3220 of the third round, 4-8 px off the tube 2 widths back), the normal from the
     backbone's direction over one width ``w``; at ``s >= 0`` straight on along ``d`` from the
     end. A backbone shorter than ``-s`` is continued straight back along ``-d``."""
-    seg = np.linalg.norm(np.diff(bb, axis=0), axis=1)
-    keep = np.r_[True, seg > 1e-9]
-    bb = bb[keep]
-    cum = np.r_[0.0, np.cumsum(seg[seg > 1e-9])]
-    length = cum[-1]
+    _, length, at = _arc_sampler(bb)
+    end = at(np.array([length]))[0]  # the last point kept (a repeated end point skipped)
     n_end = np.array([-d[1], d[0]])
-
-    def at(a):
-        a = np.clip(a, 0.0, length)
-        return np.stack([np.interp(a, cum, bb[:, 0]), np.interp(a, cum, bb[:, 1])], -1)
-
     back = np.minimum(ss, 0.0)
     a = length + back
-    cen = np.where((ss >= 0)[:, None], bb[-1] + np.maximum(ss, 0.0)[:, None] * d,
+    cen = np.where((ss >= 0)[:, None], end + np.maximum(ss, 0.0)[:, None] * d,
                    at(a) + np.minimum(a, 0.0)[:, None] * d)  # fmt: skip
     tan = at(a + 0.5 * w) - at(a - 0.5 * w)
     tn = np.linalg.norm(tan, axis=1, keepdims=True)
