@@ -27,7 +27,8 @@ scipy on float RGB in [0, 1] (no cv2, no file I/O):
    ``gap_turn_deg``) up to ``max_gap_px`` pixels for the mask to resume and bridges the
    gap. Beyond that, the tube ends: the tip is the last mask pixel along the path (a
    walker that turned round the end face and back along the tube is cut back to its
-   farthest point: a tube cannot reverse within its own width).
+   farthest point: a tube cannot reverse within its own width; a path that ran along one
+   edge near the end is moved onto the tube's axis first, :func:`centre_end_on_axis`).
    Output: the robot mask (mask pixels near the path plus the bridges drawn at the tube's
    width), the ordered 2-D backbone and the tip pixel.
 
@@ -59,6 +60,7 @@ __all__ = [
     "border_entry",
     "refine_tip",
     "refine_tip_details",
+    "centre_end_on_axis",
     "measure_tube_width",
     "downsample",
     "plate_foreground",
@@ -878,6 +880,164 @@ def _retrace_off_border(tr: TubeTrace, mask, cfg, frame, plate) -> TubeTrace:
                      width_px=width, junctions=tr.junctions)  # fmt: skip
 
 
+def _arc_sampler(bb: np.ndarray):
+    """(arclength of each point of the polyline ``bb`` (n, 2) (n,), its length, a function
+    of arclength (m,) -> points (m, 2) on it, clamped to its ends); repeated points (steps
+    under 1e-9 px) are skipped and add no length."""
+    seg = np.linalg.norm(np.diff(bb, axis=0), axis=1)
+    keep = np.r_[True, seg > 1e-9]
+    cum = np.r_[0.0, np.cumsum(np.where(keep[1:], seg, 0.0))]
+    cum_k, bb_k = cum[keep], bb[keep]
+
+    def at(a):
+        a = np.clip(a, 0.0, cum_k[-1])
+        return np.stack([np.interp(a, cum_k, bb_k[:, 0]), np.interp(a, cum_k, bb_k[:, 1])], -1)
+
+    return cum, float(cum[-1]), at
+
+
+def _normals(at, a: np.ndarray, w: float) -> np.ndarray:
+    """Unit normals (m, 2) of the polyline sampled by ``at`` at arclengths ``a`` (m,), from
+    its chord over one width ``w`` (the walker's re-centring jitter averaged out)."""
+    tan = at(a + 0.5 * w) - at(a - 0.5 * w)
+    tan = tan / np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-9)
+    return np.stack([-tan[:, 1], tan[:, 0]], 1)
+
+
+def _run_edges(row: np.ndarray, tt: np.ndarray, level: float, c0: float, reach: float):
+    """(left, right) offsets where the run of ``row`` (sampled at ascending offsets ``tt``)
+    at or above ``level`` that holds the sample nearest ``c0`` within ``reach`` crosses
+    ``level`` (linear interpolation); None where no such sample is on the run or the run
+    is not closed on both sides."""
+    on = row >= level
+    near = np.flatnonzero(on & (np.abs(tt - c0) <= reach))
+    if not len(near):
+        return None
+    i = near[np.argmin(np.abs(tt[near] - c0))]
+    lo, hi = i, i
+    while lo > 0 and on[lo - 1]:
+        lo -= 1
+    while hi < len(row) - 1 and on[hi + 1]:
+        hi += 1
+    if lo == 0 or hi == len(row) - 1:
+        return None
+    left = tt[lo - 1] + (level - row[lo - 1]) / (row[lo] - row[lo - 1]) * (tt[lo] - tt[lo - 1])
+    right = tt[hi] + (row[hi] - level) / (row[hi] - row[hi + 1]) * (tt[hi + 1] - tt[hi])
+    return float(left), float(right)
+
+
+# centre_end_on_axis: the path's end stretch and the stretch before it (widths), the
+# width agreement of a whole row (fraction of the upstream width), the largest step of
+# the axis between rows (px), and the smallest / largest move (fractions of the width).
+_AXIS_UP, _AXIS_END, _AXIS_NEAR = 6.0, 3.0, 0.5
+_AXIS_WIDTH_TOL, _AXIS_STEP_PX = 0.15, 1.5
+_AXIS_MIN_MOVE, _AXIS_MAX_MOVE = 0.25, 1.0
+_AXIS_REACH = 1.5  # the last row whose axis is measured, at most this many widths back
+
+
+def centre_end_on_axis(
+    score: np.ndarray,
+    backbone: np.ndarray,
+    width_px: float,
+    cfg: PlateForegroundConfig = PlateForegroundConfig(),
+) -> np.ndarray:
+    """The traced ``backbone`` (n, 2) (u, v) with its last three widths moved across the
+    tube onto the tube's axis where the path left the axis there; else ``backbone``
+    unchanged.
+
+    A walker re-centres step by step, so near the end it can run along one edge of the
+    tube (real_like dev seed 4147, view 2: 5 px across a 13 px tube), and the tip found
+    along that line is as far across. A tube's silhouette is symmetric about its axis and
+    of one width along a straight or gently bent stretch; the stretch the walker followed
+    before (3-6 widths back from the end) shows that width and where the path lay.
+
+    Rows across the path (its normal over one width ``w = width_px``), every 0.5 px from 6
+    to half a width behind its end, are sampled (bilinear, 0.25 px) out to 2 widths either
+    side. The silhouette is the score at least ``cfg.low`` over the background (the
+    median beside the upstream rows, 1.5-2 widths out), the mask's own contrast, so a
+    tube's weakly scored side (a shaded grey tube over a white board) is inside it. Its
+    edges in a row are the crossings of that level around the path. Upstream (6-3
+    widths back) the rows give the tube's width ``W`` (median), and must show one tube:
+    three quarters of them within 15 % of ``W``, and the path within ``W / 4`` of their
+    midpoints (else the run is not the tube, or the path was never centred: no change).
+    Then, from 3 to half a width back, row by row, the axis is the midpoint of a row's
+    edges when the row is whole (width within 15 % of ``W``) and within 1.5 px of the
+    previous row's axis; rows that are not (touching other foreground, a one-sided end,
+    the end face) are skipped, not guessed. With at least a third of the rows (and 4)
+    kept, a line fitted to the axis offsets (once more without residuals over 1 px) is
+    the move; the last three widths of the path move across by it (tapering to 0 over the
+    width before) when it is at least ``W / 4`` at the end (smaller offsets are within
+    the walker's re-centring and the edges' noise) and at most ``W``, the last row kept is
+    within 1.5 widths of the end (the axis is not extrapolated over a stretch where it was
+    not seen) and the moved line still runs on the silhouette."""
+    bb = np.asarray(backbone, np.float64)
+    w = float(max(width_px, 2.0))
+    if len(bb) < 3:
+        return bb
+    cum, length, at = _arc_sampler(bb)
+    s = np.arange(-_AXIS_UP * w, -_AXIS_NEAR * w + 1e-9, 0.5)
+    s = s[s >= -length]
+    up = s <= -_AXIS_END * w
+    if up.sum() < 8 or (~up).sum() < 4:
+        return bb
+    a = length + s
+    cen, nrm = at(a), _normals(at, a, w)
+    tt = np.arange(-2.0 * w, 2.0 * w + 1e-9, 0.25)
+    pts = cen[:, None] + tt[None, :, None] * nrm[:, None]
+    g = ndi.map_coordinates(score, [pts[..., 1], pts[..., 0]], order=1, mode="nearest")
+    s_bg = float(np.median(g[up][:, np.abs(tt) >= 1.5 * w]))
+    level = s_bg + cfg.low
+    rows_up = [_run_edges(g[k], tt, level, 0.0, 0.5 * w) for k in np.flatnonzero(up)]
+    rows_up = np.array([r for r in rows_up if r is not None]).reshape(-1, 2)
+    if len(rows_up) < 8:
+        return bb
+    widths = rows_up[:, 1] - rows_up[:, 0]
+    w_ref = float(np.median(widths))
+    tol = _AXIS_WIDTH_TOL * w_ref
+    whole = np.abs(widths - w_ref) <= tol
+    mids = rows_up[whole].mean(1)
+    if whole.mean() < 0.75 or abs(float(np.median(mids))) > 0.25 * w_ref:
+        return bb
+    prev = float(np.median(mids[-8:]))
+    ks, cs = [], []
+    for k in np.flatnonzero(~up):
+        r = _run_edges(g[k], tt, level, prev, 0.5 * w_ref)
+        if r is None or abs(r[1] - r[0] - w_ref) > tol:
+            continue
+        c = 0.5 * (r[0] + r[1])
+        if abs(c - prev) > _AXIS_STEP_PX:
+            continue
+        ks.append(k)
+        cs.append(c)
+        prev = c
+    need = max(4, (~up).sum() / 3)
+    # The axis is measured up to the end, not extrapolated over a stretch it was not seen
+    # on (a thinner inner tube at the end: its rows are not whole, dev 4037 view 2).
+    if len(ks) < need or s[ks[-1]] < -_AXIS_REACH * w:
+        return bb
+    ks, cs = np.array(ks), np.array(cs)
+    fit = np.polyfit(s[ks], cs, 1)
+    inl = np.abs(np.polyval(fit, s[ks]) - cs) <= 1.0
+    if inl.sum() < need:
+        return bb
+    fit = np.polyfit(s[ks][inl], cs[inl], 1)
+    move_end = abs(float(np.polyval(fit, 0.0)))
+    if not _AXIS_MIN_MOVE * w_ref <= move_end <= _AXIS_MAX_MOVE * w_ref:
+        return bb
+    sp = cum - length  # each point's signed arclength from the end (<= 0)
+    stretch = _AXIS_END * w
+    taper = np.clip((sp + stretch + w) / w, 0.0, 1.0)
+    move = np.polyval(fit, np.maximum(sp, -stretch)) * taper
+    out = bb.copy()
+    sel = taper > 0
+    out[sel] = bb[sel] + move[sel, None] * _normals(at, cum[sel], w)
+    # The moved line must still run on the silhouette up to half a width before the end.
+    on = cen[~up] + np.polyval(fit, s[~up])[:, None] * nrm[~up]
+    if np.any(ndi.map_coordinates(score, [on[:, 1], on[:, 0]], order=1, mode="nearest") < level):
+        return bb
+    return out
+
+
 def refine_tip(
     score: np.ndarray,
     backbone: np.ndarray,
@@ -896,7 +1056,9 @@ def refine_tip_details(
     cfg: PlateForegroundConfig = PlateForegroundConfig(),
 ) -> tuple[np.ndarray, float, np.ndarray, float]:
     """Sub-pixel tip along the tube's end direction, from the cue ``score`` (H, W) near the
-    end of ``backbone`` (n, 2) (u, v), for a tube of width ``width_px``.
+    end of ``backbone`` (n, 2) (u, v), for a tube of width ``width_px``. The backbone's end
+    is first moved onto the tube's axis where the path left it
+    (:func:`centre_end_on_axis`).
 
     The score is sampled (bilinear) on a grid aligned with the end direction ``d`` (the
     quadratic fit of the last ``max(24, 3 w)`` px of the backbone), at 0.25 px steps.
@@ -922,6 +1084,7 @@ def refine_tip_details(
     (:func:`jaxcr.stereo.tip_geometry.end_face_lengths`)."""
     bb = np.asarray(backbone, np.float64)
     w = float(max(width_px, 2.0))
+    bb = centre_end_on_axis(score, bb, w, cfg)
     arc = _local_arc(list(bb), window_px=max(24.0, 3 * w))
     if arc is None or len(bb) < 3:
         return bb[-1].copy(), 0.0, np.zeros(2), 0.0
@@ -1042,20 +1205,12 @@ def _end_frame(bb: np.ndarray, ss: np.ndarray, d: np.ndarray, w: float):
     and 3220 of the third round, 4-8 px off the tube 2 widths back), the normal from the
     backbone's direction over one width ``w``; at ``s >= 0`` straight on along ``d`` from the
     end. A backbone shorter than ``-s`` is continued straight back along ``-d``."""
-    seg = np.linalg.norm(np.diff(bb, axis=0), axis=1)
-    keep = np.r_[True, seg > 1e-9]
-    bb = bb[keep]
-    cum = np.r_[0.0, np.cumsum(seg[seg > 1e-9])]
-    length = cum[-1]
+    _, length, at = _arc_sampler(bb)
+    end = at(np.array([length]))[0]  # the last point kept (a repeated end point skipped)
     n_end = np.array([-d[1], d[0]])
-
-    def at(a):
-        a = np.clip(a, 0.0, length)
-        return np.stack([np.interp(a, cum, bb[:, 0]), np.interp(a, cum, bb[:, 1])], -1)
-
     back = np.minimum(ss, 0.0)
     a = length + back
-    cen = np.where((ss >= 0)[:, None], bb[-1] + np.maximum(ss, 0.0)[:, None] * d,
+    cen = np.where((ss >= 0)[:, None], end + np.maximum(ss, 0.0)[:, None] * d,
                    at(a) + np.minimum(a, 0.0)[:, None] * d)  # fmt: skip
     tan = at(a + 0.5 * w) - at(a - 0.5 * w)
     tn = np.linalg.norm(tan, axis=1, keepdims=True)

@@ -16,6 +16,7 @@ from jaxcr.segmentation.foreground import (
     TubeTrace,
     align_plate,
     border_entry,
+    centre_end_on_axis,
     close_score,
     end_before_hop,
     foreground_cues,
@@ -354,6 +355,60 @@ def test_refine_tip_on_a_tube_curving_into_its_end():
         tip, a, d, half = refine_tip_details(score, backbone, 8.0)
         assert np.linalg.norm(tip - end) < 1.0, (over_px, tip, end, a)
         assert abs(half - 4.0) < 1.0, half
+
+
+def _drawn_tube(angle_deg, weak_level=None):
+    """A straight tube 12 px wide with a flat end at a known sub-pixel point, 8x8
+    supersampled, blurred 1.2 px, over a background of 0.1: score 3.0 across it, or, with
+    ``weak_level``, 3.0 on one half across and ``weak_level`` on the other (a shaded grey
+    tube over a white board scores high on its dark side only). Returns (score, end, d, n)."""
+    h, w, ss = 90, 140, 8
+    end = np.array([100.3, 44.6])
+    d, n, s_, t_ = _along_across(h, w, ss, angle_deg, end)
+    body = (s_ <= 0) & (s_ >= -150) & (np.abs(t_) <= 6.0)
+    level = np.where(t_ > 0, 3.0 if weak_level is None else weak_level, 3.0) * body
+    score = 0.1 + ndi.gaussian_filter(level.reshape(h, ss, w, ss).mean((1, 3)), 1.2)
+    return score, end, d, n
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 25.0])
+def test_centre_end_on_axis_brings_a_drifted_path_back(angle_deg):
+    """The traced path runs on the drawn tube's axis (12 px wide, flat end; _drawn_tube) and,
+    over the last 36 px (3 widths), drifts linearly to 5 px across it, one px inside the
+    edge (real_like dev seed 4147, view 2). Before this rule the tip was found along the
+    drifted line, 5 px across. Reference: the drawn end. The rows' edge midpoints are on
+    the axis by symmetry up to the 0.25 px sampling and bilinear interpolation of a blurred
+    step (< 0.1 px), a line fits them; the path's end lands within 0.3 px of the axis, and
+    the tip within 0.5 px of the drawn end (the 0.3 px of test_refine_tip_on_drawn_ends
+    plus the residual across)."""
+    score, end, d, n = _drawn_tube(angle_deg)
+    s = np.arange(-120.0, 0.1, 2.0)
+    drift = np.clip((s + 36.0) / 36.0, 0.0, 1.0) * 5.0
+    path = end[None] + s[:, None] * d[None] + drift[:, None] * n[None]
+    moved = centre_end_on_axis(score, path, 12.0)
+    assert abs((moved[-1] - end) @ n) < 0.3, moved[-1]
+    assert np.array_equal(moved[s < -60], path[s < -60])  # upstream untouched
+    tip, a = refine_tip(score, path, 12.0)
+    assert np.linalg.norm(tip - end) < 0.5, (tip, end, a)
+
+
+@pytest.mark.parametrize("weak_level", [0.6, 0.25])
+def test_centre_end_on_axis_leaves_a_one_sided_tube_alone(weak_level):
+    """A shaded grey tube over a white board: one half of the drawn tube (_drawn_tube, 12
+    px) scores 3.0, the other ``weak_level`` over a background of 0.1 (the case that made
+    the midpoint of the score's edges fail on real_like dev seeds 4027 and 4062). The path
+    runs on the axis to the end. At 0.6 the weak half is over the mask's contrast
+    (``low`` = 0.4 over the background): the silhouette is whole and centred, no move
+    (under W/4). At 0.25 it is under: the silhouette seen is the strong half, 6 px wide,
+    and the path lies 3 px (half of it) off that half's midpoint already upstream, over the
+    W/4 = 1.5 px a centred walker allows: the run is not taken for the tube, no move. Either
+    way the backbone comes back unchanged (bit for bit) and the tip is the drawn end's
+    (0.5 px as above)."""
+    score, end, d, n = _drawn_tube(30.0, weak_level)
+    path = end[None] + np.arange(-120.0, 0.1, 2.0)[:, None] * d[None]
+    assert np.array_equal(centre_end_on_axis(score, path, 12.0), path)
+    tip, _ = refine_tip(score, path, 12.0)
+    assert np.linalg.norm(tip - end) < 0.5, (tip, end)
 
 
 @pytest.mark.parametrize("angle_deg", [0.0, -35.0])
