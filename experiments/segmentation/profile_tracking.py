@@ -79,7 +79,7 @@ def profile(frames: int, repeats: int, names: list[str], seed: int = 1) -> dict:
     cold = refine_frame_jit(base, cam, imgs[0], bgs[0], RefineConfig())
     fields = {n: {k: v for k, v in VARIANTS[n].items() if k != "roi"} for n in names}
     warms = {n: dataclasses.replace(RefineConfig().warm(), **fields[n]) for n in names}
-    roi = tracking_roi(bases, cam, RefineConfig())
+    roi = tracking_roi(bases, cam, config=RefineConfig().warm())
     rois = {n: roi if VARIANTS[n].get("roi") else None for n in names}
 
     def frame(k, cfg, prev, n):

@@ -610,7 +610,7 @@ def _band_clear_of_border(band: Band, grid: TileGrid, r0, c0, size: tuple[int, i
 
 
 def roi_shape(
-    extent: tuple[float, float], size: tuple[int, int], tile: int = 8, margin: float = 64.0
+    extent: tuple[float, float], size: tuple[int, int], *, tile: int = 8, margin: float = 64.0
 ) -> tuple[int, int] | None:
     """The region of interest (h, w) for tracking a tube whose silhouettes span at most
     ``extent`` = (h, w) pixels in images of ``size`` = (h, w): the extent plus ``margin``
@@ -626,7 +626,7 @@ def roi_shape(
 
 
 def tracking_roi(
-    bases: Centreline, cameras, config: RefineConfig = DEFAULT_CONFIG, margin: float = 64.0
+    bases: Centreline, cameras, *, config: RefineConfig = DEFAULT_CONFIG, margin: float = 64.0
 ) -> tuple[int, int] | None:
     """The region of interest (:func:`roi_shape`) for tracking a sequence: the largest extent
     of the frames' nominal silhouettes (``bases``: (F, N) centrelines) over the cameras, plus
@@ -647,7 +647,7 @@ def tracking_roi(
             return None
         spans = [(boxes[ok, 3] - boxes[ok, 1]).max(), (boxes[ok, 2] - boxes[ok, 0]).max()]
         ext = np.maximum(ext, spans)
-    return roi_shape(tuple(ext), sizes.pop(), config.tile, margin)
+    return roi_shape(tuple(ext), sizes.pop(), tile=config.tile, margin=margin)
 
 
 def _mask(tube: TubeImage, band: Band, data: RegionData, m=None) -> Bool[Array, "h w"]:
@@ -1671,7 +1671,7 @@ def refine_sequence(
     if isinstance(roi, str):
         if roi != "auto":
             raise InputError(f"roi must be (h, w), 'auto' or None, got {roi!r}", field="roi")
-        roi = tracking_roi(bases, cameras, warm_config)
+        roi = tracking_roi(bases, cameras, config=warm_config)
     fit = False
     if roi is not None:
         out, fits = call(_refine_sequence_jit, *args, cold_first, tuple(int(x) for x in roi))

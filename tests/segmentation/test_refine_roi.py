@@ -1,10 +1,12 @@
 """Tracked frames on a region of interest (jaxcr.segmentation.refine, ``roi``; docs/decisions.md
 S21): with the local outside mean (S3) the band energy computed on a tile-aligned window of the
 image, with the whole image's colour variance, equals the whole image's; the window's size
-buckets; the border test that sends a frame back to the whole image; the fall-back itself.
+buckets; the border test that sends a frame back to the whole image; the fall-backs; one
+tracked sequence on a region.
 
-No refinement program is compiled here: the energy pieces run through the shared jitted
-helpers of tests/helpers/jitted.py (small images), the fall-back with a stub.
+One refinement program is compiled here (the region's, 160x120, last test); the energy pieces
+run through the shared jitted helpers of tests/helpers/jitted.py (small images), the
+fall-backs with stubs.
 """
 
 import jax.numpy as jnp
@@ -203,7 +205,7 @@ def test_sequence_on_a_region_tracks_the_tube():
         min_tiles=24, g_reg=0.5, camera_correction=False,
     )  # fmt: skip
     bases = refine.jax.tree.map(lambda *x: jnp.stack(x), base, base)
-    roi = refine.tracking_roi(bases, cam, cfg, margin=32.0)
+    roi = refine.tracking_roi(bases, cam, config=cfg, margin=32.0)
     assert roi == (96, 144)
     calls = []
     prog = refine._refine_sequence_jit
