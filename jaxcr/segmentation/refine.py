@@ -543,9 +543,10 @@ def _rig_corrections_to_params(cameras, corr, z_ref, residual: bool) -> Float[Ar
 #: tiles kept free between a region of interest's border and the output bands of a tracked
 #: frame (:func:`refine_frame` ``roi``): a band tile within this many tiles of a border that is
 #: not the image's own means the band may have been cut by the region, and the frame is
-#: refined again on the full image. Two tiles: a tile outside the region is at most one tile
-#: diagonal closer to the silhouette than the border tile its nearest path crosses, so with
-#: two free rings no outside tile could have entered the band.
+#: refined again on the full image. Two tiles, a heuristic margin (not a proof): the path
+#: from a tile outside the region to its nearest silhouette point crosses the border ring,
+#: whose tile there is at most about one tile diagonal farther from the silhouette, so with
+#: two free rings an outside tile would hardly have entered the band.
 ROI_FREE_TILES = 2
 
 
