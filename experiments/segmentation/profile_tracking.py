@@ -2,7 +2,8 @@
 track29): fixed cost per frame, steps per frame, cost per step and per band pixel.
 
 Scene: the smooth 640x480 sequence of ``experiments/segmentation/bench_tracking.py``
-(``jaxcr.benchmarks.segment.make_scene(frames, seed=1, smooth=True)``). Frame 0 is refined
+(``jaxcr.benchmarks.segment.make_scene(frames, seed=1, smooth=True)``; ``--seed`` another
+sequence). Frame 0 is refined
 cold with the package defaults; frames 1.. are tracked one :func:`refine_frame_jit` call each,
 every frame warm-started from its own previous answer (coefficients and camera correction:
 what ``refine_sequence`` does), with a warm schedule (``RefineConfig().warm()`` changed by one
@@ -16,7 +17,7 @@ pixel per step, IoU against the rendered truth. Variants interleaved per repeat;
 load is recorded.
 
 Run: ``PYTHONPATH=$PWD python experiments/segmentation/profile_tracking.py [--frames 8]
-[--repeats 3] [--size 640x480] [--variants NAME ...] [--tag NAME]`` (writes
+[--repeats 3] [--size 640x480] [--variants NAME ...] [--tag NAME] [--seed N]`` (writes
 ``experiments/results/segmentation/profile_tracking<tag>.md`` and ``.json``).
 """
 
@@ -36,13 +37,13 @@ import numpy as np
 import jaxcr.benchmarks.segment as bs
 from jaxcr.segmentation.background import colour_mask
 from jaxcr.segmentation.metrics import iou
-from jaxcr.segmentation.refine import RefineConfig, refine_frame_jit
+from jaxcr.segmentation.refine import RefineConfig, refine_frame_jit, tracking_roi
 
 OUT = Path(__file__).resolve().parents[1] / "results" / "segmentation"
 
 
-def _scene(frames: int):
-    base, cam, fr = bs.make_scene(frames, seed=1, smooth=True)
+def _scene(frames: int, seed: int = 1):
+    base, cam, fr = bs.make_scene(frames, seed=seed, smooth=True)
     I, B = [], []
     for f in fr:
         b, i = colour_mask(jnp.asarray(f["img"]))
@@ -66,20 +67,28 @@ VARIANTS = {
     "xtol 0.3 px": {"xtol": 0.3},
     "ftol 1e-3": {"ftol": 1e-3},
     "xtol 0.3 px, ftol 1e-3": {"xtol": 0.3, "ftol": 1e-3},
+    # not a config field: the tracked frames on a region of interest (tracking_roi of the
+    # sequence's nominal shapes, refine_frame_jit's ``roi``; docs/decisions.md S21)
+    "roi": {"roi": True},
+    "full frame": {"roi": False},
 }
 
 
-def profile(frames: int, repeats: int, names: list[str]) -> dict:
-    base, bases, cam, imgs, bgs, truth = _scene(frames)
+def profile(frames: int, repeats: int, names: list[str], seed: int = 1) -> dict:
+    base, bases, cam, imgs, bgs, truth = _scene(frames, seed)
     cold = refine_frame_jit(base, cam, imgs[0], bgs[0], RefineConfig())
-    warms = {n: dataclasses.replace(RefineConfig().warm(), **VARIANTS[n]) for n in names}
+    fields = {n: {k: v for k, v in VARIANTS[n].items() if k != "roi"} for n in names}
+    warms = {n: dataclasses.replace(RefineConfig().warm(), **fields[n]) for n in names}
+    roi = tracking_roi(bases, cam, config=RefineConfig().warm())
+    rois = {n: roi if VARIANTS[n].get("roi") else None for n in names}
 
-    def frame(k, cfg, prev):
+    def frame(k, cfg, prev, n):
         return refine_frame_jit(
-            base, cam, imgs[k], bgs[k], cfg, prev.coeffs, True, prev.camera_correction
-        )
+            base, cam, imgs[k], bgs[k], cfg, prev.coeffs, True, prev.camera_correction,
+            roi=rois[n],
+        )  # fmt: skip
 
-    def track(cfg):
+    def track(cfg, n):
         # frames 1.. tracked from frame 0's cold answer, each from its own previous answer
         # (what refine_sequence does), and the same frames with a step budget of 0 started
         # from the same previous answers (the fixed cost)
@@ -87,10 +96,10 @@ def profile(frames: int, repeats: int, names: list[str]) -> dict:
         prev, rows = cold, []
         for k in range(1, frames):
             c0 = time.process_time()
-            r = frame(k, cfg, prev)
+            r = frame(k, cfg, prev, n)
             cpu = 1e3 * (time.process_time() - c0)
             c0 = time.process_time()
-            z = frame(k, zero, prev)
+            z = frame(k, zero, prev, n)
             zcpu = 1e3 * (time.process_time() - c0)
             rows.append(
                 (1e3 * float(r.time_s), cpu, 1e3 * float(z.time_s), zcpu, int(r.num_steps),
@@ -100,12 +109,12 @@ def profile(frames: int, repeats: int, names: list[str]) -> dict:
         return np.asarray(rows)
 
     for n in names:  # compile (the budgets are traced: one program per schedule)
-        frame(1, warms[n], cold)
+        frame(1, warms[n], cold, n)
     runs = {n: [] for n in names}
     loads = []
     for _ in range(repeats):
         for n in names:
-            runs[n].append(track(warms[n]))
+            runs[n].append(track(warms[n], n))
         loads.append(os.getloadavg()[0])
     out = {}
     for n in names:
@@ -128,6 +137,7 @@ def profile(frames: int, repeats: int, names: list[str]) -> dict:
             "ns_per_band_pixel_step": 1e6 * per_step / pixels,
             "iou_mean": float(np.mean(a[0, :, 5])),
             "iou_per_frame": a[0, :, 5].tolist(),
+            "roi": rois[n],
             "loads": loads,
         }
     ref = out[names[0]]
@@ -144,11 +154,12 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="640x480")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--tag", default="")
+    ap.add_argument("--seed", type=int, default=1, help="make_scene seed (1: the bench's)")
     args = ap.parse_args(argv)
     w, h = (int(x) for x in args.size.lower().split("x"))
     bs.W, bs.H = w, h
     load0 = os.getloadavg()[0]
-    res = profile(args.frames, args.repeats, args.variants)
+    res = profile(args.frames, args.repeats, args.variants, args.seed)
     load1 = os.getloadavg()[0]
     cmd = (
         "PYTHONPATH=$PWD python experiments/segmentation/profile_tracking.py "
@@ -156,6 +167,7 @@ def main(argv=None) -> int:
         + "--variants "
         + " ".join(f"'{v}'" for v in args.variants)
         + (f" --tag {args.tag}" if args.tag else "")
+        + (f" --seed {args.seed}" if args.seed != 1 else "")
     )
     meta = bs._meta()
     stem = f"profile_tracking{args.tag}"
@@ -164,7 +176,8 @@ def main(argv=None) -> int:
         json.dumps({"command": cmd, "results": res, "meta": meta}, indent=1)
     )
     lines = [
-        f"# Tracked-frame profile, {w}x{h}, warm schedule, {args.frames - 1} warm frames",
+        f"# Tracked-frame profile, {w}x{h}, warm schedule, {args.frames - 1} warm frames"
+        + (f" (scene seed {args.seed})" if args.seed != 1 else ""),
         "",
         f"Command: `{cmd}`",
         "",

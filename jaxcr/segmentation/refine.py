@@ -55,6 +55,7 @@ import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 
 from jaxcr._types import Array, Bool, Float, Int
@@ -539,6 +540,117 @@ def _rig_corrections_to_params(cameras, corr, z_ref, residual: bool) -> Float[Ar
     return jnp.concatenate(rows, axis=0)
 
 
+#: tiles kept free between a region of interest's border and the output bands of a tracked
+#: frame (:func:`refine_frame` ``roi``): a band tile within this many tiles of a border that is
+#: not the image's own means the band may have been cut by the region, and the frame is
+#: refined again on the full image. Two tiles, a heuristic margin (not a proof): the path
+#: from a tile outside the region to its nearest silhouette point crosses the border ring,
+#: whose tile there is at most about one tile diagonal farther from the silhouette, so with
+#: two free rings an outside tile would hardly have entered the band.
+ROI_FREE_TILES = 2
+
+
+def _tube_box(tube: TubeImage) -> Float[Array, "4"]:
+    """(x_min, y_min, x_max, y_max) in pixels of the valid capsules (with their radii)."""
+    big = jnp.asarray(1e9, tube.ax.dtype)
+    r = jnp.maximum(tube.ra, tube.rb)
+    lo_x = jnp.where(tube.valid, jnp.minimum(tube.ax, tube.bx) - r, big)
+    lo_y = jnp.where(tube.valid, jnp.minimum(tube.ay, tube.by) - r, big)
+    hi_x = jnp.where(tube.valid, jnp.maximum(tube.ax, tube.bx) + r, -big)
+    hi_y = jnp.where(tube.valid, jnp.maximum(tube.ay, tube.by) + r, -big)
+    return jnp.stack([jnp.min(lo_x), jnp.min(lo_y), jnp.max(hi_x), jnp.max(hi_y)])
+
+
+def _roi_origin(
+    boxes: list[Array], roi: tuple[int, int], size: tuple[int, int], tile: int
+) -> tuple[Int[Array, ""], Int[Array, ""]]:
+    """Top-left (row, column) of the ``roi`` = (h, w) window centred on the union of
+    ``boxes``, on the tile grid (so the region's tiles are the image's) and inside the image
+    of ``size`` = (h, w)."""
+    box = jnp.stack(boxes)
+    cx = 0.5 * (jnp.min(box[:, 0]) + jnp.max(box[:, 2]))
+    cy = 0.5 * (jnp.min(box[:, 1]) + jnp.max(box[:, 3]))
+    cx = jnp.where(jnp.isfinite(cx), cx, 0.0)
+    cy = jnp.where(jnp.isfinite(cy), cy, 0.0)
+
+    def start(c, n, full):
+        s = jnp.floor((c - 0.5 * n) / tile).astype(jnp.int32) * tile
+        return jnp.clip(s, 0, (full - n) // tile * tile)
+
+    return start(cy, roi[0], size[0]), start(cx, roi[1], size[1])
+
+
+def _roi_camera(cam: Camera, r0, c0, roi: tuple[int, int]) -> Camera:
+    """The camera of the ``roi`` window at (row ``r0``, column ``c0``): the principal point
+    moved by the window's origin (exact for the pinhole and OpenCV distortion models, which
+    distort normalised coordinates before the intrinsics)."""
+    K = cam.K.at[0, 2].add(-c0.astype(cam.K.dtype)).at[1, 2].add(-r0.astype(cam.K.dtype))
+    return dataclasses.replace(cam, K=K, width=roi[1], height=roi[0])
+
+
+def _image_variance(image: Float[Array, "h w 3"], background: Bool[Array, "h w"]):
+    """The data-weighted colour variance of a whole level-0 image, as
+    :func:`energy.chan_vese_soft` computes it from :class:`RegionData` (its ``var``): the
+    normalisation of J, kept from the full image when the data are a region of it."""
+    w = 1.0 - background.astype(image.dtype)
+    s0 = jnp.maximum(jnp.sum(w), 1e-6)
+    centre = jnp.einsum("hw,hwc->c", w, image) / s0
+    d = image - centre
+    return jnp.sum(w * jnp.sum(d * d, axis=-1)) / s0
+
+
+def _band_clear_of_border(band: Band, grid: TileGrid, r0, c0, size: tuple[int, int]):
+    """No band tile within ``ROI_FREE_TILES`` of a region border that is not the image's."""
+    row, col = grid.row_col(band.tiles)
+    e = ROI_FREE_TILES
+    top = (row < e) & (r0 > 0)
+    left = (col < e) & (c0 > 0)
+    bottom = (row >= grid.rows - e) & (r0 + grid.height < size[0])
+    right = (col >= grid.cols - e) & (c0 + grid.width < size[1])
+    return ~jnp.any(top | left | bottom | right)
+
+
+def roi_shape(
+    extent: tuple[float, float], size: tuple[int, int], *, tile: int = 8, margin: float = 64.0
+) -> tuple[int, int] | None:
+    """The region of interest (h, w) for tracking a tube whose silhouettes span at most
+    ``extent`` = (h, w) pixels in images of ``size`` = (h, w): the extent plus ``margin``
+    pixels on each side, rounded up to one of eight buckets per axis (multiples of an eighth
+    of the image, in whole tiles: a few compiled shapes, not one per sequence). None when it
+    would not be smaller than the image."""
+    out = []
+    for e, n in zip(extent, size, strict=True):
+        step = -(-max(n // 8, tile) // tile) * tile
+        need = -(-int(e + 2 * margin) // step) * step
+        out.append(min(need, n))
+    return None if tuple(out) == tuple(size) else tuple(out)
+
+
+def tracking_roi(
+    bases: Centreline, cameras, *, config: RefineConfig = DEFAULT_CONFIG, margin: float = 64.0
+) -> tuple[int, int] | None:
+    """The region of interest (:func:`roi_shape`) for tracking a sequence: the largest extent
+    of the frames' nominal silhouettes (``bases``: (F, N) centrelines) over the cameras, plus
+    ``margin`` pixels a side (the warm start's distance from the nominal shape and the band
+    around it; a frame whose bands come closer to the border is refined on the whole image).
+    None when no region would be smaller than the image, the cameras differ in size, or
+    ``config`` has the whole image's outside mean (``local=False``: the region would change
+    the energy)."""
+    cameras = _as_tuple(cameras)
+    sizes = {(c.height, c.width) for c in cameras}
+    if len(sizes) != 1 or not config.local:
+        return None
+    ext = np.zeros(2)
+    for cam in cameras:
+        boxes = np.asarray(jax.jit(jax.vmap(lambda b, c=cam: _tube_box(project_tube(c, b))))(bases))
+        ok = np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= boxes[:, 0])
+        if not np.any(ok):
+            return None
+        spans = [(boxes[ok, 3] - boxes[ok, 1]).max(), (boxes[ok, 2] - boxes[ok, 0]).max()]
+        ext = np.maximum(ext, spans)
+    return roi_shape(tuple(ext), sizes.pop(), tile=config.tile, margin=margin)
+
+
 def _mask(tube: TubeImage, band: Band, data: RegionData, m=None) -> Bool[Array, "h w"]:
     """The hard mask (h, w); ``m``: the band's margins if already computed."""
     grid = data.grid
@@ -769,6 +881,39 @@ def _level_tables(
     )
 
 
+def _refine_frame(
+    base: Centreline,
+    cameras: Camera | tuple[Camera, ...],
+    images: Float[Array, "h w 3"] | tuple[Float[Array, "h w 3"], ...],
+    backgrounds: Bool[Array, "h w"] | tuple[Bool[Array, "h w"], ...],
+    config: RefineConfig = DEFAULT_CONFIG,
+    init: Float[Array, "a k"] | None = None,
+    valid: Bool[Array, ""] | bool = True,
+    init_cam: Float[Array, "c 6"] | None = None,
+    init_hessian: Float[Array, "n n"] | None = None,
+    *,
+    steps: Int[Array, " L"] | None = None,
+    roi: tuple[int, int] | None = None,
+) -> tuple[RefineResult, Bool[Array, ""]]:
+    """:func:`refine_frame`, optionally on a region of interest of a tracked frame.
+
+    ``roi`` = (h, w) (static; one-level configs at level 0 only): the region data, band
+    selections and output masks are computed in an h x w window of each image, on the tile
+    grid, centred on the warm start's and the nominal shape's silhouettes (a camera whose
+    principal point is moved by the window's origin); J keeps the whole image's colour
+    variance and the nominal area, so with ``config.local`` (docs/decisions.md S3) the energy
+    equals the full image's up to float rounding whenever the bands lie inside the window. The
+    masks are returned at full size. Also returns ``fit``: every output band (refined and
+    nominal shape) stays ``ROI_FREE_TILES`` clear of the window's inner borders; where it does
+    not, the callers refine the frame again on the whole image (docs/decisions.md S21).
+    Without ``roi``, ``fit`` is True.
+    """
+    return _refine_frame_body(
+        base, cameras, images, backgrounds, config, init, valid, init_cam, init_hessian,
+        steps=steps, roi=roi,
+    )  # fmt: skip
+
+
 def refine_frame(
     base: Centreline,
     cameras: Camera | tuple[Camera, ...],
@@ -808,6 +953,15 @@ def refine_frame(
     Returns:
         :class:`RefineResult` (see there).
     """
+    return _refine_frame_body(
+        base, cameras, images, backgrounds, config, init, valid, init_cam, init_hessian,
+        steps=steps, roi=None,
+    )[0]  # fmt: skip
+
+
+def _refine_frame_body(
+    base, cameras, images, backgrounds, config, init, valid, init_cam, init_hessian, *, steps, roi
+):
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     if not (len(cameras) == len(images) == len(backgrounds)):
         raise InputError("need one image and one background mask per camera", field="images")
@@ -902,6 +1056,38 @@ def refine_frame(
     area_ref = sum(_tube_area(t, cam) for t, cam in zip(nominal_tubes, cameras, strict=True))
     area_ref = jax.lax.stop_gradient(jnp.maximum(area_ref, 1.0))
     in_view = area_ref > 1.0
+    full_size = tuple(im.shape[:2] for im in images)
+    if roi is not None:
+        if tuple(config.levels) != (0,) or not config.local:
+            raise InputError(
+                "roi (a region of interest) needs a one-level config at level 0 with the local "
+                "outside mean (local=True)",
+                field="roi",
+            )
+        # the window follows the warm start's and the nominal silhouettes; J keeps the whole
+        # image's normalisation (colour variance; area_ref above)
+        _, init_tubes = tubes_of(params0)
+        rois = tuple((min(roi[0], h), min(roi[1], w)) for h, w in full_size)
+        origins = tuple(
+            _roi_origin([_tube_box(ti), _tube_box(tn)], rc, sz, config.tile)
+            for ti, tn, rc, sz in zip(init_tubes, nominal_tubes, rois, full_size, strict=True)
+        )
+        roi_vars = tuple(
+            _image_variance(im, bg) for im, bg in zip(images, backgrounds, strict=True)
+        )
+        images = tuple(
+            jax.lax.dynamic_slice(im, (r0, c0, 0), rc + (3,))
+            for im, (r0, c0), rc in zip(images, origins, rois, strict=True)
+        )
+        backgrounds = tuple(
+            jax.lax.dynamic_slice(bg, (r0, c0), rc)
+            for bg, (r0, c0), rc in zip(backgrounds, origins, rois, strict=True)
+        )
+        cameras = tuple(
+            _roi_camera(cam, r0, c0, rc)
+            for cam, (r0, c0), rc in zip(cameras, origins, rois, strict=True)
+        )
+        nominal_tubes = tubes_of(zeros)[1]
 
     def image_energy(tubes, args):
         """The data and penalty terms of J (everything but the regulariser) for the
@@ -1055,7 +1241,7 @@ def refine_frame(
                 for t, bd, d in zip(tubes, bands, datas, strict=True)
             )  # fmt: skip
         else:
-            vars_ = (None,) * len(tubes)
+            vars_ = (None,) * len(tubes) if roi is None else roi_vars
         # the band's pixels once per solve, not at every energy evaluation
         gathered = tuple(d.gather(bd.tiles) for d, bd in zip(datas, bands, strict=True))
         args = (bands, datas, lv, vars_, gathered)
@@ -1132,16 +1318,24 @@ def refine_frame(
     k0 = config.tiles_at(0)
 
     def tube_outputs(tubes):
-        """Masks, exactness and hard terms (summed over cameras) of one shape's tubes."""
-        masks, exact = [], jnp.asarray(True)
+        """Masks, exactness and hard terms (summed over cameras) of one shape's tubes, and
+        whether their bands stay clear of the region of interest's borders."""
+        masks, exact, fit = [], jnp.asarray(True), jnp.asarray(True)
         e = {"e_in": 0.0, "e_out": 0.0, "e_pen": 0.0, "J": 0.0}
-        for tube, data in zip(tubes, datas0, strict=True):
+        for i, (tube, data) in enumerate(zip(tubes, datas0, strict=True)):
             band = select_band(tube, data.grid, k0, config.seg_merge * config.k_seg)
             m = band_margin(tube, data.grid, band)  # once for the mask and the terms
-            masks.append(_mask(tube, band, data, m))
+            mask = _mask(tube, band, data, m)
             exact = exact & band.exact
             t = _hard_terms(tube, band, data, config.local, config.robust, m)
-            var = data.total_s2 / jnp.maximum(data.total_w, 1e-6)
+            if roi is None:
+                var = data.total_s2 / jnp.maximum(data.total_w, 1e-6)
+            else:
+                var = roi_vars[i]
+                r0, c0 = origins[i]
+                fit = fit & _band_clear_of_border(band, data.grid, r0, c0, full_size[i])
+                mask = jax.lax.dynamic_update_slice(jnp.zeros(full_size[i], bool), mask, (r0, c0))
+            masks.append(mask)
             e["e_in"] = e["e_in"] + t.e_in
             e["e_out"] = e["e_out"] + t.e_out
             e["e_pen"] = e["e_pen"] + t.e_pen
@@ -1151,7 +1345,7 @@ def refine_frame(
                 / (area_ref * jnp.maximum(var, 1e-8))
                 + weights.g_pen * t.e_pen / area_ref
             )
-        return tuple(masks), exact, e
+        return tuple(masks), exact, e, fit
 
     finite_out = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(params)]))
     params = jax.tree.map(lambda x: jnp.where(finite_out, x, 0.0), params)
@@ -1159,7 +1353,7 @@ def refine_frame(
     # the refined and the nominal shape's outputs by one traced body (issue 18: the output
     # stage is a large part of the program; compiling it once instead of twice)
     pair = jax.tree.map(lambda a, b: jnp.stack([a, b]), tubes, nominal_tubes)
-    masks2, exact2, e2 = jax.lax.map(tube_outputs, pair)
+    masks2, exact2, e2, fit2 = jax.lax.map(tube_outputs, pair)
     masks = tuple(m[0] for m in masks2)
     nominal_masks = tuple(m[1] for m in masks2)
     exact = exact2[0]
@@ -1202,7 +1396,7 @@ def refine_frame(
     else:
         cam_corr = jnp.zeros((n_cam, 6), dtype)
     c = params["c"]
-    return RefineResult(
+    result = RefineResult(
         masks=masks,
         nominal_masks=nominal_masks,
         centreline=cl,
@@ -1219,6 +1413,7 @@ def refine_frame(
         hessian_inv=hinv,
         time_s=jnp.asarray(0.0, dtype),
     )
+    return result, jnp.all(fit2)
 
 
 def _steps_apart(config: RefineConfig):
@@ -1236,6 +1431,16 @@ def _refine_frame_jit(
     return refine_frame(
         base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, steps=steps
     )
+
+
+@eqx.filter_jit
+def _refine_frame_roi_jit(
+    base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, steps, roi
+):
+    return _refine_frame(
+        base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, steps=steps,
+        roi=roi,
+    )  # fmt: skip
 
 
 def _direct(fn, *args):
@@ -1263,17 +1468,27 @@ def refine_frame_jit(
     valid=True,
     init_cam=None,
     init_hessian=None,
+    *,
+    roi: tuple[int, int] | None = None,
 ) -> RefineResult:
-    """Jit-compiled :func:`refine_frame` (compiled once per shape/config) with wall time."""
+    """Jit-compiled :func:`refine_frame` (compiled once per shape/config) with wall time.
+
+    ``roi`` = (h, w): refine a warm-started frame on a region of interest of that size around
+    its warm start (one-level configs at level 0, e.g. ``RefineConfig().warm()``; sizes from
+    :func:`roi_shape`); the frame is refined again on the whole image when its bands come
+    near the region's border (see :func:`_refine_frame`, docs/decisions.md S21)."""
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     init = jnp.zeros(config.coeff_shape, base.p.dtype) if init is None else init
     init_cam = _cam_init(init_cam, (), len(cameras), base.p.dtype)
     config, steps = _steps_apart(config)
+    args = (base, cameras, images, backgrounds, config, init, jnp.asarray(valid, bool), init_cam)
     t0 = time.perf_counter()
-    out = _refine_frame_jit(
-        base, cameras, images, backgrounds, config, init, jnp.asarray(valid, bool), init_cam,
-        init_hessian, steps,
-    )  # fmt: skip
+    fit = False
+    if roi is not None:
+        out, fit = _refine_frame_roi_jit(*args, init_hessian, steps, tuple(roi))
+        fit = bool(fit)
+    if not fit:
+        out = _refine_frame_jit(*args, init_hessian, steps)
     jax.block_until_ready(out)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.asarray(time.perf_counter() - t0))
 
@@ -1369,12 +1584,16 @@ def refine_batch(
 
 @eqx.filter_jit
 def _refine_sequence_jit(
-    bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0, cold_first
-):
+    bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0, cold_first,
+    roi=None,
+):  # fmt: skip
     n_levels = len(config.levels)
 
     def one(cfg, c_prev, cam_prev, h_prev, base, ims, bgs, v):
-        r = refine_frame(base, cameras, ims, bgs, cfg, c_prev, v, cam_prev, h_prev)
+        # a region of interest serves the warm schedule only (a cold first frame has no
+        # previous answer to centre it on)
+        r_roi = roi if cfg is warm_config else None
+        r, fit = _refine_frame(base, cameras, ims, bgs, cfg, c_prev, v, cam_prev, h_prev, roi=r_roi)
         # steps_per_level follows config's levels: levels a warm frame skips count 0 steps
         spl = r.steps_per_level
         pad = jnp.zeros((max(n_levels - spl.shape[0], 0),), spl.dtype)
@@ -1382,7 +1601,7 @@ def _refine_sequence_jit(
         c_next = jnp.where(r.ok, r.coeffs, c_prev)
         cam_next = jnp.where(r.ok, r.camera_correction, cam_prev)
         h_next = jnp.where(r.ok, r.hessian_inv, h_prev)
-        return (c_next, cam_next, h_next), r
+        return (c_next, cam_next, h_next), (r, fit)
 
     def step(prev, args):
         return one(warm_config, *prev, *args)
@@ -1390,12 +1609,14 @@ def _refine_sequence_jit(
     seq = (bases, images, backgrounds, valid)
     if not cold_first:
         _, out = jax.lax.scan(step, (init, cam0, h0), seq)
-        return out
-    # the first frame has no previous answer: the full (coarse-to-fine) schedule
-    first = jax.tree.map(lambda x: x[0], seq)
-    prev, r0 = one(config, init, cam0, h0, *first)
-    _, rest = jax.lax.scan(step, prev, jax.tree.map(lambda x: x[1:], seq))
-    return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), r0, rest)
+    else:
+        # the first frame has no previous answer: the full (coarse-to-fine) schedule
+        first = jax.tree.map(lambda x: x[0], seq)
+        prev, r0 = one(config, init, cam0, h0, *first)
+        _, rest = jax.lax.scan(step, prev, jax.tree.map(lambda x: x[1:], seq))
+        out = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), r0, rest)
+    # without a region the program's outputs are the results alone (as before the region)
+    return out[0] if roi is None else out
 
 
 def refine_sequence(
@@ -1410,6 +1631,8 @@ def refine_sequence(
     warm_config: RefineConfig | None = None,
     init_hessian: Float[Array, "n n"] | None = None,
     jit_call: Callable | None = None,
+    *,
+    roi: tuple[int, int] | str | None = None,
 ) -> RefineResult:
     """Refine a sequence, warm-starting frame t from frame t-1's delta-u and camera
     correction (in one compiled ``lax.scan``). A failed frame passes the last good values on.
@@ -1419,7 +1642,13 @@ def refine_sequence(
 
     Warm-started frames use ``warm_config`` (default ``config.warm()``: the finest pyramid
     level only, see :meth:`RefineConfig.warm`); the first frame uses ``config`` unless
-    ``init`` is given (e.g. the last answer of the previous chunk of a long sequence)."""
+    ``init`` is given (e.g. the last answer of the previous chunk of a long sequence).
+
+    ``roi``: refine the warm-started frames on a region of interest of this (h, w) size around
+    each frame's warm start (``"auto"``: :func:`tracking_roi` of ``bases``; one-level warm
+    schedules at level 0, as ``config.warm()``): region data, band selection and output masks
+    on the region only (docs/decisions.md S21). When a frame's bands come near the region's
+    border, the whole sequence is refined again on the full images."""
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     f = bases.p.shape[0]
     dtype = bases.p.dtype
@@ -1439,10 +1668,17 @@ def refine_sequence(
     h0 = jnp.full((n_flat, n_flat), jnp.nan, dtype) if init_hessian is None else init_hessian
     t0 = time.perf_counter()
     call = _direct if jit_call is None else jit_call
-    out = call(
-        _refine_sequence_jit, bases, cameras, images, backgrounds, config, warm_config, init,
-        valid, cam0, h0, cold_first,
-    )  # fmt: skip
+    args = (bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0)
+    if isinstance(roi, str):
+        if roi != "auto":
+            raise InputError(f"roi must be (h, w), 'auto' or None, got {roi!r}", field="roi")
+        roi = tracking_roi(bases, cameras, config=warm_config)
+    fit = False
+    if roi is not None:
+        out, fits = call(_refine_sequence_jit, *args, cold_first, tuple(int(x) for x in roi))
+        fit = bool(jnp.all(fits))
+    if not fit:
+        out = call(_refine_sequence_jit, *args, cold_first)
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / max(f, 1)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))
