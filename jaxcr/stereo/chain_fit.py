@@ -69,6 +69,7 @@ __all__ = [
     "observations_from_profiles",
     "fit_segments_jointly",
     "drop_inconsistent_widths",
+    "pad_chain",
     "tail_observations",
 ]
 
@@ -237,6 +238,31 @@ def init_chain(
     return base, R, curv
 
 
+#: Segments of the chain are padded to a multiple of this many (:func:`pad_chain`).
+SEGMENT_PAD = 4
+#: Arclength (m) where padding segments start: beyond every backbone (the pipeline refuses
+#: backbones over 5 m, ``pipeline.MAX_BACKBONE_M``; tails add at most 5 cm), so no sample,
+#: observation or search grid reaches them.
+PAD_START = 100.0
+
+
+def pad_chain(curvatures, seg_start) -> tuple[np.ndarray, np.ndarray]:
+    """The chain's ``curvatures`` (k, 2) and ``seg_start`` (k,) padded to ``K`` segments
+    (``K`` the multiple of :data:`SEGMENT_PAD` at or above ``k``): zero curvatures starting at
+    :data:`PAD_START`. :func:`chain_points` at any arclength below ``PAD_START`` is unchanged
+    (each point uses its own segment's frame, and the frames up to the last real segment
+    do not depend on later segments), so the jitted chain functions compile once for 1-4
+    segments instead of once per segment count (issue 18, docs/decisions.md S23)."""
+    curvatures = np.asarray(curvatures, np.float64).reshape(-1, 2)
+    seg_start = np.asarray(seg_start, np.float64).reshape(-1)
+    k = len(seg_start)
+    K = max(SEGMENT_PAD, -(-k // SEGMENT_PAD) * SEGMENT_PAD)
+    return (
+        np.concatenate([curvatures, np.zeros((K - k, 2))]),
+        np.concatenate([seg_start, np.full(K - k, PAD_START)]),
+    )
+
+
 def _pack(base0, R_init, theta, k):
     base = base0 + _B_SCALE * theta[:3]
     R0 = R_init @ so3_exp(jnp.concatenate([theta[3:5], jnp.zeros(1, theta.dtype)]))
@@ -372,8 +398,13 @@ def fit_chain(
     ``kappa`` (k,), ``normal`` (k, 3) bending-plane normals, ``rms_px`` (weighted RMS of the
     normal residuals), ``ok`` (solver converged in every pass), ``num_steps``,
     ``residuals_px`` (2, n) unweighted normal residuals and ``weights`` (2, n) final
-    weights (including the Huber factors)."""
+    weights (including the Huber factors).
+
+    The chain is solved with its segments padded to a multiple of four (:func:`pad_chain`:
+    the extra segments start beyond every observation, so no residual depends on them and
+    their steps are zero), so that one compiled solver serves 1-4 segments."""
     k = int(np.shape(seg_start)[0])
+    curvatures0, seg_start = pad_chain(curvatures0, seg_start)
     dt = jnp.result_type(float)
     w = jnp.asarray(weights, dt)
     args0 = [
@@ -393,7 +424,9 @@ def fit_chain(
         xtol=jnp.asarray(xtol, dt),
     )  # fmt: skip
     r = np.asarray(r)
-    base, R0, curv, kappa, normal = _finish(theta, args0[0], args0[1], args0[2], k)
+    base, R0, curv, kappa, normal = _finish(theta, args0[0], args0[1], args0[2], len(seg_start))
+    # the padding segments dropped (on the host: no eager slicing programs)
+    curv, kappa, normal = (np.asarray(x)[:k] for x in (curv, kappa, normal))
     wn = np.asarray(w * robust)
     rms = float(np.sqrt(np.sum(wn * r**2) / max(np.sum(wn), 1e-12)))
     return {
@@ -575,13 +608,14 @@ def tail_observations(
     uv = uv[idx]
     dt = jnp.result_type(float)
     n_t = len(uv)
-    m = max(32, -(-n_t // 32) * 32)  # shape bucket: one compile per 32 samples
+    m = _bucket(n_t, 32)  # shape bucket: powers of two from 32 samples
 
     def pad(x):
         return jnp.asarray(np.concatenate([x, np.repeat(x[-1:], m - n_t, axis=0)]), dt)
 
+    curv, seg_start = pad_chain(fit["curvatures"], seg_start)
     out = _tail_measure(
-        *(jnp.asarray(fit[k], dt) for k in ("base", "R0", "curvatures")),
+        *(jnp.asarray(x, dt) for x in (fit["base"], fit["R0"], curv)),
         jnp.asarray(seg_start, dt), cam, pad(uv), pad(nrm), jnp.asarray(s_end, dt),
         jnp.asarray(s_end + max_extension, dt),
         None if alpha is None else jnp.asarray(alpha, dt),
@@ -593,8 +627,23 @@ def tail_observations(
 _plane_angles_jit = jax.jit(jax.vmap(plane_angles))
 
 
-def _bucket(n: int, size: int = 128) -> int:
-    return max(size, -(-n // size) * size)
+def _plane_angles(normals: np.ndarray) -> np.ndarray:
+    """:func:`plane_angles` of each row of ``normals`` (k, 3), as float64 numpy; the rows
+    padded to :data:`SEGMENT_PAD` (one compile for 1-4 segments)."""
+    n = np.asarray(normals, np.float32).reshape(-1, 3)
+    k = len(n)
+    K = max(SEGMENT_PAD, -(-k // SEGMENT_PAD) * SEGMENT_PAD)
+    pad = np.concatenate([n, np.tile(np.float32([0.0, 0.0, 1.0]), (K - k, 1))])
+    return np.asarray(_plane_angles_jit(jnp.asarray(pad)), np.float64)[:k]
+
+
+def _bucket(n: int, size: int = 256) -> int:
+    """``n`` rounded up to ``size`` times a power of two (few shapes to compile: 256, 512,
+    1024 observations)."""
+    m = size
+    while m < n:
+        m *= 2
+    return m
 
 
 def fit_segments_jointly(
@@ -734,10 +783,11 @@ def fit_segments_jointly(
         # their arclengths, slid along the ambiguous direction; each observation's
         # arclength is re-read on the fitted chain (nearest in both images), and the
         # boundaries (found at observations) move with their observations.
+        curv_pad, start_pad = pad_chain(fit["curvatures"], seg_start)
         s_new = np.asarray(
             _reparametrise(
                 jnp.asarray(fit["base"], dt), jnp.asarray(fit["R0"], dt),
-                jnp.asarray(fit["curvatures"], dt), jnp.asarray(seg_start, dt),
+                jnp.asarray(curv_pad, dt), jnp.asarray(start_pad, dt),
                 jnp.asarray(s_obs, dt), cams[0], cams[1], jnp.asarray(cs, dt),
                 jnp.asarray(ws * fit["weights"] / np.maximum(ws, 1e-12), dt),
                 reparam_window,
@@ -761,7 +811,7 @@ def fit_segments_jointly(
     return {
         "kappa": fit["kappa"],
         "normal": fit["normal"],
-        "angles_deg": np.asarray(_plane_angles_jit(jnp.asarray(fit["normal"])), np.float64),
+        "angles_deg": _plane_angles(fit["normal"]),
         "arc_length": ends - seg_start,
         "rms_px": fit["rms_px"],
         "ok": fit["ok"],

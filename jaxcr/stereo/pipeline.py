@@ -26,8 +26,12 @@
 Speed (``experiments/stereo/stereo_bench.py``): both views go through each JAX stage in one jitted
 call (alpha/key projection/mask from the uint8 images; thinning of the robots' bounding-box
 crops, padded to a common 64-px bucket and vmapped; refinement profiles; diameters); arrays
-whose length varies per frame are padded to buckets (thinning crops 64 px, backbone points
-256), so a new frame of a seen size compiles nothing; the two marker detections run in two
+whose length varies per frame are padded to buckets (thinning: one square window per
+frame pair, 64 px times a power of two; backbone points 256; the joint chain fit's
+observations 256 times a power of two and its segments padded to four,
+:func:`jaxcr.stereo.chain_fit.pad_chain`), so a new frame of a seen size compiles nothing
+and a first run compiles each program about once (docs/decisions.md S23); the two marker
+detections run in two
 threads (OpenCV releases the GIL); ordering, DTW and the arclength smoothing are vectorised
 numpy/scipy without per-pixel Python loops.
 
@@ -73,6 +77,7 @@ from jaxcr.stereo.chain_fit import (
     chain_points,
     fit_segments_jointly,
     observations_from_profiles,
+    pad_chain,
 )
 from jaxcr.stereo.chroma import (
     KEY_COLOURS,
@@ -521,16 +526,20 @@ def _thin_cropped_views(
     masks: list[np.ndarray], block: int = _THIN_BLOCK
 ) -> list[tuple[np.ndarray, tuple[int, int]]]:
     """Zhang-Suen thinning of each view's robot mask on its bounding box only: the boxes
-    (plus a 2-pixel margin) are padded to one common shape, rounded up to multiples of
-    ``block`` (so that few shapes get compiled), and thinned in one vmapped call. Thinning is
-    local, so each result equals thinning the whole image. Returns per view the skeleton
-    crop and its top-left corner (row, col) in the image."""
+    (plus a 2-pixel margin) are padded to one common square window whose side is ``block``
+    times a power of two (cut to the image's height and width), so that an image size
+    compiles one or two shapes (e.g. 256x256 and 480x512 at 640x480; issue 18,
+    docs/decisions.md S23), and thinned in one vmapped call. Thinning is local, so each
+    result equals thinning the whole image. Returns per view the skeleton crop and its
+    top-left corner (row, col) in the image."""
     if len({m.shape for m in masks}) > 1:  # views of different sizes: one call each
         return [_thin_cropped_views([m], block)[0] for m in masks]
     shape = masks[0].shape
     boxes = [_bbox(m) for m in masks]
-    bh = min(_bucket(max(b[1] - b[0] for b in boxes) + 4, block), shape[0])
-    bw = min(_bucket(max(b[3] - b[2] for b in boxes) + 4, block), shape[1])
+    side = block
+    while side < max(max(b[1] - b[0], b[3] - b[2]) for b in boxes) + 4:
+        side *= 2
+    bh, bw = min(side, shape[0]), min(side, shape[1])
     corners = [_crop_window(b, shape, bh, bw) for b in boxes]
     crops = np.stack([m[r : r + bh, c : c + bw] for m, (r, c) in zip(masks, corners, strict=True)])
     skel = np.asarray(_thin_batch(jnp.asarray(crops)))
@@ -727,8 +736,9 @@ def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float):
     continuous; the chain is a smooth model of the same curve, within its RMS)."""
     fit, seg_start = joint["fit"], np.asarray(joint["seg_start"], np.float64)
     end = float(seg_start[-1] + joint["arc_length"][-1])
-    args = [np.asarray(fit[k], np.float32) for k in ("base", "R0", "curvatures")]
-    args.append(seg_start.astype(np.float32))
+    # the segments padded as in the fit (one compile for 1-4 segments)
+    curv, start = pad_chain(fit["curvatures"], seg_start)
+    args = [np.asarray(x, np.float32) for x in (fit["base"], fit["R0"], curv, start)]
     c0, half = float(s[-1]), 5e-3
     for _ in range(2):  # coarse (39 um steps), then fine (0.3 um) search
         grid = np.linspace(c0 - half, c0 + half, _TAIL_GRID)
@@ -739,7 +749,7 @@ def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float):
     if k < 1:
         return np.zeros(0), np.zeros((0, 3))
     sc = c0 + step * np.arange(0, k + 1)
-    nb = _bucket(len(sc), 128)
+    nb = _TAIL_GRID * -(-len(sc) // _TAIL_GRID)  # the search grid's program again
     Xt = np.asarray(
         _chain_points(*(jnp.asarray(a) for a in args), _f32(_pad_rows(sc[:, None], nb)[:, 0]))[0],
         np.float64,
