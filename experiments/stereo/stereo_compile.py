@@ -90,8 +90,17 @@ def _run(tree: str, work: Path, label: str, cache: Path | None, data: Path) -> d
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.Popen(
-        [sys.executable, os.path.abspath(__file__), "--child", str(ev), "--",
-         "stereo", str(data), "-o", str(out)],  # fmt: skip
+        [
+            sys.executable,
+            os.path.abspath(__file__),
+            "--child",
+            str(ev),
+            "--",
+            "stereo",
+            str(data),
+            "-o",
+            str(out),
+        ],  # fmt: skip
         env=env,
         cwd=work,
     )
@@ -150,8 +159,21 @@ def main() -> int:
     data = work / f"data_{args.size}_{args.frames}"
     if not (data / "stereo.json").exists():
         subprocess.run(
-            [sys.executable, "-m", "jaxcr", "stereo", "synth", "-o", str(data), "--frames",
-             str(args.frames), "--size", args.size, "--seed", "0"],  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "jaxcr",
+                "stereo",
+                "synth",
+                "-o",
+                str(data),
+                "--frames",
+                str(args.frames),
+                "--size",
+                args.size,
+                "--seed",
+                "0",
+            ],  # fmt: skip
             check=True,
             env=dict(os.environ, PYTHONPATH=here, JAXCR_COMPILE_CACHE="0"),
         )

@@ -238,6 +238,11 @@ def init_chain(
     return base, R, curv
 
 
+def _direct(fn, *args):
+    """``fn(*args)``: the default ``jit_call`` (see :func:`fit_chain`)."""
+    return fn(*args)
+
+
 #: Segments of the chain are padded to a multiple of this many (:func:`pad_chain`).
 SEGMENT_PAD = 4
 #: Arclength (m) where padding segments start: beyond every backbone (the pipeline refuses
@@ -344,16 +349,21 @@ def _robust_solve(theta0, args0, w, huber_px, passes: int, max_iterations: int,
     (scale ``huber_px``) from the unweighted normal residuals. Returns ``(theta,
     unweighted residuals (2, n), Huber factors (2, n), converged in every pass, total
     iterations)``."""
-    theta, robust = theta0, jnp.ones_like(w)
-    ok, steps = jnp.asarray(True), 0
-    for _ in range(passes):
+
+    def one_pass(_, carry):
+        theta, _, robust, ok, steps = carry
         args = (*args0, jnp.sqrt(w * robust))
         theta, _, conv, n = _lm(theta, args, max_iterations, ftol, xtol)
-        ok, steps = ok & conv, steps + n
         r = _residuals(theta, (*args0, jnp.ones_like(w))).reshape(2, -1)
         a = jnp.abs(r)
         robust = jnp.where(a <= huber_px, 1.0, huber_px / jnp.maximum(a, 1e-12))
-    return theta, r, robust, ok, steps
+        return theta, r, robust, ok & conv, steps + n
+
+    # The passes as a loop, not unrolled: one copy of the LM solver in the program (half the
+    # compile time of two unrolled passes; docs/decisions.md S23).
+    r0 = jnp.zeros((2, w.shape[-1]), theta0.dtype)
+    carry = (theta0, r0, jnp.ones_like(w), jnp.asarray(True), jnp.asarray(0))
+    return jax.lax.fori_loop(0, passes, one_pass, carry)
 
 
 @functools.partial(jax.jit, static_argnames=("k",))
@@ -379,6 +389,7 @@ def fit_chain(
     max_iterations: int = 20,
     ftol: float = 1e-6,
     xtol: float = 1e-4,
+    jit_call=None,
 ) -> dict:
     """Fit the chain (module docstring) to silhouette centres in two views.
 
@@ -402,7 +413,11 @@ def fit_chain(
 
     The chain is solved with its segments padded to a multiple of four (:func:`pad_chain`:
     the extra segments start beyond every observation, so no residual depends on them and
-    their steps are zero), so that one compiled solver serves 1-4 segments."""
+    their steps are zero), so that one compiled solver serves 1-4 segments. ``jit_call``:
+    how the compiled functions are called, ``jit_call(fn, *args)`` (default ``fn(*args)``;
+    the CLI passes :func:`jaxcr.io.exported.cached_call`, so that a second process loads
+    the traced solver instead of tracing it again)."""
+    call = jit_call or _direct
     k = int(np.shape(seg_start)[0])
     curvatures0, seg_start = pad_chain(curvatures0, seg_start)
     dt = jnp.result_type(float)
@@ -418,13 +433,14 @@ def fit_chain(
         jnp.asarray(normals, dt),
     ]
     theta = jnp.concatenate([jnp.zeros(5, dt), jnp.asarray(curvatures0, dt).ravel() / _U_SCALE])
-    theta, r, robust, ok, steps = _robust_solve(
-        theta, tuple(args0), w, jnp.asarray(huber_px, dt), passes=max(reweight, 1),
-        max_iterations=int(max_iterations), ftol=jnp.asarray(ftol, dt),
-        xtol=jnp.asarray(xtol, dt),
+    theta, r, robust, ok, steps = call(
+        _robust_solve, theta, tuple(args0), w, jnp.asarray(huber_px, dt), max(reweight, 1),
+        int(max_iterations), jnp.asarray(ftol, dt), jnp.asarray(xtol, dt),
     )  # fmt: skip
     r = np.asarray(r)
-    base, R0, curv, kappa, normal = _finish(theta, args0[0], args0[1], args0[2], len(seg_start))
+    base, R0, curv, kappa, normal = call(
+        _finish, theta, args0[0], args0[1], args0[2], len(seg_start)
+    )
     # the padding segments dropped (on the host: no eager slicing programs)
     curv, kappa, normal = (np.asarray(x)[:k] for x in (curv, kappa, normal))
     wn = np.asarray(w * robust)
@@ -573,6 +589,7 @@ def tail_observations(
     spacing_px: float = 2.0,
     alpha: np.ndarray | None = None,
     key_proj: np.ndarray | None = None,
+    jit_call=None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Single-view observations of the backbone beyond the last stereo-matched sample.
 
@@ -593,7 +610,8 @@ def tail_observations(
     diameter for :func:`drop_inconsistent_widths`); without, the skeleton pixels are the
     centres and the diameters NaN. Returns ``(s (t,), centres (t, 2), unit image normals
     (t, 2), weights (t,), diameters (t,) m)``; the weight is the sine of the angle between
-    the chain's tangent and the viewing ray (as for the stereo observations)."""
+    the chain's tangent and the viewing ray (as for the stereo observations). ``jit_call``:
+    as :func:`fit_chain`'s."""
     uv = np.asarray(tail_uv, np.float64)
     if len(uv) < 3:
         z = np.zeros((0, 2))
@@ -614,7 +632,8 @@ def tail_observations(
         return jnp.asarray(np.concatenate([x, np.repeat(x[-1:], m - n_t, axis=0)]), dt)
 
     curv, seg_start = pad_chain(fit["curvatures"], seg_start)
-    out = _tail_measure(
+    out = (jit_call or _direct)(
+        _tail_measure,
         *(jnp.asarray(x, dt) for x in (fit["base"], fit["R0"], curv)),
         jnp.asarray(seg_start, dt), cam, pad(uv), pad(nrm), jnp.asarray(s_end, dt),
         jnp.asarray(s_end + max_extension, dt),
@@ -662,6 +681,7 @@ def fit_segments_jointly(
     observations: tuple | None = None,
     tails: tuple | None = None,
     max_extension: float = 0.05,
+    jit_call=None,
 ) -> dict:
     """Per-segment curvature, bending plane and arc length of a reconstructed backbone by
     the joint chain fit (module docstring), for the stereo pipeline.
@@ -688,7 +708,8 @@ def fit_segments_jointly(
     first fit they enter as single-view observations (:func:`tail_observations`, at most
     ``max_extension`` m past the last sample), the chain's last arc extends over them and
     the last segment's ``arc_length`` reaches their last arclength; ``n_tail`` (2,) says
-    how many each view contributed."""
+    how many each view contributed. ``jit_call``: as :func:`fit_chain`'s."""
+    call = jit_call or _direct
     s = np.asarray(s, np.float64)
     p = np.asarray(p, np.float64)
     seg_start = np.concatenate([[0.0], np.asarray(boundaries_s, np.float64)])
@@ -730,7 +751,7 @@ def fit_segments_jointly(
     s_obs = pad(s)
     fit = fit_chain(
         cams[0], cams[1], s_obs, cs, ns, ws, seg_start, base0, R_init, curv0,
-        huber_px=huber_px, reweight=reweight,
+        huber_px=huber_px, reweight=reweight, jit_call=call,
     )  # fmt: skip
     n_real, n_tail = n, np.zeros(2, int)
     if tails is not None and any(x is not None and len(x) >= 3 for x in tails):
@@ -743,7 +764,7 @@ def fit_segments_jointly(
                 continue
             st, c, nr, w, d = tail_observations(
                 cams[v], tails[v], fit, seg_start, s_end, max_extension,
-                alpha=alphas[v], key_proj=key_projs[v],
+                alpha=alphas[v], key_proj=key_projs[v], jit_call=call,
             )  # fmt: skip
             n_tail[v] = len(st)
             if len(st) == 0:
@@ -776,7 +797,7 @@ def fit_segments_jointly(
         ws[:, n:n_real] = w_rule[:, n:n_real]
         fit = fit_chain(
             cams[0], cams[1], s_obs, cs, ns, ws, seg_start, fit["base"], fit["R0"],
-            fit["curvatures"], huber_px=huber_px, reweight=reweight,
+            fit["curvatures"], huber_px=huber_px, reweight=reweight, jit_call=call,
         )  # fmt: skip
     for _ in range(reparametrise):
         # Where the correspondence was ill-conditioned the triangulated points, hence
@@ -785,12 +806,13 @@ def fit_segments_jointly(
         # boundaries (found at observations) move with their observations.
         curv_pad, start_pad = pad_chain(fit["curvatures"], seg_start)
         s_new = np.asarray(
-            _reparametrise(
+            call(
+                _reparametrise,
                 jnp.asarray(fit["base"], dt), jnp.asarray(fit["R0"], dt),
                 jnp.asarray(curv_pad, dt), jnp.asarray(start_pad, dt),
                 jnp.asarray(s_obs, dt), cams[0], cams[1], jnp.asarray(cs, dt),
                 jnp.asarray(ws * fit["weights"] / np.maximum(ws, 1e-12), dt),
-                reparam_window,
+                jnp.asarray(reparam_window, dt),
             ),
             np.float64,
         )  # fmt: skip
@@ -805,7 +827,7 @@ def fit_segments_jointly(
         s_obs = s_new
         fit = fit_chain(
             cams[0], cams[1], s_obs, cs, ns, ws, seg_start, fit["base"], fit["R0"],
-            fit["curvatures"], huber_px=huber_px, reweight=reweight,
+            fit["curvatures"], huber_px=huber_px, reweight=reweight, jit_call=call,
         )  # fmt: skip
     ends = np.concatenate([seg_start[1:], [max(s_obs[:n_real].max(), seg_start[-1])]])
     return {
