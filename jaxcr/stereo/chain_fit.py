@@ -238,6 +238,15 @@ def init_chain(
     return base, R, curv
 
 
+def _dev(x, dt):
+    """``x`` as a device array of dtype ``dt``. Host values are converted by numpy and put on
+    the device: ``jnp.asarray`` would compile a small staging or conversion program per
+    shape, each a compilation in a first process and a cache load in a second (issue 18)."""
+    if isinstance(x, jax.Array):
+        return x if x.dtype == dt else x.astype(dt)
+    return jax.device_put(np.asarray(x, dtype=np.dtype(dt)))
+
+
 def _direct(fn, *args):
     """``fn(*args)``: the default ``jit_call`` (see :func:`fit_chain`)."""
     return fn(*args)
@@ -421,21 +430,25 @@ def fit_chain(
     k = int(np.shape(seg_start)[0])
     curvatures0, seg_start = pad_chain(curvatures0, seg_start)
     dt = jnp.result_type(float)
-    w = jnp.asarray(weights, dt)
+    w = _dev(weights, dt)
     args0 = [
-        jnp.asarray(base0, dt),
-        jnp.asarray(R0_init, dt),
-        jnp.asarray(seg_start, dt),
-        jnp.asarray(s_obs, dt),
+        _dev(base0, dt),
+        _dev(R0_init, dt),
+        _dev(seg_start, dt),
+        _dev(s_obs, dt),
         cam1,
         cam2,
-        jnp.asarray(centres, dt),
-        jnp.asarray(normals, dt),
+        _dev(centres, dt),
+        _dev(normals, dt),
     ]
-    theta = jnp.concatenate([jnp.zeros(5, dt), jnp.asarray(curvatures0, dt).ravel() / _U_SCALE])
+    # on the host in the solver's dtype, times the reciprocal as XLA computes the division by
+    # a constant (bit-identical to the former eager jnp expression; no eager programs)
+    ft = np.dtype(dt)
+    curv_scaled = np.asarray(curvatures0, ft).ravel() * ft.type(1.0 / _U_SCALE)
+    theta = _dev(np.concatenate([np.zeros(5, ft), curv_scaled]), dt)
     theta, r, robust, ok, steps = call(
-        _robust_solve, theta, tuple(args0), w, jnp.asarray(huber_px, dt), max(reweight, 1),
-        int(max_iterations), jnp.asarray(ftol, dt), jnp.asarray(xtol, dt),
+        _robust_solve, theta, tuple(args0), w, _dev(huber_px, dt), max(reweight, 1),
+        int(max_iterations), _dev(ftol, dt), _dev(xtol, dt),
     )  # fmt: skip
     r = np.asarray(r)
     base, R0, curv, kappa, normal = call(
@@ -443,7 +456,7 @@ def fit_chain(
     )
     # the padding segments dropped (on the host: no eager slicing programs)
     curv, kappa, normal = (np.asarray(x)[:k] for x in (curv, kappa, normal))
-    wn = np.asarray(w * robust)
+    wn = np.asarray(w) * np.asarray(robust)
     rms = float(np.sqrt(np.sum(wn * r**2) / max(np.sum(wn), 1e-12)))
     return {
         "base": np.asarray(base, np.float64),
@@ -629,16 +642,16 @@ def tail_observations(
     m = _bucket(n_t, 32)  # shape bucket: powers of two from 32 samples
 
     def pad(x):
-        return jnp.asarray(np.concatenate([x, np.repeat(x[-1:], m - n_t, axis=0)]), dt)
+        return _dev(np.concatenate([x, np.repeat(x[-1:], m - n_t, axis=0)]), dt)
 
     curv, seg_start = pad_chain(fit["curvatures"], seg_start)
     out = (jit_call or _direct)(
         _tail_measure,
-        *(jnp.asarray(x, dt) for x in (fit["base"], fit["R0"], curv)),
-        jnp.asarray(seg_start, dt), cam, pad(uv), pad(nrm), jnp.asarray(s_end, dt),
-        jnp.asarray(s_end + max_extension, dt),
-        None if alpha is None else jnp.asarray(alpha, dt),
-        None if key_proj is None else jnp.asarray(key_proj, dt),
+        *(_dev(x, dt) for x in (fit["base"], fit["R0"], curv)),
+        _dev(seg_start, dt), cam, pad(uv), pad(nrm), _dev(s_end, dt),
+        _dev(s_end + max_extension, dt),
+        None if alpha is None else _dev(alpha, dt),
+        None if key_proj is None else _dev(key_proj, dt),
     )  # fmt: skip
     return tuple(np.asarray(x, np.float64)[:n_t] for x in out)
 
@@ -653,7 +666,7 @@ def _plane_angles(normals: np.ndarray) -> np.ndarray:
     k = len(n)
     K = max(SEGMENT_PAD, -(-k // SEGMENT_PAD) * SEGMENT_PAD)
     pad = np.concatenate([n, np.tile(np.float32([0.0, 0.0, 1.0]), (K - k, 1))])
-    return np.asarray(_plane_angles_jit(jnp.asarray(pad)), np.float64)[:k]
+    return np.asarray(_plane_angles_jit(jax.device_put(pad)), np.float64)[:k]
 
 
 def _bucket(n: int, size: int = 256) -> int:
@@ -737,8 +750,8 @@ def fit_segments_jointly(
         cs, ns, ws, ds = [], [], [], []
         for cam, a, kp in zip(cams, alphas, key_projs, strict=True):
             c, nr, w, d = silhouette_observations(
-                cam, jnp.asarray(a, dt), jnp.asarray(kp, dt), jnp.asarray(pad(p), dt),
-                jnp.asarray(pad(tang), dt),
+                cam, _dev(a, dt), _dev(kp, dt), _dev(pad(p), dt),
+                _dev(pad(tang), dt),
             )  # fmt: skip
             w = np.asarray(w, np.float64)
             w[n:] = 0.0
@@ -808,11 +821,11 @@ def fit_segments_jointly(
         s_new = np.asarray(
             call(
                 _reparametrise,
-                jnp.asarray(fit["base"], dt), jnp.asarray(fit["R0"], dt),
-                jnp.asarray(curv_pad, dt), jnp.asarray(start_pad, dt),
-                jnp.asarray(s_obs, dt), cams[0], cams[1], jnp.asarray(cs, dt),
-                jnp.asarray(ws * fit["weights"] / np.maximum(ws, 1e-12), dt),
-                jnp.asarray(reparam_window, dt),
+                _dev(fit["base"], dt), _dev(fit["R0"], dt),
+                _dev(curv_pad, dt), _dev(start_pad, dt),
+                _dev(s_obs, dt), cams[0], cams[1], _dev(cs, dt),
+                _dev(ws * fit["weights"] / np.maximum(ws, 1e-12), dt),
+                _dev(reparam_window, dt),
             ),
             np.float64,
         )  # fmt: skip

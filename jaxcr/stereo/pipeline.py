@@ -215,13 +215,14 @@ def _given_base_pose(cam1: Camera, cam2: Camera, spec: BaseSpec) -> dict:
 
 def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
     return eqx.tree_at(
-        lambda c: c.T_cam_robot, cam, jnp.asarray(np.asarray(T, np.dtype(cam.K.dtype)))
+        lambda c: c.T_cam_robot, cam, jax.device_put(np.asarray(T, np.dtype(cam.K.dtype)))
     )
 
 
 def _f32(x) -> jax.Array:
-    """numpy -> float32 device array (converted on the host: no eager JAX op)."""
-    return jnp.asarray(np.asarray(x, np.float32))
+    """numpy -> float32 device array (converted on the host and put on the device:
+    ``jnp.asarray`` would compile a staging program per shape)."""
+    return jax.device_put(np.asarray(x, np.float32))
 
 
 def _essential_np(T1: np.ndarray, T2: np.ndarray) -> np.ndarray:
@@ -547,7 +548,7 @@ def _thin_cropped_views(
     bh, bw = min(side, shape[0]), min(side, shape[1])
     corners = [_crop_window(b, shape, bh, bw) for b in boxes]
     crops = np.stack([m[r : r + bh, c : c + bw] for m, (r, c) in zip(masks, corners, strict=True)])
-    skel = np.asarray(jit_call(_thin_batch, jnp.asarray(crops)))
+    skel = np.asarray(jit_call(_thin_batch, jax.device_put(crops)))
     return [(skel[k], corners[k]) for k in range(len(masks))]
 
 
@@ -743,7 +744,7 @@ def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float, ji
     for _ in range(2):  # coarse (39 um steps), then fine (0.3 um) search
         grid = np.linspace(c0 - half, c0 + half, _TAIL_GRID)
         X = np.asarray(
-            jit_call(_chain_points, *(jnp.asarray(a) for a in args), _f32(grid))[0], np.float64
+            jit_call(_chain_points, *(jax.device_put(a) for a in args), _f32(grid))[0], np.float64
         )
         c0 = float(grid[np.argmin(np.linalg.norm(X - p[-1], axis=1))])
         half = 2.0 * half / (_TAIL_GRID - 1)
@@ -754,7 +755,9 @@ def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float, ji
     nb = _TAIL_GRID * -(-len(sc) // _TAIL_GRID)  # the search grid's program again
     Xt = np.asarray(
         jit_call(
-            _chain_points, *(jnp.asarray(a) for a in args), _f32(_pad_rows(sc[:, None], nb)[:, 0])
+            _chain_points,
+            *(jax.device_put(a) for a in args),
+            _f32(_pad_rows(sc[:, None], nb)[:, 0]),
         )[0],
         np.float64,
     )[: len(sc)]
@@ -883,8 +886,8 @@ def reconstruct_pair(
     stack = _image_stack(imgs)
     plate_stack = _image_stack(plates) if cfg.segmentation != "chroma" else stack
     alpha_j, kproj_j, mask_j = _segment_views(
-        jnp.asarray(stack),
-        jnp.asarray(plate_stack),
+        jax.device_put(stack),
+        jax.device_put(plate_stack),
         _f32(cfg.key_rgb),
         cfg.tol_lo,
         cfg.tol_hi,
@@ -912,7 +915,7 @@ def reconstruct_pair(
         # backbone is made of the traces the tips belong to and ends at the tips.
         traced = traced_stereo_tips(cams, tr)
         masks = _image_stack([t.mask.astype(np.uint8) for t in traced[3]])
-        alpha_j = jnp.asarray(masks.astype(np.float32))
+        alpha_j = jax.device_put(masks.astype(np.float32))
     t0 = _tick(timings, "segmentation", t0)
     # 3. Per view: closing, marker squares, base (Hough), flood fill.
     views = []
@@ -1011,7 +1014,7 @@ def reconstruct_pair(
     # silhouette across the tube (from the width profiles) and re-triangulate. Views that
     # see the tube nearly end-on (small weight) keep the projection. The alpha is limited
     # to the (dilated) robot region of each view.
-    near = jnp.asarray(
+    near = jax.device_put(
         _image_stack([cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))) for v in views])
     )
     alpha_near = _masked_alpha(alpha_j, near)  # once for refinement, diameters, joint fit
@@ -1119,7 +1122,7 @@ def reconstruct_pair(
         pts_all[k] = _pad_rows(pts, _FIT_PAD)
         w_all[k] = 0.0
         w_all[k, : len(pts)] = 1.0
-    angs, normals, arcs = call(_segment_fits, jnp.asarray(pts_all), jnp.asarray(w_all))
+    angs, normals, arcs = call(_segment_fits, jax.device_put(pts_all), jax.device_put(w_all))
     angs, normals = np.asarray(angs, np.float64), np.asarray(normals, np.float64)
     arcs = {key: np.asarray(v, np.float64) for key, v in arcs.items()}
     table = []
