@@ -116,7 +116,11 @@ def _run(tree: str, work: Path, label: str, cache: Path | None, data: Path) -> d
             d["hits"] += 1
         else:
             d[kind] += secs
-    ok = [json.loads(x)["ok"] for x in (out / "results.jsonl").read_text().splitlines()]
+    recs = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+    ok = [r["ok"] for r in recs]
+    # per-pair CPU of the pipeline's stages (reconstruct_pair's timings), frames after the
+    # first (in a second process: nothing left to compile; a run-time check of the buckets)
+    pair_cpu = [sum(r["timings"]["cpu"].values()) for r in recs[1:] if r.get("timings")]
     return {
         "label": label,
         "status": status,
@@ -129,6 +133,7 @@ def _run(tree: str, work: Path, label: str, cache: Path | None, data: Path) -> d
         "trace_s": sum(d["trace"] for d in by.values()),
         "lower_s": sum(d["lower"] for d in by.values()),
         "programs": by,
+        "pair_cpu_ms": 1e3 * float(np.median(pair_cpu)) if pair_cpu else float("nan"),
         "frames_ok": int(sum(ok)),
         "frames": len(ok),
         "out": str(out),
@@ -224,17 +229,19 @@ def main() -> int:
         "",
         "CPU = user + system seconds of the whole child process (all threads); XLA = seconds"
         " in XLA compilations or, on a persistent-cache hit, executable loads; trace/lower ="
-        " JAX's tracing and StableHLO lowering spans; load = 1-min load average at the start.",
+        " JAX's tracing and StableHLO lowering spans; load = 1-min load average at the start;"
+        " pair CPU ms = median over frames 2..N of the summed stage CPU times"
+        " (`results.jsonl` timings; in a second process a run-time figure).",
         "",
         "| run | load | wall s | CPU s | XLA programs | cache hits | XLA s | trace s | lower s"
-        " | frames ok |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        " | frames ok | pair CPU ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['label']} | {r['load']:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} |"
             f" {r['n_xla']} | {r['n_hits']} | {r['xla_s']:.1f} | {r['trace_s']:.1f} |"
-            f" {r['lower_s']:.1f} | {r['frames_ok']}/{r['frames']} |"
+            f" {r['lower_s']:.1f} | {r['frames_ok']}/{r['frames']} | {r['pair_cpu_ms']:.0f} |"
         )
     if diffs:
         lines += ["", "Backbones against t0 (max |p| difference over all frames, m): "
