@@ -140,8 +140,26 @@ def _run(tree: str, work: Path, label: str, cache: Path | None, data: Path) -> d
     }
 
 
-def _backbones(out: str) -> dict[str, np.ndarray]:
-    return {p.stem: np.load(p)["p"] for p in sorted(Path(out, "frames").glob("*.npz"))}
+def _frame_diffs(out: str, ref: str) -> dict[str, float]:
+    """Largest differences between two runs' frames: backbone points (m), segment
+    curvatures (1/m), plane angles (deg), tip pixels (px); inf where shapes differ."""
+    d = {"p_m": 0.0, "kappa_1pm": 0.0, "angle_deg": 0.0, "tip_px": 0.0}
+    for f in sorted(Path(ref, "frames").glob("*.json")):
+        a, b = json.loads(f.read_text()), json.loads(Path(out, "frames", f.name).read_text())
+        pa, pb = (np.load(Path(x, "frames", f.stem + ".npz"))["p"] for x in (ref, out))
+        if pa.shape != pb.shape or len(a["segments"]) != len(b["segments"]):
+            return {k: float("inf") for k in d}
+        d["p_m"] = max(d["p_m"], float(np.max(np.abs(pa - pb))))
+        for sa, sb in zip(a["segments"], b["segments"], strict=True):
+            d["kappa_1pm"] = max(d["kappa_1pm"], abs(sa["curvature_1pm"] - sb["curvature_1pm"]))
+            for k in ("phi_xy_deg", "phi_zx_deg", "phi_yz_deg"):
+                d["angle_deg"] = max(d["angle_deg"], abs(sa[k] - sb[k]))
+        va, vb = (list(x["views"].values()) if isinstance(x["views"], dict) else x["views"]
+                  for x in (a, b))  # fmt: skip
+        for x, y in zip(va, vb, strict=True):
+            t = np.abs(np.asarray(x["tip_px"], float) - np.asarray(y["tip_px"], float))
+            d["tip_px"] = max(d["tip_px"], float(t.max()))
+    return d
 
 
 def main() -> int:
@@ -156,6 +174,8 @@ def main() -> int:
     ap.add_argument("--tree", action="append", default=None,
                     help="jaxcr source tree(s) to measure, interleaved (default: this one)")  # fmt: skip
     ap.add_argument("--modes", default="first,second,off")
+    ap.add_argument("--report", default=None,
+                    help="rewrite the report from this JSON (and its runs' output folders)")  # fmt: skip
     args = ap.parse_args()
     here = str(Path(__file__).resolve().parents[2])
     trees = args.tree or [here]
@@ -182,8 +202,8 @@ def main() -> int:
             check=True,
             env=dict(os.environ, PYTHONPATH=here, JAXCR_COMPILE_CACHE="0"),
         )
-    rows = []
-    for rep in range(args.repeats):
+    rows = json.loads(Path(args.report).read_text())["rows"] if args.report else []
+    for rep in range(0 if args.report else args.repeats):
         for ti, tree in enumerate(trees):
             cache = work / f"cache_t{ti}_r{rep}"
             shutil.rmtree(cache, ignore_errors=True)
@@ -196,19 +216,9 @@ def main() -> int:
                 print(f"  wall {r['wall_s']:.1f} s cpu {r['cpu_s']:.1f} s xla {r['n_xla']}"
                       f" ({r['xla_s']:.1f} s, {r['n_hits']} cache hits) load {r['load']:.1f}",
                       flush=True)  # fmt: skip
-    # Same backbones across trees (first process of repeat 0 of each tree).
-    ref = None
-    diffs = {}
-    for r in rows:
-        if r["rep"] == 0 and r["mode"] == rows[0]["mode"]:
-            b = _backbones(r["out"])
-            if ref is None:
-                ref = b
-            else:
-                diffs[r["tree_index"]] = max(
-                    (float(np.max(np.abs(b[k] - ref[k]))) if b[k].shape == ref[k].shape
-                     else float("inf")) for k in ref
-                )  # fmt: skip
+    # Same results across trees (first process of repeat 0 of each tree against tree 0's).
+    firsts = [r for r in rows if r["rep"] == 0 and r["mode"] == rows[0]["mode"]]
+    diffs = {r["tree_index"]: _frame_diffs(r["out"], firsts[0]["out"]) for r in firsts[1:]}
     commit = subprocess.run(["git", "log", "-1", "--format=%h"], capture_output=True,
                             text=True, cwd=here).stdout.strip()  # fmt: skip
     res = Path(here) / "experiments/results/stereo"
@@ -243,9 +253,11 @@ def main() -> int:
             f" {r['n_xla']} | {r['n_hits']} | {r['xla_s']:.1f} | {r['trace_s']:.1f} |"
             f" {r['lower_s']:.1f} | {r['frames_ok']}/{r['frames']} | {r['pair_cpu_ms']:.0f} |"
         )
-    if diffs:
-        lines += ["", "Backbones against t0 (max |p| difference over all frames, m): "
-                  + ", ".join(f"t{k}: {v:.3g}" for k, v in diffs.items())]  # fmt: skip
+    for k, v in diffs.items():
+        lines += ["", f"Results of t{k} against t0 (largest difference over all frames and"
+                  f" segments): backbone points {v['p_m']:.3g} m, curvatures"
+                  f" {v['kappa_1pm']:.3g} 1/m, plane angles {v['angle_deg']:.3g} deg, tip pixels"
+                  f" {v['tip_px']:.3g} px."]  # fmt: skip
     for r in rows:
         if r["rep"] == 0 and r["mode"] == "off":
             # the cache-off process: with the cache on, the programs jaxcr stereo calls

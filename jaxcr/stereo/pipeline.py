@@ -25,15 +25,14 @@
 
 Speed (``experiments/stereo/stereo_bench.py``): both views go through each JAX stage in one jitted
 call (alpha/key projection/mask from the uint8 images; thinning of the robots' bounding-box
-crops, padded to a common 64-px bucket and vmapped; refinement profiles; diameters); arrays
-whose length varies per frame are padded to buckets (thinning: one square window per
-frame pair, 64 px times a power of two; backbone points 256; the joint chain fit's
-observations 256 times a power of two and its segments padded to four,
+crops, padded to one square window and vmapped; refinement profiles and diameters, one
+program); arrays whose length varies per frame are padded to buckets (thinning windows
+64 px times a power of two; backbone points 256; the joint chain fit's observations 256
+times a power of two and its segments padded to four,
 :func:`jaxcr.stereo.chain_fit.pad_chain`), so a new frame of a seen size compiles nothing
 and a first run compiles each program about once (docs/decisions.md S23); the two marker
-detections run in two
-threads (OpenCV releases the GIL); ordering, DTW and the arclength smoothing are vectorised
-numpy/scipy without per-pixel Python loops.
+detections run in two threads (OpenCV releases the GIL); ordering, DTW and the arclength
+smoothing are vectorised numpy/scipy without per-pixel Python loops.
 
 Per-frame problems raise :class:`StereoFailure` with a short ``reason`` code
 (``calibration_size``, ``markers``, ``base``, ``robot_not_found``, ``correspondence``) for the batch
@@ -74,6 +73,7 @@ from jaxcr.stereo.base_frame import (
 from jaxcr.stereo.base_locate import flood_component, locate_base
 from jaxcr.stereo.branch_choice import choose_branches
 from jaxcr.stereo.chain_fit import (
+    _direct,  # the default jit_call: fn(*args)
     chain_points,
     fit_segments_jointly,
     observations_from_profiles,
@@ -521,11 +521,6 @@ def _crop_window(box, shape, bh: int, bw: int) -> tuple[int, int]:
 
 
 _thin_batch = jax.jit(jax.vmap(zhang_suen_thin))
-
-
-def _direct(fn, *args):
-    """``fn(*args)``: the default ``jit_call`` of :func:`reconstruct_pair`."""
-    return fn(*args)
 
 
 def _thin_cropped_views(
