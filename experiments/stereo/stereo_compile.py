@@ -225,7 +225,11 @@ def main() -> int:
     (res / f"stereo_compile_{args.tag}.json").write_text(
         json.dumps({"rows": rows, "diffs": diffs, "trees": trees}, indent=1)
     )
-    cmd = "python experiments/stereo/stereo_compile.py " + " ".join(sys.argv[1:])
+    argv = sys.argv[1:]
+    if args.report:  # the command that measured, not the rewrite
+        i = argv.index("--report")
+        argv = argv[:i] + argv[i + 2 :]
+    cmd = "python experiments/stereo/stereo_compile.py " + " ".join(argv)
     lines = [
         "# `jaxcr stereo`: compilation in the command's own process (issue 18)",
         "",
