@@ -6,7 +6,7 @@ cache the first one filled, and a process with the cache off.
 Usage::
 
     python experiments/stereo/stereo_compile.py [--work DIR] [--frames 8] [--size 640x480]
-        [--repeats 1] [--tag NAME] [--tree DIR ...]
+        [--repeats 1] [--tag NAME] [--tree DIR ...] [--modes first,second,off]
 
 ``jaxcr stereo synth -o WORK/data --frames F --size WxH --seed 0`` writes the dataset once;
 then, for each ``--tree`` (a jaxcr source tree, e.g. a ``git archive`` of an older commit;
@@ -16,8 +16,10 @@ folder), ``second`` (the same folder again) and ``off`` (``JAXCR_COMPILE_CACHE=0
 runs ``jaxcr.cli.main`` with JAX's compile loggers captured: per program the tracing, lowering
 and XLA seconds (the XLA span is a compilation or, on a persistent-cache hit, the load of the
 stored executable). Wall and CPU (user + system of the child, all threads) come from
-``os.wait4``. The results' backbones are compared between trees (``frames/*.npz``: max
-|p| difference). Writes ``experiments/results/stereo/stereo_compile_<tag>.md`` and ``.json``.
+``os.wait4``. The results are compared between trees (largest differences of backbone
+points, segment curvatures and plane angles, tip pixels). Writes
+``experiments/results/stereo/stereo_compile_<tag>.md`` and ``.json``; ``--report JSON``
+rewrites the report from an earlier run's JSON and output folders without running again.
 """
 
 from __future__ import annotations
