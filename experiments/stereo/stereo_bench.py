@@ -176,7 +176,7 @@ def main() -> int:
         f" {n_comp_first} XLA compilations ({s_comp_first:.1f} s compiling);",
         f"- the other {len(pairs) - 1} pairs of the compiling pass: {t_rest:.1f} s,"
         f" {n_comp_warm - n_comp_first} more compilations (new shape buckets:"
-        " thinning crops in steps of 64 px, backbone lengths in steps of 256 points);",
+        " thinning windows, backbone and chain-fit lengths; docs/decisions.md S23);",
         f"- timed passes: **{n_comp_timed} compilations** in {len(totals)} reconstructions"
         " (no recompilation per frame).",
         "",

@@ -84,6 +84,7 @@ import numpy as np
 from jaxcr.cli._common import seed as _seed
 from jaxcr.cli._plate import add_plate_arguments, plate_config, plate_flags_given
 from jaxcr.errors import InputError
+from jaxcr.io.exported import cached_call
 from jaxcr.io.stereo_dataset import (  # noqa: F401  (re-exported for existing callers)
     FORMAT,
     STEREO_JSON_KEYS,
@@ -365,9 +366,12 @@ class StereoWorker:
             ]
             plates = dataset["plates"]
             if len(names) == 2:
+                # the large compiled stages through stored traced programs (a second
+                # process does not trace them again; docs/decisions.md S23)
                 r = reconstruct_pair(
-                    images[0], images[1], cams[0], cams[1], dataset["config"], plates
-                )
+                    images[0], images[1], cams[0], cams[1], dataset["config"], plates,
+                    jit_call=cached_call,
+                )  # fmt: skip
             else:
                 r = reconstruct_view(
                     images[0], cams[0], config=dataset["config"],

@@ -69,6 +69,7 @@ __all__ = [
     "observations_from_profiles",
     "fit_segments_jointly",
     "drop_inconsistent_widths",
+    "pad_chain",
     "tail_observations",
 ]
 
@@ -237,6 +238,45 @@ def init_chain(
     return base, R, curv
 
 
+def _dev(x, dt):
+    """``x`` as a device array of dtype ``dt``. Host values are converted by numpy and put on
+    the device: ``jnp.asarray`` would compile a small staging or conversion program per
+    shape, each a compilation in a first process and a cache load in a second (issue 18)."""
+    if isinstance(x, jax.Array):
+        return x if x.dtype == dt else x.astype(dt)
+    return jax.device_put(np.asarray(x, dtype=np.dtype(dt)))
+
+
+def _direct(fn, *args):
+    """``fn(*args)``: the default ``jit_call`` (see :func:`fit_chain`)."""
+    return fn(*args)
+
+
+#: Segments of the chain are padded to a multiple of this many (:func:`pad_chain`).
+SEGMENT_PAD = 4
+#: Arclength (m) where padding segments start: beyond every backbone (the pipeline refuses
+#: backbones over 5 m, ``pipeline.MAX_BACKBONE_M``; tails add at most 5 cm), so no sample,
+#: observation or search grid reaches them.
+PAD_START = 100.0
+
+
+def pad_chain(curvatures, seg_start) -> tuple[np.ndarray, np.ndarray]:
+    """The chain's ``curvatures`` (k, 2) and ``seg_start`` (k,) padded to ``K`` segments
+    (``K`` the multiple of :data:`SEGMENT_PAD` at or above ``k``): zero curvatures starting at
+    :data:`PAD_START`. :func:`chain_points` at any arclength below ``PAD_START`` is unchanged
+    (each point uses its own segment's frame, and the frames up to the last real segment
+    do not depend on later segments), so the jitted chain functions compile once for 1-4
+    segments instead of once per segment count (issue 18, docs/decisions.md S23)."""
+    curvatures = np.asarray(curvatures, np.float64).reshape(-1, 2)
+    seg_start = np.asarray(seg_start, np.float64).reshape(-1)
+    k = len(seg_start)
+    K = max(SEGMENT_PAD, -(-k // SEGMENT_PAD) * SEGMENT_PAD)
+    return (
+        np.concatenate([curvatures, np.zeros((K - k, 2))]),
+        np.concatenate([seg_start, np.full(K - k, PAD_START)]),
+    )
+
+
 def _pack(base0, R_init, theta, k):
     base = base0 + _B_SCALE * theta[:3]
     R0 = R_init @ so3_exp(jnp.concatenate([theta[3:5], jnp.zeros(1, theta.dtype)]))
@@ -318,16 +358,21 @@ def _robust_solve(theta0, args0, w, huber_px, passes: int, max_iterations: int,
     (scale ``huber_px``) from the unweighted normal residuals. Returns ``(theta,
     unweighted residuals (2, n), Huber factors (2, n), converged in every pass, total
     iterations)``."""
-    theta, robust = theta0, jnp.ones_like(w)
-    ok, steps = jnp.asarray(True), 0
-    for _ in range(passes):
+
+    def one_pass(_, carry):
+        theta, _, robust, ok, steps = carry
         args = (*args0, jnp.sqrt(w * robust))
         theta, _, conv, n = _lm(theta, args, max_iterations, ftol, xtol)
-        ok, steps = ok & conv, steps + n
         r = _residuals(theta, (*args0, jnp.ones_like(w))).reshape(2, -1)
         a = jnp.abs(r)
         robust = jnp.where(a <= huber_px, 1.0, huber_px / jnp.maximum(a, 1e-12))
-    return theta, r, robust, ok, steps
+        return theta, r, robust, ok & conv, steps + n
+
+    # The passes as a loop, not unrolled: one copy of the LM solver in the program (half the
+    # compile time of two unrolled passes; docs/decisions.md S23).
+    r0 = jnp.zeros((2, w.shape[-1]), theta0.dtype)
+    carry = (theta0, r0, jnp.ones_like(w), jnp.asarray(True), jnp.asarray(0))
+    return jax.lax.fori_loop(0, passes, one_pass, carry)
 
 
 @functools.partial(jax.jit, static_argnames=("k",))
@@ -353,6 +398,7 @@ def fit_chain(
     max_iterations: int = 20,
     ftol: float = 1e-6,
     xtol: float = 1e-4,
+    jit_call=None,
 ) -> dict:
     """Fit the chain (module docstring) to silhouette centres in two views.
 
@@ -372,29 +418,45 @@ def fit_chain(
     ``kappa`` (k,), ``normal`` (k, 3) bending-plane normals, ``rms_px`` (weighted RMS of the
     normal residuals), ``ok`` (solver converged in every pass), ``num_steps``,
     ``residuals_px`` (2, n) unweighted normal residuals and ``weights`` (2, n) final
-    weights (including the Huber factors)."""
+    weights (including the Huber factors).
+
+    The chain is solved with its segments padded to a multiple of four (:func:`pad_chain`:
+    the extra segments start beyond every observation, so no residual depends on them and
+    their steps are zero), so that one compiled solver serves 1-4 segments. ``jit_call``:
+    how the compiled functions are called, ``jit_call(fn, *args)`` (default ``fn(*args)``;
+    the CLI passes :func:`jaxcr.io.exported.cached_call`, so that a second process loads
+    the traced solver instead of tracing it again)."""
+    call = jit_call or _direct
     k = int(np.shape(seg_start)[0])
+    curvatures0, seg_start = pad_chain(curvatures0, seg_start)
     dt = jnp.result_type(float)
-    w = jnp.asarray(weights, dt)
+    w = _dev(weights, dt)
     args0 = [
-        jnp.asarray(base0, dt),
-        jnp.asarray(R0_init, dt),
-        jnp.asarray(seg_start, dt),
-        jnp.asarray(s_obs, dt),
+        _dev(base0, dt),
+        _dev(R0_init, dt),
+        _dev(seg_start, dt),
+        _dev(s_obs, dt),
         cam1,
         cam2,
-        jnp.asarray(centres, dt),
-        jnp.asarray(normals, dt),
+        _dev(centres, dt),
+        _dev(normals, dt),
     ]
-    theta = jnp.concatenate([jnp.zeros(5, dt), jnp.asarray(curvatures0, dt).ravel() / _U_SCALE])
-    theta, r, robust, ok, steps = _robust_solve(
-        theta, tuple(args0), w, jnp.asarray(huber_px, dt), passes=max(reweight, 1),
-        max_iterations=int(max_iterations), ftol=jnp.asarray(ftol, dt),
-        xtol=jnp.asarray(xtol, dt),
+    # on the host in the solver's dtype, times the reciprocal as XLA computes the division by
+    # a constant (bit-identical to the former eager jnp expression; no eager programs)
+    ft = np.dtype(dt)
+    curv_scaled = np.asarray(curvatures0, ft).ravel() * ft.type(1.0 / _U_SCALE)
+    theta = _dev(np.concatenate([np.zeros(5, ft), curv_scaled]), dt)
+    theta, r, robust, ok, steps = call(
+        _robust_solve, theta, tuple(args0), w, _dev(huber_px, dt), max(reweight, 1),
+        int(max_iterations), _dev(ftol, dt), _dev(xtol, dt),
     )  # fmt: skip
     r = np.asarray(r)
-    base, R0, curv, kappa, normal = _finish(theta, args0[0], args0[1], args0[2], k)
-    wn = np.asarray(w * robust)
+    base, R0, curv, kappa, normal = call(
+        _finish, theta, args0[0], args0[1], args0[2], len(seg_start)
+    )
+    # the padding segments dropped (on the host: no eager slicing programs)
+    curv, kappa, normal = (np.asarray(x)[:k] for x in (curv, kappa, normal))
+    wn = np.asarray(w) * np.asarray(robust)
     rms = float(np.sqrt(np.sum(wn * r**2) / max(np.sum(wn), 1e-12)))
     return {
         "base": np.asarray(base, np.float64),
@@ -540,6 +602,7 @@ def tail_observations(
     spacing_px: float = 2.0,
     alpha: np.ndarray | None = None,
     key_proj: np.ndarray | None = None,
+    jit_call=None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Single-view observations of the backbone beyond the last stereo-matched sample.
 
@@ -560,7 +623,8 @@ def tail_observations(
     diameter for :func:`drop_inconsistent_widths`); without, the skeleton pixels are the
     centres and the diameters NaN. Returns ``(s (t,), centres (t, 2), unit image normals
     (t, 2), weights (t,), diameters (t,) m)``; the weight is the sine of the angle between
-    the chain's tangent and the viewing ray (as for the stereo observations)."""
+    the chain's tangent and the viewing ray (as for the stereo observations). ``jit_call``:
+    as :func:`fit_chain`'s."""
     uv = np.asarray(tail_uv, np.float64)
     if len(uv) < 3:
         z = np.zeros((0, 2))
@@ -575,17 +639,19 @@ def tail_observations(
     uv = uv[idx]
     dt = jnp.result_type(float)
     n_t = len(uv)
-    m = max(32, -(-n_t // 32) * 32)  # shape bucket: one compile per 32 samples
+    m = _bucket(n_t, 32)  # shape bucket: powers of two from 32 samples
 
     def pad(x):
-        return jnp.asarray(np.concatenate([x, np.repeat(x[-1:], m - n_t, axis=0)]), dt)
+        return _dev(np.concatenate([x, np.repeat(x[-1:], m - n_t, axis=0)]), dt)
 
-    out = _tail_measure(
-        *(jnp.asarray(fit[k], dt) for k in ("base", "R0", "curvatures")),
-        jnp.asarray(seg_start, dt), cam, pad(uv), pad(nrm), jnp.asarray(s_end, dt),
-        jnp.asarray(s_end + max_extension, dt),
-        None if alpha is None else jnp.asarray(alpha, dt),
-        None if key_proj is None else jnp.asarray(key_proj, dt),
+    curv, seg_start = pad_chain(fit["curvatures"], seg_start)
+    out = (jit_call or _direct)(
+        _tail_measure,
+        *(_dev(x, dt) for x in (fit["base"], fit["R0"], curv)),
+        _dev(seg_start, dt), cam, pad(uv), pad(nrm), _dev(s_end, dt),
+        _dev(s_end + max_extension, dt),
+        None if alpha is None else _dev(alpha, dt),
+        None if key_proj is None else _dev(key_proj, dt),
     )  # fmt: skip
     return tuple(np.asarray(x, np.float64)[:n_t] for x in out)
 
@@ -593,8 +659,23 @@ def tail_observations(
 _plane_angles_jit = jax.jit(jax.vmap(plane_angles))
 
 
-def _bucket(n: int, size: int = 128) -> int:
-    return max(size, -(-n // size) * size)
+def _plane_angles(normals: np.ndarray) -> np.ndarray:
+    """:func:`plane_angles` of each row of ``normals`` (k, 3), as float64 numpy; the rows
+    padded to :data:`SEGMENT_PAD` (one compile for 1-4 segments)."""
+    n = np.asarray(normals, np.float32).reshape(-1, 3)
+    k = len(n)
+    K = max(SEGMENT_PAD, -(-k // SEGMENT_PAD) * SEGMENT_PAD)
+    pad = np.concatenate([n, np.tile(np.float32([0.0, 0.0, 1.0]), (K - k, 1))])
+    return np.asarray(_plane_angles_jit(jax.device_put(pad)), np.float64)[:k]
+
+
+def _bucket(n: int, size: int = 256) -> int:
+    """``n`` rounded up to ``size`` times a power of two (few shapes to compile: 256, 512,
+    1024 observations)."""
+    m = size
+    while m < n:
+        m *= 2
+    return m
 
 
 def fit_segments_jointly(
@@ -613,6 +694,7 @@ def fit_segments_jointly(
     observations: tuple | None = None,
     tails: tuple | None = None,
     max_extension: float = 0.05,
+    jit_call=None,
 ) -> dict:
     """Per-segment curvature, bending plane and arc length of a reconstructed backbone by
     the joint chain fit (module docstring), for the stereo pipeline.
@@ -639,7 +721,8 @@ def fit_segments_jointly(
     first fit they enter as single-view observations (:func:`tail_observations`, at most
     ``max_extension`` m past the last sample), the chain's last arc extends over them and
     the last segment's ``arc_length`` reaches their last arclength; ``n_tail`` (2,) says
-    how many each view contributed."""
+    how many each view contributed. ``jit_call``: as :func:`fit_chain`'s."""
+    call = jit_call or _direct
     s = np.asarray(s, np.float64)
     p = np.asarray(p, np.float64)
     seg_start = np.concatenate([[0.0], np.asarray(boundaries_s, np.float64)])
@@ -667,8 +750,8 @@ def fit_segments_jointly(
         cs, ns, ws, ds = [], [], [], []
         for cam, a, kp in zip(cams, alphas, key_projs, strict=True):
             c, nr, w, d = silhouette_observations(
-                cam, jnp.asarray(a, dt), jnp.asarray(kp, dt), jnp.asarray(pad(p), dt),
-                jnp.asarray(pad(tang), dt),
+                cam, _dev(a, dt), _dev(kp, dt), _dev(pad(p), dt),
+                _dev(pad(tang), dt),
             )  # fmt: skip
             w = np.asarray(w, np.float64)
             w[n:] = 0.0
@@ -681,7 +764,7 @@ def fit_segments_jointly(
     s_obs = pad(s)
     fit = fit_chain(
         cams[0], cams[1], s_obs, cs, ns, ws, seg_start, base0, R_init, curv0,
-        huber_px=huber_px, reweight=reweight,
+        huber_px=huber_px, reweight=reweight, jit_call=call,
     )  # fmt: skip
     n_real, n_tail = n, np.zeros(2, int)
     if tails is not None and any(x is not None and len(x) >= 3 for x in tails):
@@ -694,7 +777,7 @@ def fit_segments_jointly(
                 continue
             st, c, nr, w, d = tail_observations(
                 cams[v], tails[v], fit, seg_start, s_end, max_extension,
-                alpha=alphas[v], key_proj=key_projs[v],
+                alpha=alphas[v], key_proj=key_projs[v], jit_call=call,
             )  # fmt: skip
             n_tail[v] = len(st)
             if len(st) == 0:
@@ -727,20 +810,22 @@ def fit_segments_jointly(
         ws[:, n:n_real] = w_rule[:, n:n_real]
         fit = fit_chain(
             cams[0], cams[1], s_obs, cs, ns, ws, seg_start, fit["base"], fit["R0"],
-            fit["curvatures"], huber_px=huber_px, reweight=reweight,
+            fit["curvatures"], huber_px=huber_px, reweight=reweight, jit_call=call,
         )  # fmt: skip
     for _ in range(reparametrise):
         # Where the correspondence was ill-conditioned the triangulated points, hence
         # their arclengths, slid along the ambiguous direction; each observation's
         # arclength is re-read on the fitted chain (nearest in both images), and the
         # boundaries (found at observations) move with their observations.
+        curv_pad, start_pad = pad_chain(fit["curvatures"], seg_start)
         s_new = np.asarray(
-            _reparametrise(
-                jnp.asarray(fit["base"], dt), jnp.asarray(fit["R0"], dt),
-                jnp.asarray(fit["curvatures"], dt), jnp.asarray(seg_start, dt),
-                jnp.asarray(s_obs, dt), cams[0], cams[1], jnp.asarray(cs, dt),
-                jnp.asarray(ws * fit["weights"] / np.maximum(ws, 1e-12), dt),
-                reparam_window,
+            call(
+                _reparametrise,
+                _dev(fit["base"], dt), _dev(fit["R0"], dt),
+                _dev(curv_pad, dt), _dev(start_pad, dt),
+                _dev(s_obs, dt), cams[0], cams[1], _dev(cs, dt),
+                _dev(ws * fit["weights"] / np.maximum(ws, 1e-12), dt),
+                _dev(reparam_window, dt),
             ),
             np.float64,
         )  # fmt: skip
@@ -755,13 +840,13 @@ def fit_segments_jointly(
         s_obs = s_new
         fit = fit_chain(
             cams[0], cams[1], s_obs, cs, ns, ws, seg_start, fit["base"], fit["R0"],
-            fit["curvatures"], huber_px=huber_px, reweight=reweight,
+            fit["curvatures"], huber_px=huber_px, reweight=reweight, jit_call=call,
         )  # fmt: skip
     ends = np.concatenate([seg_start[1:], [max(s_obs[:n_real].max(), seg_start[-1])]])
     return {
         "kappa": fit["kappa"],
         "normal": fit["normal"],
-        "angles_deg": np.asarray(_plane_angles_jit(jnp.asarray(fit["normal"])), np.float64),
+        "angles_deg": _plane_angles(fit["normal"]),
         "arc_length": ends - seg_start,
         "rms_px": fit["rms_px"],
         "ok": fit["ok"],

@@ -25,11 +25,14 @@
 
 Speed (``experiments/stereo/stereo_bench.py``): both views go through each JAX stage in one jitted
 call (alpha/key projection/mask from the uint8 images; thinning of the robots' bounding-box
-crops, padded to a common 64-px bucket and vmapped; refinement profiles; diameters); arrays
-whose length varies per frame are padded to buckets (thinning crops 64 px, backbone points
-256), so a new frame of a seen size compiles nothing; the two marker detections run in two
-threads (OpenCV releases the GIL); ordering, DTW and the arclength smoothing are vectorised
-numpy/scipy without per-pixel Python loops.
+crops, padded to one square window and vmapped; refinement profiles and diameters, one
+program); arrays whose length varies per frame are padded to buckets (thinning windows
+64 px times a power of two; backbone points 256; the joint chain fit's observations 256
+times a power of two and its segments padded to four,
+:func:`jaxcr.stereo.chain_fit.pad_chain`), so a new frame of a seen size compiles nothing
+and a first run compiles each program about once (docs/decisions.md S23); the two marker
+detections run in two threads (OpenCV releases the GIL); ordering, DTW and the arclength
+smoothing are vectorised numpy/scipy without per-pixel Python loops.
 
 Per-frame problems raise :class:`StereoFailure` with a short ``reason`` code
 (``calibration_size``, ``markers``, ``base``, ``robot_not_found``, ``correspondence``) for the batch
@@ -70,9 +73,11 @@ from jaxcr.stereo.base_frame import (
 from jaxcr.stereo.base_locate import flood_component, locate_base
 from jaxcr.stereo.branch_choice import choose_branches
 from jaxcr.stereo.chain_fit import (
+    _direct,  # the default jit_call: fn(*args)
     chain_points,
     fit_segments_jointly,
     observations_from_profiles,
+    pad_chain,
 )
 from jaxcr.stereo.chroma import (
     KEY_COLOURS,
@@ -210,13 +215,14 @@ def _given_base_pose(cam1: Camera, cam2: Camera, spec: BaseSpec) -> dict:
 
 def _with_pose(cam: Camera, T: np.ndarray) -> Camera:
     return eqx.tree_at(
-        lambda c: c.T_cam_robot, cam, jnp.asarray(np.asarray(T, np.dtype(cam.K.dtype)))
+        lambda c: c.T_cam_robot, cam, jax.device_put(np.asarray(T, np.dtype(cam.K.dtype)))
     )
 
 
 def _f32(x) -> jax.Array:
-    """numpy -> float32 device array (converted on the host: no eager JAX op)."""
-    return jnp.asarray(np.asarray(x, np.float32))
+    """numpy -> float32 device array (converted on the host and put on the device:
+    ``jnp.asarray`` would compile a staging program per shape)."""
+    return jax.device_put(np.asarray(x, np.float32))
 
 
 def _essential_np(T1: np.ndarray, T2: np.ndarray) -> np.ndarray:
@@ -519,22 +525,26 @@ _thin_batch = jax.jit(jax.vmap(zhang_suen_thin))
 
 
 def _thin_cropped_views(
-    masks: list[np.ndarray], block: int = _THIN_BLOCK
+    masks: list[np.ndarray], block: int = _THIN_BLOCK, jit_call=_direct
 ) -> list[tuple[np.ndarray, tuple[int, int]]]:
     """Zhang-Suen thinning of each view's robot mask on its bounding box only: the boxes
-    (plus a 2-pixel margin) are padded to one common shape, rounded up to multiples of
-    ``block`` (so that few shapes get compiled), and thinned in one vmapped call. Thinning is
-    local, so each result equals thinning the whole image. Returns per view the skeleton
-    crop and its top-left corner (row, col) in the image."""
+    (plus a 2-pixel margin) are padded to one common square window whose side is ``block``
+    times a power of two (cut to the image's height and width), so that an image size
+    compiles one or two shapes (e.g. 256x256 and 480x512 at 640x480; issue 18,
+    docs/decisions.md S23), and thinned in one vmapped call. Thinning is local, so each
+    result equals thinning the whole image. Returns per view the skeleton crop and its
+    top-left corner (row, col) in the image."""
     if len({m.shape for m in masks}) > 1:  # views of different sizes: one call each
-        return [_thin_cropped_views([m], block)[0] for m in masks]
+        return [_thin_cropped_views([m], block, jit_call)[0] for m in masks]
     shape = masks[0].shape
     boxes = [_bbox(m) for m in masks]
-    bh = min(_bucket(max(b[1] - b[0] for b in boxes) + 4, block), shape[0])
-    bw = min(_bucket(max(b[3] - b[2] for b in boxes) + 4, block), shape[1])
+    side = block
+    while side < max(max(b[1] - b[0], b[3] - b[2]) for b in boxes) + 4:
+        side *= 2
+    bh, bw = min(side, shape[0]), min(side, shape[1])
     corners = [_crop_window(b, shape, bh, bw) for b in boxes]
     crops = np.stack([m[r : r + bh, c : c + bw] for m, (r, c) in zip(masks, corners, strict=True)])
-    skel = np.asarray(_thin_batch(jnp.asarray(crops)))
+    skel = np.asarray(jit_call(_thin_batch, jax.device_put(crops)))
     return [(skel[k], corners[k]) for k in range(len(masks))]
 
 
@@ -575,14 +585,15 @@ def _view_diameters(cam, alpha, kproj, p, tang):
     """Per view: the cylinder-method diameters, the view weights, the report's
     3-D-interpolation diameters (see :mod:`jaxcr.stereo.diameter`) and, from the same
     profiles, the joint chain fit's silhouette observations (centres, normals, weights,
-    diameters; :func:`jaxcr.stereo.chain_fit.observations_from_profiles`)."""
+    diameters; :func:`jaxcr.stereo.chain_fit.observations_from_profiles`), and the
+    projections ``uv0`` and centre offsets the sub-pixel refinement moves them by."""
     uv0, ok0, nrm, wdt, off, wv = _view_profile(cam, alpha, kproj, p, tang)
     d = cylinder_diameters(cam, p, tang, uv0, nrm, wdt, off)
     wv = jnp.where(ok0 & (wdt > 0.5) & jnp.isfinite(d), wv, 0.0)
     rep = report_interpolation_diameters(cam, p, uv0, wdt)
     clean = edge_clearance(alpha, uv0, nrm, wdt, off)
     obs = observations_from_profiles(cam, p, tang, uv0, ok0, nrm, wdt, off, clean)
-    return (jnp.where(jnp.isfinite(d), d, 0.0), wv, rep, *obs)
+    return (jnp.where(jnp.isfinite(d), d, 0.0), wv, rep, *obs, uv0, off)
 
 
 @jax.jit
@@ -591,24 +602,18 @@ def _masked_alpha(alphas, near):
     return alphas * near.astype(alphas.dtype)
 
 
-@jax.jit
-def _views_profiles(cam1, cam2, alphas, kprojs, p, tang):
-    """Both views' (weights, uv0, normals, offsets) for the sub-pixel refinement, stacked
-    (2, ...); ``alphas`` (2, H, W) limited to the robot (:func:`_masked_alpha`),
-    ``kprojs`` (2, H, W)."""
-    out = []
-    for k, cam in enumerate((cam1, cam2)):
-        uv0, ok0, nrm, wdt, off, wv = _view_profile(cam, alphas[k], kprojs[k], p, tang)
-        d = cylinder_diameters(cam, p, tang, uv0, nrm, wdt, off)
-        wv = jnp.where(ok0 & (wdt > 0.5) & jnp.isfinite(d), wv, 0.0)
-        out.append((wv, uv0, nrm, off))
-    return tuple(jnp.stack(x) for x in zip(*out, strict=True))
+def _refinement_profiles(measured) -> tuple[np.ndarray, ...]:
+    """Both views' (weights, uv0, normals, offsets) for the sub-pixel refinement (float64,
+    (2, ...)) from :func:`_views_diameters`' outputs: the refinement and the diameter stage
+    share one compiled program (issue 18, docs/decisions.md S23)."""
+    return tuple(np.asarray(measured[i], np.float64) for i in (1, 7, 4, 8))
 
 
 @jax.jit
 def _views_diameters(cam1, cam2, alphas, kprojs, p, tang):
     """Both views' (diameters, weights, report diameters, chain-fit centres, normals,
-    weights, diameters), stacked (2, ...)."""
+    weights, diameters, projections uv0, centre offsets), stacked (2, ...); ``alphas``
+    (2, H, W) limited to the robot (:func:`_masked_alpha`), ``kprojs`` (2, H, W)."""
     out = [
         _view_diameters(cam, alphas[k], kprojs[k], p, tang) for k, cam in enumerate((cam1, cam2))
     ]
@@ -718,7 +723,7 @@ _chain_points = jax.jit(chain_points)
 _TAIL_GRID = 257
 
 
-def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float):
+def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float, jit_call=_direct):
     """Backbone samples (arclengths (t,), points (t, 3)) beyond the last stereo sample
     ``p[-1]``, every ``step`` m, over the part of the tube one view alone sees: the joint
     chain fit (:func:`jaxcr.stereo.chain_fit.fit_segments_jointly` with ``tails``) extends
@@ -728,21 +733,28 @@ def _single_view_tail(s: np.ndarray, p: np.ndarray, joint: dict, step: float):
     continuous; the chain is a smooth model of the same curve, within its RMS)."""
     fit, seg_start = joint["fit"], np.asarray(joint["seg_start"], np.float64)
     end = float(seg_start[-1] + joint["arc_length"][-1])
-    args = [np.asarray(fit[k], np.float32) for k in ("base", "R0", "curvatures")]
-    args.append(seg_start.astype(np.float32))
+    # the segments padded as in the fit (one compile for 1-4 segments)
+    curv, start = pad_chain(fit["curvatures"], seg_start)
+    args = [np.asarray(x, np.float32) for x in (fit["base"], fit["R0"], curv, start)]
     c0, half = float(s[-1]), 5e-3
     for _ in range(2):  # coarse (39 um steps), then fine (0.3 um) search
         grid = np.linspace(c0 - half, c0 + half, _TAIL_GRID)
-        X = np.asarray(_chain_points(*(jnp.asarray(a) for a in args), _f32(grid))[0], np.float64)
+        X = np.asarray(
+            jit_call(_chain_points, *(jax.device_put(a) for a in args), _f32(grid))[0], np.float64
+        )
         c0 = float(grid[np.argmin(np.linalg.norm(X - p[-1], axis=1))])
         half = 2.0 * half / (_TAIL_GRID - 1)
     k = int(np.floor((end - c0) / step + 1e-9))
     if k < 1:
         return np.zeros(0), np.zeros((0, 3))
     sc = c0 + step * np.arange(0, k + 1)
-    nb = _bucket(len(sc), 128)
+    nb = _TAIL_GRID * -(-len(sc) // _TAIL_GRID)  # the search grid's program again
     Xt = np.asarray(
-        _chain_points(*(jnp.asarray(a) for a in args), _f32(_pad_rows(sc[:, None], nb)[:, 0]))[0],
+        jit_call(
+            _chain_points,
+            *(jax.device_put(a) for a in args),
+            _f32(_pad_rows(sc[:, None], nb)[:, 0]),
+        )[0],
         np.float64,
     )[: len(sc)]
     return float(s[-1]) + step * np.arange(1, k + 1), Xt[1:] - Xt[0] + p[-1]
@@ -812,15 +824,23 @@ def reconstruct_pair(
     cam2: Camera,
     config: StereoConfig | None = None,
     plates: tuple[np.ndarray, np.ndarray] | None = None,
+    *,
+    jit_call=None,
 ) -> dict:
     """Reconstruct the backbone of one stereo pair (see module docstring).
 
     ``image1``/``image2``: RGB (H, W, 3) uint8 or float [0, 1]. ``cam1``/``cam2``: the
     stereo calibration (extrinsics in any common frame; the base frame is found from the
     markers). ``plates``: background images of the empty scene (needed for
-    ``segmentation="plate"``/``"both"``). Returns a dict (numpy arrays, base frame, metres).
+    ``segmentation="plate"``/``"both"``). ``jit_call``: how the large compiled stages
+    (thinning, profiles and diameters, segment fits, the joint chain fit) are called,
+    ``jit_call(fn, *args)`` (default ``fn(*args)``; ``jaxcr stereo`` passes
+    :func:`jaxcr.io.exported.cached_call`, so that a second process loads their traced
+    programs instead of tracing them again). Returns a dict (numpy arrays, base frame,
+    metres).
     """
     cfg = config or StereoConfig()
+    call = jit_call or _direct
     if cfg.segmentation not in ("chroma", "plate", "plate_shadow", "both", "trace"):
         raise ValueError(f"unknown segmentation {cfg.segmentation!r}")
     timings: dict[str, float] = {}
@@ -862,8 +882,8 @@ def reconstruct_pair(
     stack = _image_stack(imgs)
     plate_stack = _image_stack(plates) if cfg.segmentation != "chroma" else stack
     alpha_j, kproj_j, mask_j = _segment_views(
-        jnp.asarray(stack),
-        jnp.asarray(plate_stack),
+        jax.device_put(stack),
+        jax.device_put(plate_stack),
         _f32(cfg.key_rgb),
         cfg.tol_lo,
         cfg.tol_hi,
@@ -891,7 +911,7 @@ def reconstruct_pair(
         # backbone is made of the traces the tips belong to and ends at the tips.
         traced = traced_stereo_tips(cams, tr)
         masks = _image_stack([t.mask.astype(np.uint8) for t in traced[3]])
-        alpha_j = jnp.asarray(masks.astype(np.float32))
+        alpha_j = jax.device_put(masks.astype(np.float32))
     t0 = _tick(timings, "segmentation", t0)
     # 3. Per view: closing, marker squares, base (Hough), flood fill.
     views = []
@@ -921,7 +941,7 @@ def reconstruct_pair(
         views.append({"robot": robot, "loc": loc})
     t0 = _tick(timings, "base_floodfill", t0)
     # 4. Thinning: both views' bounding-box crops in one vmapped call.
-    thinned = _thin_cropped_views([v["robot"] for v in views])
+    thinned = _thin_cropped_views([v["robot"] for v in views], jit_call=call)
     t0 = _tick(timings, "thinning", t0)
     # 5. Ordering from the base, on the crops.
     for k, (v, (sk, (r0, c0))) in enumerate(zip(views, thinned, strict=True)):
@@ -990,14 +1010,15 @@ def reconstruct_pair(
     # silhouette across the tube (from the width profiles) and re-triangulate. Views that
     # see the tube nearly end-on (small weight) keep the projection. The alpha is limited
     # to the (dilated) robot region of each view.
-    near = jnp.asarray(
+    near = jax.device_put(
         _image_stack([cv2.dilate(v["robot"].astype(np.uint8), np.ones((5, 5))) for v in views])
     )
     alpha_near = _masked_alpha(alpha_j, near)  # once for refinement, diameters, joint fit
     for _ in range(cfg.refine_iterations):
         pj, tj = _padded_with_tangents(p)
-        prof = _views_profiles(cams[0], cams[1], alpha_near, kproj_j, pj, tj)
-        wv, uv0, nrm, off = (np.asarray(x, np.float64) for x in prof)
+        wv, uv0, nrm, off = _refinement_profiles(
+            call(_views_diameters, cams[0], cams[1], alpha_near, kproj_j, pj, tj)
+        )
         ys = []
         for k, c in enumerate(cams):
             shift = np.where(wv[k] > 0.25**2, np.clip(off[k], -2.0, 2.0), 0.0)
@@ -1044,7 +1065,7 @@ def reconstruct_pair(
     pj, tj = _padded_with_tangents(p)
     d_all, w_all, r_all, *chain_obs = (
         np.asarray(x)[:, : len(p)]
-        for x in _views_diameters(cams[0], cams[1], alpha_near, kproj_j, pj, tj)
+        for x in call(_views_diameters, cams[0], cams[1], alpha_near, kproj_j, pj, tj)[:7]
     )
     d_all, w_all, r_all = (np.asarray(x, np.float64) for x in (d_all, w_all, r_all))
     diam_views, wts, rep = list(d_all), list(w_all), list(r_all)
@@ -1097,7 +1118,7 @@ def reconstruct_pair(
         pts_all[k] = _pad_rows(pts, _FIT_PAD)
         w_all[k] = 0.0
         w_all[k, : len(pts)] = 1.0
-    angs, normals, arcs = _segment_fits(jnp.asarray(pts_all), jnp.asarray(w_all))
+    angs, normals, arcs = call(_segment_fits, jax.device_put(pts_all), jax.device_put(w_all))
     angs, normals = np.asarray(angs, np.float64), np.asarray(normals, np.float64)
     arcs = {key: np.asarray(v, np.float64) for key, v in arcs.items()}
     table = []
@@ -1148,6 +1169,7 @@ def reconstruct_pair(
                 _skeleton_tail(v["uv"], _project_np(c, p[-1:])[0])
                 for c, v in zip(cams, views, strict=True)
             ],
+            jit_call=call,
         )
         for k, row in enumerate(table):
             for key in ("phi_xy_deg", "phi_zx_deg", "phi_yz_deg", "curvature_1pm", "normal"):
@@ -1160,7 +1182,7 @@ def reconstruct_pair(
             row["chain_rms_px"] = float(joint["rms_px"])
         t0 = _tick(timings, "joint_fit", t0)
         if cfg.single_view_tail and int(np.sum(joint["n_tail"])) > 0:
-            s_t, p_t = _single_view_tail(s, p, joint, cfg.step)
+            s_t, p_t = _single_view_tail(s, p, joint, cfg.step, call)
             # The tail ends where its projection in the view that sees it reaches that
             # view's tip pixel: the chain's last arc extrapolates past the tube's end
             # (dev seed 302, a curled frame: 44 mm appended where 22 mm were missing).

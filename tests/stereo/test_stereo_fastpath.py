@@ -110,13 +110,15 @@ def test_two_view_cropped_thinning_equals_full_images():
         ([[20, 110], [30, 50], [150, 20]], (221, 100)),  # touches the right border
         ([[60, 100], [70, 80], [90, 75]], (40, 40)),  # small box, padded to the other's
     ]:
-        m = np.zeros((200, 224), np.uint8)
+        m = np.zeros((400, 224), np.uint8)
         cv2.polylines(m, [np.array(pts, np.int32)], False, 1, 6)
         cv2.circle(m, circ, 6, 1, -1)
         ms.append(m.astype(bool))
     out = pl._thin_cropped_views(ms, block=32)
     shapes = {sk.shape for sk, _ in out}
-    assert shapes == {(128, 224)}  # rows cropped, columns up to the image's width
+    # one square window for both views, side 32 * 2^3 = 256 >= the larger box (207 px wide)
+    # + 4: rows cropped, columns cut to the image's width
+    assert shapes == {(256, 224)}
     for m, (sk, (r, c)) in zip(ms, out, strict=True):
         full = np.asarray(zhang_suen_thin(jnp.asarray(m)))
         placed = np.zeros_like(m)
