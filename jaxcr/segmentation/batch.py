@@ -10,7 +10,6 @@ whose results are discarded), so the whole run compiles once.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -311,7 +310,7 @@ class Segmenter:
             # neither traces nor lowers the kinematics (a CTR's shooting solver is the largest
             # of them). Compiled for a short compile (XLA's legacy loop emitter, FAST_COMPILE):
             # it runs once per chunk, a few ms, and its outputs are bit-identical
-            # (docs/decisions.md S22)
+            # (docs/decisions.md S22; the covariance's run time doubled with it: not used there)
             fk = cached_call(_fk_batch, self.ds.robot, qs, compiler_options=FAST_COMPILE)
             bgs, subs = [], []
             traces = None
@@ -365,8 +364,7 @@ class Segmenter:
                     self.config,
                     res.coeffs,
                     res.camera_correction,
-                    # once per chunk as the kinematics: the short compile (S22)
-                    jit_call=functools.partial(cached_call, compiler_options=FAST_COMPILE),
+                    jit_call=cached_call,
                 )
                 unc = jax.tree.map(np.asarray, jax.block_until_ready(unc))
             self.compile_s += utimer.compile_s
