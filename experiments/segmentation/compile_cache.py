@@ -98,9 +98,13 @@ def _write(rows: dict, a) -> None:
         "| size | cache | compile s | run s | process wall s | process CPU s | load |",
         "|---|---|---|---|---|---|---|",
     ]
-    names = {"off": "off", "first": "empty (1st process)", "second": "filled (2nd process)",
-             "warmup": "`jaxcr warmup` (empty cache; wall/CPU only)",
-             "after_warmup": "filled by `jaxcr warmup` (next process)"}
+    names = {
+        "off": "off",
+        "first": "empty (1st process)",
+        "second": "filled (2nd process)",
+        "warmup": "`jaxcr warmup` (empty cache; wall/CPU only)",
+        "after_warmup": "filled by `jaxcr warmup` (next process)",
+    }
     for size, runs in rows["segment"].items():
         for k, rs in runs.items():
             if not rs:
@@ -131,8 +135,11 @@ def main() -> int:
     ap.add_argument("--work", default="/tmp/jaxcr_compile_cache")
     ap.add_argument("--no-demo", action="store_true")
     ap.add_argument("--no-segment", action="store_true", help="only the demo rows")
-    ap.add_argument("--warmup", action="store_true",
-                    help="also: `jaxcr warmup` into an empty cache, then `jaxcr segment`")
+    ap.add_argument(
+        "--warmup",
+        action="store_true",
+        help="also: `jaxcr warmup` into an empty cache, then `jaxcr segment`",
+    )
     ap.add_argument("--demo-size", default=None, help="demo image size (default: first of --sizes)")
     ap.add_argument("--name", default="compile_cache", help="output file stem")
     a = ap.parse_args()
