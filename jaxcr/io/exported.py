@@ -32,9 +32,9 @@ import equinox as eqx
 import jax
 
 FORMAT = b"jaxcr.exported/2\n"
-#: XLA:CPU options that compile a program in about half the CPU time into code that runs up to
-#: ~2x slower (the legacy loop emitter instead of the MLIR fusion emitters; docs/decisions.md
-#: T1 and S22): for programs that run once or a few times per process.
+#: XLA:CPU options that compile a program with about a third less CPU (0.64-0.68x for segment's
+#: programs) into code that runs up to ~2x slower (the legacy loop emitter instead of the MLIR
+#: fusion emitters; docs/decisions.md T1 and S22): for programs that run rarely per process.
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 _memo: dict[tuple, tuple[Callable, object, list]] = {}
 _source_hash: str | None = None
