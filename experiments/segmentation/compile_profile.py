@@ -13,6 +13,9 @@ Stages come from JAX's monitoring events (``/jax/core/compile/jaxpr_trace_durati
 ``time.process_time`` at the start (scalar event) and end (span event) of each stage, so the
 CPU column includes XLA's compile threads and anything else the process ran in that span.
 
+``DATASET`` = ``demo`` profiles ``jaxcr demo -o OUT [extra]`` instead (synth, segment and
+evaluate in one process; the summary figures are its segment step's).
+
 Run (from the repository root)::
 
     PYTHONPATH=$PWD python experiments/segmentation/compile_profile.py DATASET \
@@ -71,11 +74,15 @@ def child(dataset: str, out: str, extra: list[str]) -> dict:
     from jaxcr.cli import main as cli_main
 
     t_cli, c_cli = time.perf_counter(), time.process_time()
-    rc = cli_main(
-        ["segment", dataset, "-o", out, "--overwrite", "--quiet", "--no-overlays", *extra]
-    )
+    if dataset == "demo":  # `jaxcr demo -o OUT [extra]` (synth + segment + evaluate)
+        shutil.rmtree(out, ignore_errors=True)
+        argv = ["demo", "-o", out, *extra]
+    else:
+        argv = ["segment", dataset, "-o", out, "--overwrite", "--quiet", "--no-overlays", *extra]
+    rc = cli_main(argv)
     t_end, c_end = time.perf_counter(), time.process_time()
-    summary = json.loads((Path(out) / "summary.json").read_text())
+    seg = Path(out) / ("segment" if dataset == "demo" else "")
+    summary = json.loads((seg / "summary.json").read_text())
     programs: dict = defaultdict(dict)
     for (stage, name), w in wall.items():
         programs[name][stage] = [round(w, 3), round(cpu[(stage, name)], 3), count[(stage, name)]]
@@ -125,7 +132,7 @@ def _table(r: dict, top: int) -> list[str]:
         f"| import jax | {r['import_jax'][0]:.2f} | {r['import_jax'][1]:.2f} |",
         f"| import jaxcr.cli | {r['import_jaxcr'][0]:.2f} | {r['import_jaxcr'][1]:.2f} |",
         *(f"| {k} (all {len(rows)} programs) | {v[0]:.2f} | {v[1]:.2f} |" for k, v in sums.items()),
-        f"| rest of `segment` (frames run {r['summary_run_s']:.2f} s wall, file I/O, export "
+        f"| rest of the command (segment's frames run {r['summary_run_s']:.2f} s wall, file I/O, export "
         f"serialisation, glue) | {seg[0] - comp_w:.2f} | {seg[1] - comp_c:.2f} |",
         f"| **process** | **{r['process'][0]:.2f}** | **{r['process'][1]:.2f}** |",
         "",
