@@ -149,8 +149,10 @@ def main() -> int:
     ap.add_argument("--name", default="compile_profile")
     ap.add_argument("--top", type=int, default=12)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("extra", nargs="*")
-    a = ap.parse_args()
+    argv = sys.argv[1:]
+    cut = argv.index("--") if "--" in argv else len(argv)
+    a = ap.parse_args(argv[:cut])
+    a.extra = argv[cut + 1 :]  # segment's (or demo's) own options, after "--"
     work = Path(a.work)
     if a.child:
         print("RESULT " + json.dumps(child(a.dataset, str(work / "out"), a.extra)), flush=True)
