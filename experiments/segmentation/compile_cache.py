@@ -14,7 +14,7 @@ Run (from the repository root)::
     PYTHONPATH=$PWD python experiments/segmentation/compile_cache.py [--sizes 320x240,640x480] \
         [--repeats 1] [--frames 4] [--work /tmp/jaxcr_compile_cache]
 
-Writes experiments/results/segmentation/compile_cache.md and .json.
+Writes experiments/results/segmentation/NAME.md and .json (``--name``, default compile_cache).
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def _write(rows: dict, a) -> None:
     """Write the .json and .md (after every block, so an interrupted run keeps its numbers)."""
     rows["load_after"] = _load()
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "compile_cache.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (RESULTS / f"{a.name}.json").write_text(json.dumps(rows, indent=1) + "\n")
     lines = [
         "# Persistent compilation cache: first vs second process",
         "",
@@ -98,7 +98,13 @@ def _write(rows: dict, a) -> None:
         "| size | cache | compile s | run s | process wall s | process CPU s | load |",
         "|---|---|---|---|---|---|---|",
     ]
-    names = {"off": "off", "first": "empty (1st process)", "second": "filled (2nd process)"}
+    names = {
+        "off": "off",
+        "first": "empty (1st process)",
+        "second": "filled (2nd process)",
+        "warmup": "`jaxcr warmup` (empty cache; wall/CPU only)",
+        "after_warmup": "filled by `jaxcr warmup` (next process)",
+    }
     for size, runs in rows["segment"].items():
         for k, rs in runs.items():
             if not rs:
@@ -110,14 +116,14 @@ def _write(rows: dict, a) -> None:
             )
     if rows["demo"]:
         lines += ["", f"`jaxcr demo --frames {a.frames}` (whole process wall clock):", "",
-                  "| size | cache | wall s | load |", "|---|---|---|---|"]  # fmt: skip
+                  "| size | cache | wall s | process CPU s | load |", "|---|---|---|---|---|"]  # fmt: skip
         for size, runs in rows["demo"].items():
             for k, rs in runs.items():
                 lines.append(
-                    f"| {size} | {names[k]} | {_median(rs, 'wall_s'):.1f} | "
+                    f"| {size} | {names[k]} | {_median(rs, 'wall_s'):.1f} | {_cpu(rs)} | "
                     f"{statistics.median(r['load_before'][0] for r in rs):.1f} |"
                 )
-    (RESULTS / "compile_cache.md").write_text("\n".join(lines) + "\n")
+    (RESULTS / f"{a.name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines), flush=True)
 
 
@@ -128,28 +134,44 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--work", default="/tmp/jaxcr_compile_cache")
     ap.add_argument("--no-demo", action="store_true")
+    ap.add_argument("--no-segment", action="store_true", help="only the demo rows")
+    ap.add_argument(
+        "--warmup",
+        action="store_true",
+        help="also: `jaxcr warmup` into an empty cache, then `jaxcr segment`",
+    )
+    ap.add_argument("--demo-size", default=None, help="demo image size (default: first of --sizes)")
+    ap.add_argument("--name", default="compile_cache", help="output file stem")
     a = ap.parse_args()
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
     rows: dict = {"command": " ".join(["python", *sys.argv]), "frames": a.frames,
                   "cpus": os.cpu_count(), "segment": {}, "demo": {}}  # fmt: skip
-    for size in a.sizes.split(","):
+    for size in [] if a.no_segment else a.sizes.split(","):
         ds = work / f"ds_{size}"
         if not (ds / "dataset.json").exists():
             _jaxcr(["synth", "--preset", "orthogonal", "--frames", str(a.frames), "--size", size,
                     "-o", str(ds), "--quiet"], None)  # fmt: skip
         runs: dict[str, list[dict]] = {"off": [], "first": [], "second": []}
+        if a.warmup:
+            runs.update(warmup=[], after_warmup=[])
         for rep in range(a.repeats):
             cache = work / f"cache_{size}_{rep}"
             shutil.rmtree(cache, ignore_errors=True)
             runs["first"].append(_segment(ds, work / "out", str(cache)))
             runs["second"].append(_segment(ds, work / "out", str(cache)))
             runs["off"].append(_segment(ds, work / "out", None))
+            if a.warmup:
+                wcache = work / f"cache_w_{size}_{rep}"
+                shutil.rmtree(wcache, ignore_errors=True)
+                w = _jaxcr(["warmup", str(ds), "--no-overlays"], str(wcache))
+                runs["warmup"].append(dict(w, compile_s=float("nan"), run_s=float("nan")))
+                runs["after_warmup"].append(_segment(ds, work / "out", str(wcache)))
             print(size, rep, {k: v[-1] for k, v in runs.items()}, flush=True)
         rows["segment"][size] = runs
         _write(rows, a)
     if not a.no_demo:
-        for size in a.sizes.split(",")[:1]:
+        for size in [a.demo_size] if a.demo_size else a.sizes.split(",")[:1]:
             runs = {"off": [], "first": [], "second": []}
             for rep in range(a.repeats):
                 cache = work / f"cache_demo_{size}_{rep}"

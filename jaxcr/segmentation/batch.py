@@ -21,7 +21,7 @@ import numpy as np
 from jaxcr._timing import CompileTimer
 from jaxcr.errors import InputError
 from jaxcr.io import results as R
-from jaxcr.io.exported import cached_call
+from jaxcr.io.exported import FAST_COMPILE, cached_call
 from jaxcr.io.overlay import fig4_panel
 
 FK_FAILED = "kinematics failed (solver did not converge or non-finite shape)"
@@ -308,8 +308,10 @@ class Segmenter:
         with CompileTimer() as timer:
             # through the stored traced program too, as the refinement: a second process then
             # neither traces nor lowers the kinematics (a CTR's shooting solver is the largest
-            # of them)
-            fk = cached_call(_fk_batch, self.ds.robot, qs)
+            # of them). Compiled for a short compile (XLA's legacy loop emitter, FAST_COMPILE):
+            # it runs once per chunk, a few ms, and its outputs are bit-identical
+            # (docs/decisions.md S22; the covariance's run time doubled with it: not used there)
+            fk = cached_call(_fk_batch, self.ds.robot, qs, compiler_options=FAST_COMPILE)
             bgs, subs = [], []
             traces = None
             if not self.bg_fns:  # --background plate: per frame, from the nominal base

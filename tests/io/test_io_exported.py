@@ -84,6 +84,26 @@ def test_cache_off_calls_directly(monkeypatch, tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("stored", [True, False])
+def test_compiler_options_reach_xla_and_share_the_stored_program(stored, folder, monkeypatch):
+    """``compiler_options`` (jaxcr segment compiles the kinematics with FAST_COMPILE, the
+    legacy loop emitter): the same arithmetic as the direct call (rtol 1e-6 as above), one
+    stored program for every set of options, and the options really reach XLA (an unknown
+    one is rejected), with the cache on (stored program) and off (traced here)."""
+    if not stored:
+        monkeypatch.setattr(exported, "_folder", lambda: None)
+    p, x = Params(jnp.arange(3.0), 2), jnp.linspace(0.0, 1.0, 3)
+    ref = _poly(p, x, "plain")
+    plain = exported.cached_call(_poly, p, x, "plain")
+    fast = exported.cached_call(_poly, p, x, "plain", compiler_options=exported.FAST_COMPILE)
+    for out in (plain, fast):
+        np.testing.assert_allclose(out["y"], ref["y"], rtol=1e-6)
+        np.testing.assert_allclose(out["s"], ref["s"], rtol=1e-6)
+    assert len(STORED) == (1 if stored else 0)
+    with pytest.raises(Exception, match="xla_jaxcr_no_such_option"):
+        exported.cached_call(_poly, p, x, "plain", compiler_options={"xla_jaxcr_no_such_option": 1})
+
+
 def test_unreadable_entry_is_rebuilt(folder):
     p, x = Params(jnp.arange(3.0), 2), jnp.ones(3)
     exported.cached_call(_poly, p, x, "plain")
@@ -93,7 +113,6 @@ def test_unreadable_entry_is_rebuilt(folder):
     out = exported.cached_call(_poly, p, x, "plain")
     np.testing.assert_allclose(out["y"], np.arange(3.0))
     assert path.read_bytes().startswith(exported.FORMAT)
-
 
 
 def test_kinematics_round_trip_equals_the_direct_call(folder):
