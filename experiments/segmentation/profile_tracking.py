@@ -30,12 +30,15 @@ import os
 import time
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxcr.benchmarks.segment as bs
+import jaxcr.segmentation.refine as rf
 from jaxcr.segmentation.background import colour_mask
+from jaxcr.segmentation.energy import RegionData, padded_level
 from jaxcr.segmentation.metrics import iou
 from jaxcr.segmentation.refine import RefineConfig, refine_frame_jit, tracking_roi
 
@@ -71,18 +74,65 @@ VARIANTS = {
     # sequence's nominal shapes, refine_frame_jit's ``roi``; docs/decisions.md S21)
     "roi": {"roi": True},
     "full frame": {"roi": False},
+    # not a config field: the per-tile sums of region_data_from_level from one stacked array
+    # (the candidate of profile_fixed_cost.py), traced in its own program, interleaved with
+    # the library's; measured, not adopted (docs/decisions.md S24; the s24 results ran at
+    # commit 1a23162, where the library had the stacked sums and this variant the old ones)
+    "stacked tile sums (S24)": {"stacked_sums": True},
 }
+
+
+def _region_data_stacked(img, w, b, level: int, tile: int) -> RegionData:
+    """:func:`region_data_from_level` with the five per-tile sums from one stacked array."""
+    grid, img, w, b, total_w, centre = padded_level(img, w, b, tile)
+    wc = w[..., None]
+    st = jnp.concatenate(
+        [wc, b[..., None], wc * img, (w * jnp.sum(img * img, axis=-1))[..., None]], -1
+    )
+    st = st.reshape(grid.rows, tile, grid.cols * tile, 6).sum(axis=1)
+    s = st.reshape(grid.rows, grid.cols, tile, 6).sum(axis=2).reshape(grid.n_tiles, 6)
+    return RegionData(
+        grid=grid, w=w, b=b, img=img, tile_w=s[:, 0], tile_b=s[:, 1], tile_s1=s[:, 2:5],
+        tile_s2=s[:, 5], total_w=total_w, total_s1=jnp.sum(s[:, 2:5], axis=0),
+        total_s2=jnp.sum(s[:, 5]), centre=centre, pix_area=float(4**level),
+    )  # fmt: skip
+
+
+@eqx.filter_jit
+def _refine_frame_stacked(base, cameras, images, backgrounds, config, init, valid, cam, steps):
+    # its own jit (own trace cache), traced while refine's region data is the stacked one
+    return rf.refine_frame(
+        base, cameras, images, backgrounds, config, init, valid, cam, None, steps=steps
+    )
+
+
+def _frame_stacked(base, cam, img, bg, config, init, valid, init_cam):
+    """``refine_frame_jit`` (no region of interest) with the stacked per-tile sums."""
+    config, steps = rf._steps_apart(config)
+    args = (base, (cam,), (img,), (bg,), config, init, jnp.asarray(valid, bool), init_cam)
+    lib, rf.region_data_from_level = rf.region_data_from_level, _region_data_stacked
+    try:
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(_refine_frame_stacked(*args, steps))
+    finally:
+        rf.region_data_from_level = lib
+    return eqx.tree_at(lambda r: r.time_s, out, jnp.asarray(time.perf_counter() - t0))
 
 
 def profile(frames: int, repeats: int, names: list[str], seed: int = 1) -> dict:
     base, bases, cam, imgs, bgs, truth = _scene(frames, seed)
     cold = refine_frame_jit(base, cam, imgs[0], bgs[0], RefineConfig())
-    fields = {n: {k: v for k, v in VARIANTS[n].items() if k != "roi"} for n in names}
+    extra = ("roi", "stacked_sums")
+    fields = {n: {k: v for k, v in VARIANTS[n].items() if k not in extra} for n in names}
     warms = {n: dataclasses.replace(RefineConfig().warm(), **fields[n]) for n in names}
     roi = tracking_roi(bases, cam, config=RefineConfig().warm())
     rois = {n: roi if VARIANTS[n].get("roi") else None for n in names}
 
     def frame(k, cfg, prev, n):
+        if VARIANTS[n].get("stacked_sums"):
+            return _frame_stacked(
+                base, cam, imgs[k], bgs[k], cfg, prev.coeffs, True, prev.camera_correction
+            )
         return refine_frame_jit(
             base, cam, imgs[k], bgs[k], cfg, prev.coeffs, True, prev.camera_correction,
             roi=rois[n],

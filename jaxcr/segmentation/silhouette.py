@@ -343,13 +343,16 @@ def select_band(
     )  # (n_tiles, n_seg)
     mc = jnp.max(m, axis=1)
     key = -jnp.abs(mc) if tile_ok is None else jnp.where(tile_ok, -jnp.abs(mc), -jnp.inf)
-    neg_abs, tiles = jax.lax.top_k(key, k_tiles)
+    # the barriers keep XLA:CPU's TopK: without them it folds the slices taken below into
+    # the top_k and runs a full sort of every row instead (the output band's 384 x 96
+    # candidates: ~1.9 ms a call at 640x480; profile_fixed_ops_640_*.md, decisions S24)
+    neg_abs, tiles = jax.lax.optimization_barrier(jax.lax.top_k(key, k_tiles))
     half_diag = grid.tile * 0.7072
     if k_seg < n_seg:
         # a segment can win at some pixel of the tile only if its centre margin is within
         # 2 * half_diag of the best (margins are 1-Lipschitz); the candidates are complete
         # when the best left-out segment is below that
-        top, segs = jax.lax.top_k(m[tiles], k_seg + 1)
+        top, segs = jax.lax.optimization_barrier(jax.lax.top_k(m[tiles], k_seg + 1))
         segs = segs[:, :k_seg]
         complete = jnp.all(top[:, k_seg] < top[:, 0] - 2.0 * half_diag)
     else:
