@@ -881,39 +881,6 @@ def _level_tables(
     )
 
 
-def _refine_frame(
-    base: Centreline,
-    cameras: Camera | tuple[Camera, ...],
-    images: Float[Array, "h w 3"] | tuple[Float[Array, "h w 3"], ...],
-    backgrounds: Bool[Array, "h w"] | tuple[Bool[Array, "h w"], ...],
-    config: RefineConfig = DEFAULT_CONFIG,
-    init: Float[Array, "a k"] | None = None,
-    valid: Bool[Array, ""] | bool = True,
-    init_cam: Float[Array, "c 6"] | None = None,
-    init_hessian: Float[Array, "n n"] | None = None,
-    *,
-    steps: Int[Array, " L"] | None = None,
-    roi: tuple[int, int] | None = None,
-) -> tuple[RefineResult, Bool[Array, ""]]:
-    """:func:`refine_frame`, optionally on a region of interest of a tracked frame.
-
-    ``roi`` = (h, w) (static; one-level configs at level 0 only): the region data, band
-    selections and output masks are computed in an h x w window of each image, on the tile
-    grid, centred on the warm start's and the nominal shape's silhouettes (a camera whose
-    principal point is moved by the window's origin); J keeps the whole image's colour
-    variance and the nominal area, so with ``config.local`` (docs/decisions.md S3) the energy
-    equals the full image's up to float rounding whenever the bands lie inside the window. The
-    masks are returned at full size. Also returns ``fit``: every output band (refined and
-    nominal shape) stays ``ROI_FREE_TILES`` clear of the window's inner borders; where it does
-    not, the callers refine the frame again on the whole image (docs/decisions.md S21).
-    Without ``roi``, ``fit`` is True.
-    """
-    return _refine_frame_body(
-        base, cameras, images, backgrounds, config, init, valid, init_cam, init_hessian,
-        steps=steps, roi=roi,
-    )  # fmt: skip
-
-
 def refine_frame(
     base: Centreline,
     cameras: Camera | tuple[Camera, ...],
@@ -953,15 +920,39 @@ def refine_frame(
     Returns:
         :class:`RefineResult` (see there).
     """
-    return _refine_frame_body(
+    return _refine_frame(
         base, cameras, images, backgrounds, config, init, valid, init_cam, init_hessian,
-        steps=steps, roi=None,
+        steps=steps,
     )[0]  # fmt: skip
 
 
-def _refine_frame_body(
-    base, cameras, images, backgrounds, config, init, valid, init_cam, init_hessian, *, steps, roi
-):
+def _refine_frame(
+    base: Centreline,
+    cameras: Camera | tuple[Camera, ...],
+    images: Float[Array, "h w 3"] | tuple[Float[Array, "h w 3"], ...],
+    backgrounds: Bool[Array, "h w"] | tuple[Bool[Array, "h w"], ...],
+    config: RefineConfig = DEFAULT_CONFIG,
+    init: Float[Array, "a k"] | None = None,
+    valid: Bool[Array, ""] | bool = True,
+    init_cam: Float[Array, "c 6"] | None = None,
+    init_hessian: Float[Array, "n n"] | None = None,
+    *,
+    steps: Int[Array, " L"] | None = None,
+    roi: tuple[int, int] | None = None,
+) -> tuple[RefineResult, Bool[Array, ""]]:
+    """:func:`refine_frame`, optionally on a region of interest of a tracked frame.
+
+    ``roi`` = (h, w) (static; one-level configs at level 0 only): the region data, band
+    selections and output masks are computed in an h x w window of each image, on the tile
+    grid, centred on the warm start's and the nominal shape's silhouettes (a camera whose
+    principal point is moved by the window's origin); J keeps the whole image's colour
+    variance and the nominal area, so with ``config.local`` (docs/decisions.md S3) the energy
+    equals the full image's up to float rounding whenever the bands lie inside the window. The
+    masks are returned at full size. Also returns ``fit``: every output band (refined and
+    nominal shape) stays ``ROI_FREE_TILES`` clear of the window's inner borders; where it does
+    not, the callers refine the frame again on the whole image (docs/decisions.md S21).
+    Without ``roi``, ``fit`` is True.
+    """
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     if not (len(cameras) == len(images) == len(backgrounds)):
         raise InputError("need one image and one background mask per camera", field="images")
