@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcr.errors import InputError
+from jaxcr.io.exported import FAST_COMPILE, cached_call
 from jaxcr.kinematics.batch import forward_batch
 from jaxcr.synth.model_error import (
     ModelError,
@@ -119,7 +120,12 @@ def robot_shapes(
     from jaxcr.kinematics.robots import robot_from_dict
 
     model = robot_from_dict(robot)
-    res = forward_batch(model, jnp.asarray(q, jnp.float32))
+    # segment's nominal-kinematics program (jaxcr.segmentation.batch): the same function,
+    # stored traced program and XLA options, so `jaxcr demo` compiles one CTR program, not
+    # two, and a second process loads it instead of tracing it (outputs bit-identical to the
+    # plain jit: docs/decisions.md S22, S25)
+    res = cached_call(forward_batch, model, jnp.asarray(q, jnp.float32),
+                      compiler_options=FAST_COMPILE)  # fmt: skip
     cl = res.centreline
     p = np.asarray(cl.p, np.float64)
     if tip_force is not None and np.any(tip_force):
