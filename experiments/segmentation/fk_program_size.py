@@ -1,5 +1,5 @@
-"""Size and compile cost of ``jaxcr segment``'s nominal kinematics program (``forward_batch``, the
-dataset's robot, a batch of 4 copies of the first frame's q): trace seconds, jaxpr equations
+"""Size and compile cost of ``jaxcr segment``'s nominal kinematics program
+(``forward_batch``, the dataset's robot, a batch of 4 copies of the first frame's q): trace seconds, jaxpr equations
 (nested jaxprs counted), and for XLA's default and the legacy loop emitter (docs/decisions.md
 S22) the compile CPU seconds, optimised HLO instructions, while loops and fusions. The
 persistent cache is off so that XLA really compiles.
