@@ -7,7 +7,7 @@ Run (from the repository root), after ``compile_profile.py ... --name NAME_befor
 
     python experiments/segmentation/compile_profile_pairs.py --name OUT \
         --before NAME_before_1 NAME_before_2 --after NAME_after_1 NAME_after_2 \
-        [--programs forward_batch _fk_batch]
+        [--programs forward_batch _fk_batch] [--title TEXT]
 
 Reads and writes experiments/results/segmentation/*.json / OUT.md.
 """
@@ -46,6 +46,7 @@ def main() -> None:
     ap.add_argument("--before", nargs="+", required=True)
     ap.add_argument("--after", nargs="+", required=True)
     ap.add_argument("--programs", nargs="+", default=["forward_batch", "_fk_batch"])
+    ap.add_argument("--title", default="", help="Markdown text written above the tables")
     a = ap.parse_args()
     rows, per = [], {"before": [], "after": []}
     for b, f in zip(a.before, a.after, strict=True):  # in the order they ran: interleaved
@@ -54,6 +55,7 @@ def main() -> None:
             rows += r
             per[tree].append(figs)
     lines = [
+        *([a.title, ""] if a.title else []),
         "| run | tree | process | load before | wall s | CPU s | kinematics programs (CPU s) |",
         "|---|---|---|---|---|---|---|",
         *rows,
