@@ -3,7 +3,7 @@
 
 Runs ``jaxcr segment DATASET`` in this process with the persistent cache off, capturing the
 arguments of every program the driver calls through ``jaxcr.io.exported.cached_call`` (the
-nominal kinematics ``_fk_batch``, the refinement ``_refine_batch_jit``, the covariance
+nominal kinematics ``forward_batch``, the refinement ``_refine_batch_jit``, the covariance
 ``_batch_jit`` with ``--uncertainty``). Then, for each program and each variant of compiler
 options, interleaved ROUNDS times: the process CPU seconds of XLA's compile
 (``jax.jit(f, compiler_options=...).lower(...).compile()``, a new trace each time so nothing is

@@ -1,5 +1,5 @@
-"""Size and compile cost of ``jaxcr segment``'s nominal kinematics program (``_fk_batch``, the
-dataset's robot, a batch of 4 copies of the first frame's q): trace seconds, jaxpr equations
+"""Size and compile cost of ``jaxcr segment``'s nominal kinematics program
+(``forward_batch``, the dataset's robot, a batch of 4 copies of the first frame's q): trace seconds, jaxpr equations
 (nested jaxprs counted), and for XLA's default and the legacy loop emitter (docs/decisions.md
 S22) the compile CPU seconds, optimised HLO instructions, while loops and fusions. The
 persistent cache is off so that XLA really compiles.
@@ -20,7 +20,7 @@ import numpy as np
 from jax.extend.core import ClosedJaxpr, Jaxpr
 
 from jaxcr.io.dataset import load_dataset
-from jaxcr.segmentation.batch import _fk_batch
+from jaxcr.kinematics.batch import forward_batch
 
 HLO_LINE = re.compile(r"\s+(ROOT )?%?[\w.\-]+ = ")
 
@@ -48,11 +48,11 @@ def main() -> None:
     qs = jnp.asarray(np.stack([ds.frames[0].q] * 4), jnp.float32)
     print(f"{type(robot).__name__}, {robot.n_joints} joints, {robot.n_points} points, batch 4")
     t0, c0 = time.perf_counter(), time.process_time()
-    jaxpr = jax.make_jaxpr(lambda q: _fk_batch(robot, q))(qs)
+    jaxpr = jax.make_jaxpr(lambda q: forward_batch(robot, q))(qs)
     print(f"trace {time.perf_counter() - t0:.2f} s wall, {time.process_time() - c0:.2f} s CPU; "
           f"jaxpr equations {count_equations(jaxpr.jaxpr)}")  # fmt: skip
     for opts in ({}, {"xla_cpu_use_fusion_emitters": False}):
-        lowered = jax.jit(lambda q: _fk_batch(robot, q)).lower(qs)
+        lowered = jax.jit(lambda q: forward_batch(robot, q)).lower(qs)
         c0 = time.process_time()
         exe = lowered.compile(compiler_options=opts or None)
         cpu = time.process_time() - c0

@@ -35,10 +35,11 @@ def forward_batch(model, q):
     leading axis B, e.g. the nominal centrelines :func:`jaxcr.refine_batch` takes).
 
     The model is an argument, not a closure, so one program serves every robot of the same
-    structure; and it is the one batched forward program of the library (the synthetic-data
-    generator :mod:`jaxcr.synth` computes its shapes with it), so a notebook that calls it on
-    a robot jaxcr has already run, with the same B, reuses that compiled program instead of
-    compiling its own. For failure reasons and numpy outputs use :func:`forward`.
+    structure; and it is the one batched forward program of the library: the synthetic-data
+    generator :mod:`jaxcr.synth` and ``jaxcr segment`` call it through
+    ``jaxcr.io.exported.cached_call`` with ``FAST_COMPILE`` (one stored program and one
+    compile for both, docs/decisions.md S25; a direct call is the plain jit of the same
+    body). For failure reasons and numpy outputs use :func:`forward`.
     """
     import jax
 

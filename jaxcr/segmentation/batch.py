@@ -13,7 +13,6 @@ import dataclasses
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,13 +22,9 @@ from jaxcr.errors import InputError
 from jaxcr.io import results as R
 from jaxcr.io.exported import FAST_COMPILE, cached_call
 from jaxcr.io.overlay import fig4_panel
+from jaxcr.kinematics.batch import forward_batch
 
 FK_FAILED = "kinematics failed (solver did not converge or non-finite shape)"
-
-
-@eqx.filter_jit
-def _fk_batch(robot, qs):
-    return jax.vmap(robot.forward)(qs)
 
 
 def _background_fn(kind: str, ds, camera: str, colour_ranges=None) -> Callable:
@@ -310,8 +305,11 @@ class Segmenter:
             # neither traces nor lowers the kinematics (a CTR's shooting solver is the largest
             # of them). Compiled for a short compile (XLA's legacy loop emitter, FAST_COMPILE):
             # it runs once per chunk, a few ms, and its outputs are bit-identical
-            # (docs/decisions.md S22; the covariance's run time doubled with it: not used there)
-            fk = cached_call(_fk_batch, self.ds.robot, qs, compiler_options=FAST_COMPILE)
+            # (docs/decisions.md S22; the covariance's run time doubled with it: not used there).
+            # The same function and options as the synthetic-data generator's kinematics, so
+            # `jaxcr demo` (synth then segment, B = frames = batch size) has one CTR program
+            # (docs/decisions.md S25)
+            fk = cached_call(forward_batch, self.ds.robot, qs, compiler_options=FAST_COMPILE)
             bgs, subs = [], []
             traces = None
             if not self.bg_fns:  # --background plate: per frame, from the nominal base

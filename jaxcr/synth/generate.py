@@ -23,10 +23,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxcr.errors import InputError
+from jaxcr.io.exported import FAST_COMPILE, cached_call
 from jaxcr.kinematics.batch import forward_batch
 from jaxcr.synth.model_error import (
     ModelError,
@@ -43,6 +45,8 @@ from jaxcr.synth.scene import RenderCamera, Scene, Tissue, TubeBody, look_at_pos
 from jaxcr.synth.texture import make_tissue_texture
 
 GENERATOR_VERSION = "jaxcr-synth/1"
+#: ``jaxcr segment``'s default ``--batch-size``: the kinematics batch of :func:`robot_shapes`
+SEGMENT_BATCH = 4
 N_BACKGROUND_IMAGES = 3
 _STREAM_TEXTURE, _STREAM_TRAJ, _STREAM_ERROR, _STREAM_OCC, _STREAM_NOISE = range(5)
 
@@ -119,7 +123,22 @@ def robot_shapes(
     from jaxcr.kinematics.robots import robot_from_dict
 
     model = robot_from_dict(robot)
-    res = forward_batch(model, jnp.asarray(q, jnp.float32))
+    # segment's nominal-kinematics program (jaxcr.segmentation.batch): the same function,
+    # stored traced program and XLA options, and its batch shape (chunks of `jaxcr segment`'s
+    # default --batch-size 4, or of all frames when fewer, as `jaxcr demo` runs segment; the
+    # last chunk padded by repeating a row), so synth and a later segment (or demo's) compile
+    # one CTR program, any frame count the same one, and a second process loads it instead of
+    # tracing it (rows bit-identical to one plain jit of all frames: docs/decisions.md S22, S25)
+    q32 = np.asarray(q, np.float32)
+    n = len(q32)
+    b = min(n, SEGMENT_BATCH)
+    n_pad = -(-n // b) * b
+    qp = np.concatenate([q32, np.repeat(q32[-1:], n_pad - n, 0)])
+    chunks = [cached_call(forward_batch, model, jnp.asarray(qp[i : i + b]),
+                          compiler_options=FAST_COMPILE)  # fmt: skip
+              for i in range(0, n_pad, b)]  # fmt: skip
+    # on the host: jnp.concatenate and slicing would compile a program per frame count
+    res = jax.tree.map(lambda *a: np.concatenate([np.asarray(x) for x in a])[:n], *chunks)
     cl = res.centreline
     p = np.asarray(cl.p, np.float64)
     if tip_force is not None and np.any(tip_force):

@@ -82,7 +82,7 @@ def test_segment_after_warmup_compiles_little(tmp_path):
     # kinematics and the covariance batch -- and at least one entry per program it reported
     assert n_compiled >= 2 and len(after_warmup) >= n_compiled, (n_compiled, after_warmup)
     traced = {e.split("/")[1].rsplit("-", 1)[0] for e in after_warmup if e.startswith("exported/")}
-    assert {"_refine_batch_jit", "_fk_batch", "_batch_jit"} <= traced, after_warmup
+    assert {"_refine_batch_jit", "forward_batch", "_batch_jit"} <= traced, after_warmup
     warm = tmp_path / "warm"
     jaxcr("segment", str(ds), "-o", str(warm), *WARMUP)
     summary = json.loads((warm / "summary.json").read_text())

@@ -122,14 +122,14 @@ def test_kinematics_round_trip_equals_the_direct_call(folder):
     arc keeps this cheap; the CTR path (which once fell back to tracing) runs end to end in
     the `jaxcr segment` tests, whose synthetic datasets are CTRs."""
     import jaxcr as jcr
-    from jaxcr.segmentation.batch import _fk_batch
+    from jaxcr.kinematics.batch import forward_batch
 
     robot = jcr.robot_from_dict({"kind": "single_segment", "length": 0.04, "radius": 0.002})
     qs = jnp.asarray(np.linspace(-1.0, 1.0, 2 * robot.n_joints).reshape(2, -1), jnp.float32)
-    ref = _fk_batch(robot, qs)
-    exported.cached_call(_fk_batch, robot, qs)
+    ref = forward_batch(robot, qs)
+    exported.cached_call(forward_batch, robot, qs)
     exported._memo.clear()  # a new process: the stored program is loaded, not traced
-    out = exported.cached_call(_fk_batch, robot, qs)
+    out = exported.cached_call(forward_batch, robot, qs)
     assert len(STORED) == 1
     assert type(out) is type(ref)
     np.testing.assert_array_equal(np.asarray(out.ok), np.asarray(ref.ok))
