@@ -183,11 +183,8 @@ def main(argv=None) -> int:
         "ms/frame: process CPU seconds (all threads) of the same calls / frames.",
         "1-min load at each repeat: "
         + "; ".join(f"{n}: {', '.join(f'{x:.1f}' for x in r['load'])}" for n, r in res.items()),
-        "",
-        "Machine: " + json.dumps(meta),
     ]
-    (OUT / f"{stem}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    print(bs.write_markdown(OUT / f"{stem}.md", lines, meta))
     return 0
 
 

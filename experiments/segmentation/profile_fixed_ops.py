@@ -270,11 +270,8 @@ def main(argv=None) -> int:
     lines += [
         "",
         f"1-min load before/after: {load0:.1f} / {load1:.1f} on {os.cpu_count()} cores.",
-        "",
-        "Machine: " + json.dumps(meta),
     ]
-    (OUT / f"{stem}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    print(bs.write_markdown(OUT / f"{stem}.md", lines, meta))
     return 0
 
 

@@ -251,11 +251,8 @@ def main(argv=None) -> int:
         "steps); ms per step = (ms - fixed) / steps. Medians over frames x repeats (variants "
         "interleaved per repeat); IoU against the rendered truth, mean over the tracked frames.",
         f"1-min load before/after: {load0:.1f} / {load1:.1f} on {os.cpu_count()} cores.",
-        "",
-        "Machine: " + json.dumps(meta),
     ]
-    (OUT / f"{stem}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    print(bs.write_markdown(OUT / f"{stem}.md", lines, meta))
     return 0
 
 

@@ -315,6 +315,15 @@ def run_segment_benchmark(
     return res
 
 
+def write_markdown(path: Path, lines: list[str], meta: dict) -> str:
+    """Write an experiment's markdown report ``lines`` to ``path``, ending with the
+    "Machine:" line of ``meta`` (:func:`_meta`); returns the text (the experiment scripts'
+    shared tail: they print it)."""
+    text = "\n".join([*lines, "", "Machine: " + json.dumps(meta)])
+    Path(path).write_text(text + "\n")
+    return text
+
+
 def write_report(res: dict, out_dir: Path) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "bench_segment.json").write_text(json.dumps(res, indent=1))
