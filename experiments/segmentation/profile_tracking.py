@@ -34,11 +34,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from profile_fixed_cost import region_data_stacked  # the S24 candidate (one copy)
 
 import jaxcr.benchmarks.segment as bs
 import jaxcr.segmentation.refine as rf
 from jaxcr.segmentation.background import colour_mask
-from jaxcr.segmentation.energy import RegionData, padded_level
 from jaxcr.segmentation.metrics import iou
 from jaxcr.segmentation.refine import RefineConfig, refine_frame_jit, tracking_roi
 
@@ -82,23 +82,6 @@ VARIANTS = {
 }
 
 
-def _region_data_stacked(img, w, b, level: int, tile: int) -> RegionData:
-    """:func:`region_data_from_level` with the five per-tile sums from one stacked array."""
-    grid, img, w, b, total_w, centre = padded_level(img, w, b, tile)
-    wc = w[..., None]
-    st = jnp.concatenate(
-        [wc, b[..., None], wc * img, (w * jnp.sum(img * img, axis=-1))[..., None]], -1
-    )
-    st = st.reshape(grid.rows, tile, grid.cols * tile, 6).sum(axis=1)
-    s = st.reshape(grid.rows, grid.cols, tile, 6).sum(axis=2).reshape(grid.n_tiles, 6)
-    return RegionData(
-        grid=grid, w=w, b=b, img=img, tile_w=s[:, 0], tile_b=s[:, 1], tile_s1=s[:, 2:5],
-        tile_s2=s[:, 5], total_w=total_w, total_s1=jnp.sum(s[:, 2:5], axis=0),
-        total_s2=jnp.sum(s[:, 5]), centre=centre, pix_area=float(4**level),
-    )  # fmt: skip
-
-
-@eqx.filter_jit
 def _refine_frame_stacked(base, cameras, images, backgrounds, config, init, valid, cam, steps):
     # its own jit (own trace cache), traced while refine's region data is the stacked one
     return rf.refine_frame(
@@ -110,7 +93,7 @@ def _frame_stacked(base, cam, img, bg, config, init, valid, init_cam):
     """``refine_frame_jit`` (no region of interest) with the stacked per-tile sums."""
     config, steps = rf._steps_apart(config)
     args = (base, (cam,), (img,), (bg,), config, init, jnp.asarray(valid, bool), init_cam)
-    lib, rf.region_data_from_level = rf.region_data_from_level, _region_data_stacked
+    lib, rf.region_data_from_level = rf.region_data_from_level, region_data_stacked
     try:
         t0 = time.perf_counter()
         out = jax.block_until_ready(_refine_frame_stacked(*args, steps))

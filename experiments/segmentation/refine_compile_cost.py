@@ -37,6 +37,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from fk_program_size import count_equations  # noqa: E402  (the same nested-jaxpr count)
 from jax._src import core as jax_core  # noqa: E402
 
 from jaxcr.camera import Camera  # noqa: E402
@@ -57,19 +58,6 @@ TRUE = [
     np.array([[0.35, -0.15, 0.05], [0.0, 0.0, 0.0]], np.float32),
     np.array([[-0.3, 0.1, 0.0], [0.0, 0.0, 0.0]], np.float32),
 ]
-
-
-def count_equations(jaxpr) -> int:
-    n = 0
-    for eqn in jaxpr.eqns:
-        n += 1
-        for p in eqn.params.values():
-            for sub in p if isinstance(p, (list, tuple)) else [p]:
-                if isinstance(sub, jax_core.ClosedJaxpr):
-                    n += count_equations(sub.jaxpr)
-                elif isinstance(sub, jax_core.Jaxpr):
-                    n += count_equations(sub)
-    return n
 
 
 def jaxcr_lines(jaxpr, counts: collections.Counter) -> None:
