@@ -626,6 +626,13 @@ def roi_shape(
     return None if tuple(out) == tuple(size) else tuple(out)
 
 
+@eqx.filter_jit
+def _nominal_boxes(bases: Centreline, camera) -> Float[Array, "f 4"]:
+    """:func:`_tube_box` of every frame's nominal silhouette (one program per camera type and
+    frame count, not one per call)."""
+    return jax.vmap(lambda b: _tube_box(project_tube(camera, b)))(bases)
+
+
 def tracking_roi(
     bases: Centreline, cameras, *, config: RefineConfig = DEFAULT_CONFIG, margin: float = 64.0
 ) -> tuple[int, int] | None:
@@ -642,7 +649,7 @@ def tracking_roi(
         return None
     ext = np.zeros(2)
     for cam in cameras:
-        boxes = np.asarray(jax.jit(jax.vmap(lambda b, c=cam: _tube_box(project_tube(c, b))))(bases))
+        boxes = np.asarray(_nominal_boxes(bases, cam))
         ok = np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= boxes[:, 0])
         if not np.any(ok):
             return None
