@@ -1,5 +1,10 @@
 """One end for both views of a tube (issue 16 item 2, docs/decisions.md S27).
 
+Not called by the pipeline: on real_like development it lost (163 -> 144 of 189 frames, S27),
+because the other view's end carried along the 3-D axis inherits the calibration's epipolar
+error divided by the sine of the end line's angle to the epipolar lines. It is kept, tested,
+for rigs whose calibration is sub-pixel.
+
 The tube's tip is one 3-D point, yet each view places its tip on its own silhouette's end
 (:func:`jaxcr.segmentation.foreground.refine_tip_details`, then the end face's length from
 both views, :func:`jaxcr.stereo.tip_geometry.end_face_lengths`). Where one view's silhouette
