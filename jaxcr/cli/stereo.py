@@ -11,23 +11,24 @@ DATASET is a folder with ``stereo.json`` (format ``jaxcr.stereo/1``)::
              | {"markers": {...}},                  # optional, default: the markers
      "markers": {"centres": {"2": [0, 0], "3": [0.06, 0], ...}, "size": 0.024,
                  "dictionary": "DICT_4X4_50"},      # the ArUco layout (or in base.markers)
-     "robot_base": [x, y, z],                       # optional, base frame (m)
+     "robot_base": [x, y, z],                       # optional, base frame (unit)
      "background": {"key": "green"} | {"key_rgb": [r, g, b]},
      "background_plates": {"cam1": "background/cam1.png", ...},   # optional
      "frames": [{"id": "000", "images": {"cam1": "...png", "cam2": "...png"}}, ...],
      "unit": "m"}                                   # optional: "m", "cm" or "mm"
 
 ``unit`` (default ``"m"``) is the unit of the lengths in stereo.json (marker centres and size,
-``robot_base``); they are converted to metres. The calibration file has its own ``unit``. An
-unknown top-level key is refused with the nearest known key, and implausible lengths (marker
-size outside 1 mm..1 m, positions over 5 m) are refused with a suggested unit.
+``robot_base``, ``T_cam_base``'s translation); they are converted to metres. The calibration
+file has its own ``unit``. An unknown top-level key is refused with the nearest known key, and
+implausible lengths (marker size outside 1 mm..1 m, positions over 5 m, a base under 10 mm
+from camera 1) are refused with a suggested unit.
 
 The base frame ("base"; docs/stereo-format.md):
 
 - ``{"markers": layout}`` or no "base": four ArUco markers on the base plate (origin at
   marker 2's centre, z out of the plate); the robot leaves the plate at ``robot_base``
   (default: the layout's base centre).
-- ``{"T_cam_base": 4x4}``: the base frame in camera 1's frame (base -> camera 1, metres),
+- ``{"T_cam_base": 4x4}``: the base frame in camera 1's frame (base -> camera 1, in unit),
   fixed; the robot enters at ``robot_base`` (default: the base origin).
 - ``{"entry_px": {cam: [u, v]}}``: the pixel where the robot enters each view (OpenCV
   pixels: the centre of pixel (0, 0) is (0, 0); distorted image). Origin: that point
