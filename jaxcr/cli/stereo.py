@@ -41,7 +41,8 @@ The calibration is an OpenCV FileStorage stereo file as ``cv2.stereoCalibrate`` 
 save it (``K1 D1 K2 D2 R T [E F]``, image sizes; read by :mod:`jaxcr.io.calibration`); with
 one camera, a single-camera file (``camera_matrix``, ``distortion_coefficients``, size).
 One camera gives the 2-D results alone (tip pixel and backbone polyline, no triangulation,
-no segments); its base must be ``entry_px`` or ``T_cam_base`` (projected).
+no segments); its base must be ``entry_px`` or ``T_cam_base`` (projected). With
+``--segmentation trace`` its tip is the view's own traced tip (``tip_source`` ``"trace"``).
 
 Outputs in OUT (written as frames complete; a rerun into the same OUT skips frames already
 done, and is refused if the dataset or options differ from ``OUT/run.json``):
