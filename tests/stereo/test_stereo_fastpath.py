@@ -254,3 +254,24 @@ def test_views_of_different_sizes():
         placed = np.zeros(m.shape, bool)
         placed[r : r + sk.shape[0], c : c + sk.shape[1]] = sk
         np.testing.assert_array_equal(placed, np.asarray(zhang_suen_thin(jnp.asarray(m > 0))))
+
+
+def test_resample_across_a_gap_stays_on_the_points():
+    """Matched points with a 20 mm gap (audit r31: plate segmentation on a real_like frame,
+    the local line of a window holding one sample was 0/0 and the run died in np.arange):
+    finite output, and across the gap the straight segment between its two ends."""
+    a = np.c_[np.zeros(40), np.zeros(40), np.arange(40) * 3e-4]  # 0 .. 11.7 mm, 0.3 mm apart
+    b = a + [0.0, 0.0, 0.0117 + 0.02]  # then a 20 mm gap along z
+    b[:, 0] = 0.002  # and a 2 mm step sideways
+    p = np.vstack([a, b])
+    s, q = pl._resample(p, 5e-4, 1e-3)
+    assert np.all(np.isfinite(q)) and np.all(np.isfinite(s))
+    # the output's length: the 2 x 11.7 mm runs plus the hypotenuse of the gap (20.1 mm),
+    # shortened where the smoothing rounds the two corners (sigma = 1 mm: under 1 mm).
+    gap = np.hypot(0.02, 0.002)
+    assert 2 * 0.0117 + gap - 1e-3 < s[-1] <= 2 * 0.0117 + gap + 1e-9
+    # points in the middle of the gap lie on the segment between its ends (x = z-linear)
+    mid = (q[:, 2] > 0.0117 + 0.009) & (q[:, 2] < 0.0117 + 0.011)
+    assert mid.sum() >= 2
+    x_line = 0.002 * (q[mid, 2] - 0.0117) / 0.02
+    np.testing.assert_allclose(q[mid, 0], x_line, atol=1e-9)  # metres; float64 interpolation
