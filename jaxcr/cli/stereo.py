@@ -598,11 +598,35 @@ def run(args) -> int:
     claim_output(args.out, "stereo", shard, marker="run.json")
     recs = run_batch(ds, args.out, overlays=not args.no_overlays, shard=shard,
                      executor=executor)  # fmt: skip
+    for line in summary_lines(recs, args.out):
+        print(line)
+    return 0 if all(r["ok"] for r in recs) else 1
+
+
+#: A reconstructed frame whose two tips lie further than this from each other's epipolar
+#: lines (undistorted px) is reported with a WARNING line: twice the 5 px at which the
+#: trace segmentation re-checks its tips; the same tip seen in both views of a calibrated
+#: rig lies within a few pixels (docs/stereo-format.md, tip_epipolar_px).
+TIP_EPIPOLAR_WARN_PX = 10.0
+
+
+def summary_lines(recs: list[dict], out) -> list[str]:
+    """What ``jaxcr stereo`` prints after a run: the count, one line per failed frame, and a
+    WARNING per reconstructed frame whose two tips disagree (``tip_epipolar_px`` over
+    :data:`TIP_EPIPOLAR_WARN_PX`: one view lost the tip or segmented something else, and its
+    3-D tip and that view's ``tip_px`` are not to be trusted)."""
     n_ok = sum(r["ok"] for r in recs)
-    print(f"{n_ok}/{len(recs)} frames reconstructed; results in {args.out}"
-          + (f" (failed frames listed below and in {Path(args.out) / 'results.jsonl'})"
-             if n_ok < len(recs) else ""))  # fmt: skip
+    lines = [f"{n_ok}/{len(recs)} frames reconstructed; results in {out}"
+             + (f" (failed frames listed below and in {Path(out) / 'results.jsonl'})"
+                if n_ok < len(recs) else "")]  # fmt: skip
+    lines += [f"  {failure_line(r)}" for r in recs if not r["ok"]]
     for r in recs:
-        if not r["ok"]:
-            print(f"  {failure_line(r)}")
-    return 0 if n_ok == len(recs) else 1
+        e = r.get("tip_epipolar_px") if r["ok"] else None
+        if e is not None and e > TIP_EPIPOLAR_WARN_PX:
+            lines.append(
+                f"WARNING: frame {r['id']}: the two views' tips are {e:.0f} px from each "
+                f"other's epipolar lines (over {TIP_EPIPOLAR_WARN_PX:g} px): one view lost the "
+                "tip or found something else; check its overlay (on a real background try "
+                "--segmentation trace)"
+            )
+    return lines
