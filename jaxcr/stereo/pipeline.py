@@ -880,7 +880,13 @@ def reconstruct_pair(
         try:
             pose = stereo_base_pose(cam1, cam2, dets[0], dets[1], cfg.layout)
         except ValueError as err:
-            raise StereoFailure("markers", str(err)) from None
+            # A marker-free rig that left "base" out lands here: say what to write instead.
+            raise StereoFailure(
+                "markers",
+                f"{err}; a rig without markers gives its base in stereo.json as "
+                '"base": {"entry_px": {camera: [u, v]}} or {"T_cam_base": 4x4} '
+                "(docs/stereo-format.md)",
+            ) from None
         t0 = _tick(timings, "markers_pose", t0)
     else:
         pose = _given_base_pose(cam1, cam2, bspec)

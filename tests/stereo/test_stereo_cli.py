@@ -83,6 +83,7 @@ def test_per_frame_failures_and_resume(synth_set, tmp_path):
     recs = {r["id"]: r for r in map(json.loads, (out / "results.jsonl").read_text().splitlines())}
     assert recs["000"]["ok"]
     assert recs["nomarkers"]["reason"] == "markers"
+    assert '"base": {"entry_px"' in recs["nomarkers"]["message"]  # the marker-free way out
     assert recs["size"]["reason"] == "calibration_size"
     assert recs["norobot"]["reason"] == "robot_not_found"
     assert recs["missing"]["reason"] == "image"
