@@ -248,8 +248,12 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
     if meta.get("background_plates"):
         bp = meta["background_plates"]
         if not isinstance(bp, dict) or any(not isinstance(bp.get(n), str) for n in names):
+            missing = [
+                n for n in names if not isinstance(bp, dict) or not isinstance(bp.get(n), str)
+            ]
             raise InputError(
-                f"expected {{camera: path}} for cameras {names}",
+                f"expected {{camera: path}} for cameras {names}; no plate path for "
+                + ", ".join(repr(n) for n in missing),
                 file=file,
                 field="background_plates",
             )

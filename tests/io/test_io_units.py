@@ -287,3 +287,12 @@ def test_stereo_json_T_cam_base_honours_unit(tmp_path):
     with pytest.raises(InputError, match=r'base translation .*under 10 mm.*"unit": "m"') as ei:
         load_stereo_dataset(_stereo_json(tmp_path / "x", "m", "mm", **extra))
     assert ei.value.field == "base.T_cam_base"
+
+
+def test_stereo_json_missing_plate_names_the_camera(tmp_path):
+    """A plate given for one camera of two (audit r31: the message listed both cameras but
+    not which plate was missing)."""
+    root = _stereo_json(tmp_path / "p", "m", "m", background_plates={"cam1": "a.png"})
+    with pytest.raises(InputError, match=r"no plate path for 'cam2'") as ei:
+        load_stereo_dataset(root)
+    assert ei.value.field == "background_plates"
