@@ -811,17 +811,13 @@ def _resample(p: np.ndarray, step: float, sigma: float) -> tuple[np.ndarray, np.
         sxy = np.einsum("kw,kwd->kd", w * ds, pw)
         det = sw * sxx - sx * sx
         q = (sxx[:, None] * sy - sx[:, None] * sxy) / np.maximum(det, 1e-300)[:, None]
-        # Across a gap in the matched points (a stretch neither segmentation matched) a
-        # grid point sees samples on one side or none: the local line extrapolates one
-        # side, or is undetermined (one sample or none in the window: det ~ 0 up to
-        # rounding gave points at 1e300 m, audit r31). Over 4 sigma from the nearest sample
-        # (only in gaps over 8 sigma, which gave such points before: shorter gaps are
-        # bridged by the two sides' samples as they were) the points are interpolated
-        # linearly along the arclength instead. (The weighted variance det / sw^2 of two
-        # samples a pixel apart is ~1e-8 m^2; one sample gives 0.)
-        near = np.minimum(np.abs(s[np.minimum(np.searchsorted(s, grid), len(s) - 1)] - grid),
-                          np.abs(s[np.maximum(np.searchsorted(s, grid) - 1, 0)] - grid))  # fmt: skip
-        flat = (near > 4.0 * sigma) | ~(det > (1e-3 * sigma) ** 2 * sw * sw)
+        # Across a gap in the matched points longer than the window (a stretch neither
+        # segmentation matched, over 8 sigma) a grid point sees one sample or none: its local
+        # line is undetermined (det ~ 0 up to rounding gave points at 1e300 m and a crash,
+        # audit r31). There, and only there (elsewhere the result is as before), the points
+        # are interpolated linearly along the arclength. The weighted variance det / sw^2 of
+        # two samples a pixel apart is ~1e-8 m^2; one sample gives 0 (rounding ~1e-20).
+        flat = ~(det > (1e-3 * sigma) ** 2 * sw * sw)
         if flat.any():
             q[flat] = np.stack([np.interp(grid[flat], s, p[:, d]) for d in range(3)], 1)
         p = q
