@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcr.cli._common import check_robot_placed
 from jaxcr.cli._common import seed as _seed
 from jaxcr.cli._plate import add_plate_arguments, plate_config, plate_flags_given
 from jaxcr.errors import InputError
@@ -577,25 +578,6 @@ def _check_limits(args, ds, cams) -> None:
                 f"pixel of {len(cams)} view(s) within {MEMORY_BUDGET >> 30} GiB")  # fmt: skip
 
 
-def _check_placed(ds, cams: list[str]) -> None:
-    """Refuse a camera whose robot base sits exactly at its optical centre (``T_cam_robot``
-    without translation: the default when a dataset never placed the robot, e.g. a stereo
-    entry without ``T_rig_robot`` before ``jaxcr fit --fit-pose``). No robot can be seen
-    from there; the refinement then failed after its compile with "no data (every pixel is
-    background)" (audit r31)."""
-    for c in cams:
-        if not np.any(np.asarray(ds.cameras[c].T_cam_robot, np.float64)[:3, 3]):
-            raise InputError(
-                f"camera {c!r}: the robot's base is at the camera's optical centre "
-                "(T_cam_robot has no translation: the robot was never placed in the cameras); "
-                "give T_cam_robot (a stereo entry: T_rig_robot) or fit it: jaxcr fit DATASET "
-                "--backbone FILE --in-camera NAME --fit-pose --frame ID "
-                "(docs/your-own-rig.md, step 4)",
-                file=str(Path(ds.root) / "dataset.json"),
-                field=f"cameras.{c}.T_cam_robot",
-            )
-
-
 def run(args) -> int:
     ds = load(args.dataset)
     if not ds.frames and not ds.bad_frames:  # else a DONE run of 0/0 frames, exit 0
@@ -605,7 +587,7 @@ def run(args) -> int:
             field="frames",
         )
     cams = select_cameras(ds, args.camera)
-    _check_placed(ds, cams)
+    check_robot_placed(ds, cams)
     _check_limits(args, ds, cams)
     if args.limit is not None and args.limit < 0:
         raise InputError("--limit must be >= 0", field="limit")
