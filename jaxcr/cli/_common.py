@@ -19,3 +19,29 @@ def seed(text: str) -> int:
             f"expected a non-negative integer <= {MAX_SEED}, got {value}"
         )
     return value
+
+
+def check_robot_placed(ds, cams) -> None:
+    """Refuse (InputError naming ``cameras.<c>.T_cam_robot``) a camera of the loaded dataset
+    ``ds`` whose robot base sits exactly at its optical centre: ``T_cam_robot`` without
+    translation, the default when a dataset never placed the robot (e.g. a stereo entry
+    without ``T_rig_robot`` before ``jaxcr fit --fit-pose``). No robot is seen from there:
+    ``segment`` failed its frames after the compile with "no data (every pixel is
+    background)", ``fit --tips`` ran out of steps at hundreds of pixels (audit r31)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from jaxcr.errors import InputError
+
+    for c in cams:
+        if not np.any(np.asarray(ds.cameras[c].T_cam_robot, np.float64)[:3, 3]):
+            raise InputError(
+                f"camera {c!r}: the robot's base is at the camera's optical centre "
+                "(T_cam_robot has no translation: the robot was never placed in the cameras); "
+                "give T_cam_robot (a stereo entry: T_rig_robot) or fit it: jaxcr fit DATASET "
+                "--backbone FILE --in-camera NAME --fit-pose --frame ID "
+                "(docs/your-own-rig.md, step 4)",
+                file=str(Path(ds.root) / "dataset.json"),
+                field=f"cameras.{c}.T_cam_robot",
+            )

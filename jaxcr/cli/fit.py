@@ -241,6 +241,9 @@ def run(args) -> int:
         ds = load_dataset(args.robot)
         tips = read_tips(args.tips, list(ds.cameras))
         names = list(tips)
+        from jaxcr.cli._common import check_robot_placed
+
+        check_robot_placed(ds, names)
         cams = tuple(ds.cameras[c] for c in names)
         uv = jnp.asarray([tips[c] for c in names], jnp.float32)
         res = _best_of_starts(

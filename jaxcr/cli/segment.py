@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcr.cli._common import check_robot_placed
 from jaxcr.cli._common import seed as _seed
 from jaxcr.cli._plate import add_plate_arguments, plate_config, plate_flags_given
 from jaxcr.errors import InputError
@@ -586,6 +587,7 @@ def run(args) -> int:
             field="frames",
         )
     cams = select_cameras(ds, args.camera)
+    check_robot_placed(ds, cams)
     _check_limits(args, ds, cams)
     if args.limit is not None and args.limit < 0:
         raise InputError("--limit must be >= 0", field="limit")

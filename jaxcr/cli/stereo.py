@@ -11,23 +11,24 @@ DATASET is a folder with ``stereo.json`` (format ``jaxcr.stereo/1``)::
              | {"markers": {...}},                  # optional, default: the markers
      "markers": {"centres": {"2": [0, 0], "3": [0.06, 0], ...}, "size": 0.024,
                  "dictionary": "DICT_4X4_50"},      # the ArUco layout (or in base.markers)
-     "robot_base": [x, y, z],                       # optional, base frame (m)
+     "robot_base": [x, y, z],                       # optional, base frame (unit)
      "background": {"key": "green"} | {"key_rgb": [r, g, b]},
      "background_plates": {"cam1": "background/cam1.png", ...},   # optional
      "frames": [{"id": "000", "images": {"cam1": "...png", "cam2": "...png"}}, ...],
      "unit": "m"}                                   # optional: "m", "cm" or "mm"
 
 ``unit`` (default ``"m"``) is the unit of the lengths in stereo.json (marker centres and size,
-``robot_base``); they are converted to metres. The calibration file has its own ``unit``. An
-unknown top-level key is refused with the nearest known key, and implausible lengths (marker
-size outside 1 mm..1 m, positions over 5 m) are refused with a suggested unit.
+``robot_base``, ``T_cam_base``'s translation); they are converted to metres. The calibration
+file has its own ``unit``. An unknown top-level key is refused with the nearest known key, and
+implausible lengths (marker size outside 1 mm..1 m, positions over 5 m, a base under 10 mm
+from camera 1) are refused with a suggested unit.
 
 The base frame ("base"; docs/stereo-format.md):
 
 - ``{"markers": layout}`` or no "base": four ArUco markers on the base plate (origin at
   marker 2's centre, z out of the plate); the robot leaves the plate at ``robot_base``
   (default: the layout's base centre).
-- ``{"T_cam_base": 4x4}``: the base frame in camera 1's frame (base -> camera 1, metres),
+- ``{"T_cam_base": 4x4}``: the base frame in camera 1's frame (base -> camera 1, in unit),
   fixed; the robot enters at ``robot_base`` (default: the base origin).
 - ``{"entry_px": {cam: [u, v]}}``: the pixel where the robot enters each view (OpenCV
   pixels: the centre of pixel (0, 0) is (0, 0); distorted image). Origin: that point
@@ -40,7 +41,8 @@ The calibration is an OpenCV FileStorage stereo file as ``cv2.stereoCalibrate`` 
 save it (``K1 D1 K2 D2 R T [E F]``, image sizes; read by :mod:`jaxcr.io.calibration`); with
 one camera, a single-camera file (``camera_matrix``, ``distortion_coefficients``, size).
 One camera gives the 2-D results alone (tip pixel and backbone polyline, no triangulation,
-no segments); its base must be ``entry_px`` or ``T_cam_base`` (projected).
+no segments); its base must be ``entry_px`` or ``T_cam_base`` (projected). With
+``--segmentation trace`` its tip is the view's own traced tip (``tip_source`` ``"trace"``).
 
 Outputs in OUT (written as frames complete; a rerun into the same OUT skips frames already
 done, and is refused if the dataset or options differ from ``OUT/run.json``):
@@ -596,11 +598,35 @@ def run(args) -> int:
     claim_output(args.out, "stereo", shard, marker="run.json")
     recs = run_batch(ds, args.out, overlays=not args.no_overlays, shard=shard,
                      executor=executor)  # fmt: skip
+    for line in summary_lines(recs, args.out):
+        print(line)
+    return 0 if all(r["ok"] for r in recs) else 1
+
+
+#: A reconstructed frame whose two tips lie further than this from each other's epipolar
+#: lines (undistorted px) is reported with a WARNING line: twice the 5 px at which the
+#: trace segmentation re-checks its tips; the same tip seen in both views of a calibrated
+#: rig lies within a few pixels (docs/stereo-format.md, tip_epipolar_px).
+TIP_EPIPOLAR_WARN_PX = 10.0
+
+
+def summary_lines(recs: list[dict], out) -> list[str]:
+    """What ``jaxcr stereo`` prints after a run: the count, one line per failed frame, and a
+    WARNING per reconstructed frame whose two tips disagree (``tip_epipolar_px`` over
+    :data:`TIP_EPIPOLAR_WARN_PX`: one view lost the tip or segmented something else, and its
+    3-D tip and that view's ``tip_px`` are not to be trusted)."""
     n_ok = sum(r["ok"] for r in recs)
-    print(f"{n_ok}/{len(recs)} frames reconstructed; results in {args.out}"
-          + (f" (failed frames listed below and in {Path(args.out) / 'results.jsonl'})"
-             if n_ok < len(recs) else ""))  # fmt: skip
+    lines = [f"{n_ok}/{len(recs)} frames reconstructed; results in {out}"
+             + (f" (failed frames listed below and in {Path(out) / 'results.jsonl'})"
+                if n_ok < len(recs) else "")]  # fmt: skip
+    lines += [f"  {failure_line(r)}" for r in recs if not r["ok"]]
     for r in recs:
-        if not r["ok"]:
-            print(f"  {failure_line(r)}")
-    return 0 if n_ok == len(recs) else 1
+        e = r.get("tip_epipolar_px") if r["ok"] else None
+        if e is not None and e > TIP_EPIPOLAR_WARN_PX:
+            lines.append(
+                f"WARNING: frame {r['id']}: the two views' tips are {e:.0f} px from each "
+                f"other's epipolar lines (over {TIP_EPIPOLAR_WARN_PX:g} px): one view lost the "
+                "tip or found something else; check its overlay (on a real background try "
+                "--segmentation trace)"
+            )
+    return lines

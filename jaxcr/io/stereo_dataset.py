@@ -4,7 +4,6 @@ frame and field); ``read_rgb`` reads one view. Used by ``jaxcr stereo``, tests a
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from pathlib import Path
 
@@ -55,11 +54,15 @@ BASE_FORMS = ("T_cam_base", "entry_px", "markers")
 # (reprojection error of the triangulated point) -- a few pixels of clicking error pass,
 # a swapped camera order or a wrong point does not.
 ENTRY_MAX_RESIDUAL_PX = 10.0
+# The base of a robot camera 1 sees is at least this far from its centre (metres).
+BASE_MIN_DISTANCE_M = 0.01
 
 
-def parse_base(base, file: str, names: list[str], cam1, cam2):
+def parse_base(base, file: str, names: list[str], cam1, cam2, scale: float = 1.0):
     """``stereo.json``'s ``"base"`` (None: the markers) as a
-    :class:`jaxcr.stereo.base_frame.BaseSpec`; InputError naming ``base.<field>``."""
+    :class:`jaxcr.stereo.base_frame.BaseSpec`; InputError naming ``base.<field>``.
+    ``scale``: metres per unit of the file's lengths (its top-level ``unit``), applied to
+    ``T_cam_base``'s translation before its plausibility check."""
     from jaxcr.stereo.base_frame import BaseSpec, triangulate_entry
 
     if base is None:
@@ -89,15 +92,15 @@ def parse_base(base, file: str, names: list[str], cam1, cam2):
         return BaseSpec()
     if kind == "T_cam_base":
         from jaxcr.io.calibration import check_transform
+        from jaxcr.io.units import check_length
 
-        T = check_transform(value, file, "base.T_cam_base")
-        if np.linalg.norm(T[:3, 3]) > 5.0:
-            raise InputError(
-                f"the base is {np.linalg.norm(T[:3, 3]):.3g} m from camera 1: T_cam_base is "
-                "in metres (was it written in mm?)",
-                file=file,
-                field="base.T_cam_base",
-            )
+        # The translation is a length in the file's unit: convert it before the 5 m check,
+        # so a file in mm that says so is not refused with advice to say so.
+        T = check_transform(value, file, "base.T_cam_base", scale)
+        # A base nearer than 1 cm to camera 1's centre cannot be seen by it: almost always
+        # metres written under "unit": "mm" (or cm).
+        check_length(float(np.linalg.norm(T[:3, 3])), "base translation", scale, file,
+                     "base.T_cam_base", lo=BASE_MIN_DISTANCE_M)  # fmt: skip
         return BaseSpec("T_cam_base", T_cam1_base=T)
     if not isinstance(value, dict) or set(value) != set(names):
         got = sorted(value) if isinstance(value, dict) else value
@@ -213,14 +216,7 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
         for k, c in layout.centres.items():
             check_length(float(np.hypot(*c)), "marker centre distance", scale, file,
                          f"{field_m}.centres.{k}")  # fmt: skip
-    spec = parse_base(base, file, names, cam1, cam2)
-    if spec.mode == "T_cam_base" and scale != 1.0:
-        T = np.array(spec.T_cam1_base, np.float64)
-        T[:3, 3] *= scale  # the translation is a length in the file's unit
-        spec = dataclasses.replace(spec, T_cam1_base=T)
-    if spec.mode == "T_cam_base":
-        check_length(float(np.linalg.norm(spec.T_cam1_base[:3, 3])), "base translation", scale,
-                     file, "base.T_cam_base")  # fmt: skip
+    spec = parse_base(base, file, names, cam1, cam2, scale)
     bg = meta.get("background", {})
     if not isinstance(bg, dict):
         raise InputError("expected an object", file=file, field="background")
@@ -252,8 +248,12 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
     if meta.get("background_plates"):
         bp = meta["background_plates"]
         if not isinstance(bp, dict) or any(not isinstance(bp.get(n), str) for n in names):
+            missing = [
+                n for n in names if not isinstance(bp, dict) or not isinstance(bp.get(n), str)
+            ]
             raise InputError(
-                f"expected {{camera: path}} for cameras {names}",
+                f"expected {{camera: path}} for cameras {names}; no plate path for "
+                + ", ".join(repr(n) for n in missing),
                 file=file,
                 field="background_plates",
             )

@@ -811,6 +811,15 @@ def _resample(p: np.ndarray, step: float, sigma: float) -> tuple[np.ndarray, np.
         sxy = np.einsum("kw,kwd->kd", w * ds, pw)
         det = sw * sxx - sx * sx
         q = (sxx[:, None] * sy - sx[:, None] * sxy) / np.maximum(det, 1e-300)[:, None]
+        # Across a gap in the matched points longer than the window (a stretch neither
+        # segmentation matched, over 8 sigma) a grid point sees one sample or none: its local
+        # line is undetermined (det ~ 0 up to rounding gave points at 1e300 m and a crash,
+        # audit r31). There, and only there (elsewhere the result is as before), the points
+        # are interpolated linearly along the arclength. The weighted variance det / sw^2 of
+        # two samples a pixel apart is ~1e-8 m^2; one sample gives 0 (rounding ~1e-20).
+        flat = ~(det > (1e-3 * sigma) ** 2 * sw * sw)
+        if flat.any():
+            q[flat] = np.stack([np.interp(grid[flat], s, p[:, d]) for d in range(3)], 1)
         p = q
         seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
         s = np.concatenate([[0.0], np.cumsum(seg)])
@@ -867,7 +876,13 @@ def reconstruct_pair(
         try:
             pose = stereo_base_pose(cam1, cam2, dets[0], dets[1], cfg.layout)
         except ValueError as err:
-            raise StereoFailure("markers", str(err)) from None
+            # A marker-free rig that left "base" out lands here: say what to write instead.
+            raise StereoFailure(
+                "markers",
+                f"{err}; a rig without markers gives its base in stereo.json as "
+                '"base": {"entry_px": {camera: [u, v]}} or {"T_cam_base": 4x4} '
+                "(docs/stereo-format.md)",
+            ) from None
         t0 = _tick(timings, "markers_pose", t0)
     else:
         pose = _given_base_pose(cam1, cam2, bspec)

@@ -3,8 +3,11 @@
 A stereo dataset with one camera gives, per frame, that view's tip pixel and backbone
 polyline (:mod:`jaxcr.stereo.view2d`) from the same per-view steps as
 :func:`jaxcr.stereo.pipeline.reconstruct_pair`: foreground alpha (chroma key and/or
-background plate), closing, base localisation and flood fill from the base pixel, Zhang-Suen
-thinning, ordering from the base and the shadow cut. Nothing 3-D is measured: no depth,
+background plate; with ``segmentation="trace"`` the plate foreground traced from the base
+pixel, :func:`jaxcr.segmentation.foreground.plate_foreground`, whose tip becomes ``tip_px``
+with ``tip_source`` ``"trace"``: one view has no second view to correct the end face with),
+closing, base localisation and flood fill from the base pixel, Zhang-Suen thinning, ordering
+from the base and the shadow cut. Nothing 3-D is measured: no depth,
 diameters in metres, segments or plane/arc fits. The base pixel is the dataset's entry
 pixel, or the projection of the base point through a given ``T_cam_base``.
 """
@@ -28,6 +31,9 @@ from jaxcr.stereo.pipeline import (
     _smooth_path,
     _thin_cropped_views,
     _tick,
+    _traced_tips,
+    _with_pose,
+    entry_direction_px,
 )
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.view2d import view_record
@@ -75,17 +81,31 @@ def reconstruct_view(
         )
     if cfg.segmentation != "chroma" and plate is None:
         raise StereoFailure("plate", "segmentation needs a background plate, none given")
-    stack = _image_stack([im])
-    plates = _image_stack([plate]) if cfg.segmentation != "chroma" else stack
-    _, _, mask_j = _segment_views(
-        jnp.asarray(stack), jnp.asarray(plates), _f32(cfg.key_rgb), cfg.tol_lo, cfg.tol_hi,
-        cfg.plate_lo, cfg.plate_hi, mode=cfg.segmentation,
-    )  # fmt: skip
+    buv = base_pixel(cam, cfg)
+    trace = None
+    if cfg.segmentation == "trace":
+        # The plate foreground traced from the base pixel (as each view of reconstruct_pair),
+        # entered along the projected insertion axis when T_cam_base gives it.
+        from jaxcr.segmentation.foreground import plate_foreground
+
+        direction = None
+        if cfg.base.mode == "T_cam_base":
+            X = np.zeros(3) if cfg.robot_base is None else np.asarray(cfg.robot_base, float)
+            direction = entry_direction_px(_with_pose(cam, cfg.base.T_cam1_base), X)
+        trace = plate_foreground(im, plate, np.asarray(buv), direction, cfg=cfg.plate_foreground)
+        mask_k = trace.mask.astype(np.uint8)
+    else:
+        stack = _image_stack([im])
+        plates = _image_stack([plate]) if cfg.segmentation != "chroma" else stack
+        _, _, mask_j = _segment_views(
+            jnp.asarray(stack), jnp.asarray(plates), _f32(cfg.key_rgb), cfg.tol_lo, cfg.tol_hi,
+            cfg.plate_lo, cfg.plate_hi, mode=cfg.segmentation,
+        )  # fmt: skip
+        mask_k = np.asarray(mask_j)[0]
     t0 = _tick(timings, "segmentation", t0)
     mask = cv2.morphologyEx(
-        np.ascontiguousarray(np.asarray(mask_j)[0]), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)
+        np.ascontiguousarray(mask_k), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)
     ) > 0  # fmt: skip
-    buv = base_pixel(cam, cfg)
     loc = locate_base(mask, buv, cfg.roi_half_px)
     if not loc.found:
         raise StereoFailure("robot_not_found", "no robot pixels near the base in view 1")
@@ -111,8 +131,12 @@ def reconstruct_view(
         rc = rc[shadow_cut(_smooth_path(rc), uv_seed, cfg.shadow_tolerance_deg) :]
     uv = _smooth_path(rc)
     _tick(timings, "ordering", t0)
+    vrec = [view_record(uv, robot, search_px=cfg.tip_search_px)]
+    if trace is not None:
+        tip = np.asarray(trace.tip, np.float64)
+        _traced_tips(vrec, [trace], ([tip], "trace", None, [trace]))
     return {
-        "views_px": [view_record(uv, robot, search_px=cfg.tip_search_px)],
+        "views_px": vrec,
         "skeleton_rc": rc,
         "robot_mask": robot,
         "base_px": list(buv),

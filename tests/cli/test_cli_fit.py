@@ -15,7 +15,7 @@ from jaxcr.cli import main
 from jaxcr.io.dataset import load_dataset
 from jaxcr.io.robot import load_robot
 from jaxcr.kinematics.fit import _cold_forward
-from tests.helpers.datasets import make_dataset
+from tests.helpers.datasets import edit_json, make_dataset
 
 SS = {"kind": "single_segment", "length": 0.1, "radius": 0.003, "n_points": 24}
 Q_TRUE = [0.55, 0.8]
@@ -134,3 +134,10 @@ def test_tip_pixels_fit_updates_the_dataset_frame(tmp_path, capsys):
     tips.write_text(json.dumps({"tips": {"left": [1, 2]}}))
     assert main(["fit", str(root), "--tips", str(tips), "-o", str(tmp_path / "o2")]) == 2
     assert "unknown camera 'left'" in capsys.readouterr().err
+    # a robot never placed in the camera (audit r31: 100 steps, then 322 px and the solver's
+    # generic text): exit 2, one line naming the field and the way to place it
+    tips.write_text(json.dumps({"tips": {"main": uv.tolist()}}))
+    edit_json(root, lambda j: j["cameras"]["main"].update(T_cam_robot=np.eye(4).tolist()))
+    assert main(["fit", str(root), "--tips", str(tips), "-o", str(tmp_path / "o3")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cameras.main.T_cam_robot" in err[0] and "--fit-pose" in err[0]

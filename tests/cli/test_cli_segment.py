@@ -296,3 +296,17 @@ def test_warm_start_carries_coefficients_and_camera_correction(dataset, tmp_path
     np.testing.assert_array_equal(
         np.asarray(calls[1][1]), np.asarray(first.camera_correction[last_ok])
     )
+
+
+def test_robot_never_placed_is_refused_before_compiling(tmp_path, capsys):
+    """A camera whose T_cam_robot has no translation puts the robot's base at its optical
+    centre (audit r31: a lab dataset before jaxcr fit --fit-pose failed its frame after a
+    minute with "no data (every pixel is background)"): exit 2, one line naming the field."""
+    from tests.helpers.datasets import edit_json
+    from tests.helpers.datasets import make_dataset as tiny_dataset
+
+    root = tiny_dataset(tmp_path / "d", n_frames=1)
+    edit_json(root, lambda j: j["cameras"]["main"].update(T_cam_robot=np.eye(4).tolist()))
+    assert main(["segment", str(root), "-o", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cameras.main.T_cam_robot" in err[0] and "--fit-pose" in err[0]

@@ -269,3 +269,30 @@ def test_implausible_translations_elsewhere(tmp_path):
                                         truth=pts))  # fmt: skip
     msgs = [e.message for e in check.all_errors]
     assert any("centreline reaches 50 m" in m and "millimetres" in m for m in msgs), msgs
+
+
+def test_stereo_json_T_cam_base_honours_unit(tmp_path):
+    """``base.T_cam_base`` is a length in stereo.json's ``unit`` (audit r31: a file in mm that
+    said ``"unit": "mm"`` was refused with the advice to set ``"unit": "mm"``). The same base
+    in m, cm and mm loads as one pose; metres under ``"unit": "mm"`` (0.31 mm from the camera)
+    is refused with the metres hint."""
+    specs = {}
+    for u in SCALE:
+        extra = {"base": {"T_cam_base": _in_unit(T_M, u).tolist()}}
+        specs[u] = load_stereo_dataset(_stereo_json(tmp_path / u, u, u, **extra))["config"].base
+    for u in ("cm", "mm"):
+        np.testing.assert_allclose(specs[u].T_cam1_base, specs["m"].T_cam1_base, rtol=RTOL,
+                                   atol=1e-12)  # fmt: skip
+    extra = {"base": {"T_cam_base": T_M.tolist()}}
+    with pytest.raises(InputError, match=r'base translation .*under 10 mm.*"unit": "m"') as ei:
+        load_stereo_dataset(_stereo_json(tmp_path / "x", "m", "mm", **extra))
+    assert ei.value.field == "base.T_cam_base"
+
+
+def test_stereo_json_missing_plate_names_the_camera(tmp_path):
+    """A plate given for one camera of two (audit r31: the message listed both cameras but
+    not which plate was missing)."""
+    root = _stereo_json(tmp_path / "p", "m", "m", background_plates={"cam1": "a.png"})
+    with pytest.raises(InputError, match=r"no plate path for 'cam2'") as ei:
+        load_stereo_dataset(root)
+    assert ei.value.field == "background_plates"

@@ -83,6 +83,7 @@ def test_per_frame_failures_and_resume(synth_set, tmp_path):
     recs = {r["id"]: r for r in map(json.loads, (out / "results.jsonl").read_text().splitlines())}
     assert recs["000"]["ok"]
     assert recs["nomarkers"]["reason"] == "markers"
+    assert '"base": {"entry_px"' in recs["nomarkers"]["message"]  # the marker-free way out
     assert recs["size"]["reason"] == "calibration_size"
     assert recs["norobot"]["reason"] == "robot_not_found"
     assert recs["missing"]["reason"] == "image"
@@ -124,6 +125,25 @@ def test_shards_together_equal_one_run(synth_set, tmp_path):
     assert (out / "frames" / "000.json").read_bytes() == (ref / "frames" / "000.json").read_bytes()
     # another option set into the same job is refused
     assert main(["stereo", str(d), "-o", str(out), "--segments", "2", "--shard", "0/2"]) == 2
+
+
+def test_summary_warns_when_the_two_tips_disagree():
+    """A frame reconstructed with tips far from each other's epipolar lines (audit r31: the
+    chroma key on a real_like frame, ok with one view's tip 664 px off and
+    tip_epipolar_px 394) gets a WARNING line naming it; a consistent one does not."""
+    from jaxcr.cli.stereo import TIP_EPIPOLAR_WARN_PX, summary_lines
+
+    recs = [
+        {"id": "a", "ok": True, "tip_epipolar_px": 394.4},
+        {"id": "b", "ok": True, "tip_epipolar_px": TIP_EPIPOLAR_WARN_PX - 0.5},
+        {"id": "c", "ok": True, "views": {}},  # one camera: no epipolar check
+        {"id": "d", "ok": False, "reason": "correspondence", "message": "correspondence: x"},
+    ]
+    lines = summary_lines(recs, "OUT")
+    assert lines[0].startswith("3/4 frames reconstructed")
+    warn = [x for x in lines if x.startswith("WARNING")]
+    assert len(warn) == 1 and "frame a:" in warn[0] and "394 px" in warn[0], lines
+    assert any("frame d" in x and "correspondence" in x for x in lines), lines
 
 
 def test_bad_input_exit_2(tmp_path, capsys):
