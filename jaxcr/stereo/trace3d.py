@@ -34,22 +34,28 @@ __all__ = ["Trace3D", "Trace3DConfig", "project", "trace_backbone_3d", "undistor
 
 @dataclass(frozen=True)
 class Trace3DConfig:
-    """Settings of :func:`trace_backbone_3d`.
+    """Settings of :func:`trace_backbone_3d` (docs/decisions.md S26).
 
-    ``step_widths`` (1.0): the 3-D step, in tube widths (the views' traced width at the
-    base's depth). ``max_curvature`` (200 1/m, a bend radius of 5 mm): the cone of
-    candidate directions per step is ``step * max_curvature`` rad (the ``real_like``
-    preset's tightest hook turns 250 deg over 22 mm, :mod:`jaxcr.synth.stereo_ctr`).
-    ``rings`` (3) and ``ring_points`` (6, 10, 14): the cone's candidates (the axis plus
-    rings at 1/3, 2/3 and 3/3 of the cone). ``beam`` (8): paths kept. ``samples`` (6):
-    points per segment where the evidence is read. ``support`` (0.5): the smaller of
-    the two views' mean evidence along a segment for it to be on the tube.
-    ``turn_penalty`` (0.3): subtracted from a step's support per (change of the turn /
-    the cone)^2. ``max_gap_px`` (80 at a 7 px tube, scaled with the width, the 2-D
-    tracer's ``max_gap_px``): the longest stretch bridged without support, in straight
-    steps (the cone's first ring at most). ``blur_widths`` (0.25): the evidence is
-    smoothed by a Gaussian of this many widths, so that it peaks on the tube's axis.
-    ``max_steps`` (400)."""
+    ``step_widths`` (1.0): the 3-D step, in tube widths (the views' mean traced width at
+    the base's depth). ``max_curvature`` (200 1/m, a bend radius of 5 mm): the largest
+    turn per step is ``step * max_curvature`` rad (the ``real_like`` preset's tightest
+    hook turns 250 deg over 22 mm, :func:`jaxcr.synth.stereo_ctr.sample_robot`).
+    ``ring_points`` (6, 10, 14): the candidate directions, the predicted direction and
+    rings at 1/3, 2/3 and 3/3 of that turn about it. ``beam`` (8): paths kept (new points
+    closer than half a step to a kept one dropped). ``samples`` (6): points per step where
+    the evidence is read. ``support`` (0.5): the smaller of the two views' mean evidence
+    along a step for it to be on the tube. A path's score adds per supported step its
+    support less ``baseline`` (0.5) less ``turn_penalty`` (1.0) x (change of the turn /
+    the largest turn)^2; the turn predicted is the path's mean turn per step over its
+    last ``2 turn_span`` (4) steps (the circle through three of its points). A path none
+    of whose candidates is supported bridges a gap in straight steps along its chord over
+    ``gap_chord`` (4) steps, each costing ``gap_cost`` (0.25), up to ``max_gap_px`` (80
+    at a ``gap_width_ref_px`` (7) px tube, scaled with the width: the 2-D tracer's
+    ``max_gap_px``). ``blur_widths`` (0.25): the evidence (the score clipped at the seed
+    level) is smoothed by a Gaussian of this many widths. ``recentre`` (0.3): each new
+    point is moved across its step by up to this many steps to where the two views'
+    support is largest. ``start_directions`` (400): the sphere of start directions
+    scored when no start direction is given. ``max_steps`` (400)."""
 
     step_widths: float = 1.0
     max_curvature: float = 200.0
@@ -66,13 +72,8 @@ class Trace3DConfig:
     start_directions: int = 400
     max_steps: int = 400
     recentre: float = 0.3
-    recentre_min: float = 0.0
-    bridge_always: bool = False
-    gap_pays: bool = False
-    gap_prior: float = 0.0
     gap_chord: int = 4
-    change_scale: float = 1.0
-    turn_span: int = 0
+    turn_span: int = 4
 
 
 @dataclass
@@ -278,7 +279,7 @@ def _mean_turn(pts, span: int) -> np.ndarray:
     return _turn(a / np.linalg.norm(a), b / np.linalg.norm(b)) / n
 
 
-def _recentre(cams, Es, paths, step, t, reach, min_sup):
+def _recentre(cams, Es, paths, step, t, reach):
     """Each path's new point moved across its step (a 5 x 5 grid of offsets up to ``reach``
     steps, perpendicular to the step) to where the smaller of the two views' mean evidence
     along the step is largest: both projections kept on the tube's axis, as the 2-D
@@ -298,9 +299,7 @@ def _recentre(cams, Es, paths, step, t, reach, min_sup):
     sup = sv.min(0)  # (K, 25)
     best = np.argmax(sup, axis=1)
     for k, b in enumerate(paths):
-        # A bridged step has nothing to centre on; a step onto a gap's edge (one view's
-        # evidence fading) would be pulled back along the other camera's ray.
-        if b["gap"] > 0 or b["sup"][-1] < min_sup:
+        if b["gap"] > 0:  # a bridged step has nothing to centre on
             continue
         q = cand[k, best[k]]
         dn = (q - P0[k]) / np.linalg.norm(q - P0[k])
@@ -379,19 +378,16 @@ def trace_backbone_3d(
         C = (local[None, :, :1] * e1[:, None] + local[None, :, 1:2] * e2[:, None]
              + local[None, :, 2:] * pred[:, None])  # (K, C, 3)  # fmt: skip
         within = np.einsum("kcj,kj->kc", C, D) >= np.cos(cone) - 1e-9
-        sv_all = _support(cams, Es, P[:, None], C, step, t)  # (V, K, C)
-        sup = sv_all.min(0)
+        sup = _support(cams, Es, P[:, None], C, step, t).min(0)  # (K, C)
         change = np.arccos(np.clip(np.einsum("kcj,kj->kc", C, pred), -1, 1))
-        pen = cfg.turn_penalty * (change / max(cfg.change_scale * cone, 1e-9)) ** 2
+        pen = cfg.turn_penalty * (change / max(cone, 1e-9)) ** 2
         gain = sup - cfg.baseline - pen
         ok = (sup >= cfg.support) & within
         gaps = np.array([b["gap"] for b in beam])
-        # Unsupported candidates near the predicted direction bridge a gap (ranked below
-        # supported ones by the gap's cost, so the beam keeps both where a tube's edge
-        # or a stretch seen in one view offers a poor continuation).
+        # A path none of whose candidates is supported bridges a gap, in straight steps
+        # (the cone's axis and first ring), up to max_gap.
         bridge = (~ok) & within & (ring_of[None] <= 1) & (gaps[:, None] + step <= max_gap)
-        if not cfg.bridge_always:  # only paths none of whose candidates is supported
-            bridge &= ~ok.any(1, keepdims=True)
+        bridge &= ~ok.any(1, keepdims=True)
         new_pts = P[:, None] + step * C
         # No path may come back onto itself (a U-turn along its own tube).
         for k, b in enumerate(beam):
@@ -410,12 +406,9 @@ def trace_backbone_3d(
               + local[None, :, 2:] * chord[:, None])  # fmt: skip
         C = np.where(bridge[..., None], Cg, C)
         new_pts = P[:, None] + step * C
-        val = np.where(ok, np.array([b["score"] for b in beam])[:, None] + gain, -np.inf)
-        # Across a gap the path goes on as its turn did (the change penalised as on the
-        # tube), and where one view still sees the tube, along it.
-        mean_sup = sv_all.mean(0)
-        val = np.where(bridge, np.array([b["score"] for b in beam])[:, None] - cfg.gap_cost
-                       - cfg.gap_prior * (pen - 0.1 * mean_sup), val)
+        score = np.array([b["score"] for b in beam])[:, None]
+        val = np.where(ok, score + gain, -np.inf)
+        val = np.where(bridge, score - cfg.gap_cost, val)  # ranked below supported steps
         flat = np.argsort(-val, axis=None)
         nxt, taken = [], []
         for f in flat:
@@ -431,13 +424,13 @@ def trace_backbone_3d(
             on = bool(ok[k, c])
             nb = dict(pts=b["pts"] + [q], sup=b["sup"] + [float(sup[k, c])], D=d_new,
                       turn=turn,
-                      score=float(val[k, c]) if on or cfg.gap_pays else b["score"],
+                      score=float(val[k, c]) if on else b["score"],
                       gap=0.0 if on else b["gap"] + step,
                       last=len(b["pts"]) if on else b["last"])  # fmt: skip
             nxt.append(nb)
             taken.append(q)
         if nxt and cfg.recentre:
-            nxt = _recentre(cams, Es, nxt, step, t, cfg.recentre, cfg.recentre_min)
+            nxt = _recentre(cams, Es, nxt, step, t, cfg.recentre)
         if cfg.turn_span > 0:
             for nb in nxt:
                 nb["turn"] = _mean_turn(nb["pts"], cfg.turn_span)
@@ -470,7 +463,9 @@ def _cut_and_refine(trace, backbone):
     from jaxcr.segmentation.foreground import _scaled, refine_tip_details
 
     ctx = trace.retrace
-    tip, cap, d, hw = refine_tip_details(ctx.score, backbone, trace.width_px, _scaled(ctx.cfg, ctx.k))
+    tip, cap, d, hw = refine_tip_details(
+        ctx.score, backbone, trace.width_px, _scaled(ctx.cfg, ctx.k)
+    )
     return replace(trace, backbone=np.vstack([backbone[:-1], tip]), tip=tip, cap_px=cap,
                    end_dir=d, end_half_width_px=hw, junctions=[], departure=None)  # fmt: skip
 
