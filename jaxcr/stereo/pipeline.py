@@ -363,7 +363,8 @@ def traced_stereo_tips(
     :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
     (u, v), source ``"trace_stereo"`` or ``"trace"`` (``"+branch"`` appended when a branch
     choice replaced a view's trace), the re-search's result or None when a tip is not
-    finite, the two traces the tips belong to)."""
+    finite, the two traces the tips belong to). A stereo-coupled 3-D trace may decide
+    first (:func:`_path_step`, docs/decisions.md S26; off by default)."""
     on_path = _path_step(cams, traces, flag_px)
     if on_path is not None:
         return on_path
@@ -371,10 +372,11 @@ def traced_stereo_tips(
     return _tip_step(cams, traces, tips, src, flag_px)
 
 
-# Where the 3-D path decides (docs/decisions.md S26): "flagged" (two tips over flag_px
-# from each other's epipolar lines), "all" (also a consistent pair whose tip is far from
-# the path's end), None (off).
-_PATH_USE = "flagged"
+# Where the stereo-coupled 3-D path decides (docs/decisions.md S26): "flagged" (two tips
+# over flag_px from each other's epipolar lines), "all" (also a consistent pair with a tip
+# over _PATH_FAR_WIDTHS widths from the path's end), None (off: neither use won on
+# development). _PATH_FINISH: the finishes of trace3d.finish_on_path accepted.
+_PATH_USE = None
 _PATH_FAR_WIDTHS = 3.0
 _PATH_FINISH = ("kept",)
 

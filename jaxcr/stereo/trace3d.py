@@ -309,7 +309,7 @@ def _recentre(cams, Es, paths, step, t, reach):
 
 
 def trace_backbone_3d(
-    cams, scores, entries, width_px: float, *, ahead=None, high: float = 1.0,
+    cams, scores, entries, width_px: float, *, ahead=None, masks=None, high: float = 1.0,
     cfg: Trace3DConfig = Trace3DConfig(),
 ) -> Trace3D:  # fmt: skip
     """The tube's backbone traced in 3-D from its base, scored in both views at once.
@@ -329,6 +329,8 @@ def trace_backbone_3d(
              for c in cams]  # fmt: skip
     fpx = [float(np.asarray(c.K)[0, 0]) for c in cams]
     step = cfg.step_widths * w * min(z / f for z, f in zip(depth, fpx, strict=True))
+    if masks is not None:  # the evidence kept on the given structures only
+        scores = [np.where(m, s, 0.0) for s, m in zip(scores, masks, strict=True)]
     Es = [_evidence(s, high, w, cfg.blur_widths) for s in scores]
     t = (np.arange(cfg.samples) + 1.0) / cfg.samples
     cone = cfg.max_curvature * step
