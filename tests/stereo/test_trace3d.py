@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from jaxcr.stereo.trace3d import project, trace_backbone_3d, undistort
+from jaxcr.stereo.trace3d import finish_on_path, project, trace_backbone_3d, undistort
 from jaxcr.synth.scene import look_at_pose
 
 W, H = 256, 256
@@ -105,3 +105,16 @@ def test_traced_end_is_the_arcs_end_in_both_views():
         assert err <= bound, (k, err, bound)
     # The distractor (view 1 only) did not carry the path: its end is far from the path's.
     assert np.linalg.norm(res.end_px[0] - line[1]) > 10 * w
+
+
+def test_finish_on_path_keeps_the_candidate_ending_at_the_path_end():
+    # Three candidate traces of one view (a trace and two alternatives) ending 40 px apart;
+    # the path's projected end lies 5 px from the second's tip (under 1.5 widths of 8 px):
+    # that trace is kept as it is.
+    line = np.stack([np.linspace(0, 100, 51), np.zeros(51)], 1)
+    cands = [
+        SimpleNamespace(backbone=line + [0, dy], tip=line[-1] + [0, dy], width_px=8.0)
+        for dy in (0.0, 40.0, 80.0)
+    ]
+    chosen, how = finish_on_path(cands, np.array([97.0, 43.0]), line + [0, 40.0])
+    assert how == "kept" and chosen is cands[1]
