@@ -385,8 +385,8 @@ def _path_step(cams, traces, flag_px: float):
     """:func:`traced_stereo_tips`' stereo-coupled 3-D trace (:mod:`jaxcr.stereo.trace3d`):
     the tips where the backbone marched in 3-D on both views' evidence ends, each finished
     on the view's trace that runs there (:func:`jaxcr.stereo.trace3d.finish_on_path`), when
-    the two finished tips are within ``flag_px`` of each other's epipolar lines; else None
-    (the 2-D rules decide)."""
+    the two finished tips are within ``flag_px`` of each other's epipolar lines (action
+    ``"path3d"``); else None (the 2-D rules decide)."""
     traces = list(traces)
     if _PATH_USE is None or not all(getattr(t, "retrace", None) is not None for t in traces):
         return None
@@ -403,14 +403,13 @@ def _path_step(cams, traces, flag_px: float):
            for k in range(2)]  # fmt: skip
     if not flagged and not any(far):
         return None
-    chosen, hows = [], []
+    chosen = []
     for k in range(2):
         c, how = finish_on_path([traces[k]] + trace_alternatives(traces[k]), path.end_px[k],
                                 path.pixels[k])  # fmt: skip
         if how not in _PATH_FINISH:
             return None
         chosen.append(c)
-        hows.append(how)
     new, src = _stereo_or_own_tips(cams, chosen)
     after = epipolar_gap_px(cams, new)
     if not after <= flag_px:
