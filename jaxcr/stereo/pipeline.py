@@ -110,7 +110,6 @@ from jaxcr.stereo.tip_geometry import (
     epipolar_distances,
     fundamental_from_poses,
 )
-from jaxcr.stereo.trace3d import finish_on_path, path_of_traces
 from jaxcr.stereo.triangulation import triangulate_points
 from jaxcr.stereo.view2d import tip_pixel, view_record
 
@@ -363,63 +362,9 @@ def traced_stereo_tips(
     :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
     (u, v), source ``"trace_stereo"`` or ``"trace"`` (``"+branch"`` appended when a branch
     choice replaced a view's trace), the re-search's result or None when a tip is not
-    finite, the two traces the tips belong to). A stereo-coupled 3-D trace may decide
-    first (:func:`_path_step`, docs/decisions.md S26; off by default)."""
-    on_path = _path_step(cams, traces, flag_px)
-    if on_path is not None:
-        return on_path
+    finite, the two traces the tips belong to)."""
     traces, tips, src = _branch_step(cams, traces, flag_px)
     return _tip_step(cams, traces, tips, src, flag_px)
-
-
-# Where the stereo-coupled 3-D path decides (docs/decisions.md S26): "flagged" (two tips
-# over flag_px from each other's epipolar lines), "all" (also a consistent pair with a tip
-# over _PATH_FAR_WIDTHS widths from the path's end), None (off: neither use won on
-# development). _PATH_FINISH: the finishes of trace3d.finish_on_path accepted.
-_PATH_USE = None
-_PATH_FAR_WIDTHS = 3.0
-_PATH_FINISH = ("kept",)
-
-
-def _path_step(cams, traces, flag_px: float):
-    """:func:`traced_stereo_tips`' stereo-coupled 3-D trace (:mod:`jaxcr.stereo.trace3d`):
-    the tips where the backbone marched in 3-D on both views' evidence ends, each finished
-    on the view's trace that runs there (:func:`jaxcr.stereo.trace3d.finish_on_path`), when
-    the two finished tips are within ``flag_px`` of each other's epipolar lines (action
-    ``"path3d"``); else None (the 2-D rules decide)."""
-    traces = list(traces)
-    if _PATH_USE is None or not all(getattr(t, "retrace", None) is not None for t in traces):
-        return None
-    tips, src = _stereo_or_own_tips(cams, traces)
-    if not all(np.all(np.isfinite(t)) for t in tips):
-        return None
-    flagged = epipolar_gap_px(cams, tips) > flag_px
-    if not flagged and _PATH_USE != "all":
-        return None
-    path = path_of_traces(cams, traces)
-    if len(path.points) < 3:
-        return None
-    far = [float(np.linalg.norm(tips[k] - path.end_px[k])) > _PATH_FAR_WIDTHS * traces[k].width_px
-           for k in range(2)]  # fmt: skip
-    if not flagged and not any(far):
-        return None
-    chosen = []
-    for k in range(2):
-        c, how = finish_on_path([traces[k]] + trace_alternatives(traces[k]), path.end_px[k],
-                                path.pixels[k])  # fmt: skip
-        if how not in _PATH_FINISH:
-            return None
-        chosen.append(c)
-    new, src = _stereo_or_own_tips(cams, chosen)
-    after = epipolar_gap_px(cams, new)
-    if not after <= flag_px:
-        return None
-    moved = [float(np.linalg.norm(new[k] - tips[k])) for k in range(2)]
-    res = TipConsistency(new, "path3d", int(np.argmax(moved)), float("nan"),
-                         epipolar_gap_px(cams, tips), after)  # fmt: skip
-    if any(c is not t for c, t in zip(chosen, traces, strict=True)):
-        src = src + "+branch"
-    return new, src, res, chosen
 
 
 def _tip_step(cams, traces, tips, src, flag_px: float):

@@ -1,5 +1,9 @@
 """Stereo-coupled 3-D tracing of a tube's backbone (issue 16 item 2, docs/decisions.md S26).
 
+Not called by the pipeline: on real_like development neither use of it won (S26; the hook
+that was measured is at commit 1e5b703). It is kept, tested, as the start of a 3-D fit
+of both views' traces.
+
 Each view's 2-D tracer (:func:`jaxcr.segmentation.foreground.plate_foreground`) follows
 whatever its own foreground supports, so a structure seen in one view only (a crossing
 cable, a board's black tape, a crease or a shadow) can carry it away from the tube. Here
