@@ -549,6 +549,21 @@ def _rig_corrections_to_params(cameras, corr, z_ref, residual: bool) -> Float[Ar
 #: two free rings an outside tile would hardly have entered the band.
 ROI_FREE_TILES = 2
 
+#: Images of at least this many pixels (every camera) are tracked on a region of interest
+#: when the caller asks for it "where it wins" (``jaxcr segment --warm-start --roi auto``, the
+#: default; :func:`roi_pays`). The region saves the area-bound part of a tracked frame's fixed
+#: cost, which is small at 640x480 (no gain there: 1.04x / 1.00x CPU, decisions S21) and
+#: about a third of a tracked frame at 1280x720 (0.76x / 0.83x CPU in the library, S21; the
+#: CLI's figure in S28). The threshold is twice the largest size measured without a gain
+#: (2 x 640 x 480), two thirds of the smallest measured with one (1280 x 720).
+ROI_AUTO_MIN_PIXELS = 2 * 640 * 480
+
+
+def roi_pays(cameras) -> bool:
+    """Whether tracking on a region of interest is expected to save time for images of these
+    cameras' sizes: every camera has at least :data:`ROI_AUTO_MIN_PIXELS` pixels."""
+    return all(c.height * c.width >= ROI_AUTO_MIN_PIXELS for c in _as_tuple(cameras))
+
 
 def _tube_box(tube: TubeImage) -> Float[Array, "4"]:
     """(x_min, y_min, x_max, y_max) in pixels of the valid capsules (with their radii)."""

@@ -87,6 +87,18 @@ def test_roi_shape_buckets():
     assert refine.roi_shape((10.0, 10.0), (120, 160), margin=8.0) == (32, 48)
 
 
+def test_roi_pays_from_the_image_area():
+    """``roi_pays`` (``jaxcr segment --roi auto``): every camera at least ROI_AUTO_MIN_PIXELS
+    (2 x 640 x 480) pixels; integer comparisons, exact."""
+    from types import SimpleNamespace as Cam
+
+    assert refine.ROI_AUTO_MIN_PIXELS == 2 * 640 * 480
+    assert refine.roi_pays(Cam(height=720, width=1280))
+    assert not refine.roi_pays(Cam(height=480, width=640))
+    assert refine.roi_pays((Cam(height=480, width=1280), Cam(height=720, width=1280)))
+    assert not refine.roi_pays((Cam(height=720, width=1280), Cam(height=480, width=640)))
+
+
 def test_band_border_test():
     """A band tile in the two rings next to an inner border of the window fails the test; at
     a border that is the image's own it does not. Exact (integer tile arithmetic)."""
