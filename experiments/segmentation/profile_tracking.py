@@ -79,67 +79,43 @@ VARIANTS = {
     # the library's; measured, not adopted (docs/decisions.md S24; the s24 results ran at
     # commit 1a23162, where the library had the stacked sums and this variant the old ones)
     "stacked tile sums (S24)": {"stacked_sums": True},
-    # not a config field: each band pixel's winning segment decided at every evaluation, as
-    # before S28 (refine._solve_winners patched out), traced in its own program
-    "winners per evaluation (before S28)": {"winners_per_eval": True},
 }
 
 
-def _winners_per_evaluation(tube, grid, band):
-    """``refine._solve_winners`` before decisions S28: the band unchanged, so that
-    ``band_margin`` decides each pixel's winning segment at every evaluation."""
-    return band
-
-
-#: library functions a variant replaces while its own program is traced: (module, name, new)
-PATCHES = {
-    "stacked_sums": [(rf, "region_data_from_level", region_data_stacked)],
-    "winners_per_eval": [(rf, "_solve_winners", _winners_per_evaluation)],
-}
-
-
-@eqx.filter_jit
-def _refine_frame_patched(
-    base, cameras, images, backgrounds, config, init, valid, cam, steps, patch
-):  # fmt: skip
-    # its own jit (a trace per patch: ``patch`` is static), traced while the library is patched
+def _refine_frame_stacked(base, cameras, images, backgrounds, config, init, valid, cam, steps):
+    # its own jit (own trace cache), traced while refine's region data is the stacked one
     return rf.refine_frame(
         base, cameras, images, backgrounds, config, init, valid, cam, None, steps=steps
     )
 
 
-def _frame_patched(patch, base, cam, img, bg, config, init, valid, init_cam):
-    """``refine_frame_jit`` (no region of interest) with ``PATCHES[patch]`` applied."""
+def _frame_stacked(base, cam, img, bg, config, init, valid, init_cam):
+    """``refine_frame_jit`` (no region of interest) with the stacked per-tile sums."""
     config, steps = rf._steps_apart(config)
     args = (base, (cam,), (img,), (bg,), config, init, jnp.asarray(valid, bool), init_cam)
-    saved = [(mod, name, getattr(mod, name)) for mod, name, _ in PATCHES[patch]]
-    for mod, name, fn in PATCHES[patch]:
-        setattr(mod, name, fn)
+    lib, rf.region_data_from_level = rf.region_data_from_level, region_data_stacked
     try:
         t0 = time.perf_counter()
-        out = jax.block_until_ready(_refine_frame_patched(*args, steps, patch))
+        out = jax.block_until_ready(_refine_frame_stacked(*args, steps))
     finally:
-        for mod, name, fn in saved:
-            setattr(mod, name, fn)
+        rf.region_data_from_level = lib
     return eqx.tree_at(lambda r: r.time_s, out, jnp.asarray(time.perf_counter() - t0))
 
 
 def profile(frames: int, repeats: int, names: list[str], seed: int = 1) -> dict:
     base, bases, cam, imgs, bgs, truth = _scene(frames, seed)
     cold = refine_frame_jit(base, cam, imgs[0], bgs[0], RefineConfig())
-    extra = ("roi", *PATCHES)
+    extra = ("roi", "stacked_sums")
     fields = {n: {k: v for k, v in VARIANTS[n].items() if k not in extra} for n in names}
     warms = {n: dataclasses.replace(RefineConfig().warm(), **fields[n]) for n in names}
     roi = tracking_roi(bases, cam, config=RefineConfig().warm())
     rois = {n: roi if VARIANTS[n].get("roi") else None for n in names}
 
     def frame(k, cfg, prev, n):
-        for patch in PATCHES:
-            if VARIANTS[n].get(patch):
-                return _frame_patched(
-                    patch, base, cam, imgs[k], bgs[k], cfg, prev.coeffs, True,
-                    prev.camera_correction,
-                )  # fmt: skip
+        if VARIANTS[n].get("stacked_sums"):
+            return _frame_stacked(
+                base, cam, imgs[k], bgs[k], cfg, prev.coeffs, True, prev.camera_correction
+            )
         return refine_frame_jit(
             base, cam, imgs[k], bgs[k], cfg, prev.coeffs, True, prev.camera_correction,
             roi=rois[n],

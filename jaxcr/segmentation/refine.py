@@ -84,7 +84,6 @@ from jaxcr.segmentation.silhouette import (
     TileGrid,
     TubeImage,
     band_margin,
-    band_winners,
     level_tube_padded,
     project_tube,
     select_band,
@@ -819,13 +818,6 @@ class ImageSpaceLBFGS(_ImageSpaceSteps, optx.LBFGS):
         return _CountedState(state, jnp.asarray(0, jnp.int32))
 
 
-def _solve_winners(tube: TubeImage, grid: TileGrid, band: Band) -> Band:
-    """``band`` with each pixel's winning segment decided at the start of a solve
-    (:func:`silhouette.band_winners`): the solve's evaluations differentiate that segment's
-    margin without re-deciding it at every step (issue 18, decisions S28)."""
-    return dataclasses.replace(band, winners=band_winners(tube, grid, band))
-
-
 def _pow2(x: Array) -> Array:
     """Nearest power of two (in log scale) of positive ``x``."""
     return jnp.exp2(jnp.round(jnp.log2(x)))
@@ -1265,10 +1257,6 @@ def _refine_frame(
             vars_ = (None,) * len(tubes) if roi is None else roi_vars
         # the band's pixels once per solve, not at every energy evaluation
         gathered = tuple(d.gather(bd.tiles) for d, bd in zip(datas, bands, strict=True))
-        bands = tuple(
-            _solve_winners(draw(t, lv), d.grid, bd)
-            for t, d, bd in zip(tubes, datas, bands, strict=True)
-        )
         args = (bands, datas, lv, vars_, gathered)
         if config.solver == "gn":
             return gauss_newton_solve(params, tubes, tube_jacs, args, hinv, have_h)

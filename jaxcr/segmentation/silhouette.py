@@ -295,9 +295,6 @@ class Band(eqx.Module):
             of a traced size ``k_active`` (:func:`select_band`) keeps ``k_tiles`` slots; the
             slots past ``k_active`` are inactive, and the region sums give their pixels
             zero weight (:func:`jaxcr.segmentation.energy.region_terms`).
-        winners: (k_tiles, tile*tile) int or None: each band pixel's winning segment, decided
-            once (:func:`band_winners`, e.g. at the start of a solve) instead of at every
-            evaluation of :func:`band_margin` (None: decided there).
     """
 
     tiles: Int[Array, " k"]
@@ -305,7 +302,6 @@ class Band(eqx.Module):
     inside: Bool[Array, " n"]
     exact: Bool[Array, ""]
     active: Bool[Array, " k"] | None = None
-    winners: Int[Array, "k p"] | None = None
 
 
 def select_band(
@@ -385,33 +381,21 @@ def band_margin(tube: TubeImage, grid: TileGrid, band: Band) -> Float[Array, "k 
     candidates (up to float rounding and the split of ties), at about a third of the cost of
     that gradient on CPU with 4 candidates.
     """
-    px, py = _band_pixels(grid, band, tube.ax.dtype)
-    seg = band_winners(tube, grid, band) if band.winners is None else band.winners
-    fields = (tube.ax, tube.ay, tube.bx, tube.by, tube.ra, tube.rb)
-    return capsule_margin(px, py, *(_take(a, seg) for a in fields), _take(tube.valid, seg))
-
-
-def _band_pixels(grid: TileGrid, band: Band, dtype) -> tuple[Array, Array]:
-    """(k, p) x and y of every pixel of every band tile."""
+    dtype = tube.ax.dtype
     t = grid.tile
     ox, oy = grid.pixel_offsets(dtype)
     row, col = grid.row_col(band.tiles)
     tx = col.astype(dtype) * t
     ty = row.astype(dtype) * t
-    return tx[:, None] + ox[None], ty[:, None] + oy[None]
-
-
-def band_winners(tube: TubeImage, grid: TileGrid, band: Band) -> Int[Array, "k p"]:
-    """The segment of largest margin at every band pixel among its tile's candidates
-    (no gradient): the segment :func:`band_margin` differentiates."""
-    tube = jax.lax.stop_gradient(tube)
-    px, py = _band_pixels(grid, band, tube.ax.dtype)
+    px = tx[:, None] + ox[None]  # (k, p)
+    py = ty[:, None] + oy[None]
     fields = (tube.ax, tube.ay, tube.bx, tube.by, tube.ra, tube.rb)
     valid = _take(tube.valid, band.segs)[:, None, :]  # (k, 1, c)
-    cand = [_take(a, band.segs)[:, None, :] for a in fields]
+    cand = [_take(jax.lax.stop_gradient(a), band.segs)[:, None, :] for a in fields]
     m_all = capsule_margin(px[..., None], py[..., None], *cand, valid)  # (k, p, c)
     best = jnp.argmax(m_all, axis=-1)
-    return jnp.take_along_axis(band.segs, best, axis=1, mode="promise_in_bounds")  # (k, p)
+    seg = jnp.take_along_axis(band.segs, best, axis=1, mode="promise_in_bounds")  # (k, p)
+    return capsule_margin(px, py, *(_take(a, seg) for a in fields), _take(tube.valid, seg))
 
 
 def _take(a: Array, idx: Int[Array, "..."]) -> Array:
