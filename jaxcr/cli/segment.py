@@ -149,9 +149,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="with --warm-start: refine each tracked frame on a region of interest around its "
         "warm start (region data, bands and masks computed there; a frame whose band nears "
         "the region's border is refined on the whole image): 'on', 'off', or 'auto' = on for "
-        "images of at least 2 x 640 x 480 pixels, where it measurably saves time "
-        "(docs/decisions.md S21, S28). Default: auto; a resumed run keeps its recorded "
-        "choice (off for a run written before this option)",
+        "images of at least 2 x 640 x 480 pixels whose region is at most a quarter of the "
+        "image, where it measurably saves time (docs/decisions.md S21, S28). Default: auto; "
+        "a resumed run keeps its recorded choice (off for a run written before this option)",
     )
     p.add_argument(
         "--resume",

@@ -155,6 +155,7 @@ class Segmenter:
         if roi not in ROI_MODES:
             raise InputError(f"roi must be one of {', '.join(ROI_MODES)}, got {roi!r}", field="roi")
         self.roi = roi
+        self._roi_run = None  # the region of interest of the run so far ("auto")
         self.batch_size = int(batch_size)
         self.frames = {f.id: f for f in ds.frames}
         self.frame_ids = list(ds.bad_frames) + [f.id for f in ds.frames]
@@ -180,14 +181,26 @@ class Segmenter:
         self._cam_prev = None  # and the camera-pose correction with it
         self._hess_prev = None  # and the solver's inverse Hessian
 
-    def _roi_arg(self) -> str | None:
-        """``refine_sequence``'s ``roi`` for this run's tracked frames (``self.roi``: "off",
-        "on" = a region sized by :func:`~jaxcr.segmentation.refine.tracking_roi` per chunk,
-        "auto" = "on" where :func:`~jaxcr.segmentation.refine.roi_pays`; decisions S28)."""
-        from jaxcr.segmentation.refine import roi_pays
+    def _roi_arg(self, bases) -> tuple[int, int] | str | None:
+        """``refine_sequence``'s ``roi`` for this chunk's tracked frames (``self.roi``:
+        "off"; "on" = a region sized per chunk by
+        :func:`~jaxcr.segmentation.refine.tracking_roi`; "auto" = that region where
+        :func:`~jaxcr.segmentation.refine.roi_pays`, grown to the largest one of the run so
+        that later chunks reuse its compiled program; decisions S28). ``bases``: the chunk's
+        nominal centrelines."""
+        from jaxcr.segmentation.refine import roi_pays, tracking_roi
 
-        on = self.roi == "on" or (self.roi == "auto" and roi_pays(self.cameras))
-        return "auto" if on else None
+        if self.roi == "on":
+            return "auto"
+        if self.roi == "off" or not roi_pays(self.cameras, (0, 0)):
+            return None  # (0, 0): the image-size condition alone; small images skip the boxes
+        roi = tracking_roi(bases, self.cameras, config=self.config.warm())
+        if roi is not None and self._roi_run is not None:
+            roi = (max(roi[0], self._roi_run[0]), max(roi[1], self._roi_run[1]))
+        if not roi_pays(self.cameras, roi):
+            return None
+        self._roi_run = roi
+        return roi
 
     # ------------------------------------------------------------------ per-frame checks
 
@@ -350,7 +363,7 @@ class Segmenter:
                     init_hessian=self._hess_prev,
                     valid=valid,
                     jit_call=cached_call,
-                    roi=self._roi_arg(),
+                    roi=self._roi_arg(fk.centreline),
                 )
             else:
                 res = refine_batch(

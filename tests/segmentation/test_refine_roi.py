@@ -87,16 +87,21 @@ def test_roi_shape_buckets():
     assert refine.roi_shape((10.0, 10.0), (120, 160), margin=8.0) == (32, 48)
 
 
-def test_roi_pays_from_the_image_area():
+def test_roi_pays_from_the_image_and_region_areas():
     """``roi_pays`` (``jaxcr segment --roi auto``): every camera at least ROI_AUTO_MIN_PIXELS
-    (2 x 640 x 480) pixels; integer comparisons, exact."""
+    (2 x 640 x 480) pixels and a region of at most ROI_AUTO_MAX_FRACTION (1/4) of each image;
+    integer products against exact binary fractions: no rounding."""
     from types import SimpleNamespace as Cam
 
-    assert refine.ROI_AUTO_MIN_PIXELS == 2 * 640 * 480
-    assert refine.roi_pays(Cam(height=720, width=1280))
-    assert not refine.roi_pays(Cam(height=480, width=640))
-    assert refine.roi_pays((Cam(height=480, width=1280), Cam(height=720, width=1280)))
-    assert not refine.roi_pays((Cam(height=720, width=1280), Cam(height=480, width=640)))
+    big, small = Cam(height=720, width=1280), Cam(height=480, width=640)
+    assert refine.ROI_AUTO_MIN_PIXELS == 2 * 640 * 480 and refine.ROI_AUTO_MAX_FRACTION == 0.25
+    assert refine.roi_pays(big, (288, 480))  # S21's window: 15 %
+    assert refine.roi_pays(big, (360, 640))  # exactly a quarter
+    assert not refine.roi_pays(big, (368, 640))
+    assert not refine.roi_pays(big, (576, 800))  # the orthogonal sets' windows (S28)
+    assert not refine.roi_pays(big, None)
+    assert not refine.roi_pays(small, (96, 160))  # a small image: never
+    assert not refine.roi_pays((big, small), (96, 160))
 
 
 def test_band_border_test():
