@@ -75,10 +75,12 @@ def _ious(out: Path, data: str) -> list[float]:
     """IoU of each tracked frame's output mask (frames after the first, every camera) against
     the dataset's mask of the same name; [] when the dataset has none."""
     truth_root = Path(data) / "masks"
+    preds = sorted((out / "masks").rglob("*.png")) if truth_root.is_dir() else []
+    first = min((p.stem for p in preds), default=None)  # the cold frame's id
     vals = []
-    for pred in sorted((out / "masks").rglob("*.png"))[1:] if truth_root.is_dir() else []:
+    for pred in preds:
         truth = truth_root / pred.relative_to(out / "masks")
-        if not truth.exists():
+        if pred.stem == first or not truth.exists():
             continue
         a = cv2.imread(str(pred), cv2.IMREAD_GRAYSCALE) > 0
         b = cv2.imread(str(truth), cv2.IMREAD_GRAYSCALE) > 0
