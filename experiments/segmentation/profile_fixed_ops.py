@@ -14,8 +14,15 @@ Reported per stage, per function and per thunk: ms per call (a thunk's self time
 its runs in a call, median over the calls: thread time, the median dropping descheduled
 calls), runs per call, and the process CPU ms of the whole call beside it.
 
+``--budget N`` (issue 18, engineer track31) profiles the same call with N steps per solve
+(the warm schedule's 30: the tracked frame itself) and adds two tables of the thunks inside
+the solver loop, by the Optimistix function that emitted them (``quasi_newton`` step: the
+linearised evaluation at every step; ``filter_cond``: the accepted branch, whose gradient is
+the transpose of that linearisation) and by jaxcr function: a thunk's runs per call count its
+evaluations (all steps) or accepted steps.
+
 Run: ``PYTHONPATH=$PWD python experiments/segmentation/profile_fixed_ops.py [--size 640x480]
-[--repeats 20] [--tag NAME] [--save OUT.npz]`` (writes ``experiments/results/segmentation/
+[--repeats 20] [--budget 30] [--tag NAME] [--save OUT.npz]`` (writes ``experiments/results/segmentation/
 profile_fixed_ops<tag>.md`` and ``.json``).
 """
 
@@ -106,6 +113,22 @@ def _jaxcr_path(stack) -> tuple[str, str]:
     return " > ".join(outer[:2]), f"{names[0][0]}:{names[0][1]}"
 
 
+def _solver_path(stack) -> str:
+    """Which part of a BFGS step emitted an instruction, from the Optimistix functions of its
+    stack: the objective's value and linearisation (``jax.linearize`` at every step, accepted
+    or not), its gradient (the transpose of that linearisation, in the branch of an accepted
+    step, Optimistix's ``filter_cond``), or the solver's own work (line search, Hessian update,
+    descent, stopping test); "-" outside the solver loop."""
+    names = [f"{Path(p).stem}.{fn}" for p, fn, _ in stack if "/optimistix/" in p]
+    if not names:
+        return "-"
+    if any(n.endswith("NoneAux.__call__") for n in names):
+        if any(n.endswith("filter_cond") for n in names):
+            return "objective: gradient (transpose; accepted steps)"
+        return "objective: value + linearisation (every step)"
+    return "BFGS bookkeeping (line search, Hessian update, descent, stop test)"
+
+
 def _self_times(events) -> dict[str, list[tuple[int, float]]]:
     """Self time (ns) of each thunk event on one thread line: its duration minus its nested
     events' (a while thunk contains its body's thunks), as (start, self time) pairs."""
@@ -137,6 +160,12 @@ def main(argv=None) -> int:
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--tag", default="")
     ap.add_argument("--save", default=None, help="write the call's outputs to this .npz")
+    ap.add_argument(
+        "--budget",
+        type=int,
+        default=0,
+        help="step budget per solve (0: the fixed cost; the warm schedule's is 30)",
+    )
     args = ap.parse_args(argv)
     w, h = (int(x) for x in args.size.lower().split("x"))
     bs.W, bs.H = w, h
@@ -145,7 +174,7 @@ def main(argv=None) -> int:
     ims = [colour_mask(jnp.asarray(f["img"])) for f in fr]
     cold = refine_frame_jit(base, cam, ims[0][1], ims[0][0], RefineConfig())
     warm = RefineConfig().warm()
-    zero = dataclasses.replace(warm, steps=(0,) * len(warm.steps))
+    zero = dataclasses.replace(warm, steps=(args.budget,) * len(warm.steps))
     config, steps = rf._steps_apart(zero)
     call_args = (
         base, (cam,), (ims[1][1],), (ims[1][0],), config, cold.coeffs, jnp.asarray(True),
@@ -155,12 +184,15 @@ def main(argv=None) -> int:
     hlo = compiled.compiled.as_text()
     if os.environ.get("PROFILE_FIXED_OPS_HLO"):
         Path(os.environ["PROFILE_FIXED_OPS_HLO"]).write_text(hlo)
-    where = {n: _jaxcr_path(st) for n, st in _stacks(hlo).items()}
+    stacks = _stacks(hlo)
+    where = {n: _jaxcr_path(st) for n, st in stacks.items()}
+    solver_of = {n: _solver_path(st) for n, st in stacks.items()}
 
     def call():
         return jax.block_until_ready(compiled(*call_args))
 
     out = call()
+    n_steps = int(out.num_steps)
     if args.save:
         leaves = jax.tree.leaves(out)
         np.savez(args.save, *[np.asarray(x) for x in leaves])
@@ -200,8 +232,14 @@ def main(argv=None) -> int:
     total = sum(ms for ms, _ in per.values())
     by_fn = defaultdict(lambda: [0.0, 0.0])
     by_inner = defaultdict(lambda: [0.0, 0.0])
+    by_solver = defaultdict(lambda: [0.0, 0.0])
+    by_step_fn = defaultdict(lambda: [0.0, 0.0])  # innermost jaxcr function, in the loop
     for n, (ms, k) in per.items():
-        for table, key in ((by_fn, where[n][0]), (by_inner, where[n][1].split(":")[0])):
+        tables = [(by_fn, where[n][0]), (by_inner, where[n][1].split(":")[0])]
+        tables.append((by_solver, solver_of[n]))
+        if solver_of[n] != "-":
+            tables.append((by_step_fn, where[n][1].split(":")[0] + " | " + solver_of[n]))
+        for table, key in tables:
             table[key][0] += ms
             table[key][1] += k
     load1 = os.getloadavg()[0]
@@ -209,6 +247,7 @@ def main(argv=None) -> int:
     cmd = (
         "PYTHONPATH=$PWD python experiments/segmentation/profile_fixed_ops.py "
         f"--size {args.size} --repeats {args.repeats}"
+        + (f" --budget {args.budget}" if args.budget else "")
         + (f" --seed {args.seed}" if args.seed != 1 else "")
         + (f" --tag {args.tag}" if args.tag else "")
     )
@@ -224,6 +263,11 @@ def main(argv=None) -> int:
             for n, (ms, k) in sorted(per.items(), key=lambda t: -t[1][0])
         },
         "hlo_instructions_with_source": len(where),
+        "num_steps": n_steps,
+        "by_solver": {k: v for k, v in sorted(by_solver.items(), key=lambda t: -t[1][0])},
+        "in_solver_by_innermost": {
+            k: v for k, v in sorted(by_step_fn.items(), key=lambda t: -t[1][0])
+        },
     }
     stem = f"profile_fixed_ops{args.tag}"
     OUT.mkdir(parents=True, exist_ok=True)
@@ -231,7 +275,12 @@ def main(argv=None) -> int:
         json.dumps({"command": cmd, "results": res, "meta": meta}, indent=1)
     )
     lines = [
-        f"# Op profile of a tracked frame's fixed cost, {w}x{h} (step budget 0, warm schedule)",
+        (
+            f"# Op profile of a tracked frame's fixed cost, {w}x{h} (step budget 0, warm schedule)"
+            if not args.budget
+            else f"# Op profile of a tracked frame, {w}x{h} (step budget {args.budget} per solve, "
+            "warm schedule): the BFGS steps"
+        ),
         "",
         f"Command: `{cmd}`",
         "",
@@ -256,6 +305,26 @@ def main(argv=None) -> int:
     ]
     for fn, (ms, k) in list(res["by_innermost"].items())[: args.top]:
         lines.append(f"| `{fn}` | {ms:.2f} | {100 * ms / total:.1f} % | {k:.0f} |")
+    if args.budget:
+        lines += [
+            "",
+            f"## Inside the solver loop ({n_steps} steps in the call: two solves of up to "
+            f"{args.budget}), by Optimistix function",
+            "",
+            "| Optimistix path | ms per call | ms per step | thunks per call |",
+            "|---|---|---|---|",
+        ]
+        for fn, (ms, k) in list(res["by_solver"].items())[: args.top]:
+            lines.append(f"| `{fn}` | {ms:.2f} | {ms / max(n_steps, 1):.3f} | {k:.0f} |")
+        lines += [
+            "",
+            "## Inside the solver loop, by innermost jaxcr function and Optimistix path",
+            "",
+            "| function \\| solver path | ms per call | ms per step | thunks per call |",
+            "|---|---|---|---|",
+        ]
+        for fn, (ms, k) in list(res["in_solver_by_innermost"].items())[: args.top]:
+            lines.append(f"| `{fn}` | {ms:.2f} | {ms / max(n_steps, 1):.3f} | {k:.0f} |")
     lines += [
         "",
         "## Largest thunks",

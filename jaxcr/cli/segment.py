@@ -144,6 +144,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "previous frame's delta-u",
     )
     p.add_argument(
+        "--roi",
+        choices=("auto", "on", "off"),
+        default=None,
+        help="with --warm-start: refine each tracked frame on a region of interest around its "
+        "warm start (region data, bands and masks computed there; a frame whose band nears "
+        "the region's border is refined on the whole image): 'on', 'off', or 'auto' = on for "
+        "images of at least 2 x 640 x 480 pixels whose region is at most a quarter of the "
+        "image, where it measurably saves time (docs/decisions.md S21, S28). Default: auto; "
+        "a resumed run keeps its recorded choice (off for a run written before this option)",
+    )
+    p.add_argument(
         "--resume",
         action="store_true",
         help="continue an interrupted run in OUT (skips frames in results.jsonl)",
@@ -479,7 +490,29 @@ _SAME_JOB_KEYS = (
     "robot_hsv",
     "plate",
     "config",
+    "roi",
 )
+
+#: the value of a run.json key absent from a run written before the key existed (its
+#: behaviour then): such a run resumes with that value
+_ABSENT = {"roi": "off"}
+
+
+def _roi_mode(args, out: Path, shard) -> str:
+    """``--roi`` as given; else the choice recorded in this job's run.json (a resume or
+    another shard: "off" for a run written before the option); else "auto"."""
+    if args.roi is not None:
+        return args.roi
+    from jaxcr.scale import shards as S
+
+    own = out / R.RUN_FILE if shard is None else S.shard_dir(out, shard) / R.RUN_FILE
+    paths = [out / R.RUN_FILE] + [d / R.RUN_FILE for _, d in S.shard_dirs(out)]
+    for path in dict.fromkeys(paths):
+        if args.overwrite and (shard is None or path == own):
+            continue  # deleted by --overwrite before the run starts
+        if path.exists():
+            return R.read_run(path).get("roi", _ABSENT["roi"])
+    return "auto"
 
 
 def _check_same_job(path: Path, run_info: dict, what: str) -> None:
@@ -487,7 +520,8 @@ def _check_same_job(path: Path, run_info: dict, what: str) -> None:
     options."""
     prev = R.read_run(path)
     for key in _SAME_JOB_KEYS:
-        a, b = R.to_jsonable(prev.get(key)), R.to_jsonable(run_info.get(key))
+        a = R.to_jsonable(prev.get(key, _ABSENT.get(key)))
+        b = R.to_jsonable(run_info.get(key, _ABSENT.get(key)))
         if a != b:
             if isinstance(a, dict) and isinstance(b, dict):  # name only what differs
                 diff = sorted(k for k in set(a) | set(b) if a.get(k, "?") != b.get(k, "?"))
@@ -628,6 +662,7 @@ def run(args) -> int:
         "robot_hsv": None if ranges is None else [list(_hsv_tuple(r)) for r in ranges],
         "plate": None if plate_cfg is None else dataclasses_asdict(plate_cfg),
         "warm_start": bool(args.warm_start),
+        "roi": _roi_mode(args, out, shard),
         "batch_size": args.batch_size,
         "seed": args.seed,
         "uncertainty": None
@@ -645,6 +680,7 @@ def run(args) -> int:
     seg_kwargs = dict(
         overlays=not args.no_overlays,
         warm_start=args.warm_start,
+        roi=run_info["roi"],
         batch_size=args.batch_size,
         colour_ranges=ranges,
         plate_config=plate_cfg,

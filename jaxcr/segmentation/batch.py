@@ -24,6 +24,10 @@ from jaxcr.io.exported import FAST_COMPILE, cached_call
 from jaxcr.io.overlay import fig4_panel
 from jaxcr.kinematics.batch import forward_batch
 
+#: ``Segmenter(roi=)`` / ``jaxcr segment --roi``: tracked frames on a region of interest
+#: never, always, or where it is expected to pay (large images; decisions S28)
+ROI_MODES = ("auto", "on", "off")
+
 FK_FAILED = "kinematics failed (solver did not converge or non-finite shape)"
 
 
@@ -134,6 +138,7 @@ class Segmenter:
         uncertainty: bool = True,
         depth_factor: float | None = None,
         warn: Callable[[str], None] | None = None,
+        roi: str = "off",
     ):
         if ds.robot is None:
             raise InputError(
@@ -147,6 +152,10 @@ class Segmenter:
         self.layout = R.OutputLayout(out, log_dir=log_dir)
         self.overlays = overlays
         self.warm_start = warm_start
+        if roi not in ROI_MODES:
+            raise InputError(f"roi must be one of {', '.join(ROI_MODES)}, got {roi!r}", field="roi")
+        self.roi = roi
+        self._roi_run = None  # the region of interest of the run so far ("auto")
         self.batch_size = int(batch_size)
         self.frames = {f.id: f for f in ds.frames}
         self.frame_ids = list(ds.bad_frames) + [f.id for f in ds.frames]
@@ -171,6 +180,27 @@ class Segmenter:
         self._coeffs_prev = None  # warm start carried across chunks
         self._cam_prev = None  # and the camera-pose correction with it
         self._hess_prev = None  # and the solver's inverse Hessian
+
+    def _roi_arg(self, bases) -> tuple[int, int] | str | None:
+        """``refine_sequence``'s ``roi`` for this chunk's tracked frames (``self.roi``:
+        "off"; "on" = a region sized per chunk by
+        :func:`~jaxcr.segmentation.refine.tracking_roi`; "auto" = that region where
+        :func:`~jaxcr.segmentation.refine.roi_pays`, grown to the largest one of the run so
+        that later chunks reuse its compiled program; decisions S28). ``bases``: the chunk's
+        nominal centrelines."""
+        from jaxcr.segmentation.refine import roi_pays, tracking_roi
+
+        if self.roi == "on":
+            return "auto"
+        if self.roi == "off" or not roi_pays(self.cameras, (0, 0)):
+            return None  # (0, 0): the image-size condition alone; small images skip the boxes
+        roi = tracking_roi(bases, self.cameras, config=self.config.warm())
+        if roi is not None and self._roi_run is not None:
+            roi = (max(roi[0], self._roi_run[0]), max(roi[1], self._roi_run[1]))
+        if not roi_pays(self.cameras, roi):
+            return None
+        self._roi_run = roi
+        return roi
 
     # ------------------------------------------------------------------ per-frame checks
 
@@ -333,6 +363,7 @@ class Segmenter:
                     init_hessian=self._hess_prev,
                     valid=valid,
                     jit_call=cached_call,
+                    roi=self._roi_arg(fk.centreline),
                 )
             else:
                 res = refine_batch(

@@ -549,6 +549,35 @@ def _rig_corrections_to_params(cameras, corr, z_ref, residual: bool) -> Float[Ar
 #: two free rings an outside tile would hardly have entered the band.
 ROI_FREE_TILES = 2
 
+#: ``jaxcr segment --warm-start --roi auto`` (the default; :func:`roi_pays`) tracks on a region
+#: of interest only for images of at least this many pixels (every camera) ...
+ROI_AUTO_MIN_PIXELS = 2 * 640 * 480
+#: ... and a region of at most this fraction of the image. The region saves the area-bound
+#: part of a tracked frame's fixed cost and adds its own work (the whole image's variance,
+#: crops, pasting the masks back; a second program to compile). Measured (decisions S21,
+#: S28): a 288x480 region of 1280x720 (15 %) 0.76x / 0.83x CPU per tracked frame in the
+#: library; 320x480 of 640x480 (50 %) 1.04x / 1.00x; through `jaxcr segment` on the
+#: orthogonal synthetic sets at 1280x720, regions of 480-576 x 800 (42-50 %) were slower
+#: than the whole image (1.10x tracked ms, +26 s CPU of compilation in a first process).
+#: The pixel threshold is twice the largest size measured without a gain; the fraction a
+#: quarter, between the 15 % measured with a gain and the 42 % measured without one.
+ROI_AUTO_MAX_FRACTION = 0.25
+
+
+def roi_pays(cameras, roi: tuple[int, int] | None) -> bool:
+    """Whether tracking on the region of interest ``roi`` = (h, w) (e.g. from
+    :func:`tracking_roi`) is expected to save time for images of these cameras' sizes: every
+    camera has at least :data:`ROI_AUTO_MIN_PIXELS` pixels, and the region is at most
+    :data:`ROI_AUTO_MAX_FRACTION` of each image (False for no region)."""
+    if roi is None:
+        return False
+    area = roi[0] * roi[1]
+    return all(
+        c.height * c.width >= ROI_AUTO_MIN_PIXELS
+        and area <= ROI_AUTO_MAX_FRACTION * c.height * c.width
+        for c in _as_tuple(cameras)
+    )
+
 
 def _tube_box(tube: TubeImage) -> Float[Array, "4"]:
     """(x_min, y_min, x_max, y_max) in pixels of the valid capsules (with their radii)."""

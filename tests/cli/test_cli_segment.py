@@ -213,6 +213,30 @@ def test_resume_refuses_changed_config(full_run, dataset, tmp_path):
     assert main(args) == 2
 
 
+def test_roi_choice_recorded_and_kept_by_a_resume(full_run, dataset, tmp_path):
+    """--roi is part of the job (run.json "roi"): a resume keeps the recorded choice and
+    refuses another one; a run.json written before the option (no "roi") resumes as "off"
+    (the behaviour it was written with). Every frame is recorded: no refinement runs."""
+    _, ref = full_run
+    assert json.loads((ref / "run.json").read_text())["roi"] == "auto"
+    base = ["segment", str(dataset), "-o"]
+    out = tmp_path / "new"
+    shutil.copytree(ref, out)
+    (out / "DONE").unlink()
+    assert main([*base, str(out), "--resume", "--roi", "off", *FAST]) == 2
+    assert main([*base, str(out), "--resume", *FAST]) == 1  # the bad frames, as ref
+    old = tmp_path / "old"
+    shutil.copytree(ref, old)
+    (old / "DONE").unlink()
+    info = json.loads((old / "run.json").read_text())
+    del info["roi"]
+    (old / "run.json").write_text(json.dumps(info))
+    assert main([*base, str(old), "--resume", "--roi", "auto", *FAST]) == 2
+    assert main([*base, str(old), "--resume", *FAST]) == 1
+    assert main([*base, str(old), "--resume", "--roi", "off", *FAST]) == 1
+    assert "roi" not in json.loads((old / "run.json").read_text())
+
+
 def _iou(a, b):
     u = np.logical_or(a, b).sum()
     return np.logical_and(a, b).sum() / u if u else 1.0
@@ -279,7 +303,7 @@ def test_warm_start_carries_coefficients_and_camera_correction(dataset, tmp_path
 
     def spy(*args, **kw):
         res = real(*args, **kw)
-        calls.append((kw.get("init"), kw.get("init_cam"), res))
+        calls.append((kw.get("init"), kw.get("init_cam"), res, kw.get("roi")))
         return res
 
     monkeypatch.setattr(refine_mod, "refine_sequence", spy)
@@ -290,6 +314,9 @@ def test_warm_start_carries_coefficients_and_camera_correction(dataset, tmp_path
     assert all(recs[f]["ok"] for f in GOOD)
     assert len(calls) >= 2
     assert calls[0][0] is None and calls[0][1] is None
+    # --roi auto (the default) at 96x72: no region (below ROI_AUTO_MIN_PIXELS), recorded
+    assert json.loads((out / "run.json").read_text())["roi"] == "auto"
+    assert all(c[3] is None for c in calls)
     first = calls[0][2]
     last_ok = max(i for i in range(len(first.ok)) if bool(first.ok[i]))
     np.testing.assert_array_equal(np.asarray(calls[1][0]), np.asarray(first.coeffs[last_ok]))

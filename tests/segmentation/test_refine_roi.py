@@ -87,6 +87,48 @@ def test_roi_shape_buckets():
     assert refine.roi_shape((10.0, 10.0), (120, 160), margin=8.0) == (32, 48)
 
 
+def test_roi_pays_from_the_image_and_region_areas():
+    """``roi_pays`` (``jaxcr segment --roi auto``): every camera at least ROI_AUTO_MIN_PIXELS
+    (2 x 640 x 480) pixels and a region of at most ROI_AUTO_MAX_FRACTION (1/4) of each image;
+    integer products against exact binary fractions: no rounding."""
+    from types import SimpleNamespace as Cam
+
+    big, small = Cam(height=720, width=1280), Cam(height=480, width=640)
+    assert refine.ROI_AUTO_MIN_PIXELS == 2 * 640 * 480 and refine.ROI_AUTO_MAX_FRACTION == 0.25
+    assert refine.roi_pays(big, (288, 480))  # S21's window: 15 %
+    assert refine.roi_pays(big, (360, 640))  # exactly a quarter
+    assert not refine.roi_pays(big, (368, 640))
+    assert not refine.roi_pays(big, (576, 800))  # the orthogonal sets' windows (S28)
+    assert not refine.roi_pays(big, None)
+    assert not refine.roi_pays(small, (96, 160))  # a small image: never
+    assert not refine.roi_pays((big, small), (96, 160))
+
+
+def test_segmenter_roi_modes(monkeypatch):
+    """``jaxcr segment --roi``'s choice per chunk (``Segmenter._roi_arg``), with
+    ``tracking_roi`` replaced by given windows (no program compiled): "on" lets
+    ``refine_sequence`` size each chunk's region; "auto" takes the window only where
+    ``roi_pays``, grown to the run's largest; "off" and small images never."""
+    from types import SimpleNamespace as NS
+
+    from jaxcr.segmentation.batch import Segmenter
+
+    big, small = NS(height=720, width=1280), NS(height=480, width=640)
+    windows = iter([(288, 480), (320, 400), (480, 800)])
+    monkeypatch.setattr(refine, "tracking_roi", lambda bases, cams, config: next(windows))
+
+    def seg(mode, cam):
+        return NS(roi=mode, cameras=(cam,), config=refine.RefineConfig(), _roi_run=None)
+
+    auto = seg("auto", big)
+    assert Segmenter._roi_arg(auto, None) == (288, 480)
+    assert Segmenter._roi_arg(auto, None) == (320, 480)  # the run's largest on each axis
+    assert Segmenter._roi_arg(auto, None) is None  # 480 x 800: over a quarter of the image
+    assert Segmenter._roi_arg(seg("on", small), None) == "auto"
+    assert Segmenter._roi_arg(seg("off", big), None) is None
+    assert Segmenter._roi_arg(seg("auto", small), None) is None  # tracking_roi not called
+
+
 def test_band_border_test():
     """A band tile in the two rings next to an inner border of the window fails the test; at
     a border that is the image's own it does not. Exact (integer tile arithmetic)."""
