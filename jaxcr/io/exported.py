@@ -20,12 +20,15 @@ be read or written is not an error: the function is then traced as usual.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import os
 import pickle
 import tempfile
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import equinox as eqx
@@ -38,6 +41,9 @@ FORMAT = b"jaxcr.exported/2\n"
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 _memo: dict[tuple, tuple[Callable, object, list]] = {}
 _source_hash: str | None = None
+#: XLA compilations started by :func:`compile_ahead`, by memo key; a call waits for its own
+_compiling: dict[tuple, Future] = {}
+_ahead = threading.local()  # .pool: the compile_ahead pool of this thread, if inside one
 
 
 def _jaxcr_source_hash() -> str:
@@ -176,5 +182,50 @@ def cached_call(fn: Callable, *args, compiler_options: dict | None = None):
                            compiler_options=dict(opts) or None)  # fmt: skip
             _memo[memo_key] = (call, out_tree, out_box)
     call, out_tree, out_box = _memo[memo_key]
+    pool = getattr(_ahead, "pool", None)
+    if pool is not None:
+        return _start_compile(pool, memo_key, call, leaves, out_tree, out_box)
+    pending = _compiling.pop(memo_key, None)
+    if pending is not None:
+        # started ahead: wait for it (a failed compilation is compiled, and raises, again here)
+        with contextlib.suppress(Exception):
+            pending.result()
     out = call(*leaves)
     return jax.tree_util.tree_unflatten(out_tree if out_tree is not None else out_box[-1], out)
+
+
+def _start_compile(pool, memo_key, call, leaves, out_tree, out_box):
+    """Lower ``call`` for ``leaves`` here (a thin wrapper of a stored program; with the cache off
+    this traces), start its XLA compilation in ``pool`` and return zeros shaped as its outputs."""
+    import numpy as np
+
+    lowered = call.lower(*leaves)
+    if memo_key not in _compiling:
+        _compiling[memo_key] = pool.submit(lowered.compile)
+    # placed as the program's real outputs (committed to their device): a later program that
+    # takes them lowers, and is keyed in the persistent cache, as in the real run
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    zeros = [jax.device_put(np.zeros(a.shape, a.dtype), a.sharding or device)
+             for a in jax.tree_util.tree_leaves(lowered.out_info)]  # fmt: skip
+    return jax.tree_util.tree_unflatten(out_tree if out_tree is not None else out_box[-1], zeros)
+
+
+@contextlib.contextmanager
+def compile_ahead(max_workers: int = 2) -> Iterator[None]:
+    """Inside this context (in this thread) :func:`cached_call` does not run its program: it
+    loads or traces the program and lowers it as usual, starts XLA's compilation in a pool of
+    ``max_workers`` threads and returns zeros of the program's output shapes, so code run
+    inside (a dry run of the real work on any inputs of the right shapes) queues every program
+    it would compile. XLA compiles without Python's lock, so the programs compile side by side
+    (on a machine with several cores the first process waits for about the largest program, not
+    the sum). A later :func:`cached_call` of the same program and shapes, outside, waits for
+    its compilation and runs the compiled executable; the persistent cache is written and read
+    as without this context. Only the programs' compilation depends on the dry run, never a
+    result: a dry run that raises leaves the programs it started."""
+    pool = ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="jaxcr-compile")
+    _ahead.pool = pool
+    try:
+        yield
+    finally:
+        _ahead.pool = None
+        pool.shutdown(wait=False)

@@ -20,6 +20,7 @@ import numpy as np
 from jaxcr._timing import CompileTimer
 from jaxcr.errors import InputError
 from jaxcr.io import results as R
+from jaxcr.io import exported
 from jaxcr.io.exported import FAST_COMPILE, cached_call
 from jaxcr.io.overlay import fig4_panel
 from jaxcr.kinematics.batch import forward_batch
@@ -171,6 +172,7 @@ class Segmenter:
         self._coeffs_prev = None  # warm start carried across chunks
         self._cam_prev = None  # and the camera-pose correction with it
         self._hess_prev = None  # and the solver's inverse Hessian
+        self._started = False  # the first chunk's programs were queued (_compile_ahead)
 
     # ------------------------------------------------------------------ per-frame checks
 
@@ -291,9 +293,35 @@ class Segmenter:
                 clean_leftovers(self.layout.root)
         return stats
 
-    def _process_chunk(self, chunk: list[tuple[str, list[np.ndarray]]]):
+    def _compile_ahead(self, chunk) -> None:
+        """Before the first chunk: a dry run of it inside :func:`jaxcr.io.exported.compile_ahead`,
+        which queues the kinematics, the refinement and the covariance for XLA side by side
+        (each program's stored trace is loaded or traced and lowered here, one after the other;
+        XLA then compiles them in two threads) instead of one after the other as the real chunk
+        reaches each. The dry run's values (zeros) are discarded; no file is written, no
+        result or timer kept. Only with the compilation cache on (else cached_call would run
+        the programs)."""
+        self._started = True
+        if exported._folder() is None:
+            return
+        keep = (self.compile_s, self.run_s, self.uncertainty_s, list(self.depth_ambiguous),
+                self._coeffs_prev, self._cam_prev, self._hess_prev, self.warn)  # fmt: skip
+        self.warn = None
+        try:
+            with exported.compile_ahead():
+                for _ in self._process_chunk(chunk, dry=True):
+                    pass
+        except Exception:  # the real chunk will compile, and report, whatever failed here
+            pass
+        finally:
+            (self.compile_s, self.run_s, self.uncertainty_s, self.depth_ambiguous,
+             self._coeffs_prev, self._cam_prev, self._hess_prev, self.warn) = keep  # fmt: skip
+
+    def _process_chunk(self, chunk: list[tuple[str, list[np.ndarray]]], dry: bool = False):
         from jaxcr.segmentation.refine import FAILURES, refine_batch, refine_sequence
 
+        if not self._started:
+            self._compile_ahead(chunk)
         n = len(chunk)
         # pad at the end (results discarded): one compiled shape for the whole run
         full = chunk + [chunk[-1]] * (self.batch_size - n)
@@ -427,7 +455,7 @@ class Segmenter:
                 rec["camera_correction"] = {c: cc[i][k].tolist() for k, c in enumerate(self.cams)}
             if ok and unc is not None:
                 rec["uncertainty"] = self._uncertainty_record(fid, unc, i, unc_per_frame)
-            if ok and np.all(np.isfinite(host.centreline.p[i])):
+            if ok and not dry and np.all(np.isfinite(host.centreline.p[i])):
                 rec["files"] = self._write_frame_files(
                     fid, frame, images, host, i, bgs_np, nominal_p[i]
                 )
