@@ -39,7 +39,7 @@ FORMAT = b"jaxcr.exported/2\n"
 #: programs) into code that runs up to ~2x slower (the legacy loop emitter instead of the MLIR
 #: fusion emitters; docs/decisions.md T1 and S22): for programs that run rarely per process.
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
-_memo: dict[tuple, tuple[Callable, object, list]] = {}
+_memo: dict[tuple, tuple[Callable, object, list, list]] = {}
 _source_hash: str | None = None
 #: XLA compilations started by :func:`compile_ahead`, by memo key; a call waits for its own
 _compiling: dict[tuple, Future] = {}
@@ -162,7 +162,7 @@ def cached_call(fn: Callable, *args, compiler_options: dict | None = None):
         flat.__name__ = flat.__qualname__ = short
         if folder is None:  # cache off: traced in this process, compiled with the options
             call = jax.jit(flat, compiler_options=dict(opts))
-            _memo[memo_key] = (call, None, out_box)
+            _memo[memo_key] = (call, None, out_box, [])
         else:
             path = os.path.join(folder, f"{name.rsplit('.', 1)[-1]}-{key}.jaxexport")
             try:
@@ -180,10 +180,13 @@ def cached_call(fn: Callable, *args, compiler_options: dict | None = None):
                     pass
             call = jax.jit(_named(exported.call, f"{short}_stored"),
                            compiler_options=dict(opts) or None)  # fmt: skip
-            _memo[memo_key] = (call, out_tree, out_box)
-    call, out_tree, out_box = _memo[memo_key]
+            _memo[memo_key] = (call, out_tree, out_box, [])
+    call, out_tree, out_box, ran = _memo[memo_key]
     pool = getattr(_ahead, "pool", None)
     if pool is not None:
+        if ran:  # compiled and run in this process already: only the outputs' shapes
+            tree = out_tree if out_tree is not None else out_box[-1]
+            return jax.tree_util.tree_unflatten(tree, [_zeros(*a) for a in ran])
         return _start_compile(pool, memo_key, call, leaves, out_tree, out_box)
     pending = _compiling.pop(memo_key, None)
     if pending is not None:
@@ -191,21 +194,27 @@ def cached_call(fn: Callable, *args, compiler_options: dict | None = None):
         with contextlib.suppress(Exception):
             pending.result()
     out = call(*leaves)
+    if not ran:
+        ran.extend((x.shape, x.dtype, x.sharding) for x in out)
     return jax.tree_util.tree_unflatten(out_tree if out_tree is not None else out_box[-1], out)
+
+
+def _zeros(shape, dtype, sharding):
+    import numpy as np
+
+    return jax.device_put(np.zeros(shape, dtype), sharding)
 
 
 def _start_compile(pool, memo_key, call, leaves, out_tree, out_box):
     """Lower ``call`` for ``leaves`` here (a thin wrapper of a stored program; with the cache off
     this traces), start its XLA compilation in ``pool`` and return zeros shaped as its outputs."""
-    import numpy as np
-
     lowered = call.lower(*leaves)
     if memo_key not in _compiling:
         _compiling[memo_key] = pool.submit(lowered.compile)
     # placed as the program's real outputs (committed to their device): a later program that
     # takes them lowers, and is keyed in the persistent cache, as in the real run
     device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    zeros = [jax.device_put(np.zeros(a.shape, a.dtype), a.sharding or device)
+    zeros = [_zeros(a.shape, a.dtype, a.sharding or device)
              for a in jax.tree_util.tree_leaves(lowered.out_info)]  # fmt: skip
     return jax.tree_util.tree_unflatten(out_tree if out_tree is not None else out_box[-1], zeros)
 

@@ -176,3 +176,8 @@ def test_compile_ahead_compiles_each_program_once_and_gives_the_sequential_resul
     assert not exported._compiling
     for r, s in zip(jax.tree.leaves(real), jax.tree.leaves(seq), strict=True):
         np.testing.assert_array_equal(np.asarray(r), np.asarray(s))
+    # a second dry run in the same process (a new Segmenter): nothing is lowered or queued
+    with exported.compile_ahead():
+        again = _chain(x, p)
+    assert not exported._compiling
+    assert jax.tree.structure(again) == jax.tree.structure(seq)
