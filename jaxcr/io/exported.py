@@ -235,6 +235,17 @@ def compile_ahead(max_workers: int = 2) -> Iterator[None]:
     _ahead.pool = pool
     try:
         yield
-    finally:
+    except BaseException:  # e.g. Ctrl-C: drop what has not started
         _ahead.pool = None
-        pool.shutdown(wait=False)
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    _ahead.pool = None
+    # every queued compilation finishes before the real run starts: its compile and run times
+    # (jaxcr._timing.CompileTimer, process-wide events) are then not mixed up with a program
+    # still compiling in the pool
+    pool.shutdown(wait=True)
+
+
+def in_compile_ahead() -> bool:
+    """True inside :func:`compile_ahead` in this thread (a dry run: results are zeros)."""
+    return getattr(_ahead, "pool", None) is not None
