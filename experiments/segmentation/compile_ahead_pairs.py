@@ -10,7 +10,10 @@ Run::
 
     python experiments/segmentation/compile_ahead_pairs.py --tree before=DIR --tree after=DIR \
         [--rounds 2] [--work /tmp/compile_ahead_pairs] [--name NAME] \
-        (--dataset DS | --demo) [-- extra options of the command]
+        [--max-load L --max-wait S] (--dataset DS | --demo) [-- extra options of the command]
+
+``--max-load``: before each process, wait (up to ``--max-wait`` seconds) until the 1-min load
+average is below L, so that the trees' runs see alike (and low) loads on a shared machine.
 
 Each tree is a jaxcr source folder (e.g. a ``git archive`` of a commit); its ``jaxcr`` runs with
 ``PYTHONPATH=DIR``. Writes experiments/results/segmentation/NAME.md.
@@ -38,6 +41,14 @@ def _entries(cache: Path) -> tuple[int, int]:
     exe = sum(1 for p in cache.iterdir() if p.is_file() and not p.name.startswith("."))
     ex = cache / "exported"
     return exe, (sum(1 for p in ex.iterdir() if p.suffix == ".jaxexport") if ex.exists() else 0)
+
+
+def _wait_for_load(max_load: float | None, max_wait: float) -> None:
+    t0 = time.monotonic()
+    while max_load is not None and os.getloadavg()[0] >= max_load:
+        if time.monotonic() - t0 > max_wait:
+            return
+        time.sleep(5)
 
 
 def run(tree: str, cache: Path, argv: list[str]) -> dict:
@@ -81,6 +92,8 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--work", default="/tmp/compile_ahead_pairs")
     ap.add_argument("--name", default="compile_ahead_pairs")
+    ap.add_argument("--max-load", type=float, default=None)
+    ap.add_argument("--max-wait", type=float, default=600.0)
     g = ap.add_mutually_exclusive_group(required=True)
     g.add_argument("--dataset")
     g.add_argument("--demo", action="store_true")
@@ -101,6 +114,7 @@ def main() -> None:
                 else:
                     cmd = ["segment", a.dataset, "-o", str(out), "--overwrite", "--quiet",
                            "--no-overlays", *extra]  # fmt: skip
+                _wait_for_load(a.max_load, a.max_wait)
                 res = run(tree, w / "cache", cmd)
                 seg = _segment_out(out, a.demo)
                 outs.setdefault(proc, []).append(seg)
