@@ -227,10 +227,12 @@ def compile_ahead(max_workers: int = 2) -> Iterator[None]:
     inside (a dry run of the real work on any inputs of the right shapes) queues every program
     it would compile. XLA compiles without Python's lock, so the programs compile side by side
     (on a machine with several cores the first process waits for about the largest program, not
-    the sum). A later :func:`cached_call` of the same program and shapes, outside, waits for
-    its compilation and runs the compiled executable; the persistent cache is written and read
-    as without this context. Only the programs' compilation depends on the dry run, never a
-    result: a dry run that raises leaves the programs it started."""
+    the sum). On exit the context waits for the compilations it started; a later
+    :func:`cached_call` of the same program and shapes then runs the compiled executable
+    (nothing is compiled or loaded again), and the persistent cache is written and read as
+    without this context. Only the programs' compilation depends on the dry run, never a
+    result. A program already run in this process answers with zeros at once.
+    (docs/decisions.md S30)"""
     pool = ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="jaxcr-compile")
     _ahead.pool = pool
     try:
@@ -244,6 +246,12 @@ def compile_ahead(max_workers: int = 2) -> Iterator[None]:
     # (jaxcr._timing.CompileTimer, process-wide events) are then not mixed up with a program
     # still compiling in the pool
     pool.shutdown(wait=True)
+
+
+def programs_stored() -> bool:
+    """True when :func:`cached_call` keeps traced programs (the compilation cache is on): the
+    condition for :func:`compile_ahead` to queue anything (else a call runs its program)."""
+    return _folder() is not None
 
 
 def in_compile_ahead() -> bool:

@@ -20,8 +20,8 @@ import numpy as np
 
 from jaxcr._timing import CompileTimer
 from jaxcr.errors import InputError
-from jaxcr.io import results as R
 from jaxcr.io import exported
+from jaxcr.io import results as R
 from jaxcr.io.exported import FAST_COMPILE, cached_call
 from jaxcr.io.overlay import fig4_panel
 from jaxcr.kinematics.batch import forward_batch
@@ -304,7 +304,7 @@ class Segmenter:
         and counted as the first chunk's compile time. Only with the compilation cache on
         (else cached_call would run the programs)."""
         self._started = True
-        if exported._folder() is None:
+        if not exported.programs_stored():
             return 0.0
         t0 = time.perf_counter()
         keep = (self.compile_s, self.run_s, self.uncertainty_s, list(self.depth_ambiguous),
