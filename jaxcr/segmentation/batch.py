@@ -343,7 +343,11 @@ class Segmenter:
             fk = cached_call(forward_batch, self.ds.robot, qs, compiler_options=FAST_COMPILE)
             bgs, subs = [], []
             traces = None
-            if not self.bg_fns:  # --background plate: per frame, from the nominal base
+            if not self.bg_fns and dry:  # the dry run needs the shapes, not fk's plate traces
+                bgs = [jnp.asarray(np.zeros(im.shape[:3], bool)) for im in imgs_np]
+                subs = [jnp.asarray(im.astype(np.float32)) for im in imgs_np]
+                traces = []
+            elif not self.bg_fns:  # --background plate: per frame, from the nominal base
                 bgs, subs, traces = self._plate_backgrounds(fk, imgs_np)
             for k, cname in enumerate(self.cams):
                 if traces is not None:
@@ -449,7 +453,7 @@ class Segmenter:
                     "num_steps": int(fk_steps[i]),
                 },
             }
-            if traces is not None:
+            if traces:
                 rec["foreground"] = {
                     c: _trace_record(traces[k][i]) for k, c in enumerate(self.cams)
                 }
