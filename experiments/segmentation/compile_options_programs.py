@@ -13,7 +13,12 @@ difference of every output leaf to the default options' outputs.
 Run (from the repository root)::
 
     PYTHONPATH=$PWD python experiments/segmentation/compile_options_programs.py DATASET \
-        [--rounds 2] [--calls 3] [--name compile_options_programs] [-- segment options]
+        [--rounds 2] [--calls 3] [--name compile_options_programs] \
+        [--variant 'LABEL=OPTION:VALUE,...' ...] [--only NAME ...] [-- segment options]
+
+``--variant`` replaces the default variants (``default``, always measured, plus those given;
+values are parsed as JSON, else kept as strings); ``--only`` keeps the programs whose name
+contains one of the given strings.
 
 Writes experiments/results/segmentation/NAME.md and .json.
 """
@@ -35,6 +40,13 @@ VARIANTS = {
     "default": {},
     "legacy emitter": {"xla_cpu_use_fusion_emitters": False},
 }
+
+
+def _value(text: str):
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
 
 
 def capture(dataset: str, extra: list[str]) -> dict:
@@ -78,8 +90,17 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--calls", type=int, default=3)
     ap.add_argument("--name", default="compile_options_programs")
+    ap.add_argument("--variant", action="append", default=[])
+    ap.add_argument("--only", action="append", default=[])
     ap.add_argument("extra", nargs="*")
     a = ap.parse_args()
+    if a.variant:
+        VARIANTS.clear()
+        VARIANTS["default"] = {}
+        for v in a.variant:
+            label, _, opts = v.partition("=")
+            VARIANTS[label] = {k: _value(x) for k, _, x in (o.partition(":")
+                                                            for o in opts.split(","))}  # fmt: skip
     import jax
     import numpy as np
 
@@ -87,17 +108,20 @@ def main() -> int:
     programs = capture(a.dataset, a.extra)
     res: dict = {"command": " ".join(["python", *sys.argv]), "programs": {}}
     for name, (fn, args) in programs.items():
+        if a.only and not any(o in name for o in a.only):
+            continue
         make, leaves = flat_program(fn, args)
-        rows: dict = {v: {"compile_cpu": [], "call_cpu": [], "call_wall": [], "load": []}
+        rows: dict = {v: {"compile_cpu": [], "compile_wall": [], "call_cpu": [], "call_wall": [], "load": []}
                       for v in VARIANTS}  # fmt: skip
         ref = None
         for _ in range(a.rounds):
             for v, opts in VARIANTS.items():
                 rows[v]["load"].append(os.getloadavg()[0])
                 lowered = jax.jit(make(), compiler_options=opts or None).lower(*leaves)
-                c0 = time.process_time()
+                c0, t0 = time.process_time(), time.perf_counter()
                 exe = lowered.compile()
                 rows[v]["compile_cpu"].append(time.process_time() - c0)
+                rows[v]["compile_wall"].append(time.perf_counter() - t0)
                 out = jax.block_until_ready(exe(*leaves))
                 for _ in range(a.calls):
                     c0, t0 = time.process_time(), time.perf_counter()
@@ -126,14 +150,15 @@ def main() -> int:
         f"Reproduce: `PYTHONPATH=$PWD {res['command']}` (2-core CPU shared with other jobs; "
         f"variants interleaved, {a.rounds} round(s); medians; one call = the whole batch).",
         "",
-        "| program | options | compile CPU s | call CPU ms | call wall ms | max diff to default "
+        "| program | options | compile CPU s | compile wall s | call CPU ms | call wall ms | max diff to default "
         "(bool: pixels) | loads |",
-        "|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name, rows in res["programs"].items():
         for v, r in rows.items():
             lines.append(
                 f"| `{name}` | {v} `{VARIANTS[v]}` | {statistics.median(r['compile_cpu']):.2f} | "
+                f"{statistics.median(r['compile_wall']):.2f} | "
                 f"{1000 * statistics.median(r['call_cpu']):.1f} | "
                 f"{1000 * statistics.median(r['call_wall']):.1f} | {r['max_diff_to_default']:.3g} "
                 f"| {', '.join(f'{x:.1f}' for x in r['load'])} |"

@@ -20,12 +20,15 @@ be read or written is not an error: the function is then traced as usual.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import os
 import pickle
 import tempfile
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import equinox as eqx
@@ -36,8 +39,11 @@ FORMAT = b"jaxcr.exported/2\n"
 #: programs) into code that runs up to ~2x slower (the legacy loop emitter instead of the MLIR
 #: fusion emitters; docs/decisions.md T1 and S22): for programs that run rarely per process.
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
-_memo: dict[tuple, tuple[Callable, object, list]] = {}
+_memo: dict[tuple, tuple[Callable, object, list, list]] = {}
 _source_hash: str | None = None
+#: XLA compilations started by :func:`compile_ahead`, by memo key; a call waits for its own
+_compiling: dict[tuple, Future] = {}
+_ahead = threading.local()  # .pool: the compile_ahead pool of this thread, if inside one
 
 
 def _jaxcr_source_hash() -> str:
@@ -156,7 +162,7 @@ def cached_call(fn: Callable, *args, compiler_options: dict | None = None):
         flat.__name__ = flat.__qualname__ = short
         if folder is None:  # cache off: traced in this process, compiled with the options
             call = jax.jit(flat, compiler_options=dict(opts))
-            _memo[memo_key] = (call, None, out_box)
+            _memo[memo_key] = (call, None, out_box, [])
         else:
             path = os.path.join(folder, f"{name.rsplit('.', 1)[-1]}-{key}.jaxexport")
             try:
@@ -174,7 +180,80 @@ def cached_call(fn: Callable, *args, compiler_options: dict | None = None):
                     pass
             call = jax.jit(_named(exported.call, f"{short}_stored"),
                            compiler_options=dict(opts) or None)  # fmt: skip
-            _memo[memo_key] = (call, out_tree, out_box)
-    call, out_tree, out_box = _memo[memo_key]
+            _memo[memo_key] = (call, out_tree, out_box, [])
+    call, out_tree, out_box, ran = _memo[memo_key]
+    pool = getattr(_ahead, "pool", None)
+    if pool is not None:
+        if ran:  # compiled and run in this process already: only the outputs' shapes
+            tree = out_tree if out_tree is not None else out_box[-1]
+            return jax.tree_util.tree_unflatten(tree, [_zeros(*a) for a in ran])
+        return _start_compile(pool, memo_key, call, leaves, out_tree, out_box)
+    pending = _compiling.pop(memo_key, None)
+    if pending is not None:
+        # started ahead: wait for it (a failed compilation is compiled, and raises, again here)
+        with contextlib.suppress(Exception):
+            pending.result()
     out = call(*leaves)
+    if not ran:
+        ran.extend((x.shape, x.dtype, x.sharding) for x in out)
     return jax.tree_util.tree_unflatten(out_tree if out_tree is not None else out_box[-1], out)
+
+
+def _zeros(shape, dtype, sharding):
+    import numpy as np
+
+    return jax.device_put(np.zeros(shape, dtype), sharding)
+
+
+def _start_compile(pool, memo_key, call, leaves, out_tree, out_box):
+    """Lower ``call`` for ``leaves`` here (a thin wrapper of a stored program; with the cache off
+    this traces), start its XLA compilation in ``pool`` and return zeros shaped as its outputs."""
+    lowered = call.lower(*leaves)
+    if memo_key not in _compiling:
+        _compiling[memo_key] = pool.submit(lowered.compile)
+    # placed as the program's real outputs (committed to their device): a later program that
+    # takes them lowers, and is keyed in the persistent cache, as in the real run
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    zeros = [_zeros(a.shape, a.dtype, a.sharding or device)
+             for a in jax.tree_util.tree_leaves(lowered.out_info)]  # fmt: skip
+    return jax.tree_util.tree_unflatten(out_tree if out_tree is not None else out_box[-1], zeros)
+
+
+@contextlib.contextmanager
+def compile_ahead(max_workers: int = 2) -> Iterator[None]:
+    """Inside this context (in this thread) :func:`cached_call` does not run its program: it
+    loads or traces the program and lowers it as usual, starts XLA's compilation in a pool of
+    ``max_workers`` threads and returns zeros of the program's output shapes, so code run
+    inside (a dry run of the real work on any inputs of the right shapes) queues every program
+    it would compile. XLA compiles without Python's lock, so the programs compile side by side
+    (on a machine with several cores the first process waits for about the largest program, not
+    the sum). On exit the context waits for the compilations it started; a later
+    :func:`cached_call` of the same program and shapes then runs the compiled executable
+    (nothing is compiled or loaded again), and the persistent cache is written and read as
+    without this context. Only the programs' compilation depends on the dry run, never a
+    result. A program already run in this process answers with zeros at once.
+    (docs/decisions.md S30)"""
+    pool = ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix="jaxcr-compile")
+    _ahead.pool = pool
+    try:
+        yield
+    except BaseException:  # e.g. Ctrl-C: drop what has not started
+        _ahead.pool = None
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    _ahead.pool = None
+    # every queued compilation finishes before the real run starts: its compile and run times
+    # (jaxcr._timing.CompileTimer, process-wide events) are then not mixed up with a program
+    # still compiling in the pool
+    pool.shutdown(wait=True)
+
+
+def programs_stored() -> bool:
+    """True when :func:`cached_call` keeps traced programs (the compilation cache is on): the
+    condition for :func:`compile_ahead` to queue anything (else a call runs its program)."""
+    return _folder() is not None
+
+
+def in_compile_ahead() -> bool:
+    """True inside :func:`compile_ahead` in this thread (a dry run: results are zeros)."""
+    return getattr(_ahead, "pool", None) is not None

@@ -10,6 +10,7 @@ whose results are discarded), so the whole run compiles once.
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from jaxcr._timing import CompileTimer
 from jaxcr.errors import InputError
+from jaxcr.io import exported
 from jaxcr.io import results as R
 from jaxcr.io.exported import FAST_COMPILE, cached_call
 from jaxcr.io.overlay import fig4_panel
@@ -180,6 +182,7 @@ class Segmenter:
         self._coeffs_prev = None  # warm start carried across chunks
         self._cam_prev = None  # and the camera-pose correction with it
         self._hess_prev = None  # and the solver's inverse Hessian
+        self._started = False  # the first chunk's programs were queued (_compile_ahead)
 
     def _roi_arg(self, bases) -> tuple[int, int] | str | None:
         """``refine_sequence``'s ``roi`` for this chunk's tracked frames (``self.roi``:
@@ -321,9 +324,37 @@ class Segmenter:
                 clean_leftovers(self.layout.root)
         return stats
 
-    def _process_chunk(self, chunk: list[tuple[str, list[np.ndarray]]]):
+    def _compile_ahead(self, chunk) -> float:
+        """Before the first chunk: a dry run of it inside :func:`jaxcr.io.exported.compile_ahead`,
+        which queues the kinematics, the refinement and the covariance for XLA side by side
+        (each program's stored trace is loaded or traced and lowered here, one after the other;
+        XLA then compiles them in two threads) instead of one after the other as the real chunk
+        reaches each. The dry run's values (zeros) are discarded; no file is written, no
+        result or timer kept: its wall seconds (tracing, lowering, waiting for XLA) are returned
+        and counted as the first chunk's compile time. Only with the compilation cache on
+        (else cached_call would run the programs)."""
+        self._started = True
+        if not exported.programs_stored():
+            return 0.0
+        t0 = time.perf_counter()
+        keep = (self.compile_s, self.run_s, self.uncertainty_s, list(self.depth_ambiguous),
+                self._coeffs_prev, self._cam_prev, self._hess_prev, self.warn)  # fmt: skip
+        self.warn = None
+        try:
+            with exported.compile_ahead():
+                for _ in self._process_chunk(chunk, dry=True):
+                    pass
+        except Exception:  # the real chunk will compile, and report, whatever failed here
+            pass
+        finally:
+            (self.compile_s, self.run_s, self.uncertainty_s, self.depth_ambiguous,
+             self._coeffs_prev, self._cam_prev, self._hess_prev, self.warn) = keep  # fmt: skip
+        return time.perf_counter() - t0
+
+    def _process_chunk(self, chunk: list[tuple[str, list[np.ndarray]]], dry: bool = False):
         from jaxcr.segmentation.refine import FAILURES, refine_batch, refine_sequence
 
+        ahead_s = 0.0 if self._started else self._compile_ahead(chunk)
         n = len(chunk)
         # pad at the end (results discarded): one compiled shape for the whole run
         full = chunk + [chunk[-1]] * (self.batch_size - n)
@@ -342,7 +373,11 @@ class Segmenter:
             fk = cached_call(forward_batch, self.ds.robot, qs, compiler_options=FAST_COMPILE)
             bgs, subs = [], []
             traces = None
-            if not self.bg_fns:  # --background plate: per frame, from the nominal base
+            if not self.bg_fns and dry:  # the dry run needs the shapes, not fk's plate traces
+                bgs = [jnp.asarray(np.zeros(im.shape[:3], bool)) for im in imgs_np]
+                subs = [jnp.asarray(im.astype(np.float32)) for im in imgs_np]
+                traces = []
+            elif not self.bg_fns:  # --background plate: per frame, from the nominal base
                 bgs, subs, traces = self._plate_backgrounds(fk, imgs_np)
             for k, cname in enumerate(self.cams):
                 if traces is not None:
@@ -376,10 +411,10 @@ class Segmenter:
                     jit_call=cached_call,
                 )
             res = jax.block_until_ready(res)
-        self.compile_s += timer.compile_s
+        self.compile_s += timer.compile_s + ahead_s
         self.run_s += timer.run_s
         per_frame = timer.run_s / B
-        compile_share = timer.compile_s / max(n, 1)
+        compile_share = (timer.compile_s + ahead_s) / max(n, 1)
         unc, unc_per_frame = None, 0.0
         if self.uncertainty:
             from jaxcr.segmentation.uncertainty import shape_uncertainty_batch
@@ -449,7 +484,7 @@ class Segmenter:
                     "num_steps": int(fk_steps[i]),
                 },
             }
-            if traces is not None:
+            if traces:
                 rec["foreground"] = {
                     c: _trace_record(traces[k][i]) for k, c in enumerate(self.cams)
                 }
@@ -458,7 +493,7 @@ class Segmenter:
                 rec["camera_correction"] = {c: cc[i][k].tolist() for k, c in enumerate(self.cams)}
             if ok and unc is not None:
                 rec["uncertainty"] = self._uncertainty_record(fid, unc, i, unc_per_frame)
-            if ok and np.all(np.isfinite(host.centreline.p[i])):
+            if ok and not dry and np.all(np.isfinite(host.centreline.p[i])):
                 rec["files"] = self._write_frame_files(
                     fid, frame, images, host, i, bgs_np, nominal_p[i]
                 )

@@ -297,13 +297,15 @@ def test_warm_start_carries_coefficients_and_camera_correction(dataset, tmp_path
     """--warm-start: each chunk's refine_sequence starts from the previous chunk's last good
     frame, both its delta-u coefficients and its camera-pose correction (physical units)."""
     import jaxcr.segmentation.refine as refine_mod
+    from jaxcr.io import exported
 
     calls = []
     real = refine_mod.refine_sequence
 
     def spy(*args, **kw):
         res = real(*args, **kw)
-        calls.append((kw.get("init"), kw.get("init_cam"), res, kw.get("roi")))
+        if not exported.in_compile_ahead():  # not the first chunk's dry run (zeros)
+            calls.append((kw.get("init"), kw.get("init_cam"), res, kw.get("roi")))
         return res
 
     monkeypatch.setattr(refine_mod, "refine_sequence", spy)

@@ -134,3 +134,50 @@ def test_kinematics_round_trip_equals_the_direct_call(folder):
     assert type(out) is type(ref)
     np.testing.assert_array_equal(np.asarray(out.ok), np.asarray(ref.ok))
     np.testing.assert_allclose(out.centreline.p, ref.centreline.p, rtol=1e-6, atol=1e-9)
+
+
+def _chain(x, p):
+    """Two stored programs, the second taking the first's output (as segment's refinement
+    takes the kinematics')."""
+    first = exported.cached_call(_poly, p, x, "plain")
+    return first, exported.cached_call(_poly, Params(first["y"], 3), x, "negated")
+
+
+def test_compile_ahead_compiles_each_program_once_and_gives_the_sequential_results(folder):
+    """A dry run inside compile_ahead returns zeros of the programs' output shapes and starts
+    their XLA compilation; the real run then compiles nothing more (no backend compile nor
+    cache load of a stored program: the zeros are placed as real outputs, so the second
+    program lowers as in the real run) and its results are those of the sequential path bit
+    for bit (the same stored programs and executables' arithmetic)."""
+    import jax.monitoring as monitoring
+
+    p, x = Params(jnp.arange(4.0), 2), jnp.linspace(0.0, 1.0, 4)
+    seq = _chain(x, p)  # the sequential path, in a "process" of its own
+    exported._memo.clear()
+    compiled = []
+
+    def listener(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(kw.get("fun_name"))
+
+    with exported.compile_ahead():
+        dry = _chain(x, p)
+    assert jax.tree.structure(dry) == jax.tree.structure(seq)
+    for d, s in zip(jax.tree.leaves(dry), jax.tree.leaves(seq), strict=True):
+        assert d.shape == s.shape and d.dtype == s.dtype and not np.any(np.asarray(d))
+    for fut in list(exported._compiling.values()):
+        fut.result()
+    monitoring.register_event_duration_secs_listener(listener)
+    try:
+        real = _chain(x, p)
+    finally:
+        monitoring.unregister_event_duration_listener(listener)
+    assert not [n for n in compiled if "_stored" in str(n)], compiled
+    assert not exported._compiling
+    for r, s in zip(jax.tree.leaves(real), jax.tree.leaves(seq), strict=True):
+        np.testing.assert_array_equal(np.asarray(r), np.asarray(s))
+    # a second dry run in the same process (a new Segmenter): nothing is lowered or queued
+    with exported.compile_ahead():
+        again = _chain(x, p)
+    assert not exported._compiling
+    assert jax.tree.structure(again) == jax.tree.structure(seq)
