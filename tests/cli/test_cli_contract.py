@@ -470,6 +470,26 @@ def test_pickled_npy_is_refused_with_one_line(tmp_path, capsys):
     assert "000000.npy" in str(exc.value) and "\n" not in str(exc.value)
 
 
+def test_every_np_load_in_the_package_says_allow_pickle_false():
+    """Item 8 asks for an explicit ``allow_pickle=False`` on every ``np.load``: the audit
+    (experiments/contract_audit.py, item 8) found ``jaxcr/cli/fk.py`` reading its part files
+    with numpy's default. A scan of the source, so a new call cannot rely on the default."""
+    import re
+
+    pkg = Path(__file__).resolve().parents[2] / "jaxcr"
+    missing = []
+    for f in sorted(pkg.rglob("*.py")):
+        src = f.read_text()
+        for m in re.finditer(r"\bnp\.load\(", src):
+            depth, i = 1, m.end()
+            while depth and i < len(src):  # the call's text up to its closing parenthesis
+                depth += {"(": 1, ")": -1}.get(src[i], 0)
+                i += 1
+            if not re.search(r"allow_pickle\s*=\s*False", src[m.start() : i]):
+                missing.append(f"{f.relative_to(pkg.parent)}:{src.count(chr(10), 0, m.start()) + 1}")
+    assert not missing, missing
+
+
 def test_cli_prints_the_library_warnings_on_stderr(monkeypatch, capsys):
     """The library warns on the ``jaxcr`` logger (a stale lock, an unwritable compile cache);
     jaxcr.cli.main prints each as one stderr line, and stops printing when it returns."""
