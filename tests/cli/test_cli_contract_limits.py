@@ -75,6 +75,17 @@ def test_huge_sizes_are_refused_before_work(tmp_path, monkeypatch, capsys, argv,
     assert not (tmp_path / "o").exists()
 
 
+def test_model_object_synth_floor_is_checked_before_out_is_created(tmp_path, monkeypatch, capsys):
+    """The audit (experiments/contract_audit.py, item 3) found `model-object synth --size 8x8`
+    refused only by the scene generator, after OUT had been created and claimed: an owned,
+    empty folder was left behind. The 32x24 floor is now checked with the ceiling."""
+    _forbid(monkeypatch, "jaxcr.synth.rgbd_tasks", "generate_task")
+    assert main(["model-object", "synth", "--size", "8x8", "-o", str(tmp_path / "o")]) == 2
+    line = _one_line(capsys)
+    assert "field 'size'" in line and "the minimum is 32x24" in line, line
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize(
     ("argv", "target", "expect"),
     [
