@@ -161,6 +161,22 @@ def _cameras(text: str) -> tuple[str, str]:
     return cams  # type: ignore[return-value]
 
 
+def _check_grid_early(ds, cfg) -> None:
+    """The --step ceiling before any image is read: the grid over the box of every frame's
+    parameters (a superset of the frames training keeps, so never laxer than the check in
+    build_manifold, which still runs). A frame without parameters is left to that later
+    check's own error."""
+    from jaxcr.eigen.manifold import check_grid
+    from jaxcr.eigen.model import DEFAULT_STEP
+
+    try:
+        P = _params(ds, cfg.params, ds.frames)
+    except InputError:
+        return
+    if len(P):
+        check_grid(P, DEFAULT_STEP[cfg.params] if cfg.step is None else cfg.step)
+
+
 def run_train(args) -> int:
     from jaxcr.eigen.colour import fit_colour_model
     from jaxcr.eigen.model import TrainConfig, train
@@ -200,6 +216,7 @@ def run_train(args) -> int:
                 f"marker colour must be r,g,b in [0, 1], got {args.marker_rgb!r}",
                 field="marker-rgb",
             ) from None
+    _check_grid_early(ds, cfg)
     t0 = time.perf_counter()
     colour = fit_colour_model(
         _colour_image(ds, args.colour_frame, cams[0]),

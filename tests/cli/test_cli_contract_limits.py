@@ -254,6 +254,22 @@ def test_manifold_train_options_refuse_nan(kw, field):
     assert exc.value.field == field
 
 
+def test_manifold_train_step_ceiling_is_checked_before_any_image(tmp_path, monkeypatch, capsys):
+    """The audit (experiments/contract_audit.py, item 3) found `manifold train --step 1e-9`
+    refused only after the colour model and every frame's contours were computed (a progress
+    line, then the error: two lines, work done). The grid is now checked on the dataset's
+    parameters before any image is read."""
+    from jaxcr.synth.irep import generate_irep
+
+    generate_irep(tmp_path / "d", 3, "train", 0, (32, 24), progress=False)
+    _forbid(monkeypatch, "jaxcr.eigen.colour", "fit_colour_model")
+    model = tmp_path / "m.npz"
+    assert main(["manifold", "train", str(tmp_path / "d"), "-o", str(model), "--step", "1e-9"]) == 2
+    line = _one_line(capsys)
+    assert "field 'step'" in line and "over the limit of 5000000" in line, line
+    assert not model.exists()
+
+
 def test_manifold_step_grid_ceiling(monkeypatch):
     """A tiny --step resampled a grid of billions of points; refused before the spline fit."""
     from jaxcr.eigen import manifold as M
