@@ -486,7 +486,9 @@ def test_every_np_load_in_the_package_says_allow_pickle_false():
                 depth += {"(": 1, ")": -1}.get(src[i], 0)
                 i += 1
             if not re.search(r"allow_pickle\s*=\s*False", src[m.start() : i]):
-                missing.append(f"{f.relative_to(pkg.parent)}:{src.count(chr(10), 0, m.start()) + 1}")
+                missing.append(
+                    f"{f.relative_to(pkg.parent)}:{src.count(chr(10), 0, m.start()) + 1}"
+                )
     assert not missing, missing
 
 
