@@ -1722,7 +1722,36 @@ def main(argv=None) -> int:
         "--report", type=Path, default=REPO / "experiments" / "results" / "issue17_audit.md"
     )
     ap.add_argument("--json", type=Path, default=None, help="also write the rows as JSON")
+    ap.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="write one report from the --json files of runs of parts (no case is run)",
+    )
     args = ap.parse_args(argv)
+    if args.merge:
+        a = Audit(Path(tempfile.mkdtemp(prefix="jaxcr-audit-")))
+        cpu = wall = 0.0
+        for f in args.merge:
+            part = json.loads(f.read_text())
+            a.rows += part["rows"]
+            cpu += part["cpu_s"]
+            wall += part["wall_s"]
+        a.rows.sort(key=lambda r: r["item"])
+        write_report(
+            a,
+            args.report,
+            [
+                "python",
+                "experiments/contract_audit.py",
+                *(argv if argv is not None else sys.argv[1:]),
+            ],
+            cpu,
+            wall,
+        )
+        shutil.rmtree(a.S, ignore_errors=True)
+        return 0
     scratch = args.scratch or Path(tempfile.mkdtemp(prefix="jaxcr-audit-"))
     scratch.mkdir(parents=True, exist_ok=True)
     a = Audit(scratch.resolve())
@@ -1754,7 +1783,9 @@ def main(argv=None) -> int:
         time.monotonic() - t0,
     )
     if args.json:
-        args.json.write_text(json.dumps(a.rows, indent=1, default=str))
+        args.json.write_text(
+            json.dumps({"rows": a.rows, "cpu_s": cpu, "wall_s": time.monotonic() - t0}, default=str)
+        )
     counted = [r for r in a.rows if r["held"] is not None]
     print(
         f"tried {len(counted)}, held {sum(r['held'] for r in counted)}, broken "

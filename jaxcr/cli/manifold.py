@@ -162,10 +162,10 @@ def _cameras(text: str) -> tuple[str, str]:
 
 
 def _check_grid_early(ds, cfg) -> None:
-    """The --step ceiling before any image is read: the grid over the box of every frame's
-    parameters (a superset of the frames training keeps, so never laxer than the check in
-    build_manifold, which still runs). A frame without parameters is left to that later
-    check's own error."""
+    """The --step and --neighbours ceilings before any image is read: the grid over the box
+    of every frame's parameters (a superset of the frames training keeps, so never laxer than
+    the checks after training, which still run) bounds the manifold's points. A frame without
+    parameters is left to the later checks' own errors."""
     from jaxcr.eigen.manifold import check_grid
     from jaxcr.eigen.model import DEFAULT_STEP
 
@@ -174,7 +174,13 @@ def _check_grid_early(ds, cfg) -> None:
     except InputError:
         return
     if len(P):
-        check_grid(P, DEFAULT_STEP[cfg.params] if cfg.step is None else cfg.step)
+        n_grid = check_grid(P, DEFAULT_STEP[cfg.params] if cfg.step is None else cfg.step)
+        if cfg.b > n_grid:  # the resampled manifold keeps at most the grid's points
+            raise InputError(
+                f"must be at most the manifold's points (at most {int(n_grid)}: the --step "
+                f"grid over the training parameters), got {cfg.b}",
+                field="neighbours",
+            )
 
 
 def run_train(args) -> int:

@@ -81,9 +81,10 @@ def resample(
     return Manifold(psi=jnp.asarray(grid, jnp.float32), features=jnp.asarray(feats, jnp.float32))
 
 
-def check_grid(psi, step) -> None:
+def check_grid(psi, step) -> float:
     """Refuse (InputError, field ``step``) a resampling ``step`` whose grid over the box of the
-    parameters ``psi`` (n, d) would exceed :data:`jaxcr.limits.MAX_MANIFOLD_POINTS` points."""
+    parameters ``psi`` (n, d) would exceed :data:`jaxcr.limits.MAX_MANIFOLD_POINTS` points.
+    Returns the grid's number of points (an upper bound of the resampled manifold's)."""
     from jaxcr.limits import MAX_MANIFOLD_POINTS
 
     psi = np.asarray(psi, np.float64)
@@ -95,6 +96,7 @@ def check_grid(psi, step) -> None:
             f"parameters, over the limit of {MAX_MANIFOLD_POINTS}",
             field="step",
         )
+    return n_grid
 
 
 def build_manifold(

@@ -268,6 +268,12 @@ def test_manifold_train_step_ceiling_is_checked_before_any_image(tmp_path, monke
     line = _one_line(capsys)
     assert "field 'step'" in line and "over the limit of 5000000" in line, line
     assert not model.exists()
+    # --neighbours over the grid's points (an upper bound of the manifold's) likewise
+    assert main(["manifold", "train", str(tmp_path / "d"), "-o", str(model),
+                 "--neighbours", "1000000000"]) == 2  # fmt: skip
+    line = _one_line(capsys)
+    assert "field 'neighbours': must be at most the manifold's points" in line, line
+    assert not model.exists()
 
 
 def test_manifold_step_grid_ceiling(monkeypatch):
