@@ -127,8 +127,15 @@ def _load_centreline(out: Path, rel: str) -> np.ndarray:
         raise InputError(f"missing output file {rel}", file=str(out)) from None
     except (OSError, ValueError, EOFError) as err:
         raise InputError(f"not a readable .npy file ({err})", file=str(out / rel)) from None
-    if arr.ndim != 2 or arr.shape[1] != 3 or not np.issubdtype(arr.dtype, np.number):
-        raise InputError(f"expected an (N, 3) array, got {arr.dtype} {arr.shape}",
+    # N >= 2: a tip and a mean error need points (an empty (0, 3) array was an IndexError
+    # traceback in the audit, experiments/contract_audit.py item 4)
+    if (
+        arr.ndim != 2
+        or arr.shape[1] != 3
+        or arr.shape[0] < 2
+        or not np.issubdtype(arr.dtype, np.number)
+    ):
+        raise InputError(f"expected an (N, 3) array with N >= 2, got {arr.dtype} {arr.shape}",
                          file=str(out / rel))  # fmt: skip
     if not np.all(np.isfinite(arr)):
         # a NaN/inf centreline has no error to average: the frame fails (never a NaN that the

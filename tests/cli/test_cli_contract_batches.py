@@ -80,6 +80,14 @@ def test_evaluate_nan_centreline_is_a_failed_frame(tmp_path, capsys):
         assert rows["000000"]["ok"] == rows["000002"]["ok"] == "True"
         md = (out / "table2.md").read_text()
         assert "averages are over 2 of 3 frames (1 failed)" in md
+    # an empty or one-point centreline has no tip and no mean error: failed, no traceback
+    # (the audit, experiments/contract_audit.py item 4: an IndexError traceback)
+    for bad in (np.zeros((0, 3)), np.zeros((1, 3))):
+        np.save(out / "centrelines" / "000001.npy", bad)
+        assert main(["evaluate", str(out), "--no-plot"]) == 1
+        _stderr_lines(capsys)
+        reason = _per_frame(out)["000001"]["reason"]
+        assert "000001.npy" in reason and "N >= 2" in reason, reason
 
 
 @pytest.mark.parametrize(
