@@ -212,7 +212,7 @@ class OutputEvaluator:
                 where = f" (line {line})" if line is not None else ""
                 raise InputError(f"an ok record of a frame the dataset does not have{where}",
                                  file=str(layout.results), frame=fid, field="frame")  # fmt: skip
-            if rec.get("ok") and "files" not in rec:
+            if rec.get("ok") and not rec.get("files"):  # missing, null or {} (audit item 4)
                 where = f" (line {line})" if line is not None else ""
                 raise InputError(f"an ok record without its output files{where}",
                                  file=str(layout.results), frame=fid, field="files")  # fmt: skip

@@ -99,6 +99,8 @@ def test_evaluate_nan_centreline_is_a_failed_frame(tmp_path, capsys):
         {"masks": {"main": 7}},  # a path that is not a string
         {"centreline": ["c.npy"]},
         {"masks": {"main": "../../etc/passwd"}},  # outside OUT
+        None,  # null: was evaluated as an ok frame with nothing compared (audit item 4)
+        {},
     ],
 )
 def test_evaluate_malformed_files_field_fails_that_frame(tmp_path, capsys, files):
