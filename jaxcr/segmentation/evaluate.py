@@ -208,9 +208,12 @@ class OutputEvaluator:
         rows: list[dict] = []
         try:  # a damaged output file of this frame fails this frame only
             line = self.record_lines.get(fid)
-            if rec.get("ok") and frame is None:
+            # a failed record of an unknown frame too (the audit, item 4: `{"frame": 3}` was a
+            # failed frame without a reason); the dataset's bad frames have records of their own
+            if frame is None and (rec.get("ok") or fid not in ds.bad_frames):
                 where = f" (line {line})" if line is not None else ""
-                raise InputError(f"an ok record of a frame the dataset does not have{where}",
+                ok = "an ok" if rec.get("ok") else "a"
+                raise InputError(f"{ok} record of a frame the dataset does not have{where}",
                                  file=str(layout.results), frame=fid, field="frame")  # fmt: skip
             if rec.get("ok") and not rec.get("files"):  # missing, null or {} (audit item 4)
                 where = f" (line {line})" if line is not None else ""

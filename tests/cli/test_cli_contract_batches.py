@@ -122,6 +122,21 @@ def test_evaluate_malformed_files_field_fails_that_frame(tmp_path, capsys, files
     assert rows["000000"]["ok"] == rows["000002"]["ok"] == "True"
 
 
+def test_evaluate_record_of_an_unknown_frame_says_why_it_failed(tmp_path, capsys):
+    """The audit (experiments/contract_audit.py, item 4): a record `{"frame": 3}` (no ok, an id
+    the dataset does not have) was a failed frame with an empty reason."""
+    root = make_dataset(tmp_path / "d", n_frames=2)
+    out = tmp_path / "run"
+    recs = [{"frame": f"{k:06d}", "ok": True} for k in range(2)]
+    _fake_run(root, out, recs)
+    with open(out / "results.jsonl", "a") as f:
+        f.write('{"frame": 3}\n')
+    assert main(["evaluate", str(out), "--no-plot"]) == 1
+    _stderr_lines(capsys)
+    reason = _per_frame(out)["3"]["reason"]
+    assert "results.jsonl" in reason and "line 3" in reason and "does not have" in reason, reason
+
+
 def test_evaluate_incomplete_run_exits_1_with_the_missing_count(tmp_path, capsys):
     """5 of 12 records and no DONE marker exited 0 (a stderr warning only)."""
     root = make_dataset(tmp_path / "d", n_frames=12)
