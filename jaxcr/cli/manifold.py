@@ -122,7 +122,9 @@ def add_parser(subparsers) -> None:
     s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     s.set_defaults(func=run_synth)
-    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+    # no ACTION is bad usage: one line and "see --help", as every other command (issue 17 item
+    # 6; the audit, experiments/contract_audit.py, found the whole help on stdout, exit 2)
+    p.set_defaults(func=lambda a: p.error("the following arguments are required: ACTION"))
 
 
 def _load(path):
