@@ -1325,6 +1325,7 @@ def item6(a: Audit):
         ("demo", ["demo", "--frames", "x"]),
         ("warmup", ["warmup"]),
         ("jaxcr", ["nope"]),
+        ("jaxcr", []),
         ("jaxcr", ["--bogus"]),
         ("stereo synth", ["stereo", "synth", "-o", "x", "--size", "big"]),
     ]
