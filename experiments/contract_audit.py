@@ -1330,11 +1330,13 @@ def item6(a: Audit):
         ("stereo synth", ["stereo", "synth", "-o", "x", "--size", "big"]),
     ]
     for _label, argv in usage:
+        # argparse's errors point at --help; a value checked after parsing (a bad WxH) is bad
+        # input instead: one line naming the flag
         a.case(
             6,
             f"bad usage: jaxcr {' '.join(map(str, argv))[:50]}",
             argv,
-            must=("--help",),
+            must=("size",) if "big" in argv else ("--help",),
             cwd=a.fresh(f"i6/u{abs(hash(tuple(map(str, argv)))) % 10**6}").parent,
         )
     # a truncated PNG in a dataset: the frame fails, no libpng noise
