@@ -408,6 +408,46 @@ def test_full_disk_names_the_file(tmp_path, monkeypatch, capsys):
     assert os.listdir(path.parent) == []  # the temporary file is removed
 
 
+def test_png_writers_name_the_file_on_a_full_disk(tmp_path, monkeypatch):
+    """The audit (experiments/contract_audit.py, item 6, a 48 kB tmpfs as OUT): `synth` said
+    'file system: No space left on device' (jaxcr.io.images.write_png), `stereo synth` and
+    `motion synth` let libpng print 'Write Error' lines (cv2.imwrite, its False unchecked)."""
+    from jaxcr.io import images
+    from jaxcr.synth import motion_scenes, stereo_ctr
+
+    class Full:
+        def __init__(self, *a, **k):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *a):
+            return False
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    path = tmp_path / "a" / "000.png"
+    monkeypatch.setattr(images, "open", Full, raising=False)
+    with pytest.raises(OSError) as exc:
+        images.write_png(path, np.zeros((4, 4), np.uint8))
+    assert exc.value.filename == str(path) and exc.value.errno == errno.ENOSPC
+    assert os.listdir(path.parent) == []  # the temporary file is removed
+    monkeypatch.undo()
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    for write in (stereo_ctr._write_png, motion_scenes._write_png):
+        path = tmp_path / write.__module__.rsplit(".", 1)[1] / "000.png"
+        with pytest.raises(OSError) as exc:
+            write(path, np.zeros((4, 4, 3), np.uint8))
+        assert exc.value.filename == str(path) and exc.value.errno == errno.ENOSPC
+        assert os.listdir(path.parent) == []
+
+
 # ----------------------------------------------------------------------------- item 7
 
 
