@@ -225,6 +225,11 @@ def run_train(args) -> int:
                 field="marker-rgb",
             ) from None
     _check_grid_early(ds, cfg)
+    from jaxcr.cli._common import check_writable_folder
+
+    # the model's folder before the descriptors (the audit, item 6: a read-only folder failed
+    # only at the end, after every frame's contours)
+    check_writable_folder(os.path.dirname(os.path.abspath(args.out)), "model folder")
     t0 = time.perf_counter()
     colour = fit_colour_model(
         _colour_image(ds, args.colour_frame, cams[0]),

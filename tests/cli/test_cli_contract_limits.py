@@ -274,6 +274,14 @@ def test_manifold_train_step_ceiling_is_checked_before_any_image(tmp_path, monke
     line = _one_line(capsys)
     assert "field 'neighbours': must be at most the manifold's points" in line, line
     assert not model.exists()
+    # a model folder that cannot be written is refused first too (the audit's item 6: a
+    # read-only folder failed after every frame's contours); a file stands in for the folder
+    # (root ignores a read-only mode)
+    (tmp_path / "file").write_text("")
+    bad = tmp_path / "file" / "m.npz"
+    assert main(["manifold", "train", str(tmp_path / "d"), "-o", str(bad)]) == 2
+    line = _one_line(capsys)
+    assert "model folder exists and is not a folder" in line and str(tmp_path / "file") in line
 
 
 def test_manifold_step_grid_ceiling(monkeypatch):
