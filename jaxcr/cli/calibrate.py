@@ -247,6 +247,10 @@ def run(args) -> int:
         )
     if len(lf) != len(rf):
         raise InputError(f"{len(lf)} left but {len(rf)} right images")
+    from jaxcr.cli._common import check_writable_folder
+
+    # before the detection and the fit (the audit, experiments/contract_audit.py item 6)
+    check_writable_folder(os.path.dirname(os.path.abspath(args.out)), "output folder")
     from jaxcr.io.images import read_raw
 
     # checked reader: names the file, never decodes a header declaring > MAX_PIXELS pixels
