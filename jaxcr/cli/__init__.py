@@ -214,9 +214,8 @@ def main(argv: list[str] | None = None) -> int:
             _quiet_warnings(state)
             parser = build_parser()
             args = parser.parse_args(argv)
-            if not getattr(args, "func", None):
-                parser.print_help()
-                return 2
+            if not getattr(args, "func", None):  # bare `jaxcr`: one line, as all bad usage
+                parser.error("the following arguments are required: COMMAND")
             state["command"] = args.command
             return _run(args)
     finally:

@@ -45,3 +45,21 @@ def check_robot_placed(ds, cams) -> None:
                 file=str(Path(ds.root) / "dataset.json"),
                 field=f"cameras.{c}.T_cam_robot",
             )
+
+
+def check_writable_folder(path: str, what: str) -> None:
+    """Create folder ``path`` if needed and check a file can be written there, before any
+    long work (an InputError naming it otherwise)."""
+    import os
+    import tempfile
+
+    from jaxcr.errors import InputError
+
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise InputError(f"{what} exists and is not a folder", file=path)
+    try:
+        os.makedirs(path, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as err:
+        raise InputError(f"{what} is not writable ({err.strerror or err})", file=path) from None

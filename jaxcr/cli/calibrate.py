@@ -232,6 +232,13 @@ def _print_report(res: dict, lf: list[str], rf: list[str]) -> None:
 def run(args) -> int:
     if args.cols < 2 or args.rows < 2:
         raise InputError("--cols and --rows must be >= 2")
+    from jaxcr.limits import MAX_SIDE, check_count
+
+    # a ceiling (the audit, experiments/contract_audit.py item 3: --cols 100000 ran the
+    # detection): a board square spans >= 4 px for OpenCV's detectors, so at most
+    # MAX_SIDE / 4 squares (one more than the corners) fit the largest image
+    for flag, v in (("cols", args.cols), ("rows", args.rows)):
+        check_count(v, flag, 2, MAX_SIDE // 4 - 1, "a square of at least 4 px in 8192 px")
     square = spacing_from_args(args.pattern, args.pitch, args.square)
     for name, v in (("--max-rms", args.max_rms), ("--max-std", args.max_std),
                     ("--plate-threshold", args.plate_threshold)):  # fmt: skip
@@ -247,6 +254,10 @@ def run(args) -> int:
         )
     if len(lf) != len(rf):
         raise InputError(f"{len(lf)} left but {len(rf)} right images")
+    from jaxcr.cli._common import check_writable_folder
+
+    # before the detection and the fit (the audit, experiments/contract_audit.py item 6)
+    check_writable_folder(os.path.dirname(os.path.abspath(args.out)), "output folder")
     from jaxcr.io.images import read_raw
 
     # checked reader: names the file, never decodes a header declaring > MAX_PIXELS pixels

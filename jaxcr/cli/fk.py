@@ -216,7 +216,7 @@ def assemble(out: Path, q: np.ndarray, records: dict[str, dict], n_points: int) 
         if part:
             by_part.setdefault(part, []).append(i)
     for part, rows in by_part.items():
-        with np.load(out / part) as z:
+        with np.load(out / part, allow_pickle=False) as z:
             where = {int(r): j for j, r in enumerate(z["rows"])}
             for k in ARRAYS:
                 v = z[k]

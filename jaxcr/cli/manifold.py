@@ -122,7 +122,9 @@ def add_parser(subparsers) -> None:
     s.add_argument("--seed", type=_seed, default=0)
     s.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     s.set_defaults(func=run_synth)
-    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+    # no ACTION is bad usage: one line and "see --help", as every other command (issue 17 item
+    # 6; the audit, experiments/contract_audit.py, found the whole help on stdout, exit 2)
+    p.set_defaults(func=lambda a: p.error("the following arguments are required: ACTION"))
 
 
 def _load(path):
@@ -159,6 +161,28 @@ def _cameras(text: str) -> tuple[str, str]:
     if len(cams) != 2:
         raise InputError(f"need exactly two cameras, got {text!r}", field="cameras")
     return cams  # type: ignore[return-value]
+
+
+def _check_grid_early(ds, cfg) -> None:
+    """The --step and --neighbours ceilings before any image is read: the grid over the box
+    of every frame's parameters (a superset of the frames training keeps, so never laxer than
+    the checks after training, which still run) bounds the manifold's points. A frame without
+    parameters is left to the later checks' own errors."""
+    from jaxcr.eigen.manifold import check_grid
+    from jaxcr.eigen.model import DEFAULT_STEP
+
+    try:
+        P = _params(ds, cfg.params, ds.frames)
+    except InputError:
+        return
+    if len(P):
+        n_grid = check_grid(P, DEFAULT_STEP[cfg.params] if cfg.step is None else cfg.step)
+        if cfg.b > n_grid:  # the resampled manifold keeps at most the grid's points
+            raise InputError(
+                f"must be at most the manifold's points (at most {int(n_grid)}: the --step "
+                f"grid over the training parameters), got {cfg.b}",
+                field="neighbours",
+            )
 
 
 def run_train(args) -> int:
@@ -200,6 +224,12 @@ def run_train(args) -> int:
                 f"marker colour must be r,g,b in [0, 1], got {args.marker_rgb!r}",
                 field="marker-rgb",
             ) from None
+    _check_grid_early(ds, cfg)
+    from jaxcr.cli._common import check_writable_folder
+
+    # the model's folder before the descriptors (the audit, item 6: a read-only folder failed
+    # only at the end, after every frame's contours)
+    check_writable_folder(os.path.dirname(os.path.abspath(args.out)), "model folder")
     t0 = time.perf_counter()
     colour = fit_colour_model(
         _colour_image(ds, args.colour_frame, cams[0]),

@@ -83,8 +83,9 @@ def add_parser(subparsers) -> None:
 def _parse_size(text: str) -> tuple[int, int]:
     from jaxcr.limits import parse_size
 
-    # the ceiling here; the floor (32x24) is the scene generator's (rgbd_tasks.generate_task)
-    return parse_size(text, "size", "model-object", min_size=(1, 1))
+    # the floor (32x24) is the scene generator's (rgbd_tasks.generate_task), checked here too
+    # so that a refused size never creates OUT (the audit's `--size 8x8` left an owned folder)
+    return parse_size(text, "size", "model-object", min_size=(32, 24))
 
 
 def run(args) -> int:

@@ -102,21 +102,6 @@ def _check_out(out: str) -> None:
     outdir.claim(out, "synth", recognise=_is_synth_dataset)
 
 
-def _check_writable_folder(path: str, what: str) -> None:
-    """Create folder ``path`` if needed and check a file can be written there, before any
-    long work (an InputError naming it otherwise)."""
-    import tempfile
-
-    if os.path.exists(path) and not os.path.isdir(path):
-        raise InputError(f"{what} exists and is not a folder", file=path)
-    try:
-        os.makedirs(path, exist_ok=True)
-        with tempfile.TemporaryFile(dir=path):
-            pass
-    except OSError as err:
-        raise InputError(f"{what} is not writable ({err.strerror or err})", file=path) from None
-
-
 def run(args) -> int:
     from jaxcr.synth.generate import generate, parse_size
     from jaxcr.synth.presets import PRESETS
@@ -156,7 +141,9 @@ def run(args) -> int:
         robot = robot_to_dict(load_robot(args.robot))
     several = len(names) > 1 or args.all
     if args.preview:
-        _check_writable_folder(args.preview, "preview folder")
+        from jaxcr.cli._common import check_writable_folder
+
+        check_writable_folder(args.preview, "preview folder")
     for name in names:
         _check_out(os.path.join(args.out, name) if several else args.out)
     t0 = time.perf_counter()

@@ -81,6 +81,24 @@ def resample(
     return Manifold(psi=jnp.asarray(grid, jnp.float32), features=jnp.asarray(feats, jnp.float32))
 
 
+def check_grid(psi, step) -> float:
+    """Refuse (InputError, field ``step``) a resampling ``step`` whose grid over the box of the
+    parameters ``psi`` (n, d) would exceed :data:`jaxcr.limits.MAX_MANIFOLD_POINTS` points.
+    Returns the grid's number of points (an upper bound of the resampled manifold's)."""
+    from jaxcr.limits import MAX_MANIFOLD_POINTS
+
+    psi = np.asarray(psi, np.float64)
+    step = np.broadcast_to(np.asarray(step, np.float64), (psi.shape[1],))
+    n_grid = float(np.prod(np.floor(np.ptp(psi, axis=0) / step) + 1))
+    if n_grid > MAX_MANIFOLD_POINTS:
+        raise InputError(
+            f"step {step.tolist()} makes a grid of {n_grid:.3g} points over the training "
+            f"parameters, over the limit of {MAX_MANIFOLD_POINTS}",
+            field="step",
+        )
+    return n_grid
+
+
 def build_manifold(
     psi: Float[Array, "n d"],
     features: Float[Array, "n k"],
@@ -98,16 +116,7 @@ def build_manifold(
     step = np.broadcast_to(np.asarray(step, np.float64), (d,))
     if not np.all(np.isfinite(step) & (step > 0)):
         raise InputError(f"resampling step must be a finite number > 0, got {step}", field="step")
-    from jaxcr.limits import MAX_MANIFOLD_POINTS
-
-    # the grid over the training parameters' box, before any spline work (jaxcr.limits)
-    n_grid = float(np.prod(np.floor(np.ptp(psi, axis=0) / step) + 1))
-    if n_grid > MAX_MANIFOLD_POINTS:
-        raise InputError(
-            f"step {step.tolist()} makes a grid of {n_grid:.3g} points over the training "
-            f"parameters, over the limit of {MAX_MANIFOLD_POINTS}",
-            field="step",
-        )
+    check_grid(psi, step)  # before any spline work (jaxcr.limits)
     spline = fit_tps(jnp.asarray(psi, jnp.float32), jnp.asarray(features, jnp.float32), smoothing)
     if max_gap is None:
         nn = _nearest_other(psi)

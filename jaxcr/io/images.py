@@ -230,11 +230,18 @@ def write_png(path: str | os.PathLike, array: np.ndarray) -> Path:
     ok, buf = cv2.imencode(".png", a)
     if not ok:
         raise OSError(f"could not encode PNG for {path}")
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    # ".NAME.PID.tmp": the pattern a later claim of OUT deletes after a kill -9 (jaxcr.io.outdir)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as fh:
             fh.write(buf.tobytes())
         os.replace(tmp, path)
+    except OSError as err:
+        if err.filename is None and err.errno is not None:
+            # a full disk (ENOSPC) names no file: name it, so the CLI's one line says which
+            # (the audit, experiments/contract_audit.py item 6: "file system: No space left")
+            raise OSError(err.errno, err.strerror, str(path)) from None
+        raise
     finally:
         if tmp.exists():
             tmp.unlink()

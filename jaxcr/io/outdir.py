@@ -49,6 +49,7 @@ import datetime as _dt
 import json
 import logging
 import os
+import re
 import socket
 import sys
 import time
@@ -268,13 +269,20 @@ def _what(out: Path, entries: list[str]) -> str:
     return "other files (" + ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "") + ")"
 
 
+#: the hidden temporary names of the writers that add the pid (``.NAME.tmp1234``, e.g.
+#: jaxcr.io.dataset's ``.dataset.json.tmp1234`` and ``.000.npy.tmp1234.npy``)
+_PID_TMP = re.compile(r"^\..+\.tmp\d+(\.[A-Za-z0-9]+)?$")
+
+
 def clean_leftovers(out: str | os.PathLike) -> list[Path]:
-    """Delete the temporary files a killed run left anywhere under OUT (``.NAME.*.tmp`` and
-    ``NAME.tmp``; the caller holds the lock, so no process is writing them). Returns them."""
+    """Delete the temporary files a killed run left anywhere under OUT (``.NAME.*.tmp``,
+    ``NAME.tmp`` and ``.NAME.tmpPID[.EXT]``; the caller holds the lock, so no process is
+    writing them). Returns them."""
     removed = []
     for root, _dirs, files in os.walk(out):
         for name in files:
-            if name.endswith(".tmp") or name.startswith(f"{LOCK_FILE}.stale."):
+            if (name.endswith(".tmp") or name.startswith(f"{LOCK_FILE}.stale.")
+                    or _PID_TMP.match(name)):  # fmt: skip
                 p = Path(root) / name
                 try:
                     p.unlink()

@@ -127,8 +127,15 @@ def _load_centreline(out: Path, rel: str) -> np.ndarray:
         raise InputError(f"missing output file {rel}", file=str(out)) from None
     except (OSError, ValueError, EOFError) as err:
         raise InputError(f"not a readable .npy file ({err})", file=str(out / rel)) from None
-    if arr.ndim != 2 or arr.shape[1] != 3 or not np.issubdtype(arr.dtype, np.number):
-        raise InputError(f"expected an (N, 3) array, got {arr.dtype} {arr.shape}",
+    # N >= 2: a tip and a mean error need points (an empty (0, 3) array was an IndexError
+    # traceback in the audit, experiments/contract_audit.py item 4)
+    if (
+        arr.ndim != 2
+        or arr.shape[1] != 3
+        or arr.shape[0] < 2
+        or not np.issubdtype(arr.dtype, np.number)
+    ):
+        raise InputError(f"expected an (N, 3) array with N >= 2, got {arr.dtype} {arr.shape}",
                          file=str(out / rel))  # fmt: skip
     if not np.all(np.isfinite(arr)):
         # a NaN/inf centreline has no error to average: the frame fails (never a NaN that the
@@ -201,11 +208,14 @@ class OutputEvaluator:
         rows: list[dict] = []
         try:  # a damaged output file of this frame fails this frame only
             line = self.record_lines.get(fid)
-            if rec.get("ok") and frame is None:
+            # a failed record of an unknown frame too (the audit, item 4: `{"frame": 3}` was a
+            # failed frame without a reason); the dataset's bad frames have records of their own
+            if frame is None and (rec.get("ok") or fid not in ds.bad_frames):
                 where = f" (line {line})" if line is not None else ""
-                raise InputError(f"an ok record of a frame the dataset does not have{where}",
+                ok = "an ok" if rec.get("ok") else "a"
+                raise InputError(f"{ok} record of a frame the dataset does not have{where}",
                                  file=str(layout.results), frame=fid, field="frame")  # fmt: skip
-            if rec.get("ok") and "files" not in rec:
+            if rec.get("ok") and not rec.get("files"):  # missing, null or {} (audit item 4)
                 where = f" (line {line})" if line is not None else ""
                 raise InputError(f"an ok record without its output files{where}",
                                  file=str(layout.results), frame=fid, field="files")  # fmt: skip

@@ -280,6 +280,17 @@ def _flat(kind, centre, yaw, height, tex) -> Planar:
     )
 
 
+def _write_png(path: Path, bgr: np.ndarray) -> None:
+    """``cv2.imwrite``'s bytes, written atomically: imwrite on a full disk printed libpng's
+    "Write Error" on stderr and returned False unchecked (the audit, item 6)."""
+    from jaxcr.io.results import atomic_write_bytes
+
+    ok, buf = cv2.imencode(".png", bgr)
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    atomic_write_bytes(path, buf.tobytes())
+
+
 def generate_motion_video(
     out: str | os.PathLike,
     preset: str = "pushed_static",
@@ -464,8 +475,8 @@ def generate_motion_video(
         img = apply_camera_effects(colour.reshape(height, width, 3).astype(np.float32), rng)
         mask = (ident == ids.index(target)).reshape(height, width)
         name = f"{i:06d}.png"
-        cv2.imwrite(str(out / "frames" / name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        cv2.imwrite(str(out / "masks" / name), mask.astype(np.uint8) * 255)
+        _write_png(out / "frames" / name, cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        _write_png(out / "masks" / name, mask.astype(np.uint8) * 255)
         if writer is not None:
             writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         frames_meta.append(

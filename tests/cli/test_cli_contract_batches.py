@@ -80,6 +80,14 @@ def test_evaluate_nan_centreline_is_a_failed_frame(tmp_path, capsys):
         assert rows["000000"]["ok"] == rows["000002"]["ok"] == "True"
         md = (out / "table2.md").read_text()
         assert "averages are over 2 of 3 frames (1 failed)" in md
+    # an empty or one-point centreline has no tip and no mean error: failed, no traceback
+    # (the audit, experiments/contract_audit.py item 4: an IndexError traceback)
+    for bad in (np.zeros((0, 3)), np.zeros((1, 3))):
+        np.save(out / "centrelines" / "000001.npy", bad)
+        assert main(["evaluate", str(out), "--no-plot"]) == 1
+        _stderr_lines(capsys)
+        reason = _per_frame(out)["000001"]["reason"]
+        assert "000001.npy" in reason and "N >= 2" in reason, reason
 
 
 @pytest.mark.parametrize(
@@ -91,6 +99,8 @@ def test_evaluate_nan_centreline_is_a_failed_frame(tmp_path, capsys):
         {"masks": {"main": 7}},  # a path that is not a string
         {"centreline": ["c.npy"]},
         {"masks": {"main": "../../etc/passwd"}},  # outside OUT
+        None,  # null: was evaluated as an ok frame with nothing compared (audit item 4)
+        {},
     ],
 )
 def test_evaluate_malformed_files_field_fails_that_frame(tmp_path, capsys, files):
@@ -110,6 +120,21 @@ def test_evaluate_malformed_files_field_fails_that_frame(tmp_path, capsys, files
     assert rows["000001"]["ok"] == "False"
     assert "results.jsonl" in reason and "line 2" in reason and "files" in reason, reason
     assert rows["000000"]["ok"] == rows["000002"]["ok"] == "True"
+
+
+def test_evaluate_record_of_an_unknown_frame_says_why_it_failed(tmp_path, capsys):
+    """The audit (experiments/contract_audit.py, item 4): a record `{"frame": 3}` (no ok, an id
+    the dataset does not have) was a failed frame with an empty reason."""
+    root = make_dataset(tmp_path / "d", n_frames=2)
+    out = tmp_path / "run"
+    recs = [{"frame": f"{k:06d}", "ok": True} for k in range(2)]
+    _fake_run(root, out, recs)
+    with open(out / "results.jsonl", "a") as f:
+        f.write('{"frame": 3}\n')
+    assert main(["evaluate", str(out), "--no-plot"]) == 1
+    _stderr_lines(capsys)
+    reason = _per_frame(out)["3"]["reason"]
+    assert "results.jsonl" in reason and "line 3" in reason and "does not have" in reason, reason
 
 
 def test_evaluate_incomplete_run_exits_1_with_the_missing_count(tmp_path, capsys):

@@ -75,6 +75,17 @@ def test_huge_sizes_are_refused_before_work(tmp_path, monkeypatch, capsys, argv,
     assert not (tmp_path / "o").exists()
 
 
+def test_model_object_synth_floor_is_checked_before_out_is_created(tmp_path, monkeypatch, capsys):
+    """The audit (experiments/contract_audit.py, item 3) found `model-object synth --size 8x8`
+    refused only by the scene generator, after OUT had been created and claimed: an owned,
+    empty folder was left behind. The 32x24 floor is now checked with the ceiling."""
+    _forbid(monkeypatch, "jaxcr.synth.rgbd_tasks", "generate_task")
+    assert main(["model-object", "synth", "--size", "8x8", "-o", str(tmp_path / "o")]) == 2
+    line = _one_line(capsys)
+    assert "field 'size'" in line and "the minimum is 32x24" in line, line
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize(
     ("argv", "target", "expect"),
     [
@@ -241,6 +252,36 @@ def test_manifold_train_options_refuse_nan(kw, field):
     with pytest.raises(InputError) as exc:
         TrainConfig(**kw).check()
     assert exc.value.field == field
+
+
+def test_manifold_train_step_ceiling_is_checked_before_any_image(tmp_path, monkeypatch, capsys):
+    """The audit (experiments/contract_audit.py, item 3) found `manifold train --step 1e-9`
+    refused only after the colour model and every frame's contours were computed (a progress
+    line, then the error: two lines, work done). The grid is now checked on the dataset's
+    parameters before any image is read."""
+    from jaxcr.synth.irep import generate_irep
+
+    generate_irep(tmp_path / "d", 3, "train", 0, (32, 24), progress=False)
+    _forbid(monkeypatch, "jaxcr.eigen.colour", "fit_colour_model")
+    model = tmp_path / "m.npz"
+    assert main(["manifold", "train", str(tmp_path / "d"), "-o", str(model), "--step", "1e-9"]) == 2
+    line = _one_line(capsys)
+    assert "field 'step'" in line and "over the limit of 5000000" in line, line
+    assert not model.exists()
+    # --neighbours over the grid's points (an upper bound of the manifold's) likewise
+    assert main(["manifold", "train", str(tmp_path / "d"), "-o", str(model),
+                 "--neighbours", "1000000000"]) == 2  # fmt: skip
+    line = _one_line(capsys)
+    assert "field 'neighbours': must be at most the manifold's points" in line, line
+    assert not model.exists()
+    # a model folder that cannot be written is refused first too (the audit's item 6: a
+    # read-only folder failed after every frame's contours); a file stands in for the folder
+    # (root ignores a read-only mode)
+    (tmp_path / "file").write_text("")
+    bad = tmp_path / "file" / "m.npz"
+    assert main(["manifold", "train", str(tmp_path / "d"), "-o", str(bad)]) == 2
+    line = _one_line(capsys)
+    assert "model folder exists and is not a folder" in line and str(tmp_path / "file") in line
 
 
 def test_manifold_step_grid_ceiling(monkeypatch):

@@ -229,6 +229,17 @@ def test_calibrate_names_the_image_of_another_size(tmp_path, capsys):
     msg = _one_line_error(capsys)
     assert "R/1.png" in msg and "98x72 differs from 96x72" in msg and "R/0.png" in msg
     assert not (tmp_path / "s.yaml").exists()
+    # an output folder that cannot be written is refused before any image is read (the
+    # audit, experiments/contract_audit.py item 6); a file stands in for it (root ignores modes)
+    (tmp_path / "file").write_text("")
+    argv[4] = str(tmp_path / "file" / "s.yaml")
+    assert main(argv) == 2
+    msg = _one_line_error(capsys)
+    assert "output folder exists and is not a folder" in msg and str(tmp_path / "file") in msg
+    # --cols/--rows have a ceiling (the audit's item 3: --cols 100000 ran the detection)
+    assert main([*argv[:5], "--cols", "100000", "--rows", "6", "--square", "0.02"]) == 2
+    msg = _one_line_error(capsys)
+    assert "field 'cols': must be between 2 and 2047" in msg, msg
 
 
 def test_motion_results_and_calibrate_readers_respect_the_pixel_limit(
