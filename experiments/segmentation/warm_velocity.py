@@ -37,17 +37,14 @@ import os
 import time
 from pathlib import Path
 
-import cv2
 import jax.numpy as jnp
 import numpy as np
 from skimage.draw import polygon
 
 import jaxcr.benchmarks.segment as bs
-from jaxcr.camera import project_points, surface_points
 from jaxcr.segmentation.background import colour_mask
 from jaxcr.segmentation.metrics import iou
 from jaxcr.segmentation.refine import RefineConfig, refine_frame_jit
-from jaxcr.segmentation.shape import perturbed_centreline
 
 OUT = Path(__file__).resolve().parents[1] / "results" / "segmentation"
 
@@ -56,28 +53,14 @@ def smooth_scene(n_frames: int, seed: int, period: float):
     """``make_scene``'s nominal tube, camera and rendering with sinusoidal coefficients."""
     base, cam, _ = bs.make_scene(1, seed=seed)
     rng = np.random.default_rng(seed + 1000)
-    tex = cv2.GaussianBlur(rng.random((bs.H, bs.W)).astype(np.float32), (0, 0), 12)
-    tex = (tex - tex.min()) / (tex.max() - tex.min())
-    pink, red = np.array([0.80, 0.45, 0.45]), np.array([0.55, 0.15, 0.15])
-    bg_img = (tex[..., None] * pink + (1 - tex[..., None]) * red).astype(np.float32)
+    bg_img = bs.tissue_background(rng)
     c_mid = rng.normal(0, 0.12, (2, 4))
     amp = rng.uniform(0.05, 0.25, (2, 4))
     phase = rng.uniform(0, 2 * np.pi, (2, 4))
     frames = []
     for k in range(n_frames):
         c = c_mid + amp * np.sin(2 * np.pi * k / period + phase)
-        truth = perturbed_centreline(base, jnp.asarray(c, jnp.float32))
-        pts = surface_points(truth, 24)
-        uv, _ = project_points(cam, pts.reshape(-1, 3))
-        uv = np.asarray(uv).reshape(pts.shape[0], 24, 2)
-        mask = np.zeros((bs.H, bs.W), bool)
-        for i in range(pts.shape[0] - 1):
-            hull = cv2.convexHull(np.concatenate([uv[i], uv[i + 1]]).astype(np.float32))[:, 0]
-            rr, cc = polygon(hull[:, 1], hull[:, 0], mask.shape)
-            mask[rr, cc] = True
-        img = bg_img + rng.normal(0, 0.04, bg_img.shape).astype(np.float32)
-        img[mask] = np.array([0.55, 0.55, 0.57]) + rng.normal(0, 0.03, (mask.sum(), 3))
-        frames.append(dict(coeffs=c, img=np.clip(img, 0, 1).astype(np.float32), mask=mask))
+        frames.append(bs.render_frame(base, cam, bg_img, c, rng, polygon))
     return base, cam, frames
 
 

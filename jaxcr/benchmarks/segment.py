@@ -62,11 +62,7 @@ def make_scene(n_frames: int, seed: int = 0, smooth: bool = False):
     base = integrate_centreline(s, u, jnp.full(n, 1.1e-3), jnp.array([-0.06, 0.01, 0.0]), R0)
     cam = Camera.look_at([0, 0, -0.25], [0, 0, 0], [0, -1, 0], fx=700.0, size=(W, H))
     rng = np.random.default_rng(seed)
-    # smooth tissue-like background: blurred noise over a red/pink palette
-    tex = cv2.GaussianBlur(rng.random((H, W)).astype(np.float32), (0, 0), 12)
-    tex = (tex - tex.min()) / (tex.max() - tex.min())
-    pink, red = np.array([0.80, 0.45, 0.45]), np.array([0.55, 0.15, 0.15])
-    bg_img = (tex[..., None] * pink + (1 - tex[..., None]) * red).astype(np.float32)
+    bg_img = tissue_background(rng)
     frames = []
     c_prev = rng.normal(0, 0.12, (2, 4))
     for k in range(n_frames):
@@ -76,19 +72,34 @@ def make_scene(n_frames: int, seed: int = 0, smooth: bool = False):
             c = rng.normal(0, 0.12, (2, 4))
         c[:, 0] += np.array([0.25, 0.0]) * (1 if k % 2 == 0 else -1)
         c_prev = c
-        truth = perturbed_centreline(base, jnp.asarray(c, jnp.float32))
-        pts = surface_points(truth, 24)
-        uv, _ = project_points(cam, pts.reshape(-1, 3))
-        uv = np.asarray(uv).reshape(pts.shape[0], 24, 2)
-        mask = np.zeros((H, W), bool)
-        for i in range(pts.shape[0] - 1):
-            hull = cv2.convexHull(np.concatenate([uv[i], uv[i + 1]]).astype(np.float32))[:, 0]
-            rr, cc = polygon(hull[:, 1], hull[:, 0], mask.shape)
-            mask[rr, cc] = True
-        img = bg_img + rng.normal(0, 0.04, bg_img.shape).astype(np.float32)
-        img[mask] = np.array([0.55, 0.55, 0.57]) + rng.normal(0, 0.03, (mask.sum(), 3))
-        frames.append(dict(coeffs=c, img=np.clip(img, 0, 1).astype(np.float32), mask=mask))
+        frames.append(render_frame(base, cam, bg_img, c, rng, polygon))
     return base, cam, frames
+
+
+def tissue_background(rng) -> np.ndarray:
+    """make_scene's smooth tissue-like background: blurred noise over a red/pink palette."""
+    tex = cv2.GaussianBlur(rng.random((H, W)).astype(np.float32), (0, 0), 12)
+    tex = (tex - tex.min()) / (tex.max() - tex.min())
+    pink, red = np.array([0.80, 0.45, 0.45]), np.array([0.55, 0.15, 0.15])
+    return (tex[..., None] * pink + (1 - tex[..., None]) * red).astype(np.float32)
+
+
+def render_frame(base, cam, bg_img, c, rng, polygon) -> dict:
+    """One frame of make_scene: the tube of shape coefficients ``c`` drawn over ``bg_img``
+    with pixel noise from ``rng`` (``polygon``: skimage.draw.polygon). Returns coeffs, img,
+    mask."""
+    truth = perturbed_centreline(base, jnp.asarray(c, jnp.float32))
+    pts = surface_points(truth, 24)
+    uv, _ = project_points(cam, pts.reshape(-1, 3))
+    uv = np.asarray(uv).reshape(pts.shape[0], 24, 2)
+    mask = np.zeros((H, W), bool)
+    for i in range(pts.shape[0] - 1):
+        hull = cv2.convexHull(np.concatenate([uv[i], uv[i + 1]]).astype(np.float32))[:, 0]
+        rr, cc = polygon(hull[:, 1], hull[:, 0], mask.shape)
+        mask[rr, cc] = True
+    img = bg_img + rng.normal(0, 0.04, bg_img.shape).astype(np.float32)
+    img[mask] = np.array([0.55, 0.55, 0.57]) + rng.normal(0, 0.03, (mask.sum(), 3))
+    return dict(coeffs=c, img=np.clip(img, 0, 1).astype(np.float32), mask=mask)
 
 
 # ----------------------------------------------------------------------------- reference
