@@ -639,7 +639,7 @@ def summary_lines(recs: list[dict], out) -> list[str]:
                 f"WARNING: frame {r['id']}: the camera order looks swapped: with the "
                 f"calibration as given {given:.0f} of the two backbones' {total:.0f} px do not "
                 f"triangulate consistently, with the two cameras exchanged {exchanged:.0f} px; "
-                "check that \"cameras\" in stereo.json lists camera 1 of the calibration first "
+                'check that "cameras" in stereo.json lists camera 1 of the calibration first '
                 "(docs/stereo-format.md, camera_order_suspect)"
             )
     return lines
