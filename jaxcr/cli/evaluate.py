@@ -241,7 +241,11 @@ def run(args) -> int:
     print(f"report: {report_dir / 'table2.md'}")
     # exit 1 when the report counts failed frames (failed in the segment run, or whose outputs
     # could not be evaluated): the numbers are over fewer frames than the run was given
-    frames = {(r["out"], r["frame"]): r for r in rows}
+    # records of frames a dataset does not have are failed records of unknown frames, not
+    # dataset frames: counted apart (a 4-frame dataset is never "1 of 5")
+    unknown = {(str(o), f) for o, info in zip(outs, infos, strict=True)
+               for f in info.get("evaluate_unknown") or []}  # fmt: skip
+    frames = {(r["out"], r["frame"]): r for r in rows if (r["out"], r["frame"]) not in unknown}
     failed = [r for r in frames.values() if not r["ok"]]
     code = 0
     for o, info in zip(outs, infos, strict=True):
@@ -254,10 +258,15 @@ def run(args) -> int:
                   "continue the run with jaxcr segment --resume (or the missing --shard)",
                   file=sys.stderr)  # fmt: skip
             code = 1
-    if failed:
+    if failed or unknown:
         n_eval = sum(1 for r in failed if str(r.get("reason") or "").startswith("evaluate: "))
+        ids = sorted(f for _, f in unknown)
+        extra = (f"; {len(unknown)} failed record(s) of frame(s) the dataset does not have "
+                 f"({', '.join(ids[:5])}{' ...' if len(ids) > 5 else ''}), not counted as "
+                 "dataset frames" if unknown else "")  # fmt: skip
         print(f"jaxcr evaluate: {len(failed)} of {len(frames)} frame(s) failed ("
-              f"{len(failed) - n_eval} in the segment run, {n_eval} in evaluation); reasons in "
-              f"{report_dir / 'per_frame.csv'} (rows with ok False)", file=sys.stderr)  # fmt: skip
+              f"{len(failed) - n_eval} in the segment run, {n_eval} in evaluation){extra}; "
+              f"reasons in {report_dir / 'per_frame.csv'} (rows with ok False)",
+              file=sys.stderr)  # fmt: skip
         return 1
     return code

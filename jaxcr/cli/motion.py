@@ -271,6 +271,11 @@ def _run_single(args, dataset: str, cfg, opts) -> int:
 
     ds = load_motion_dataset(dataset)
     _check_steps(args, ds)
+    # the scored frame's ground-truth mask, before OUT is claimed (motion_video reads it
+    # again before the work; a PNG mask is cheap)
+    from jaxcr.motion.run import eval_frame_index
+
+    ds.mask(eval_frame_index(ds))
     out = Path(args.out)
     from jaxcr.io import outdir
 

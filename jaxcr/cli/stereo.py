@@ -390,7 +390,9 @@ class StereoWorker:
                            entry_residual_px=r["entry_residual_px"],
                            n_segments=len(r["segments"]),
                            single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]),
-                           tip_epipolar_px=r["tip_epipolar_px"])  # fmt: skip
+                           tip_epipolar_px=r["tip_epipolar_px"],
+                           camera_order_suspect=r["camera_order_suspect"],
+                           camera_order_px=r["camera_order_px"])  # fmt: skip
             rec["timings"] = r["timings"]
         except StereoFailure as err:
             rec.update(ok=False, reason=err.reason, message=str(err))
@@ -614,7 +616,9 @@ def summary_lines(recs: list[dict], out) -> list[str]:
     """What ``jaxcr stereo`` prints after a run: the count, one line per failed frame, and a
     WARNING per reconstructed frame whose two tips disagree (``tip_epipolar_px`` over
     :data:`TIP_EPIPOLAR_WARN_PX`: one view lost the tip or segmented something else, and its
-    3-D tip and that view's ``tip_px`` are not to be trusted)."""
+    3-D tip and that view's ``tip_px`` are not to be trusted), and one per frame whose two
+    backbones the exchanged camera order explains much better (``camera_order_suspect``,
+    :mod:`jaxcr.stereo.camera_order`)."""
     n_ok = sum(r["ok"] for r in recs)
     lines = [f"{n_ok}/{len(recs)} frames reconstructed; results in {out}"
              + (f" (failed frames listed below and in {Path(out) / 'results.jsonl'})"
@@ -628,5 +632,14 @@ def summary_lines(recs: list[dict], out) -> list[str]:
                 f"other's epipolar lines (over {TIP_EPIPOLAR_WARN_PX:g} px): one view lost the "
                 "tip or found something else; check its overlay (on a real background try "
                 "--segmentation trace)"
+            )
+        if r["ok"] and r.get("camera_order_suspect"):
+            given, exchanged, total = r["camera_order_px"]
+            lines.append(
+                f"WARNING: frame {r['id']}: the camera order looks swapped: with the "
+                f"calibration as given {given:.0f} of the two backbones' {total:.0f} px do not "
+                f"triangulate consistently, with the two cameras exchanged {exchanged:.0f} px; "
+                'check that "cameras" in stereo.json lists camera 1 of the calibration first '
+                "(docs/stereo-format.md, camera_order_suspect)"
             )
     return lines

@@ -134,7 +134,10 @@ class MotionDataset:
             m = read_raw(p, cv2.IMREAD_GRAYSCALE)
         except InputError as err:
             raise InputError(
-                f"unreadable ground-truth mask: {err.message}", file=str(p), frame=i
+                f"unreadable ground-truth mask: {err.message}",
+                file=str(p),
+                frame=i,
+                field=f"frames[{i}].mask",
             ) from None
         return m >= 128
 

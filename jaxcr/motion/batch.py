@@ -89,6 +89,10 @@ def motion_video(
 
     opts = options or VideoOptions()
     ds = ds if ds is not None else load_motion_dataset(dataset)
+    # the scored frame's ground-truth mask is read before any frame is processed: a missing
+    # or unreadable one is bad input (exit 2) at once, not after the whole video (issue 17)
+    ev = motion_run.eval_frame_index(ds)
+    gt = ds.mask(ev)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     # An earlier run's results must not sit beside this run's partial log if it stops early:
@@ -113,7 +117,6 @@ def motion_video(
         except RuntimeError as err:  # no readable frame
             raise InputError(str(err), file=str(dataset)) from None
     models = cfg.models
-    gt = ds.mask(res.eval_frame)
     ths = np.round(np.linspace(0.05, 1.0, 20), 3)
     summary = {
         "dataset": str(dataset),

@@ -60,6 +60,15 @@ def first_touch(ds: MotionDataset) -> int | None:
     return int(idx[0]) if len(idx) else None
 
 
+def eval_frame_index(ds: MotionDataset, eval_frame: int | None = None) -> int:
+    """The frame :func:`run_motion` scores: ``eval_frame``, else the dataset's, else the first
+    touch frame, else the last frame (known before any frame is processed, so that its
+    ground-truth mask can be checked first)."""
+    t_touch = first_touch(ds)
+    ev = eval_frame if eval_frame is not None else ds.eval_frame
+    return ev if ev is not None else (t_touch if t_touch is not None else len(ds) - 1)
+
+
 # one compiled function per number of frames (the arm model is a pytree argument, not a
 # closure constant: a new lambda per call recompiled for every video)
 _end_effector_images = jax.jit(jax.vmap(end_effector_image, in_axes=(None, None, 0)))
@@ -123,8 +132,7 @@ def run_motion(
         warnings.append(
             "no frame has touch=true: arm removal only, the object cannot be told apart"
         )
-    ev = eval_frame if eval_frame is not None else ds.eval_frame
-    ev = ev if ev is not None else (t_touch if t_touch is not None else len(ds) - 1)
+    ev = eval_frame_index(ds, eval_frame)
     uv, vis = end_effector_pixels(ds)
     if not vis.any():
         warnings.append("the end-effector is out of view in every frame")

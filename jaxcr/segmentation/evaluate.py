@@ -289,13 +289,19 @@ class OutputEvaluator:
 
     def info(self, failed: dict[str, str]) -> dict:
         """run.json with the evaluation's counts added (``evaluate_expected``,
-        ``evaluate_missing``, ``evaluate_failed``: see :func:`frame_rows`)."""
+        ``evaluate_missing``, ``evaluate_unknown``, ``evaluate_failed``: see
+        :func:`frame_rows`)."""
         # frames of the dataset without a record (an interrupted or --limit run, or a dataset
         # that grew since): the report covers fewer frames than the dataset has
         expected = list(self.ds.bad_frames) + [f.id for f in self.ds.frames]
         have = {str(r["frame"]) for r in self.records}
+        known = set(expected)
         return {**self.run_info, "evaluate_expected": len(expected),
                 "evaluate_missing": [f for f in expected if f not in have],
+                # records of frames the dataset does not have (failed records, never
+                # counted among the dataset's frames)
+                "evaluate_unknown": sorted(f for f in have if f not in known),
+                "evaluate_out": str(self.out),
                 # frames whose outputs could not be evaluated ({frame: reason}); the CLI warns
                 "evaluate_failed": failed}  # fmt: skip
 
@@ -352,7 +358,9 @@ def frame_rows(out: str | Path, group_by: str = "tags",
     """Per-frame, per-camera metric rows of one segment output folder (see
     :mod:`jaxcr.io.report`), and its run.json with the evaluation's counts added
     (``evaluate_expected``: frames in the dataset; ``evaluate_missing``: their ids without a
-    record; ``evaluate_failed``: {frame: reason} of frames whose outputs could not be
+    record; ``evaluate_unknown``: ids of records of frames the dataset does not have (each a
+    failed record, not one of the dataset's frames); ``evaluate_failed``: {frame: reason} of
+    frames whose outputs could not be
     evaluated).
 
     Args:
@@ -548,12 +556,17 @@ def write_report(rows, infos, report_dir: Path, title: str | None = None, plot: 
             lines.append(f"**MISSING FRAMES**: {len(missing)} of the dataset's {n_ds} frames "
                          f"are missing from `{info.get('dataset')}`'s run (no record).")  # fmt: skip
             lines.append("")
-    frames = {(r.get("out"), r["frame"]): bool(r.get("ok")) for r in rows}
+    unknown = {(info.get("evaluate_out"), f) for info in infos
+               for f in info.get("evaluate_unknown") or []}  # fmt: skip
+    frames = {(r.get("out"), r["frame"]): bool(r.get("ok")) for r in rows
+              if (r.get("out"), r["frame"]) not in unknown}  # fmt: skip
     n_ok = sum(frames.values())
     n_failed = len(frames) - n_ok
     lines.append("IoU mean ± std over frames (raw | adjusted where occlusion masks exist); the "
                  f"averages are over {n_ok} of {len(frames)} frames"
                  + (f" ({n_failed} failed)" if n_failed else "")
+                 + (f" ({len(unknown)} record(s) of frames the dataset does not have, failed)"
+                    if unknown else "")
                  + " (a cell over fewer has its count in table2.csv, column n).")  # fmt: skip
     lines.append("")
     lines.append(rep.table2_markdown(table))

@@ -72,6 +72,7 @@ from jaxcr.stereo.base_frame import (
 )
 from jaxcr.stereo.base_locate import flood_component, locate_base
 from jaxcr.stereo.branch_choice import choose_branches
+from jaxcr.stereo.camera_order import camera_order_check
 from jaxcr.stereo.chain_fit import (
     _direct,  # the default jit_call: fn(*args)
     chain_points,
@@ -982,6 +983,10 @@ def reconstruct_pair(
             v["uv_skeleton"] = v["uv"]
             v["uv"] = _ending_near(v["uv"], tip)
     t0 = _tick(timings, "shadow_removal", t0)
+    # A swapped camera order that the entry check missed (entry pixels near each other):
+    # the two whole skeletons under the given and the exchanged order (issue 16, S19).
+    order = camera_order_check(cams, *[v.get("uv_skeleton", v["uv"]) for v in views])
+    t0 = _tick(timings, "camera_order", t0)
     # 6. Correspondence and triangulation (normalised coordinates).
     xn = [
         cv2.undistortPoints(
@@ -1253,5 +1258,7 @@ def reconstruct_pair(
         "entry_residual_px": pose.get("entry_residual_px"),
         "views_px": vrec,
         "tip_epipolar_px": _tip_epipolar_px(cams, vrec),
+        "camera_order_suspect": order.suspect,
+        "camera_order_px": [order.inconsistent_px, order.exchanged_px, order.length_px],
         "timings": timings,
     }

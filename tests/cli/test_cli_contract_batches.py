@@ -132,9 +132,15 @@ def test_evaluate_record_of_an_unknown_frame_says_why_it_failed(tmp_path, capsys
     with open(out / "results.jsonl", "a") as f:
         f.write('{"frame": 3}\n')
     assert main(["evaluate", str(out), "--no-plot"]) == 1
-    _stderr_lines(capsys)
+    err = _stderr_lines(capsys)
     reason = _per_frame(out)["3"]["reason"]
     assert "results.jsonl" in reason and "line 3" in reason and "does not have" in reason, reason
+    # counted as a failed record of an unknown frame, not a dataset frame (audit r31: the
+    # summary said "1 of 3" for this 2-frame dataset)
+    assert "0 of 2 frame(s) failed" in err[-1], err
+    assert "1 failed record(s) of frame(s) the dataset does not have (3)" in err[-1], err
+    md = (out / "table2.md").read_text()
+    assert "over 2 of 2 frames (1 record(s) of frames the dataset does not have" in md, md
 
 
 def test_evaluate_incomplete_run_exits_1_with_the_missing_count(tmp_path, capsys):

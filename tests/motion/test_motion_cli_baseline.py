@@ -65,3 +65,25 @@ def test_help_states_the_default_model(capsys):
         cli(["motion", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "default: both" in text
+
+
+def test_missing_truth_mask_is_refused_before_any_frame(video, tmp_path, capsys):
+    """Issue 17 (audit r31): a motion.json whose scored frame's ground-truth mask is missing
+    ran every frame and then exited 2. It is bad input found first: one line naming the file
+    and the field, exit 2, no OUT written (the check precedes claiming OUT)."""
+    import shutil
+
+    d = tmp_path / "push"
+    shutil.copytree(video, d)
+    meta = json.loads((d / "motion.json").read_text())
+    ds = load_motion_dataset(d)
+    ev = ds.eval_frame if ds.eval_frame is not None else first_touch(ds)
+    assert meta["frames"][ev].get("mask"), "the synth video scores a frame with a mask"
+    meta["frames"][ev]["mask"] = "masks/renamed.png"
+    (d / "motion.json").write_text(json.dumps(meta))
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert _cli_run(d, out) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "renamed.png" in err[0] and f"frames[{ev}].mask" in err[0], err
+    assert not out.exists()

@@ -32,6 +32,7 @@ def test_stereo_cli_outputs_and_accuracy(synth_set, tmp_path):
     assert main(["stereo", str(synth_set), "-o", str(out)]) == 0
     rec = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
     assert len(rec) == 1 and rec[0]["ok"]
+    assert rec[0]["camera_order_suspect"] is False  # the right order (markers) is not flagged
     fj = json.loads((out / "frames" / "000.json").read_text())
     assert fj["format"] == "jaxcr.stereo-frame/2" and len(fj["segments"]) >= 1
     npz = np.load(out / "frames" / "000.npz")
@@ -144,6 +145,11 @@ def test_summary_warns_when_the_two_tips_disagree():
     warn = [x for x in lines if x.startswith("WARNING")]
     assert len(warn) == 1 and "frame a:" in warn[0] and "394 px" in warn[0], lines
     assert any("frame d" in x and "correspondence" in x for x in lines), lines
+    # a frame whose backbones the exchanged camera order explains (audit r31 S19)
+    recs[1].update(camera_order_suspect=True, camera_order_px=[306.0, 0.0, 1159.1])
+    warn = [x for x in summary_lines(recs, "OUT") if x.startswith("WARNING")]
+    assert len(warn) == 2 and "frame b:" in warn[1] and "swapped" in warn[1], warn
+    assert '"cameras"' in warn[1] and "306 of" in warn[1], warn
 
 
 def test_bad_input_exit_2(tmp_path, capsys):

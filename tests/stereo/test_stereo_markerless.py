@@ -113,6 +113,32 @@ def test_entry_px_mode_on_synth_scene(scene):
     assert R[0, 0] > 0  # x: camera 1's x axis made perpendicular to z
     assert _backbone_rms_cam1(r, truth, T["cam1"]) < BACKBONE_TOL
     assert np.linalg.norm(r["p"][0]) < 5e-3  # the backbone starts at the entry point
+    # the right camera order: the whole skeletons explained (measured [0, 174, 293] px)
+    assert not r["camera_order_suspect"] and r["camera_order_px"][0] == 0.0, r["camera_order_px"]
+
+
+def test_entry_px_mode_flags_a_swapped_camera_order(scene):
+    """Audit r31 S19: the two images given in the other order (``"cameras": ["cam2",
+    "cam1"]`` with the cam1->cam2 calibration). The entry pixels lie ~6 px apart here, so
+    they triangulate within the 10 px entry check in either order, and the frame was
+    reconstructed unflagged; now ``camera_order_suspect`` (measured [174, 0, 293] px:
+    59 % of the skeletons unexplained as given, none exchanged; flag at 10 % and 4x).
+    Same 320x240 shapes as the test above: its compiled programs are reused; the joint
+    chain fit and single-view tail (after the check, and only here compiled for other
+    shapes) are off."""
+    import dataclasses
+
+    d, ds, T, truth, ims = scene
+    cams = (ds["cam1"], ds["cam2"])
+    base = MarkerLayout().base_centre
+    entry = tuple(tuple(_px(c, T[n], base)[0]) for n, c in zip(ds["names"], cams, strict=True))
+    cfg = dataclasses.replace(
+        ds["config"], robot_base=None, base=BaseSpec("entry_px", entry_px=entry[::-1]),
+        joint_fit=False, single_view_tail=False,
+    )  # fmt: skip
+    r = reconstruct_pair(ims[1], ims[0], cams[0], cams[1], cfg, ds["plates"][::-1])
+    assert r["entry_residual_px"] < 10.0  # the entry check passes: why this check exists
+    assert r["camera_order_suspect"], r["camera_order_px"]
 
 
 def test_one_camera_dataset_end_to_end_cli(scene, tmp_path):

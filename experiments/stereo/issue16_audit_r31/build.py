@@ -152,6 +152,8 @@ def stereo(name, **kw):
 
 
 stereo("s_entry")
+# S19: the cameras listed in the wrong order for the L->R calibration (entry pixels 7 px apart)
+stereo("s_cams_swapped", cameras=["R", "L"])
 stereo("s_json_calib", calibration="calib/stereo_mm.json")
 stereo(
     "s_Tcb_mm",
