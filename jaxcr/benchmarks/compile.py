@@ -26,7 +26,9 @@ judged on the command's own ``compile_s`` (``summary.json`` of segment, and of t
 ``segment/`` folder) when it writes one, else on the process's wall seconds (an upper bound of
 its compilation). A child that exits non-zero is a failed row carrying its stderr's last line.
 
-The whole run takes minutes of CPU (several first compilations). ``jaxcr bench compile``.
+``repeats`` runs every part again with new cache folders, the reference first in odd repeats
+(an order effect then shows). The whole run takes minutes of CPU (about ten first
+compilations per repeat). ``jaxcr bench compile [--repeats 2] [--only ...]``.
 """
 
 from __future__ import annotations
@@ -175,11 +177,13 @@ def run_compile_benchmark(
     size: tuple[int, int] = (640, 480),
     frames: int = 2,
     seed: int = 0,
+    repeats: int = 1,
     only: str | list[str] | None = None,
     runner: Callable[..., ChildRun] | None = None,
 ) -> dict:
     """Run the selected parts (see the module docstring); ``size`` is (width, height).
-    ``runner(argv, env, cwd) -> ChildRun`` replaces :func:`run_child` (tests)."""
+    ``repeats``: every part again with new cache folders, the reference running first in odd
+    repeats. ``runner(argv, env, cwd) -> ChildRun`` replaces :func:`run_child` (tests)."""
     parts = parse_only(only)
     wh = f"{size[0]}x{size[1]}"
     common = ["--frames", str(frames), "--size", wh, "--seed", str(seed)]
@@ -188,65 +192,90 @@ def run_compile_benchmark(
     with tempfile.TemporaryDirectory(prefix="jaxcr_bench_compile_") as tmp:
         run = _Runner(Path(tmp), runner or run_child)
         seg_parts = [p for p in parts if p in ("segment", "second", "warmup")]
-        first = None
         if seg_parts:
             synth = ["synth", "--preset", "orthogonal", *common, "-o", "ds", "--quiet"]
             r = run(synth, None)
             if r.rc != 0:
                 rows.append(_failed_row("synth dataset", "jaxcr " + " ".join(synth), r))
                 seg_parts = []
+        stereo_ok = "stereo" in parts
+        if stereo_ok:
+            synth = ["stereo", "synth", "-o", "sds", *common]
+            r = run(synth, None)
+            if r.rc != 0:
+                rows.append(_failed_row("stereo synth dataset", "jaxcr " + " ".join(synth), r))
+                stereo_ok = False
 
         def segment(out: str, cache: str | None) -> tuple[ChildRun, float | None]:
             r = run(["segment", "ds", "-o", out, "--quiet", "--no-overlays"], cache)
             return r, _compile_s(Path(tmp) / out)
 
+        def pair(ours, ref, k):
+            """Both calls; the reference first in odd repeats (order effects show)."""
+            if k % 2:
+                r = ref()
+                return ours(), r
+            o = ours()
+            return o, ref()
+
+        demo_cmd = ["demo", *common]
         seg_cmd = f"jaxcr segment DS -o OUT --quiet --no-overlays ({frames} frames {wh})"
-        if "segment" in seg_parts or "second" in seg_parts:
-            first, first_c = segment("out_first", "cache_seg")
-            second, second_c = (
-                segment("out_second", "cache_seg") if "second" in seg_parts else (None, None)
-            )
-            ref, ref_c = segment("out_off", None) if "segment" in seg_parts else (None, None)
-            if ref is not None or second is None:
-                rows.append(_row("(a) first segment", seg_cmd, "empty", first, first_c,
-                                 FIRST_TARGET_S, "--no-compile-cache", ref, ref_c))  # fmt: skip
-            if second is not None:
-                rows.append(_row("(b) second segment", seg_cmd, "filled by (a)", second,
-                                 second_c, SECOND_TARGET_S, "row (a)", first, first_c))  # fmt: skip
-                if ref is None:  # (a) ran only to fill the cache: still reported
-                    rows.insert(-1, _row("(a) first segment (fills the cache)", seg_cmd,
-                                         "empty", first, first_c, FIRST_TARGET_S))  # fmt: skip
-        if "warmup" in seg_parts:
-            w = run(["warmup", "ds", "--no-overlays"], "cache_warm")
-            if w.rc != 0:
-                rows.append(_failed_row("(c) warmup", "jaxcr warmup DS --no-overlays", w))
-            else:
-                s, s_c = segment("out_warm", "cache_warm")
-                row = _row("(c) warmup, then segment", seg_cmd, "filled by jaxcr warmup", s,
-                           s_c, SECOND_TARGET_S, "row (a)" if first else None,
-                           first, first_c if first else None)  # fmt: skip
-                row.update(warmup_wall_s=w.wall_s, warmup_cpu_s=w.cpu_s)
-                rows.append(row)
-        if "demo" in parts:
-            cmd = ["demo", *common]
-            d, d_ref = (
-                run([*cmd, "-o", "demo_first"], "cache_demo"),
-                run([*cmd, "-o", "demo_off"], None),
-            )
-            rows.append(_row("(d) first demo", "jaxcr " + " ".join(cmd), "empty", d,
-                             _compile_s(Path(tmp) / "demo_first" / "segment"), FIRST_TARGET_S,
-                             "--no-compile-cache", d_ref,
-                             _compile_s(Path(tmp) / "demo_off" / "segment")))  # fmt: skip
-        if "stereo" in parts:
-            synth = ["stereo", "synth", "-o", "sds", *common]
-            r = run(synth, None)
-            if r.rc != 0:
-                rows.append(_failed_row("stereo synth dataset", "jaxcr " + " ".join(synth), r))
-            else:
-                s, s_ref = run(["stereo", "sds", "-o", "st_first"], "cache_st"), run(
-                    ["stereo", "sds", "-o", "st_off"], None)  # fmt: skip
+        for k in range(repeats):
+            n0, tag = len(rows), f"_{k}"
+            first = first_c = None
+            if "segment" in seg_parts or "second" in seg_parts:
+
+                def ours(tag=tag):
+                    f = segment("out_first" + tag, "cache_seg" + tag)
+                    s = (
+                        segment("out_second" + tag, "cache_seg" + tag)
+                        if "second" in seg_parts
+                        else (None, None)
+                    )
+                    return f, s
+
+                def ref(tag=tag):
+                    return (
+                        segment("out_off" + tag, None) if "segment" in seg_parts else (None, None)
+                    )
+
+                ((first, first_c), (second, second_c)), (ref_r, ref_c) = pair(ours, ref, k)
+                if ref_r is not None or second is None:
+                    rows.append(_row("(a) first segment", seg_cmd, "empty", first, first_c,
+                                     FIRST_TARGET_S, "--no-compile-cache", ref_r, ref_c))  # fmt: skip
+                else:  # (a) ran only to fill the cache: still reported
+                    rows.append(_row("(a) first segment (fills the cache)", seg_cmd, "empty",
+                                     first, first_c, FIRST_TARGET_S))  # fmt: skip
+                if second is not None:
+                    rows.append(_row("(b) second segment", seg_cmd, "filled by (a)", second,
+                                     second_c, SECOND_TARGET_S, "row (a)", first, first_c))  # fmt: skip
+            if "warmup" in seg_parts:
+                w = run(["warmup", "ds", "--no-overlays"], "cache_warm" + tag)
+                if w.rc != 0:
+                    rows.append(_failed_row("(c) warmup", "jaxcr warmup DS --no-overlays", w))
+                else:
+                    s, s_c = segment("out_warm" + tag, "cache_warm" + tag)
+                    row = _row("(c) warmup, then segment", seg_cmd, "filled by jaxcr warmup", s,
+                               s_c, SECOND_TARGET_S, "row (a)" if first else None,
+                               first, first_c)  # fmt: skip
+                    row.update(warmup_wall_s=w.wall_s, warmup_cpu_s=w.cpu_s)
+                    rows.append(row)
+            if "demo" in parts:
+                d, d_ref = pair(lambda t=tag: run([*demo_cmd, "-o", "demo_first" + t], "cache_demo" + t),
+                                lambda t=tag: run([*demo_cmd, "-o", "demo_off" + t], None), k)  # fmt: skip
+                rows.append(_row("(d) first demo", "jaxcr " + " ".join(demo_cmd), "empty", d,
+                                 _compile_s(Path(tmp) / f"demo_first{tag}" / "segment"),
+                                 FIRST_TARGET_S, "--no-compile-cache", d_ref,
+                                 _compile_s(Path(tmp) / f"demo_off{tag}" / "segment")))  # fmt: skip
+            if stereo_ok:
+                s, s_ref = pair(lambda t=tag: run(["stereo", "sds", "-o", "st_first" + t], "cache_st" + t),
+                                lambda t=tag: run(["stereo", "sds", "-o", "st_off" + t], None), k)  # fmt: skip
                 rows.append(_row("(e) first stereo", f"jaxcr stereo SDS -o OUT ({frames} pairs {wh})",
                                  "empty", s, None, FIRST_TARGET_S, "--no-compile-cache", s_ref))  # fmt: skip
+            for row in rows[n0:]:
+                row["repeat"] = k
+                if "reference" in row and row["reference"] == "--no-compile-cache":
+                    row["order"] = "reference first" if k % 2 else "ours first"
     loads.append(_load())
     failed = sum(r["result"] == "failed" for r in rows)
     return {
@@ -259,6 +288,7 @@ def run_compile_benchmark(
         "rows": rows,
         "console_columns": [
             "row",
+            "repeat",
             "wall_s",
             "cpu_s",
             "compile_s",

@@ -88,7 +88,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="compile: comma-separated parts of segment,second,warmup,demo,stereo (default "
         "all: a first and a second segment process, warmup then segment, a first demo and a "
         "first stereo, each beside the same command with --no-compile-cache; minutes of CPU, "
-        "~10 first compilations)",
+        "~10 first compilations per --repeats, the reference first in odd repeats)",
     )  # fmt: skip
     p.set_defaults(func=run)
     return p  # fmt: skip
@@ -157,6 +157,8 @@ def _call(fn, args) -> dict:
 
 
 def _fmt(v) -> str:
+    if v is None:
+        return "n/a"
     if isinstance(v, float):
         if not math.isfinite(v):
             return "n/a"

@@ -120,3 +120,14 @@ def test_unknown_part_exits_2_with_one_line(tmp_path, fake, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nope" in err[0] and "segment,second,warmup,demo,stereo" in err[0]
     assert not fake.calls
+
+
+def test_repeats_alternate_the_order_with_new_caches(tmp_path, fake):
+    out = tmp_path / "c.md"
+    assert main(["bench", "compile", "--only", "demo", "--repeats", "2", "-o", str(out)]) == 0
+    data = json.loads(out.with_suffix(".json").read_text())["result"]["rows"]
+    assert [(r["repeat"], r["order"], r["compile_s"]) for r in data] == [
+        (0, "ours first", FIRST), (1, "reference first", FIRST)]  # fmt: skip
+    flags = [(a[0] == "--no-compile-cache", e.get("JAXCR_CACHE_DIR")) for a, e in fake.calls]
+    assert [f for f, _ in flags] == [False, True, True, False]
+    assert len({c for _, c in flags if c}) == 2  # a new cache folder per repeat
