@@ -68,10 +68,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         metavar="REPORT.md",
         help="Markdown report (default: bench_<what>.md in the current folder)",
     )
-    p.add_argument("--repeats", type=int, default=None, help="timed repetitions")
+    p.add_argument("--repeats", type=int, default=None,
+                   help="timed repetitions (compile: rounds of every part, default 1)")  # fmt: skip
     p.add_argument(
         "--frames", type=int, default=None,
-        help="segment: frames per batch; registration: forward pairs per scene (default 4)",
+        help="segment: frames per batch; registration: forward pairs per scene (default 4); "
+        "compile: frames of the synthetic sets (default 2)",
     )  # fmt: skip
     p.add_argument("--size", default=None, metavar="WxH",
                    help="segment, motion, compile: image size (compile: default 640x480)")  # fmt: skip
