@@ -1,9 +1,10 @@
-"""``jaxcr bench segment|fk|motion|registration|planning``: run a benchmark and report it (console table + Markdown).
+"""``jaxcr bench segment|fk|motion|registration|planning|compile``: run a benchmark and report it (console table + Markdown).
 
 The measurements live in the package, :mod:`jaxcr.benchmarks` (``segment.py``:
 ``run_segment_benchmark``, ``fk.py``: ``run_fk_benchmark``, ``motion.py``:
 ``run_motion_benchmark``, ``registration.py``: ``run_registration_benchmark`` and
-``run_planning_benchmark``), so this command works from an
+``run_planning_benchmark``, ``compile.py``: ``run_compile_benchmark``, first-process
+compilation of segment/demo/stereo in child processes), so this command works from an
 installed wheel; it finds them (see :data:`PROVIDERS`), passes the options they accept, and
 prints and writes what they return.
 
@@ -11,7 +12,9 @@ A provider returns a dict. Recognised keys (all optional besides ``name``): ``na
 ``median_s``, ``spread_s`` (e.g. IQR), ``compile_s``, ``reference`` (what the reference is),
 ``reference_median_s``, ``ratio`` (reference / ours; computed if both medians are given),
 ``unit`` (what one timed call does, e.g. "frame"), ``rows`` (a list of dicts: one table row
-each, e.g. per batch size) and ``notes``. Every other scalar is listed as a key/value.
+each, e.g. per batch size; also printed on the console), ``console_columns`` (the
+columns of ``rows`` printed on the console; the Markdown has all), ``failed`` (the number of
+failed rows: the report is written and the command exits 1) and ``notes``. Every other scalar is listed as a key/value.
 A provider given as a ``.py`` file path (e.g. a script of one's own) without such a function
 but with ``main(argv)`` is run as a script
 (``-o REPORT.md``, plus ``--batch/--repeats/--frames/--size/--seed`` when given); it prints
@@ -37,8 +40,8 @@ from jaxcr.errors import InputError
 from jaxcr.io import results as R
 
 HELP = (
-    "benchmark segmentation, kinematics, motion, registration or planning "
-    "(medians, compile time, ratio vs reference)"
+    "benchmark segmentation, kinematics, motion, registration, planning or first-process "
+    "compilation (medians, compile time, ratio vs reference)"
 )
 
 #: where each benchmark function lives, searched in order (module, function); a module name
@@ -50,6 +53,7 @@ PROVIDERS = {
     "motion": [("jaxcr.benchmarks.motion", "run_motion_benchmark")],
     "registration": [("jaxcr.benchmarks.registration", "run_registration_benchmark")],
     "planning": [("jaxcr.benchmarks.registration", "run_planning_benchmark")],
+    "compile": [("jaxcr.benchmarks.compile", "run_compile_benchmark")],
 }
 
 
@@ -64,12 +68,15 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         metavar="REPORT.md",
         help="Markdown report (default: bench_<what>.md in the current folder)",
     )
-    p.add_argument("--repeats", type=int, default=None, help="timed repetitions")
+    p.add_argument("--repeats", type=int, default=None,
+                   help="timed repetitions (compile: rounds of every part, default 1)")  # fmt: skip
     p.add_argument(
         "--frames", type=int, default=None,
-        help="segment: frames per batch; registration: forward pairs per scene (default 4)",
+        help="segment: frames per batch; registration: forward pairs per scene (default 4); "
+        "compile: frames of the synthetic sets (default 2)",
     )  # fmt: skip
-    p.add_argument("--size", default=None, metavar="WxH", help="segment: image size")
+    p.add_argument("--size", default=None, metavar="WxH",
+                   help="segment, motion, compile: image size (compile: default 640x480)")  # fmt: skip
     p.add_argument("--batch", type=int, default=None, help="fk: joint vectors per batch (<= 65536)")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
     p.add_argument(
@@ -78,6 +85,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="fk, motion: also time the previous implementation in the same run "
         "(fk: the pre-issue-18 CTR solvers, minutes of compilation)",
     )
+    p.add_argument(
+        "--only", default=None, metavar="PARTS",
+        help="compile: comma-separated parts of segment,second,warmup,demo,stereo (default "
+        "all: a first and a second segment process, warmup then segment, a first demo and a "
+        "first stereo, each beside the same command with --no-compile-cache; minutes of CPU, "
+        "~10 first compilations per --repeats, the reference first in odd repeats)",
+    )  # fmt: skip
     p.set_defaults(func=run)
     return p  # fmt: skip
 
@@ -130,7 +144,8 @@ class _ScriptProvider:
 def _call(fn, args) -> dict:
     """Call ``fn`` with the CLI options it accepts (by parameter name)."""
     opts = {"repeats": args.repeats, "frames": args.frames, "batch": args.batch,
-            "seed": args.seed, "previous": getattr(args, "previous", False) or None}  # fmt: skip
+            "seed": args.seed, "previous": getattr(args, "previous", False) or None,
+            "only": getattr(args, "only", None)}  # fmt: skip
     if args.size is not None:
         from jaxcr.synth.generate import parse_size
 
@@ -144,6 +159,8 @@ def _call(fn, args) -> dict:
 
 
 def _fmt(v) -> str:
+    if v is None:
+        return "n/a"
     if isinstance(v, float):
         if not math.isfinite(v):
             return "n/a"
@@ -212,7 +229,8 @@ def to_markdown(result: dict, meta: dict, provider: str) -> str:
     unit = r.get("unit", "call")
     lines = [f"# Benchmark: {r.get('name', provider)}", ""]
     lines += ["| | value |", "|---|---|"]
-    lines.append(f"| median per {unit} | {_fmt_s(r.get('median_s'))} |")
+    if r.get("median_s") is not None or not r.get("rows"):
+        lines.append(f"| median per {unit} | {_fmt_s(r.get('median_s'))} |")
     if r.get("spread_s") is not None:
         lines.append(f"| spread | {_fmt_s(r.get('spread_s'))} |")
     if r.get("compile_s") is not None:
@@ -223,7 +241,7 @@ def to_markdown(result: dict, meta: dict, provider: str) -> str:
     if r.get("ratio") is not None:
         lines.append(f"| speed-up vs reference | {_fmt(float(r['ratio']))}x |")
     known = {"name", "median_s", "spread_s", "compile_s", "reference", "reference_median_s",
-             "ratio", "unit", "rows", "notes"}  # fmt: skip
+             "ratio", "unit", "rows", "notes", "console_columns"}  # fmt: skip
     for k, v in r.items():
         if k in known or k in ALIASES or k == "meta":
             continue
@@ -266,6 +284,12 @@ def _check_counts(args) -> None:
         from jaxcr.synth.generate import parse_size
 
         parse_size(args.size)
+    if getattr(args, "only", None) is not None:
+        if args.what != "compile":
+            raise InputError("--only applies to 'jaxcr bench compile' only", field="only")
+        from jaxcr.benchmarks.compile import parse_only
+
+        parse_only(args.only)
 
 
 def run(args) -> int:
@@ -290,16 +314,43 @@ def run(args) -> int:
     t.add_column("")
     t.add_column("value", justify="right")
     unit = result.get("unit", "call")
-    t.add_row(f"median per {unit}", _fmt_s(result.get("median_s")))
+    if result.get("median_s") is not None or not result.get("rows"):
+        t.add_row(f"median per {unit}", _fmt_s(result.get("median_s")))
     for key, label in (("spread_s", "spread"), ("compile_s", "compile"),
                        ("reference_median_s", f"reference ({result.get('reference')})")):  # fmt: skip
         if result.get(key) is not None:
             t.add_row(label, _fmt_s(result[key]))
     if result.get("ratio") is not None:
         t.add_row("speed-up vs reference", f"{_fmt(float(result['ratio']))}x")
-    Console().print(t)
+    console = Console()
+    if t.row_count:
+        console.print(t)
+    if result.get("rows"):
+        console.print(_rows_table(result["rows"], f"jaxcr bench {args.what}",
+                                  result.get("console_columns")))  # fmt: skip
     R.atomic_write_text(out, to_markdown(result, meta, provider))
     R.atomic_write_text(out.with_suffix(".json"), json.dumps(
         R.to_jsonable({"result": result, "meta": meta, "provider": provider}), indent=2))  # fmt: skip
     print(f"report: {out}")
+    for row in result.get("rows") or []:
+        if row.get("error"):
+            print(f"{row.get('row', '?')}: {row['error']}", file=sys.stderr)
+    if result.get("failed"):
+        print(f"jaxcr bench {args.what}: {result['failed']} row(s) failed (see the report)",
+              file=sys.stderr)  # fmt: skip
+        return 1
     return 0
+
+
+def _rows_table(rows: list[dict], title: str, columns: list[str] | None = None):
+    """A rich table of a benchmark's ``rows``: ``columns`` (the result's ``console_columns``),
+    else the columns of every row, in the order seen."""
+    from rich.table import Table
+
+    t = Table(title=title)
+    cols = columns or list(dict.fromkeys(k for row in rows for k in row))
+    for c in cols:
+        t.add_column(c, overflow="fold")
+    for row in rows:
+        t.add_row(*(_fmt(row.get(c, "")) for c in cols))
+    return t
