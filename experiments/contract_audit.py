@@ -245,19 +245,16 @@ class Audit:
         return d
 
 
+def synth_argv(out, size: str, frames: int) -> list:
+    """``jaxcr synth`` of the orthogonal preset into ``out``."""
+    return ["synth", "--preset", "orthogonal", "--size", size, "--frames", str(frames), "-o", out]
+
+
 SEG_FAST = ["--levels", "1", "--max-steps", "4", "--batch-size", "2", "--no-uncertainty", "--quiet"]
 
 FIXTURES = {
     "syn": lambda a, p: [
-        "synth",
-        "--preset",
-        "orthogonal",
-        "--size",
-        "64x48",
-        "--frames",
-        "4",
-        "-o",
-        p,
+        *synth_argv(p, "64x48", 4),
         "--quiet",
     ],
     "segout": lambda a, p: ["segment", a.fixture("syn"), "-o", p, *SEG_FAST],
@@ -367,15 +364,7 @@ def long_commands(a: Audit):
         (
             "synth",
             lambda o: [
-                "synth",
-                "--preset",
-                "orthogonal",
-                "--size",
-                "96x72",
-                "--frames",
-                "24",
-                "-o",
-                o,
+                *synth_argv(o, "96x72", 24),
             ],
             [],
             True,
@@ -557,15 +546,7 @@ def writers(a: Audit):
         (
             "synth",
             lambda o: [
-                "synth",
-                "--preset",
-                "orthogonal",
-                "--size",
-                "64x48",
-                "--frames",
-                "2",
-                "-o",
-                o,
+                *synth_argv(o, "64x48", 2),
                 "--quiet",
             ],
             True,
@@ -1423,15 +1404,7 @@ def item6(a: Audit):
         6,
         "synth --preview into a read-only folder is refused first",
         [
-            "synth",
-            "--preset",
-            "orthogonal",
-            "--size",
-            "64x48",
-            "--frames",
-            "2",
-            "-o",
-            out,
+            *synth_argv(out, "64x48", 2),
             "--preview",
             ro if ro else "/proc/1/preview",
         ],
@@ -1442,15 +1415,7 @@ def item6(a: Audit):
         6,
         "synth --preview into a missing folder under /proc",
         [
-            "synth",
-            "--preset",
-            "orthogonal",
-            "--size",
-            "64x48",
-            "--frames",
-            "2",
-            "-o",
-            a.S / "w" / "i6" / "preview_out2",
+            *synth_argv(a.S / "w" / "i6" / "preview_out2", "64x48", 2),
             "--preview",
             "/proc/nope/x",
         ],
@@ -1462,15 +1427,7 @@ def item6(a: Audit):
             (
                 "synth",
                 [
-                    "synth",
-                    "--preset",
-                    "orthogonal",
-                    "--size",
-                    "64x48",
-                    "--frames",
-                    "1",
-                    "-o",
-                    ro / "x",
+                    *synth_argv(ro / "x", "64x48", 1),
                 ],
             ),
             ("segment", ["segment", syn, "-o", ro / "x", *SEG_FAST]),
@@ -1503,15 +1460,7 @@ def item6(a: Audit):
         (
             "synth",
             lambda o: [
-                "synth",
-                "--preset",
-                "orthogonal",
-                "--size",
-                "64x48",
-                "--frames",
-                "4",
-                "-o",
-                o,
+                *synth_argv(o, "64x48", 4),
                 "--quiet",
             ],
             "48k",
