@@ -35,6 +35,9 @@ class StereoReconstruction(eqx.Module):
             entry pixels' triangulation residual (``entry_px`` only, else None).
         tip_epipolar_px: the larger of the two views' ``tip_px`` distances to the epipolar
             line of the other view's (px, undistorted pixels; docs/stereo-format.md).
+        camera_order_suspect: the two skeletons are explained much better with the cameras
+            exchanged (:mod:`jaxcr.stereo.camera_order`); camera_order_px: [unexplained
+            length under the given order, under the exchanged order, total length] (px).
         extra: any further outputs of ``reconstruct_pair`` not listed above (empty today).
     """
 
@@ -62,6 +65,8 @@ class StereoReconstruction(eqx.Module):
     base_mode: Any = None
     entry_residual_px: Any = None
     tip_epipolar_px: Any = None
+    camera_order_suspect: Any = None
+    camera_order_px: Any = None
     extra: dict = eqx.field(default_factory=dict)
 
 

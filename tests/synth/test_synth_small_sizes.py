@@ -181,4 +181,4 @@ def test_model_object_synth_small_sizes(tmp_path, capsys):
     capsys.readouterr()
     assert main([*base, "31x24", "-o", str(tmp_path / "s2")]) == 2
     line = _err_line(capsys)
-    assert "field 'size'" in line and "min 32x24" in line, line
+    assert "field 'size'" in line and "the minimum is 32x24" in line, line
