@@ -250,6 +250,11 @@ def synth_argv(out, size: str, frames: int) -> list:
     return ["synth", "--preset", "orthogonal", "--size", size, "--frames", str(frames), "-o", out]
 
 
+def calibrate_argv(left, right) -> list:
+    """``jaxcr calibrate`` of the audit's 6 x 5 chessboards (10 mm pitch), LEFT and RIGHT."""
+    return ["calibrate", left, right, "--cols", "6", "--rows", "5", "--pitch", "0.01"]
+
+
 SEG_FAST = ["--levels", "1", "--max-steps", "4", "--batch-size", "2", "--no-uncertainty", "--quiet"]
 
 FIXTURES = {
@@ -975,45 +980,21 @@ def item3(a: Audit):
         (
             "calibrate LEFT == RIGHT (other spelling)",
             [
-                "calibrate",
-                cal / "L",
-                str(cal / "L") + "/",
-                "--cols",
-                "6",
-                "--rows",
-                "5",
-                "--pitch",
-                "0.01",
+                *calibrate_argv(cal / "L", str(cal / "L") + "/"),
             ],
             (),
         ),
         (
             "calibrate LEFT == RIGHT (symlink)",
             [
-                "calibrate",
-                cal / "L",
-                cal / "Llink",
-                "--cols",
-                "6",
-                "--rows",
-                "5",
-                "--pitch",
-                "0.01",
+                *calibrate_argv(cal / "L", cal / "Llink"),
             ],
             (),
         ),
         (
             "calibrate --max-rms nan",
             [
-                "calibrate",
-                cal / "L",
-                cal / "R",
-                "--cols",
-                "6",
-                "--rows",
-                "5",
-                "--pitch",
-                "0.01",
+                *calibrate_argv(cal / "L", cal / "R"),
                 "--max-rms",
                 "nan",
             ],
@@ -1022,15 +1003,7 @@ def item3(a: Audit):
         (
             "calibrate --max-rms -1",
             [
-                "calibrate",
-                cal / "L",
-                cal / "R",
-                "--cols",
-                "6",
-                "--rows",
-                "5",
-                "--pitch",
-                "0.01",
+                *calibrate_argv(cal / "L", cal / "R"),
                 "--max-rms",
                 "-1",
             ],
@@ -1039,15 +1012,7 @@ def item3(a: Audit):
         (
             "calibrate --max-std nan",
             [
-                "calibrate",
-                cal / "L",
-                cal / "R",
-                "--cols",
-                "6",
-                "--rows",
-                "5",
-                "--pitch",
-                "0.01",
+                *calibrate_argv(cal / "L", cal / "R"),
                 "--max-std",
                 "nan",
             ],
@@ -1440,15 +1405,9 @@ def item6(a: Audit):
             (
                 "calibrate",
                 [
-                    "calibrate",
-                    a.S / "w" / "i3" / "calib" / "L",
-                    a.S / "w" / "i3" / "calib" / "R",
-                    "--cols",
-                    "6",
-                    "--rows",
-                    "5",
-                    "--pitch",
-                    "0.01",
+                    *calibrate_argv(
+                        a.S / "w" / "i3" / "calib" / "L", a.S / "w" / "i3" / "calib" / "R"
+                    ),
                     "-o",
                     ro / "c.yaml",
                 ],
