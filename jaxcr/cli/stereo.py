@@ -43,12 +43,21 @@ one camera, a single-camera file (``camera_matrix``, ``distortion_coefficients``
 One camera gives the 2-D results alone (tip pixel and backbone polyline, no triangulation,
 no segments); its base must be ``entry_px`` or ``T_cam_base`` (projected). With
 ``--segmentation trace`` its tip is the view's own traced tip (``tip_source`` ``"trace"``).
+With the chroma key and no second view to check it, a run whose key mask looks like a real
+background (:func:`jaxcr.stereo.key_check.key_mask_check`) prints one WARNING line naming
+the frames.
+
+Segmentation (``--segmentation``, default ``auto``): ``trace`` when stereo.json gives
+``background_plates`` (the plate foreground, made for real backgrounds: creases, shadows,
+tape, a dark tube), else ``chroma``; a rerun into an earlier OUT keeps the mode its
+run.json recorded. The first line printed names the mode and why
+(``segmentation: trace (auto: background plates given)``).
 
 Outputs in OUT (written as frames complete; a rerun into the same OUT skips frames already
 done, and is refused if the dataset or options differ from ``OUT/run.json``):
 
 - ``results.jsonl`` (records ``jaxcr.stereo-results/2``): one line per frame: ``format``,
-  ``id``, ``ok``, ``reason`` and ``message`` on failure (``calibration_size``, ``markers``,
+  ``id``, ``segmentation`` (the mode used), ``ok``, ``reason`` and ``message`` on failure (``calibration_size``, ``markers``,
   ``base``, ``robot_not_found``, ``correspondence``, ``image``); on success ``views``:
   per camera ``{"tip_px": [u, v], "backbone_px": [[u, v], ...]}`` (OpenCV pixels, the
   view's ordered skeleton from the base every 2 px, ending at the tip pixel, where the
@@ -118,13 +127,16 @@ def add_parser(subparsers) -> None:
     p.add_argument("-o", "--out", required=True, help="output folder (created if missing)")
     p.add_argument(
         "--segmentation",
-        choices=["chroma", "plate", "plate_shadow", "both", "trace"],
-        default="chroma",
-        help="chroma key (default), plate difference, plate after the best shadow gain, "
-        "both, or trace: the plate foreground for real backgrounds (aligned plate, cues "
-        "beyond the key colour, the tube traced from the robot base with gaps bridged; "
-        "see the --plate-... flags; each view's tip_px is the traced tip corrected for the "
-        "end face with both views, its tip_source recorded: docs/stereo-format.md)",
+        choices=["auto", *SEGMENTATIONS],
+        default=None,
+        help="auto (default): trace when stereo.json gives background_plates, else chroma "
+        "(a rerun into an earlier OUT keeps the mode recorded in its run.json); chroma key, "
+        "plate difference, plate after the best shadow gain, both, or trace: the plate "
+        "foreground for real backgrounds (aligned plate, cues beyond the key colour, the tube "
+        "traced from the robot base with gaps bridged; see the --plate-... flags; each "
+        "view's tip_px is the traced tip corrected for the end face with both views, its "
+        "tip_source recorded: docs/stereo-format.md). The mode used is printed first and "
+        "recorded in run.json and every results.jsonl record (segmentation)",
     )
     p.add_argument("--tolerance", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                    help="chroma-key score ramp (default 0.5 0.8)")  # fmt: skip
@@ -268,6 +280,48 @@ def write_tables(out: Path, frame_ids: list[str], table_dir: Path | None = None)
 
 RUN_FORMAT = "jaxcr.stereo-run/2"
 
+#: The segmentation modes of :class:`jaxcr.stereo.pipeline.StereoConfig` (``--segmentation``
+#: also takes ``auto``, resolved by :func:`segmentation_mode`).
+SEGMENTATIONS = ("chroma", "plate", "plate_shadow", "both", "trace")
+
+
+def recorded_segmentation(out: str | os.PathLike) -> tuple[str, Path] | None:
+    """The segmentation recorded by an earlier run in OUT (``OUT/run.json`` or a shard's),
+    with the file it was read from; None when OUT holds no stereo run."""
+    from jaxcr.scale.shards import shard_dirs
+
+    out = Path(out)
+    if not out.is_dir():
+        return None
+    for f in [out / "run.json"] + [d / "run.json" for _, d in shard_dirs(out)]:
+        try:
+            prev = json.loads(f.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, ValueError):
+            continue
+        if isinstance(prev, dict) and prev.get("format") == RUN_FORMAT:
+            seg = (prev.get("options") or {}).get("segmentation")
+            if seg in SEGMENTATIONS:
+                return seg, f
+    return None
+
+
+def segmentation_mode(
+    requested: str | None, plates_given: bool, out: str | os.PathLike
+) -> tuple[str, str]:
+    """``--segmentation`` resolved: ``(mode, why)``. A mode other than ``auto`` is used as
+    given. ``auto`` (or no flag): the mode an earlier run recorded in OUT's run.json (a
+    rerun continues it, also one written before ``auto`` existed, whose default was chroma);
+    else ``trace`` when the dataset gives background plates (the plate foreground for real
+    backgrounds: docs/decisions.md S32), else ``chroma``."""
+    if requested not in (None, "auto"):
+        return requested, f"--segmentation {requested}"
+    rec = recorded_segmentation(out)
+    if rec is not None:
+        return rec[0], f"auto: recorded by the earlier run in {rec[1]}"
+    if plates_given:
+        return "trace", "auto: background plates given"
+    return "chroma", "auto: no background plates in stereo.json"
+
 
 def _check_run(out: Path, dataset: dict, log_dir: Path | None = None) -> None:
     """Write ``OUT/run.json`` (dataset and options) on the first run; a rerun into the same
@@ -279,6 +333,8 @@ def _check_run(out: Path, dataset: dict, log_dir: Path | None = None) -> None:
     info = {
         "format": RUN_FORMAT,
         "dataset": str(Path(dataset["root"]).resolve()),
+        # how the mode in options was chosen (not compared on a rerun: options are)
+        "segmentation_choice": dataset.get("segmentation_choice", "--segmentation"),
         "options": {
             "segmentation": cfg.segmentation,
             "tolerance": [cfg.tol_lo, cfg.tol_hi],
@@ -338,8 +394,9 @@ class StereoWorker:
         self.compile_s = self.run_s = 0.0
 
     def failed_record(self, fid: str, reason: str) -> dict:
-        return {"format": RESULTS_FORMAT, "id": fid, "ok": False, "reason": "worker",
-                "message": reason}  # fmt: skip
+        return {"format": RESULTS_FORMAT, "id": fid,
+                "segmentation": self.dataset["config"].segmentation, "ok": False,
+                "reason": "worker", "message": reason}  # fmt: skip
 
     def process(self, frame_ids: list[str]) -> Iterator[dict]:
         """Yield each frame's record as soon as its files are written (the caller appends it
@@ -360,7 +417,8 @@ class StereoWorker:
         names = dataset["names"]
         cams = (dataset["cam1"], dataset["cam2"])[: len(names)]
         fid = str(fr["id"])
-        rec: dict = {"format": RESULTS_FORMAT, "id": fid}
+        rec: dict = {"format": RESULTS_FORMAT, "id": fid,
+                     "segmentation": dataset["config"].segmentation}  # fmt: skip
         try:
             images = [
                 _read_rgb(dataset["root"] / fr["images"][n], fid, field=f"images.{n}")
@@ -393,6 +451,11 @@ class StereoWorker:
                            tip_epipolar_px=r["tip_epipolar_px"],
                            camera_order_suspect=r["camera_order_suspect"],
                            camera_order_px=r["camera_order_px"])  # fmt: skip
+            if r.get("key_check") is not None:
+                kc = r["key_check"]
+                rec["key_check"] = {"robot_fraction": kc.robot_fraction,
+                                    "border_fraction": kc.border_fraction,
+                                    "suspect": kc.suspect}  # fmt: skip
             rec["timings"] = r["timings"]
         except StereoFailure as err:
             rec.update(ok=False, reason=err.reason, message=str(err))
@@ -574,7 +637,9 @@ def run(args) -> int:
     shard = parse_shard(args.shard)  # bad --shard: one line, before reading anything
     executor = executor_config(args)
     ds = load_stereo_dataset(args.dataset)
-    ds["config"].segmentation = args.segmentation
+    mode, why = segmentation_mode(args.segmentation, ds["plates"] is not None, args.out)
+    ds["config"].segmentation = mode
+    ds["segmentation_choice"] = why
     if args.tolerance is not None:
         from jaxcr.limits import check_number
 
@@ -588,16 +653,19 @@ def run(args) -> int:
         check_count(args.segments, "--segments", 1, MAX_SEGMENTS)
         ds["config"].n_segments = args.segments
     given = plate_flags_given(args)
-    if given and args.segmentation != "trace":
-        raise InputError(f"{given[0]} needs --segmentation trace", field=given[0])
-    if args.segmentation == "trace":
-        ds["config"].plate_foreground = plate_config(args)
-    if args.segmentation != "chroma" and ds["plates"] is None:
+    if given and mode != "trace":
         raise InputError(
-            f"--segmentation {args.segmentation} needs background_plates in stereo.json"
+            f"{given[0]} needs --segmentation trace"
+            + ("" if why.startswith("--") else f" (segmentation is {mode}, {why})"),
+            field=given[0],
         )
+    if mode == "trace":
+        ds["config"].plate_foreground = plate_config(args)
+    if mode != "chroma" and ds["plates"] is None:
+        raise InputError(f"--segmentation {mode} needs background_plates in stereo.json")
 
     claim_output(args.out, "stereo", shard, marker="run.json")
+    print(f"segmentation: {mode} ({why})", flush=True)
     recs = run_batch(ds, args.out, overlays=not args.no_overlays, shard=shard,
                      executor=executor)  # fmt: skip
     for line in summary_lines(recs, args.out):
@@ -610,6 +678,8 @@ def run(args) -> int:
 #: trace segmentation re-checks its tips; the same tip seen in both views of a calibrated
 #: rig lies within a few pixels (docs/stereo-format.md, tip_epipolar_px).
 TIP_EPIPOLAR_WARN_PX = 10.0
+#: Frames named in the one-camera chroma-key WARNING line (the rest are counted).
+MAX_NAMED = 10
 
 
 def summary_lines(recs: list[dict], out) -> list[str]:
@@ -618,12 +688,31 @@ def summary_lines(recs: list[dict], out) -> list[str]:
     :data:`TIP_EPIPOLAR_WARN_PX`: one view lost the tip or segmented something else, and its
     3-D tip and that view's ``tip_px`` are not to be trusted), and one per frame whose two
     backbones the exchanged camera order explains much better (``camera_order_suspect``,
-    :mod:`jaxcr.stereo.camera_order`)."""
+    :mod:`jaxcr.stereo.camera_order`); and one WARNING line for the whole run naming the
+    one-camera chroma-key frames whose mask looks like a real background (``key_check``,
+    :mod:`jaxcr.stereo.key_check`)."""
     n_ok = sum(r["ok"] for r in recs)
     lines = [f"{n_ok}/{len(recs)} frames reconstructed; results in {out}"
              + (f" (failed frames listed below and in {Path(out) / 'results.jsonl'})"
                 if n_ok < len(recs) else "")]  # fmt: skip
     lines += [f"  {failure_line(r)}" for r in recs if not r["ok"]]
+    suspect = [r for r in recs if r["ok"] and (r.get("key_check") or {}).get("suspect")]
+    if suspect:
+        from jaxcr.stereo.key_check import BORDER_FRACTION_MAX, ROBOT_FRACTION_MAX
+
+        ids = [str(r["id"]) for r in suspect]
+        named = ", ".join(ids[:MAX_NAMED]) + (f" and {len(ids) - MAX_NAMED} more"
+                                              if len(ids) > MAX_NAMED else "")  # fmt: skip
+        rf = max(r["key_check"]["robot_fraction"] for r in suspect)
+        bf = max(r["key_check"]["border_fraction"] for r in suspect)
+        lines.append(
+            f"WARNING: {len(ids)} frame(s) ({named}): the chroma key's mask looks like a real "
+            f"background (robot region up to {rf:.0%} of the frame, non-key border up to "
+            f"{bf:.0%}; a key-coloured backdrop stays under {ROBOT_FRACTION_MAX:.0%} and "
+            f"{BORDER_FRACTION_MAX:.0%}) and one camera has no second view to check it: "
+            "their tip_px and backbone_px are unchecked; with background plates in "
+            "stereo.json use --segmentation trace (docs/stereo-format.md, key_check)"
+        )
     for r in recs:
         e = r.get("tip_epipolar_px") if r["ok"] else None
         if e is not None and e > TIP_EPIPOLAR_WARN_PX:

@@ -7,7 +7,8 @@ background plate; with ``segmentation="trace"`` the plate foreground traced from
 pixel, :func:`jaxcr.segmentation.foreground.plate_foreground`, whose tip becomes ``tip_px``
 with ``tip_source`` ``"trace"``: one view has no second view to correct the end face with),
 closing, base localisation and flood fill from the base pixel, Zhang-Suen thinning, ordering
-from the base and the shadow cut. Nothing 3-D is measured: no depth,
+from the base and the shadow cut. With the chroma key, its mask is checked for a real
+background (:mod:`jaxcr.stereo.key_check`: no second view checks it). Nothing 3-D is measured: no depth,
 diameters in metres, segments or plane/arc fits. The base pixel is the dataset's entry
 pixel, or the projection of the base point through a given ``T_cam_base``.
 """
@@ -20,6 +21,7 @@ import numpy as np
 
 from jaxcr.camera import Camera
 from jaxcr.stereo.base_locate import flood_component, locate_base
+from jaxcr.stereo.key_check import key_mask_check
 from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.pipeline import (
     StereoConfig,
@@ -68,7 +70,9 @@ def reconstruct_view(
     """The 2-D backbone of one view (module docstring). ``image``: RGB (H, W, 3) uint8 or
     float [0, 1]; ``plate``: the empty scene (for plate segmentations). Returns
     ``{"views_px": [{"tip_px", "backbone_px"}], "skeleton_rc", "robot_mask", "base_px",
-    "timings"}``. Per-frame problems raise :class:`StereoFailure`."""
+    "key_check", "timings"}`` (``key_check``: with the chroma key, the
+    :class:`jaxcr.stereo.key_check.KeyMaskCheck` of its mask, else None). Per-frame problems
+    raise :class:`StereoFailure`."""
     cfg = config or StereoConfig()
     timings: dict = {}
     t0 = _now()
@@ -119,6 +123,9 @@ def reconstruct_view(
             f"robot region covers {frac:.0%} of view 1: the background does not match the key "
             "colour",
         )
+    # One view has no second view to check the chroma key with: measure whether its mask
+    # looks like a real background (audit r31 S18; jaxcr.stereo.key_check).
+    key_check = key_mask_check(mask, robot) if cfg.segmentation == "chroma" else None
     t0 = _tick(timings, "base_floodfill", t0)
     ((sk, (r0, c0)),) = _thin_cropped_views([robot])
     t0 = _tick(timings, "thinning", t0)
@@ -140,5 +147,6 @@ def reconstruct_view(
         "skeleton_rc": rc,
         "robot_mask": robot,
         "base_px": list(buv),
+        "key_check": key_check,
         "timings": timings,
     }
