@@ -473,14 +473,15 @@ def build_stereo_worker(dataset: str, config, out: str, overlays: bool) -> Stere
 
 def run_batch(
     dataset: dict, out: str | os.PathLike, overlays: bool = True, progress: bool = True,
-    shard=None, executor=None,
+    shard=None, executor=None, announce=None,
 ) -> list[dict]:  # fmt: skip
     """Reconstruct every frame of a loaded dataset into ``out`` (see module docstring);
     returns the log records of all frames (including ones done by an earlier run).
     ``shard`` (:class:`jaxcr.scale.shards.Shard`): only its block of frames, its log, run.json
     and tables in ``out/shards/I-of-N`` (frames recorded by other shards are skipped).
     ``executor``: :class:`jaxcr.scale.executor.ExecutorConfig` (default local; ``ray``: the
-    frames as tasks, one per ``--chunk`` frames, default 1)."""
+    frames as tasks, one per ``--chunk`` frames, default 1). ``announce``: called once the
+    dataset and options are accepted for ``out`` (before any frame)."""
     from jaxcr.io import results as R
     from jaxcr.scale.shards import read_all_records, shard_dir
 
@@ -490,6 +491,8 @@ def run_batch(
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / "results.jsonl"
     _check_run(out, dataset, log_dir)
+    if announce is not None:
+        announce()  # the run is accepted: say how (jaxcr stereo prints the segmentation)
     done = {str(r["id"]): r for r in read_all_records(out, _read_log_list, key="id")}
     done.update(_read_log(log_path))
     # the tables are rebuilt at the end: none is left over that looks like this run's
@@ -665,9 +668,9 @@ def run(args) -> int:
         raise InputError(f"--segmentation {mode} needs background_plates in stereo.json")
 
     claim_output(args.out, "stereo", shard, marker="run.json")
-    print(f"segmentation: {mode} ({why})", flush=True)
     recs = run_batch(ds, args.out, overlays=not args.no_overlays, shard=shard,
-                     executor=executor)  # fmt: skip
+                     executor=executor,
+                     announce=lambda: print(f"segmentation: {mode} ({why})", flush=True))  # fmt: skip
     for line in summary_lines(recs, args.out):
         print(line)
     return 0 if all(r["ok"] for r in recs) else 1

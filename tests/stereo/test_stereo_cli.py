@@ -27,11 +27,25 @@ def synth_set(tmp_path_factory):
     return d
 
 
-def test_stereo_cli_outputs_and_accuracy(synth_set, tmp_path):
+@pytest.mark.parametrize(
+    "flags, mode, why",
+    [
+        (["--segmentation", "chroma"], "chroma", "--segmentation chroma"),
+        # the default (docs/decisions.md S32): the synth set gives background plates
+        ([], "trace", "auto: background plates given"),
+    ],
+)
+def test_stereo_cli_outputs_and_accuracy(synth_set, tmp_path, capsys, flags, mode, why):
     out = tmp_path / "out"
-    assert main(["stereo", str(synth_set), "-o", str(out)]) == 0
+    assert main(["stereo", str(synth_set), "-o", str(out), *flags]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0] == f"segmentation: {mode} ({why})", printed  # the first line
+    assert not [x for x in printed if x.startswith("WARNING")], printed  # two views: no key check
+    run = json.loads((out / "run.json").read_text())
+    assert run["options"]["segmentation"] == mode and run["segmentation_choice"] == why
     rec = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
-    assert len(rec) == 1 and rec[0]["ok"]
+    assert len(rec) == 1 and rec[0]["ok"] and rec[0]["segmentation"] == mode
+    assert "key_check" not in rec[0]  # two views check each other (tip_epipolar_px)
     assert rec[0]["camera_order_suspect"] is False  # the right order (markers) is not flagged
     fj = json.loads((out / "frames" / "000.json").read_text())
     assert fj["format"] == "jaxcr.stereo-frame/2" and len(fj["segments"]) >= 1
@@ -51,9 +65,35 @@ def test_stereo_cli_outputs_and_accuracy(synth_set, tmp_path):
     ev = evaluate_frame(res, truth)
     # the bound was 0.5 mm at 480x360; at 320x240 (same field of view) a pixel covers
     # 480/320 = 1.5x more, so 0.75 mm, as tests/core/test_examples.py::test_stereo derives
-    # for this very pair (measured there: 0.49 mm; coverage 0.974, 0.975-0.995 over seeds 0-5)
+    # for this very pair (measured there: 0.49 mm; coverage 0.974, 0.975-0.995 over seeds 0-5;
+    # the trace default on this pair: 0.33 mm, coverage 0.971)
     assert ev["backbone_rms_mm"] < 0.75
     assert ev["coverage"] > 0.95
+    if mode != "chroma":
+        return
+    # An earlier run written before `auto` (no segmentation_choice in run.json, no
+    # segmentation in its records, chroma by the old default) continues with its recorded
+    # mode when rerun without the flag: nothing redone, not refused for other options.
+    del run["segmentation_choice"]
+    (out / "run.json").write_text(json.dumps(run))
+    lines = (out / "results.jsonl").read_text().splitlines()
+    old = [json.loads(x) for x in lines]
+    for r in old:
+        del r["segmentation"]
+    (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in old))
+    assert main(["stereo", str(synth_set), "-o", str(out)]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert (
+        printed[0]
+        == f"segmentation: chroma (auto: recorded by the earlier run in {out / 'run.json'})"
+    )
+    assert len((out / "results.jsonl").read_text().splitlines()) == len(lines)
+    # --segmentation auto given explicitly is the default: the same choice
+    assert main(["stereo", str(synth_set), "-o", str(out), "--segmentation", "auto"]) == 0
+    assert capsys.readouterr().out.startswith("segmentation: chroma (auto: recorded")
+    # an explicit other mode is a different run: refused, one line
+    assert main(["stereo", str(synth_set), "-o", str(out), "--segmentation", "trace"]) == 2
+    assert "different options" in capsys.readouterr().err
 
 
 def test_per_frame_failures_and_resume(synth_set, tmp_path):
