@@ -138,6 +138,8 @@ def test_tutorial_end_to_end(rig, capsys):
     for f in frames:
         r = recs[f["id"]]
         assert r["ok"], r
+        # the tutorial gives no --segmentation: the plates make the default trace (S32)
+        assert r["segmentation"] == "trace", r
         for cam in ("cam1", "cam2"):
             err = np.linalg.norm(np.subtract(r["views"][cam]["tip_px"], f["tip_px"][cam]))
             assert err < 4.0, (f["id"], cam, err)
