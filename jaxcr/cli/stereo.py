@@ -153,7 +153,7 @@ def add_parser(subparsers) -> None:
 
     add_shard_argument(p)
     add_executor_arguments(p, "1 frame")
-    add_plate_arguments(p, "--segmentation trace")
+    add_plate_arguments(p, "--segmentation trace, or auto with background_plates")
     p.set_defaults(func=run)
 
 
@@ -334,7 +334,7 @@ def _check_run(out: Path, dataset: dict, log_dir: Path | None = None) -> None:
         "format": RUN_FORMAT,
         "dataset": str(Path(dataset["root"]).resolve()),
         # how the mode in options was chosen (not compared on a rerun: options are)
-        "segmentation_choice": dataset.get("segmentation_choice", "--segmentation"),
+        "segmentation_choice": dataset.get("segmentation_choice"),
         "options": {
             "segmentation": cfg.segmentation,
             "tolerance": [cfg.tol_lo, cfg.tol_hi],
