@@ -164,6 +164,14 @@ def test_one_camera_dataset_end_to_end_cli(scene, tmp_path):
     (rec,) = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
     assert rec["format"] == "jaxcr.stereo-results/2" and rec["ok"]
     assert "n_segments" not in rec  # 2-D results alone
+    # no plates: auto is the chroma key (S32), and on this clean chroma scene its mask passes
+    # the one-camera check (measured: robot region 0.7 %, non-key border 5.7 % at most on
+    # such scenes; limits 2 % and 15 %): no WARNING
+    lines = proc.stdout.splitlines()
+    assert lines[0] == "segmentation: chroma (auto: no background plates in stereo.json)", lines
+    assert not [x for x in lines if x.startswith("WARNING")], lines
+    assert rec["segmentation"] == "chroma" and rec["key_check"]["suspect"] is False, rec
+    assert rec["key_check"]["robot_fraction"] < 0.02 and rec["key_check"]["border_fraction"] < 0.15
     v = rec["views"]["cam1"]
     uv_true = _px(ds["cam1"], T["cam1"], truth["p"])
     # measured 0.6 px (tip) and 0.75 px (polyline max) from the projected truth; 2 px.
