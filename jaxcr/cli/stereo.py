@@ -719,11 +719,17 @@ def summary_lines(recs: list[dict], out) -> list[str]:
     for r in recs:
         e = r.get("tip_epipolar_px") if r["ok"] else None
         if e is not None and e > TIP_EPIPOLAR_WARN_PX:
+            # the trace hint only where the frame was not traced already (a traced view
+            # that followed a crossing cable got "try trace" before: S32, seed 4005)
+            hint = (
+                "; the traces may have followed an object crossing the tube"
+                if r.get("segmentation") == "trace"
+                else " (on a real background try --segmentation trace)"
+            )
             lines.append(
                 f"WARNING: frame {r['id']}: the two views' tips are {e:.0f} px from each "
                 f"other's epipolar lines (over {TIP_EPIPOLAR_WARN_PX:g} px): one view lost the "
-                "tip or found something else; check its overlay (on a real background try "
-                "--segmentation trace)"
+                f"tip or found something else; check its overlay{hint}"
             )
         if r["ok"] and r.get("camera_order_suspect"):
             given, exchanged, total = r["camera_order_px"]

@@ -184,6 +184,13 @@ def test_summary_warns_when_the_two_tips_disagree():
     assert lines[0].startswith("3/4 frames reconstructed")
     warn = [x for x in lines if x.startswith("WARNING")]
     assert len(warn) == 1 and "frame a:" in warn[0] and "394 px" in warn[0], lines
+    assert "try --segmentation trace" in warn[0]  # a record without the field: the hint
+    # a traced frame is not told to try trace (S32: real_like seed 4005, a trace that
+    # followed the occluding cable, was told so)
+    traced = summary_lines([{**recs[0], "segmentation": "trace"}], "OUT")
+    assert "--segmentation trace" not in traced[1] and "crossing" in traced[1], traced
+    chroma = summary_lines([{**recs[0], "segmentation": "chroma"}], "OUT")
+    assert "try --segmentation trace" in chroma[1], chroma
     assert any("frame d" in x and "correspondence" in x for x in lines), lines
     # a frame whose backbones the exchanged camera order explains (audit r31 S19)
     recs[1].update(camera_order_suspect=True, camera_order_px=[306.0, 0.0, 1159.1])
