@@ -215,6 +215,12 @@ class PipelineConfig:
     # sigma_z(z) = sigma0 + sigma2 (z - z0)^2; None: ``icp``'s (Nguyen et al. 2012, Kinect).
     # :func:`build_model` takes the one the scene declares (:meth:`with_sensor`).
     depth_noise: tuple[float, float, float] | None = None
+    # Information of each registration, the pose graph's edge weight before calibration
+    # (register_pair ``information``): "hessian" (the ICP normal matrix over the residual
+    # variance: independent residuals of one variance) or "sandwich" (cluster-robust, from
+    # the residuals' own scatter over 8 x 8-pixel tiles, leave-one-tile-out corrected:
+    # :func:`jaxcr.registration.covariance.projective_sandwich_information`). Decision R3.
+    edge_information: str = "hessian"
 
     def with_sensor(self, depth_noise: dict | None) -> PipelineConfig:
         """This configuration with the depth-noise model of a scene's ``depth_noise``
@@ -264,6 +270,7 @@ class PipelineConfig:
             geometric_points=self.geometric_points,
             scale_match=self.photometric_scale_match,
             keypoint_crop=self.keypoint_crop,
+            information=self.edge_information,
         )
 
 
