@@ -12,11 +12,12 @@ from scipy.spatial.transform import Rotation
 
 from jaxcr.registration.clouds import organised_cloud
 from jaxcr.registration.covariance import (
+    keypoint_rows,
     projective_sandwich_information,
     projective_sandwich_information_jit,
     sandwich,
 )
-from jaxcr.registration.icp import CloudArrays, IcpConfig
+from jaxcr.registration.icp import CloudArrays, IcpConfig, Keypoints, no_keypoints, normal_equations
 from jaxcr.registration.pipeline import PipelineConfig
 from jaxcr.registration.projective import (
     depth_image,
@@ -167,3 +168,35 @@ def test_jit_equals_eager_and_options_are_checked(surface):
 
     with pytest.raises(ValueError, match="information must be 'hessian' or 'sandwich'"):
         register_pair(None, None, K, information="bootstrap")
+
+
+@pytest.mark.parametrize("balance", ["noise", "fraction"])
+def test_keypoint_rows_sum_to_the_icp_keypoint_term(balance):
+    # Reference: the keypoint term of normal_equations, as H and g with keypoints minus
+    # H and g without them (the same dense matches).
+    rng = np.random.default_rng(5)
+    n, k = 50, 12
+    ps = rng.normal([0, 0, 0.5], 0.05, (n, 3))
+    nq = rng.normal(size=(n, 3))
+    nq /= np.linalg.norm(nq, axis=1, keepdims=True)
+    q = ps + 0.002 * rng.standard_normal((n, 3))
+    w = rng.uniform(0.2, 1.0, n)
+    pl = np.sum((ps - q) * nq, 1)
+    src = rng.normal([0, 0, 0.5], 0.05, (k, 3))
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.01, -0.02, 0.005]).as_matrix()
+    T[:3, 3] = [0.003, -0.002, 0.001]
+    tgt = src @ T[:3, :3].T + T[:3, 3] + 0.002 * rng.standard_normal((k, 3))
+    mask = np.arange(k) < 9
+    kp = Keypoints(*(jnp.asarray(x, jnp.float32) for x in (src, tgt)), jnp.asarray(mask))
+    cfg = IcpConfig(keypoint_weight=1.0, keypoint_balance=balance)
+    args = [jnp.asarray(x, jnp.float32) for x in (T, ps, q, nq, w, pl)]
+    H1, g1 = normal_equations(*args, cfg, kp)
+    H0, g0 = normal_equations(*args, cfg, no_keypoints())
+    bal = np.sum(w * pl**2) / np.sum(w) if balance == "noise" else np.sum(w)
+    s, h = keypoint_rows(jnp.asarray(T, jnp.float32), kp, jnp.float32(bal), cfg)
+    s, h = np.asarray(s), np.asarray(h)
+    assert np.all(s[~mask] == 0) and np.all(h[~mask] == 0)
+    Hk, gk = np.asarray(H1 - H0), np.asarray(g1 - g0)
+    np.testing.assert_allclose(h.sum(0), Hk, rtol=1e-3, atol=1e-4 * np.abs(Hk).max())
+    np.testing.assert_allclose(s.sum(0), gk, rtol=1e-3, atol=1e-3 * np.abs(gk).max())
