@@ -255,6 +255,7 @@ def register_pair(
     scale_match: bool = False,
     keypoint_crop: int | None = None,
     information: str = "hessian",
+    information_tile: int = 8,
 ) -> PairResult:
     """Register two RGB-D frames: ``T`` with ``tgt ~ T src`` (``jcr.registration.register_pair``;
     paper Sec. IV.A, see the module docstring).
@@ -312,8 +313,9 @@ def register_pair(
         The returned ``information`` (projective association): the normal matrix over the
         residual variance (:func:`jaxcr.registration.projective.projective_information`,
         default) or the cluster-robust sandwich estimate from the residuals' scatter over
-        8 x 8-pixel tiles (:func:`jaxcr.registration.covariance.
-        projective_sandwich_information`).
+        ``information_tile`` x ``information_tile``-pixel tiles
+        (:func:`jaxcr.registration.covariance.projective_sandwich_information`; 1: each
+        residual its own cluster, the heteroscedasticity-robust form).
 
     Returns
     -------
@@ -415,7 +417,7 @@ def register_pair(
     if association == "projective" and np.all(np.isfinite(T)):
         if information == "sandwich":
             info, _ = projective_sandwich_information_jit(
-                res.T, src_sample, tgt_image, cfg, kp, **proj_kw
+                res.T, src_sample, tgt_image, cfg, kp, tile=int(information_tile), **proj_kw
             )
         else:
             info, _ = projective_information_jit(res.T, src_sample, tgt_image, cfg, kp, **proj_kw)

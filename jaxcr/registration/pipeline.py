@@ -221,6 +221,8 @@ class PipelineConfig:
     # the residuals' own scatter over 8 x 8-pixel tiles, leave-one-tile-out corrected:
     # :func:`jaxcr.registration.covariance.projective_sandwich_information`). Decision R3.
     edge_information: str = "hessian"
+    # Tile (pixels) of the "sandwich" clusters; 1: every residual its own cluster.
+    information_tile: int = 8
 
     def with_sensor(self, depth_noise: dict | None) -> PipelineConfig:
         """This configuration with the depth-noise model of a scene's ``depth_noise``
@@ -271,6 +273,7 @@ class PipelineConfig:
             scale_match=self.photometric_scale_match,
             keypoint_crop=self.keypoint_crop,
             information=self.edge_information,
+            information_tile=self.information_tile,
         )
 
 
