@@ -72,7 +72,7 @@ def main() -> None:
     ).stdout.strip()
     cmd = "python experiments/registration/model_object_r3_dev.py " + " ".join(sys.argv[1:])
     md = [
-        "# Object modelling: edge information on the development seeds (decision R3, issue 17 item 10)",
+        "# Object modelling: edge information and frames per capture on the development seeds (decision R3, issue 17 item 10)",
         "",
         f"Report written at commit {commit} by `{cmd}` from the harness logs named there. "
         "Errors of every view's camera pose after global optimisation against the truth, "
@@ -89,6 +89,7 @@ def main() -> None:
             "|---|---|---|---|---|---|---|---|",
         ]
         deltas = []
+        firsts: dict[str, list[tuple[float, float]]] = {}
         for k in keys:
             b, v = base[k], var[k]
             if b["status"] != "ok" or v["status"] != "ok":
@@ -100,6 +101,12 @@ def main() -> None:
             d = [vv[x]["trans_mm"] - bv[x]["trans_mm"] for x in common]
             deltas += d
             first = [x for x in common if x[1] == 0]
+            anchor = len([x for x in b["views"] if x["ring_position"] is not None]) - 1
+            firsts.setdefault(k[0], []).extend(
+                (bv[x]["trans_mm"], vv[x]["trans_mm"])
+                for x in first
+                if bv[x]["ring_position"] != anchor and vv[x]["ring_position"] != anchor
+            )
             fc = " ; ".join(
                 f"{bv[x]['trans_mm']:.2f} -> {vv[x]['trans_mm']:.2f}" for x in sorted(first)
             )
@@ -124,6 +131,14 @@ def main() -> None:
                 f"{sb['worst_mean']:.2f} -> {sv['worst_mean']:.2f} | {sb['median_median']:.2f} -> "
                 f"{sv['median_median']:.2f} | {sb['goal']} -> {sv['goal']} of {sb['ok']} | "
                 f"{sb['worst_deg']:.3f} -> {sv['worst_deg']:.3f} |"
+            )
+        for task, pairs in sorted(firsts.items()):
+            fa = np.asarray(pairs)
+            md.append(
+                f"\nTask {task}, the routes' first captures (capture 0, the anchor left out; "
+                f"{len(fa)}): mean {fa[:, 0].mean():.2f} -> {fa[:, 1].mean():.2f} mm, max "
+                f"{fa[:, 0].max():.2f} -> {fa[:, 1].max():.2f} mm, lower in "
+                f"{int(np.sum(fa[:, 1] < fa[:, 0]))}."
             )
         if deltas:
             dd = np.asarray(deltas)
