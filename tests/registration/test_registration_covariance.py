@@ -163,7 +163,8 @@ def test_jit_equals_eager_and_options_are_checked(surface):
     b = projective_sandwich_information_jit(jnp.eye(4), src, surface["tgt"], CFG)
     for x, y in zip(a, b, strict=True):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-3, atol=1e-6)
-    assert PipelineConfig().edge_information == "hessian"
+    cfg = PipelineConfig()
+    assert (cfg.edge_information, cfg.information_tile) == ("sandwich", 1)  # decision R3
     from jaxcr.registration.pairwise import register_pair
 
     with pytest.raises(ValueError, match="information must be 'hessian' or 'sandwich'"):
