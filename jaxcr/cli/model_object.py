@@ -69,9 +69,10 @@ def add_parser(subparsers) -> None:
         "--edge-weights",
         choices=["calibrated", "information", "points"],
         default="calibrated",
-        help="pose-graph edge weights: each registration's ICP information rescaled by a "
-        "covariance model fitted to the graph's own loops (default), the ICP information as "
-        "stated, or the same point information on every edge (Algorithm 2's objective)",
+        help="pose-graph edge weights: each registration's information (the inverse of its "
+        "sandwich covariance from its own residuals) rescaled by a covariance model fitted to "
+        "the graph's own loops (default), that information as stated, or the same point "
+        "information on every edge (Algorithm 2's objective)",
     )
     p.add_argument("--seed", type=_seed, default=0, help="seed of the sensor noise / sampling")
     p.add_argument(

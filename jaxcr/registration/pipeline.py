@@ -142,13 +142,13 @@ class PipelineConfig:
     # (3 x the baseline) err ~2x more than gap 2's and, sharing the views' errors, made
     # the poses worse (experiments/results/registration/model_object_pose_graph.md).
     extra_gaps: tuple[int, ...] = (2,)
-    # Edge weights of the pose graph: "calibrated" (each registration's ICP information,
-    # then the covariance model scale * Omega^-1 + isotropic floor estimated from the
+    # Edge weights of the pose graph: "calibrated" (each registration's information, see
+    # ``edge_information``, then the covariance model scale * Omega^-1 + isotropic floor estimated from the
     # graph's own cycles by variance components / REML and the graph solved again:
-    # :func:`jaxcr.registration.pose_graph.calibrate_edges`), "information" (the ICP
-    # information as stated, :func:`jaxcr.registration.projective.projective_information`:
-    # optimistic ~5x in scale and far too anisotropic, e^T Omega e medians ~100 against
-    # truth) or "points" (every edge the same point information, Algorithm 2's objective).
+    # :func:`jaxcr.registration.pose_graph.calibrate_edges`), "information" (that
+    # information as stated; the ICP information of
+    # :func:`jaxcr.registration.projective.projective_information` was optimistic ~5x in
+    # scale and far too anisotropic, e^T Omega e medians ~100 against truth) or "points" (every edge the same point information, Algorithm 2's objective).
     edge_weights: str = "calibrated"
     # Source positions of the registrations' point-to-plane term
     # (:func:`jaxcr.registration.pairwise.geometric_sample`): "plane" (denoised) or "raw".
