@@ -314,8 +314,10 @@ def register_pair(
         residual variance (:func:`jaxcr.registration.projective.projective_information`,
         default) or the cluster-robust sandwich estimate from the residuals' scatter over
         ``information_tile`` x ``information_tile``-pixel tiles
-        (:func:`jaxcr.registration.covariance.projective_sandwich_information`; 1: each
-        residual its own cluster, the heteroscedasticity-robust form).
+        (:func:`jaxcr.registration.covariance.projective_sandwich_information`).
+    information_tile : int, optional
+        The sandwich's cluster size in pixels (default 8; 1: each residual its own cluster,
+        the heteroscedasticity-robust form the pipeline uses, decision R3).
 
     Returns
     -------
