@@ -52,14 +52,22 @@ OUT = Path(__file__).parent.parent / "results" / "registration"
 GOAL_MM, GOAL_DEG = 2.0, 1.0  # issue 6's done-when targets
 
 
-def run_one(task: str, seed: int, scratch: Path, overrides: dict | None = None) -> dict:
+def run_one(
+    task: str, seed: int, scratch: Path, overrides: dict | None = None, capture_frames: int = 1
+) -> dict:
     scene = generate_task(scratch / f"task{task}_seed{seed}", task, seed)
-    sim = RgbdSimulator(scene, seed=seed)
+    sim = RgbdSimulator(scene, seed=seed, capture_frames=capture_frames)
     t0 = time.perf_counter()
     cfg = dataclasses.replace(PipelineConfig(), **(overrides or {}))
     result = build_model(sim, cfg, seed=seed)
     wall = time.perf_counter() - t0
-    rec = {"task": task, "seed": seed, "wall_s": wall, "notes": list(result.notes)}
+    rec = {
+        "task": task,
+        "seed": seed,
+        "wall_s": wall,
+        "notes": list(result.notes),
+        "capture_frames": capture_frames,
+    }
     if result.global_result is None:
         rec["status"] = "no global result"
         return rec
@@ -121,6 +129,13 @@ def main() -> None:
         metavar="FIELD=VALUE",
         help="override a PipelineConfig field (Python literal); repeatable",
     )
+    ap.add_argument(
+        "--capture-frames",
+        type=int,
+        default=1,
+        help="depth frames averaged per capture (RgbdSimulator capture_frames; 1 = the "
+        "paper's single frame, the default)",
+    )
     a = ap.parse_args()
     overrides = {}
     icp_overrides = {}
@@ -156,7 +171,7 @@ def main() -> None:
             for task in a.tasks:
                 if (task, seed) in done:
                     continue
-                r = run_one(task, seed, scratch, overrides)
+                r = run_one(task, seed, scratch, overrides, a.capture_frames)
                 with open(log, "a") as fh:
                     fh.write(json.dumps(r) + "\n")
                 done[(task, seed)] = r
@@ -174,7 +189,8 @@ def main() -> None:
         "",
         f"commit {commit}, {platform.machine()}, python {platform.python_version()}; command: "
         f"`{cmd}`; load average at start {load0[0]:.1f}."
-        + (f" PipelineConfig overrides: {a.set}." if overrides else ""),
+        + (f" PipelineConfig overrides: {a.set}." if overrides else "")
+        + f" Depth frames per capture: {a.capture_frames}.",
         "",
         f"Seeds {s0}-{s1} reserved before development (fresh_seeds_reserved.md; development "
         "seeds 0-9, see that file). Pipeline defaults (pose graph, calibrated edge "

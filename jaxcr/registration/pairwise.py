@@ -29,6 +29,7 @@ from jaxcr.registration.clouds import (
     plane_points_scaled,
     voxel_downsample,
 )
+from jaxcr.registration.covariance import projective_sandwich_information_jit
 from jaxcr.registration.icp import DEFAULT_ICP, CloudArrays, IcpConfig, Keypoints, icp_jit
 from jaxcr.registration.keypoints import FrameFeatures, matched_features
 from jaxcr.registration.metrics import pose_error
@@ -253,6 +254,8 @@ def register_pair(
     geometric_points: str = "raw",
     scale_match: bool = False,
     keypoint_crop: int | None = None,
+    information: str = "hessian",
+    information_tile: int = 8,
 ) -> PairResult:
     """Register two RGB-D frames: ``T`` with ``tgt ~ T src`` (``jcr.registration.register_pair``;
     paper Sec. IV.A, see the module docstring).
@@ -306,6 +309,15 @@ def register_pair(
     keypoint_crop : int, optional
         SIFT on each frame's valid-depth bounding box grown by this many pixels
         (:func:`jaxcr.registration.keypoints.detect` ``crop_margin``); None: the whole image.
+    information : {"hessian", "sandwich"}, optional
+        The returned ``information`` (projective association): the normal matrix over the
+        residual variance (:func:`jaxcr.registration.projective.projective_information`,
+        default) or the cluster-robust sandwich estimate from the residuals' scatter over
+        ``information_tile`` x ``information_tile``-pixel tiles
+        (:func:`jaxcr.registration.covariance.projective_sandwich_information`).
+    information_tile : int, optional
+        The sandwich's cluster size in pixels (default 8; 1: each residual its own cluster,
+        the heteroscedasticity-robust form the pipeline uses, decision R3).
 
     Returns
     -------
@@ -363,6 +375,8 @@ def register_pair(
         raise ValueError(f"geometric_points must be 'plane' or 'raw', got {geometric_points!r}")
     if association not in ("projective", "nearest"):
         raise ValueError(f"association must be 'projective' or 'nearest', got {association!r}")
+    if information not in ("hessian", "sandwich"):
+        raise ValueError(f"information must be 'hessian' or 'sandwich', got {information!r}")
     if photometric is True:
         photometric = "intensity"
     if photometric not in (False, None, "intensity", "chromaticity"):
@@ -403,7 +417,12 @@ def register_pair(
     fitness = float(res.fitness)
     info = None
     if association == "projective" and np.all(np.isfinite(T)):
-        info, _ = projective_information_jit(res.T, src_sample, tgt_image, cfg, kp, **proj_kw)
+        if information == "sandwich":
+            info, _ = projective_sandwich_information_jit(
+                res.T, src_sample, tgt_image, cfg, kp, tile=int(information_tile), **proj_kw
+            )
+        else:
+            info, _ = projective_information_jit(res.T, src_sample, tgt_image, cfg, kp, **proj_kw)
         info = np.asarray(info, np.float64)
     if not np.all(np.isfinite(T)) or fitness < min_fitness:
         raise RegistrationFailed(

@@ -142,13 +142,13 @@ class PipelineConfig:
     # (3 x the baseline) err ~2x more than gap 2's and, sharing the views' errors, made
     # the poses worse (experiments/results/registration/model_object_pose_graph.md).
     extra_gaps: tuple[int, ...] = (2,)
-    # Edge weights of the pose graph: "calibrated" (each registration's ICP information,
-    # then the covariance model scale * Omega^-1 + isotropic floor estimated from the
+    # Edge weights of the pose graph: "calibrated" (each registration's information, see
+    # ``edge_information``, then the covariance model scale * Omega^-1 + isotropic floor estimated from the
     # graph's own cycles by variance components / REML and the graph solved again:
-    # :func:`jaxcr.registration.pose_graph.calibrate_edges`), "information" (the ICP
-    # information as stated, :func:`jaxcr.registration.projective.projective_information`:
-    # optimistic ~5x in scale and far too anisotropic, e^T Omega e medians ~100 against
-    # truth) or "points" (every edge the same point information, Algorithm 2's objective).
+    # :func:`jaxcr.registration.pose_graph.calibrate_edges`), "information" (that
+    # information as stated; the ICP information of
+    # :func:`jaxcr.registration.projective.projective_information` was optimistic ~5x in
+    # scale and far too anisotropic, e^T Omega e medians ~100 against truth) or "points" (every edge the same point information, Algorithm 2's objective).
     edge_weights: str = "calibrated"
     # Source positions of the registrations' point-to-plane term
     # (:func:`jaxcr.registration.pairwise.geometric_sample`): "plane" (denoised) or "raw".
@@ -215,6 +215,20 @@ class PipelineConfig:
     # sigma_z(z) = sigma0 + sigma2 (z - z0)^2; None: ``icp``'s (Nguyen et al. 2012, Kinect).
     # :func:`build_model` takes the one the scene declares (:meth:`with_sensor`).
     depth_noise: tuple[float, float, float] | None = None
+    # Information of each registration, the pose graph's edge weight before calibration
+    # (register_pair ``information``): "sandwich" (the covariance from the residuals' own
+    # scatter, H^-1 (sum s s^T) H^-1 over clusters of ``information_tile`` x
+    # ``information_tile`` source pixels: :func:`jaxcr.registration.covariance.
+    # projective_sandwich_information`) or "hessian" (the ICP normal matrix over the mean
+    # squared residual: independent residuals of one variance; the default before
+    # 2026-12-04). Decision R3, development seeds 0-9 (model_object_r3_dev.md): per-residual
+    # sandwich against "hessian", Task 1 run worst mean 1.14 -> 1.06 mm (lower in 9 of 10),
+    # max 1.73 -> 1.69; Task 2 mean 0.77 -> 0.75, max 0.99 -> 0.98. With 8 x 8-pixel tiles
+    # it was worse (Task 1 mean 1.31, Task 2 0.85).
+    edge_information: str = "sandwich"
+    # Tile (pixels) of the "sandwich" clusters; 1 (default): every residual its own cluster
+    # (heteroscedasticity-robust).
+    information_tile: int = 1
 
     def with_sensor(self, depth_noise: dict | None) -> PipelineConfig:
         """This configuration with the depth-noise model of a scene's ``depth_noise``
@@ -264,6 +278,8 @@ class PipelineConfig:
             geometric_points=self.geometric_points,
             scale_match=self.photometric_scale_match,
             keypoint_crop=self.keypoint_crop,
+            information=self.edge_information,
+            information_tile=self.information_tile,
         )
 
 

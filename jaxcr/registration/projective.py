@@ -226,7 +226,15 @@ def masked_median(x: Float[Array, " n"], ok: Bool[Array, " n"], *, iters: int = 
 
 
 def photometric_terms(ps, i_src, tgt: DepthImage, w, pl, keep, channels: str = "intensity"):
-    """Normal equations (H (6, 6), g (6,)) of the dense photometric residuals
+    """Normal equations (H (6, 6), g (6,)) of the dense photometric residuals of
+    :func:`photometric_rows`: ``sum wc J^T J`` and ``sum wc J^T r`` over points and channels."""
+    J, wc, r = photometric_rows(ps, i_src, tgt, w, pl, keep, channels)
+    return jnp.einsum("nc,nca,ncb->ab", wc, J, J), jnp.einsum("nc,nca,nc->a", wc, J, r)
+
+
+def photometric_rows(ps, i_src, tgt: DepthImage, w, pl, keep, channels: str = "intensity"):
+    """Jacobians J (n, c, 6), weights wc (n, c) and residuals r (n, c) of the dense
+    photometric residuals
     ``r = I_t(pi(p)) - I_s`` (one per channel of :func:`photometric_channels`; ``i_src``
     (n, c)) of the transformed source points ``ps`` (Jacobian
     ``grad I_t . d pi / dp . [I, -hat(p)]``), each weighted by its pair weight ``w`` times
@@ -263,7 +271,7 @@ def photometric_terms(ps, i_src, tgt: DepthImage, w, pl, keep, channels: str = "
     wc = w[:, None] * jnp.exp(-(r**2) / (2 * (3 * s_i) ** 2)) * (s_g / s_i) ** 2
     wc = jnp.where(ok[:, None], wc, 0.0)
     r = jnp.where(ok[:, None], r, 0.0)
-    return jnp.einsum("nc,nca,ncb->ab", wc, J, J), jnp.einsum("nc,nca,nc->a", wc, J, r)
+    return J, wc, r
 
 
 def project(ps: Float[Array, "n 3"], K: Float[Array, "3 3"]):

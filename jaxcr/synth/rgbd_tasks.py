@@ -361,6 +361,16 @@ def _check_scene(cfg: dict, file: str) -> None:
     _num(cfg, "view_radius", file, "view_radius", positive=True)
     if "tilt_target_z" in cfg:
         _num(cfg, "tilt_target_z", file, "tilt_target_z")
+    if "capture_frames" in cfg:
+        from jaxcr.limits import MAX_CAPTURE_FRAMES
+
+        _num(cfg, "capture_frames", file, "capture_frames", positive=True, integer=True)
+        if cfg["capture_frames"] > MAX_CAPTURE_FRAMES:
+            raise InputError(
+                f"must be between 1 and {MAX_CAPTURE_FRAMES}, got {cfg['capture_frames']}",
+                file=file,
+                field="capture_frames",
+            )
     noise = cfg.get("depth_noise", {})
     if not isinstance(noise, dict):
         raise InputError("expected an object", file=file, field="depth_noise")
@@ -371,9 +381,16 @@ def _check_scene(cfg: dict, file: str) -> None:
 class RgbdSimulator:
     """Renders noisy RGB-D frames of the scene's target and senses its obstacles."""
 
-    def __init__(self, path, seed: int = 0):
+    def __init__(self, path, seed: int = 0, capture_frames: int | None = None):
+        """``capture_frames``: depth frames averaged per capture (the camera held still, as
+        a real RGB-D camera gives ~30 frames a second); None: the scene's
+        ``capture_frames`` (default 1, the paper's single frame)."""
         self.path = Path(path)
         self.cfg = load_scene(path)
+        frames = self.cfg.get("capture_frames", 1) if capture_frames is None else capture_frames
+        from jaxcr.limits import MAX_CAPTURE_FRAMES, check_count
+
+        self.capture_frames = check_count(int(frames), "capture_frames", 1, MAX_CAPTURE_FRAMES)
         self.K = np.asarray(self.cfg["camera"]["K"], np.float64)
         self.width = int(self.cfg["camera"]["width"])
         self.height = int(self.cfg["camera"]["height"])
@@ -490,15 +507,26 @@ class RgbdSimulator:
         nz = self.cfg["depth_noise"]
         z = np.where(hit, t * dc[:, 2], np.nan)
         sigma = nz["sigma0"] + nz["sigma2"] * (np.nan_to_num(z) - nz["z0"]) ** 2
-        zn = z + self.rng.normal(0, 1, z.shape) * sigma
-        zn = np.round(zn * 2000.0) / 2000.0  # 0.5 mm depth quantisation
-        holes = self.rng.random(z.shape) < nz["hole_rate"]
-        valid = hit & (cosang > nz["min_cos"]) & ~holes
-        depth = np.where(valid, zn, np.nan).reshape(h, w)
         shade = 0.35 + 0.65 * np.clip(cosang, 0, 1)
-        rgb = np.where(hit[:, None], col * shade[:, None], 0.0)
-        rgb = rgb + self.rng.normal(0, nz["colour_sigma"], rgb.shape)
-        return np.clip(rgb, 0, 1).reshape(h, w, 3).astype(np.float32), depth.astype(np.float32)
+        rgb0 = np.where(hit[:, None], col * shade[:, None], 0.0)
+        # capture_frames frames of the still camera, each with its own noise, quantisation and
+        # holes (frame 0 draws exactly what a single-frame capture draws); a pixel's depth is
+        # the mean of its valid frames, valid when at least half of the frames are
+        n = self.capture_frames
+        zsum, count, rgbsum = np.zeros_like(z), np.zeros(z.shape), np.zeros_like(rgb0)
+        for _ in range(n):
+            zn = z + self.rng.normal(0, 1, z.shape) * sigma
+            zn = np.round(zn * 2000.0) / 2000.0  # 0.5 mm depth quantisation
+            holes = self.rng.random(z.shape) < nz["hole_rate"]
+            valid = hit & (cosang > nz["min_cos"]) & ~holes
+            zsum += np.where(valid, zn, 0.0)
+            count += valid
+            rgb = rgb0 + self.rng.normal(0, nz["colour_sigma"], rgb0.shape)
+            rgbsum += np.clip(rgb, 0, 1)
+        ok = count >= max(1, (n + 1) // 2)
+        depth = np.where(ok, zsum / np.maximum(count, 1), np.nan).reshape(h, w)
+        rgb = rgbsum / n
+        return rgb.reshape(h, w, 3).astype(np.float32), depth.astype(np.float32)
 
     def sense_obstacles(
         self, T_world_cam: np.ndarray, fov: float = np.deg2rad(100.0), max_range: float = 0.8
