@@ -107,10 +107,10 @@ def main() -> int:
                 summ = {}
                 if (out / "summary.json").exists():
                     summ = json.loads((out / "summary.json").read_text())
-                rows.append(dict(round=rnd, mode=mode, process=which, size=size, rc=r.returncode,
+                rows.append(dict(round=rnd, mode=mode, process=which, size=size, rc=r.rc,
                                  wall=r.wall_s, cpu=r.cpu_s, compile_s=summ.get("compile_s"),
                                  time_s=summ.get("median_time_s"), load=(l0, l1),
-                                 err="" if r.returncode == 0 else last_line(r.stderr)))  # fmt: skip
+                                 err="" if r.rc == 0 else last_line(r.stderr)))  # fmt: skip
                 print(rows[-1], flush=True)
     cmp = {size: _compare(work / f"out_off_{size}_0", work / f"out_on_{size}_0")
            for size in (a.first, a.second)}  # fmt: skip
