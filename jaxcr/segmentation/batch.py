@@ -177,6 +177,9 @@ class Segmenter:
         self.warn = warn
         self.depth_ambiguous: list[str] = []  # frame ids flagged in this process
         self.uncertainty_s = 0.0
+        # the per-pixel GMM's model has the real image's shape: its mask is computed at the
+        # real size and padded (the colour and no-mask functions run on the padded arrays)
+        self._bg_real_size = background == "gmm"
         if background == "plate":
             self.plates = {c: _plate_image(ds, c) for c in self.cams}
             self.bg_fns = {}
@@ -396,7 +399,12 @@ class Segmenter:
                 if traces is not None:
                     break
                 # per-pixel masks: the padding does not change a real pixel's
-                bg, sub = self.bg_fns[cname](jnp.asarray(imgs_in[k]))
+                if self._bg_real_size:
+                    bg, sub = self.bg_fns[cname](jnp.asarray(imgs_np[k]))
+                    bg = jnp.asarray(pad_frames(np.asarray(bg), shapes[k], fill=True))
+                    sub = jnp.asarray(pad_frames(np.asarray(sub), shapes[k]))
+                else:
+                    bg, sub = self.bg_fns[cname](jnp.asarray(imgs_in[k]))
                 bgs.append(bg)
                 subs.append(sub)
             valid = jnp.asarray(fk.ok, bool)
