@@ -155,6 +155,18 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "a resumed run keeps its recorded choice (off for a run written before this option)",
     )
     p.add_argument(
+        "--shape-buckets",
+        choices=("on", "off"),
+        default=None,
+        help="pad each camera's frames at the bottom/right to a standard size (each side "
+        "rounded up to the ladder 32, 40, 48, 64, 80, 96, 120, 128, 160, 192, 240, 256, 320, "
+        "384, 480, 512, 640, 720, 800, 960, 1080, 1280, 1440, 1600, 1920, 2160, 2560, 3072, "
+        "3840, 4096, then multiples of 1024), so that a new image size reuses the programs "
+        "compiled for its bucket (600x450 runs 640x480's); the padding weighs nothing and "
+        "every output keeps the real size (docs/decisions.md S29). Default: on; a resumed "
+        "run keeps its recorded choice (off for a run written before this option)",
+    )
+    p.add_argument(
         "--resume",
         action="store_true",
         help="continue an interrupted run in OUT (skips frames in results.jsonl)",
@@ -491,18 +503,23 @@ _SAME_JOB_KEYS = (
     "plate",
     "config",
     "roi",
+    "shape_buckets",
 )
 
 #: the value of a run.json key absent from a run written before the key existed (its
 #: behaviour then): such a run resumes with that value
-_ABSENT = {"roi": "off"}
+_ABSENT = {"roi": "off", "shape_buckets": "off"}
+#: the defaults of the options whose resume keeps the recorded choice
+_DEFAULTS = {"roi": "auto", "shape_buckets": "on"}
 
 
-def _roi_mode(args, out: Path, shard) -> str:
-    """``--roi`` as given; else the choice recorded in this job's run.json (a resume or
-    another shard: "off" for a run written before the option); else "auto"."""
-    if args.roi is not None:
-        return args.roi
+def _roi_mode(args, out: Path, shard, key: str = "roi") -> str:
+    """``--roi`` (or the option ``key``) as given; else the choice recorded in this job's
+    run.json (a resume or another shard: :data:`_ABSENT` for a run written before the
+    option); else :data:`_DEFAULTS`."""
+    given = getattr(args, key, None)
+    if given is not None:
+        return given
     from jaxcr.scale import shards as S
 
     own = out / R.RUN_FILE if shard is None else S.shard_dir(out, shard) / R.RUN_FILE
@@ -511,8 +528,8 @@ def _roi_mode(args, out: Path, shard) -> str:
         if args.overwrite and (shard is None or path == own):
             continue  # deleted by --overwrite before the run starts
         if path.exists():
-            return R.read_run(path).get("roi", _ABSENT["roi"])
-    return "auto"
+            return R.read_run(path).get(key, _ABSENT[key])
+    return _DEFAULTS[key]
 
 
 def _check_same_job(path: Path, run_info: dict, what: str) -> None:
@@ -663,6 +680,7 @@ def run(args) -> int:
         "plate": None if plate_cfg is None else dataclasses_asdict(plate_cfg),
         "warm_start": bool(args.warm_start),
         "roi": _roi_mode(args, out, shard),
+        "shape_buckets": _roi_mode(args, out, shard, "shape_buckets"),
         "batch_size": args.batch_size,
         "seed": args.seed,
         "uncertainty": None
@@ -681,6 +699,7 @@ def run(args) -> int:
         overlays=not args.no_overlays,
         warm_start=args.warm_start,
         roi=run_info["roi"],
+        shape_buckets=run_info["shape_buckets"] == "on",
         batch_size=args.batch_size,
         colour_ranges=ranges,
         plate_config=plate_cfg,

@@ -8,7 +8,8 @@ shapes and settings (nominal kinematics, background subtraction, refinement, ove
 in the persistent compilation cache, so a later ``jaxcr segment`` with the same options in a new
 process loads them instead of compiling. Options that change compiled shapes: --camera,
 --batch-size, --basis, --levels, --max-steps, --background, --camera-correction(-mode),
---mu-out, --warm-start; give ``warmup`` the ones you will give ``segment``.
+--mu-out, --warm-start, --shape-buckets; give ``warmup`` the ones you will give ``segment``.
+With shape buckets (the default) the programs serve every image size of the same bucket.
 
 Prints each program with its XLA compile seconds (or load seconds, when it was already in the
 cache), then the totals.
@@ -122,13 +123,20 @@ def run(args) -> int:
             warm_start=args.warm_start,
             batch_size=args.batch_size,
             colour_ranges=ranges,
+            shape_buckets=(args.shape_buckets or "on") == "on",
         )
         usable = [f for f in seg.frame_ids if f not in ds.bad_frames]
         if not usable:
             raise InputError("the dataset has no usable frame to compile with", field="frames")
         chunk = usable[: args.batch_size]
         frames = chunk * (2 if args.warm_start else 1)
-        sizes = ", ".join(f"{c} {ds.cameras[c].width}x{ds.cameras[c].height}" for c in cams)
+        sizes = ", ".join(
+            f"{c} {ds.cameras[c].width}x{ds.cameras[c].height}"
+            + (f" (bucket {w}x{h})" if seg.shape_buckets and (h, w) != (
+                ds.cameras[c].height, ds.cameras[c].width) else "")
+            for c in cams
+            for h, w in [seg._array_shape(ds.cameras[c])]
+        )  # fmt: skip
         print(
             f"jaxcr warmup: compiling segment for {sizes}, batch {args.batch_size}"
             + (", warm start" if args.warm_start else "")

@@ -25,6 +25,7 @@ from jaxcr.io import results as R
 from jaxcr.io.exported import FAST_COMPILE, cached_call
 from jaxcr.io.overlay import fig4_panel
 from jaxcr.kinematics.batch import forward_batch
+from jaxcr.segmentation.buckets import bucket_shape, pad_frames
 
 #: ``Segmenter(roi=)`` / ``jaxcr segment --roi``: tracked frames on a region of interest
 #: never, always, or where it is expected to pay (large images; decisions S28)
@@ -141,6 +142,7 @@ class Segmenter:
         depth_factor: float | None = None,
         warn: Callable[[str], None] | None = None,
         roi: str = "off",
+        shape_buckets: bool = False,
     ):
         if ds.robot is None:
             raise InputError(
@@ -157,6 +159,9 @@ class Segmenter:
         if roi not in ROI_MODES:
             raise InputError(f"roi must be one of {', '.join(ROI_MODES)}, got {roi!r}", field="roi")
         self.roi = roi
+        # images padded to the ladder's bucket (jaxcr.segmentation.buckets, decisions S29): the
+        # image-size-dependent programs are compiled per bucket, not per size
+        self.shape_buckets = bool(shape_buckets)
         self._roi_run = None  # the region of interest of the run so far ("auto")
         self.batch_size = int(batch_size)
         self.frames = {f.id: f for f in ds.frames}
@@ -172,6 +177,9 @@ class Segmenter:
         self.warn = warn
         self.depth_ambiguous: list[str] = []  # frame ids flagged in this process
         self.uncertainty_s = 0.0
+        # the per-pixel GMM's model has the real image's shape: its mask is computed at the
+        # real size and padded (the colour and no-mask functions run on the padded arrays)
+        self._bg_real_size = background == "gmm"
         if background == "plate":
             self.plates = {c: _plate_image(ds, c) for c in self.cams}
             self.bg_fns = {}
@@ -361,6 +369,9 @@ class Segmenter:
         B = len(full)
         qs = jnp.asarray(np.stack([self.frames[fid].q for fid, _ in full]), jnp.float32)
         imgs_np = [np.stack([ims[k] for _, ims in full]) for k in range(len(self.cams))]
+        # the arrays the compiled programs see: padded to each camera's bucket (S29)
+        shapes = [self._array_shape(cam) for cam in self.cameras]
+        imgs_in = [pad_frames(im, sh) for im, sh in zip(imgs_np, shapes, strict=True)]
         with CompileTimer() as timer:
             # through the stored traced program too, as the refinement: a second process then
             # neither traces nor lowers the kinematics (a CTR's shooting solver is the largest
@@ -374,15 +385,26 @@ class Segmenter:
             bgs, subs = [], []
             traces = None
             if not self.bg_fns and dry:  # the dry run needs the shapes, not fk's plate traces
-                bgs = [jnp.asarray(np.zeros(im.shape[:3], bool)) for im in imgs_np]
-                subs = [jnp.asarray(im.astype(np.float32)) for im in imgs_np]
+                bgs = [jnp.asarray(np.zeros(im.shape[:3], bool)) for im in imgs_in]
+                subs = [jnp.asarray(im.astype(np.float32)) for im in imgs_in]
                 traces = []
             elif not self.bg_fns:  # --background plate: per frame, from the nominal base
                 bgs, subs, traces = self._plate_backgrounds(fk, imgs_np)
+                # padded as background (the refinement weighs the padding zero either way)
+                bgs = [jnp.asarray(pad_frames(np.asarray(b), sh, fill=True))
+                       for b, sh in zip(bgs, shapes, strict=True)]  # fmt: skip
+                subs = [jnp.asarray(pad_frames(np.asarray(x), sh))
+                        for x, sh in zip(subs, shapes, strict=True)]  # fmt: skip
             for k, cname in enumerate(self.cams):
                 if traces is not None:
                     break
-                bg, sub = self.bg_fns[cname](jnp.asarray(imgs_np[k]))
+                # per-pixel masks: the padding does not change a real pixel's
+                if self._bg_real_size:
+                    bg, sub = self.bg_fns[cname](jnp.asarray(imgs_np[k]))
+                    bg = jnp.asarray(pad_frames(np.asarray(bg), shapes[k], fill=True))
+                    sub = jnp.asarray(pad_frames(np.asarray(sub), shapes[k]))
+                else:
+                    bg, sub = self.bg_fns[cname](jnp.asarray(imgs_in[k]))
                 bgs.append(bg)
                 subs.append(sub)
             valid = jnp.asarray(fk.ok, bool)
@@ -399,6 +421,7 @@ class Segmenter:
                     valid=valid,
                     jit_call=cached_call,
                     roi=self._roi_arg(fk.centreline),
+                    shape_buckets=self.shape_buckets,
                 )
             else:
                 res = refine_batch(
@@ -409,6 +432,7 @@ class Segmenter:
                     self.config,
                     valid=valid,
                     jit_call=cached_call,
+                    shape_buckets=self.shape_buckets,
                 )
             res = jax.block_until_ready(res)
         self.compile_s += timer.compile_s + ahead_s
@@ -429,6 +453,7 @@ class Segmenter:
                     res.coeffs,
                     res.camera_correction,
                     jit_call=cached_call,
+                    shape_buckets=self.shape_buckets,
                 )
                 unc = jax.tree.map(np.asarray, jax.block_until_ready(unc))
             self.compile_s += utimer.compile_s
@@ -438,10 +463,21 @@ class Segmenter:
             compile_share += utimer.compile_s / max(n, 1)
 
         host = jax.tree.map(np.asarray, res)
+        if self.shape_buckets:  # the outputs at the real image size (never the padding)
+            crop = [(c.height, c.width) for c in self.cameras]
+            host = dataclasses.replace(
+                host,
+                masks=tuple(m[:, :h, :w] for m, (h, w) in zip(host.masks, crop, strict=True)),
+                nominal_masks=tuple(
+                    m[:, :h, :w] for m, (h, w) in zip(host.nominal_masks, crop, strict=True)
+                ),
+            )
         fk_ok = np.asarray(fk.ok)
         fk_res = np.asarray(fk.residual)
         fk_steps = np.asarray(fk.num_steps)
-        bgs_np = [np.asarray(b) for b in bgs]
+        bgs_np = [
+            np.asarray(b)[:, : c.height, : c.width] for b, c in zip(bgs, self.cameras, strict=True)
+        ]
         nominal_p = np.asarray(fk.centreline.p)
         if self.warm_start:
             ok_idx = [i for i in range(n) if bool(host.ok[i])]
@@ -498,6 +534,13 @@ class Segmenter:
                     fid, frame, images, host, i, bgs_np, nominal_p[i]
                 )
             yield rec
+
+    def _array_shape(self, cam) -> tuple[int, int]:
+        """(H, W) of the arrays camera ``cam``'s frames are compiled for: its bucket with
+        shape buckets (:func:`jaxcr.segmentation.buckets.bucket_shape`), else its size."""
+        if self.shape_buckets:
+            return bucket_shape(cam.height, cam.width)
+        return cam.height, cam.width
 
     def _uncertainty_record(self, fid: str, unc, i: int, time_s: float) -> dict:
         """The ``uncertainty`` entry of a results record (docs/uncertainty.md): per camera

@@ -108,11 +108,23 @@ def downsample(
 
 
 def pyramid(
-    image: Float[Array, "h w 3"], background: Bool[Array, "h w"], levels: int
+    image: Float[Array, "h w 3"],
+    background: Bool[Array, "h w"],
+    levels: int,
+    valid: Bool[Array, "h w"] | None = None,
 ) -> list[tuple[Array, Array, Array]]:
-    """Levels 0..levels-1 of ``(image, w, b)`` with w = not B and b = B as weights."""
+    """Levels 0..levels-1 of ``(image, w, b)`` with w = not B and b = B as weights.
+
+    ``valid``: the real pixels of an image padded to a larger shape (shape buckets,
+    :mod:`jaxcr.segmentation.buckets`); the others get w = b = 0 (no data, no background), as
+    the pixels :func:`downsample` adds for odd sizes, so every level's real part equals the
+    unpadded image's."""
     b = background.astype(image.dtype)
-    out = [(image, 1.0 - b, b)]
+    w = 1.0 - b
+    if valid is not None:
+        v = valid.astype(image.dtype)
+        w, b = w * v, b * v
+    out = [(image, w, b)]
     for _ in range(1, levels):
         out.append(downsample(*out[-1]))
     return out

@@ -459,11 +459,13 @@ def _straight(base: Centreline) -> Centreline:
     return Centreline(s=s, p=p, R=R, u=jnp.zeros_like(base.u), rho=jnp.zeros_like(base.rho))
 
 
-def _tube_area(tube: TubeImage, camera: Camera) -> Float[Array, ""]:
+def _tube_area(tube: TubeImage, camera: Camera, size=None) -> Float[Array, ""]:
     """Approximate projected area (px) of the in-image part of the capsules (overlaps
-    counted twice, joints ignored): a scale for normalising the energy."""
+    counted twice, joints ignored): a scale for normalising the energy. ``size``: the real
+    (height, width) when the camera's is a padded one (shape buckets)."""
     mx, my = 0.5 * (tube.ax + tube.bx), 0.5 * (tube.ay + tube.by)
-    inside = (mx > -0.5) & (mx < camera.width - 0.5) & (my > -0.5) & (my < camera.height - 0.5)
+    h, w = (camera.height, camera.width) if size is None else size
+    inside = (mx > -0.5) & (mx < w - 0.5) & (my > -0.5) & (my < h - 0.5)
     length = jnp.hypot(tube.bx - tube.ax, tube.by - tube.ay)
     a = (tube.ra + tube.rb) * length
     return jnp.sum(jnp.where(inside & tube.valid, a, 0.0))
@@ -604,7 +606,10 @@ def _roi_origin(
 
     def start(c, n, full):
         s = jnp.floor((c - 0.5 * n) / tile).astype(jnp.int32) * tile
-        return jnp.clip(s, 0, (full - n) // tile * tile)
+        hi = (full - n) // tile * tile
+        if not isinstance(hi, int):  # a traced real size (shape buckets)
+            hi = jnp.maximum(hi, 0)
+        return jnp.clip(s, 0, hi)
 
     return start(cy, roi[0], size[0]), start(cx, roi[1], size[1])
 
@@ -617,11 +622,14 @@ def _roi_camera(cam: Camera, r0, c0, roi: tuple[int, int]) -> Camera:
     return dataclasses.replace(cam, K=K, width=roi[1], height=roi[0])
 
 
-def _image_variance(image: Float[Array, "h w 3"], background: Bool[Array, "h w"]):
+def _image_variance(image: Float[Array, "h w 3"], background: Bool[Array, "h w"], valid=None):
     """The data-weighted colour variance of a whole level-0 image, as
     :func:`energy.chan_vese_soft` computes it from :class:`RegionData` (its ``var``): the
-    normalisation of J, kept from the full image when the data are a region of it."""
+    normalisation of J, kept from the full image when the data are a region of it.
+    ``valid``: the real pixels of a padded image (the others weigh nothing)."""
     w = 1.0 - background.astype(image.dtype)
+    if valid is not None:
+        w = w * valid.astype(image.dtype)
     s0 = jnp.maximum(jnp.sum(w), 1e-6)
     centre = jnp.einsum("hw,hwc->c", w, image) / s0
     d = image - centre
@@ -692,7 +700,10 @@ def _mask(tube: TubeImage, band: Band, data: RegionData, m=None) -> Bool[Array, 
     grid = data.grid
     m = band_margin(tube, grid, band) if m is None else m
     tiles = jnp.broadcast_to(band.inside[:, None], (grid.n_tiles, grid.n_pix))
-    return grid.from_tiles(tiles.at[band.tiles].set(m > 0))
+    hard = m > 0
+    if band.active is not None:  # inactive slots keep their whole-tile class
+        hard = jnp.where(band.active[:, None], hard, band.inside[band.tiles][:, None])
+    return grid.from_tiles(tiles.at[band.tiles].set(hard))
 
 
 def _image_space_stop(solver, y, state, new, options):
@@ -868,23 +879,27 @@ def _level_tables(
     dtype,
     which: tuple[int, ...] | None = None,
     steps=None,
+    sizes=None,
 ) -> _Levels:
     """:class:`_Levels` of ``config``'s levels (those at indices ``which``; all if None), with
     the capsule count every level's merged tube is padded to
     (:func:`silhouette.level_tube_padded`). ``steps``: the per-level step budgets as an
     array (e.g. traced) instead of ``config.steps``; the solver's static ``max_steps`` is
-    then None (no bound of its own: the traced budget ends every solve)."""
+    then None (no bound of its own: the traced budget ends every solve). ``sizes``: per
+    camera the real (height, width) at level 0 (traced) of images padded to a shape bucket:
+    only the tiles over real pixels of each level may enter a band, and a band has as many
+    active tiles as on the unpadded image."""
     which = tuple(range(len(config.levels))) if which is None else which
     levels = [config.levels[i] for i in which]
     finest = min(levels)
     tile = config.tile
     datas, tile_ok, k_active, k_max = [], [], [], []
-    for pyr in pyramids:
+    for ci, pyr in enumerate(pyramids):
         hf, wf = pyr[finest][1].shape
         grid = TileGrid(hf, wf, tile)
         row = jnp.arange(grid.n_tiles) // grid.cols
         col = jnp.arange(grid.n_tiles) % grid.cols
-        rds, oks, ks = [], [], []
+        rds, oks, ks, ka = [], [], [], []
         for level in levels:
             img, w, b = pyr[level]
             h, wd = w.shape
@@ -894,11 +909,18 @@ def _level_tables(
             )
             rds.append(eqx.tree_at(lambda d: d.pix_area, rd, jnp.asarray(4.0**level, dtype)))
             rows, cols = -(-h // tile), -(-wd // tile)
-            oks.append((row < rows) & (col < cols))
             ks.append(min(config.tiles_at(level), rows * cols))
+            if sizes is None:
+                oks.append((row < rows) & (col < cols))
+                continue
+            # the level's real size: downsample halves with the odd pixel kept (ceil)
+            hr, wr = ((x + (2**level - 1)) // 2**level for x in sizes[ci])
+            rr, cr = (hr + tile - 1) // tile, (wr + tile - 1) // tile
+            oks.append((row < rr) & (col < cr))
+            ka.append(jnp.minimum(config.tiles_at(level), rr * cr))
         datas.append(jax.tree.map(lambda *x: jnp.stack(x), *rds))
         tile_ok.append(jnp.stack(oks))
-        k_active.append(jnp.asarray(ks, jnp.int32))
+        k_active.append(jnp.asarray(ks, jnp.int32) if sizes is None else jnp.stack(ka))
         k_max.append(max(ks))
     return _Levels(
         datas=tuple(datas),
@@ -975,6 +997,7 @@ def _refine_frame(
     *,
     steps: Int[Array, " L"] | None = None,
     roi: tuple[int, int] | None = None,
+    sizes: Int[Array, "c 2"] | None = None,
 ) -> tuple[RefineResult, Bool[Array, ""]]:
     """:func:`refine_frame`, optionally on a region of interest of a tracked frame.
 
@@ -988,6 +1011,14 @@ def _refine_frame(
     nominal shape) stays ``ROI_FREE_TILES`` clear of the window's inner borders; where it does
     not, the callers refine the frame again on the whole image (docs/decisions.md S21).
     Without ``roi``, ``fit`` is True.
+
+    ``sizes`` (n_cameras, 2) int (traced): per camera the real (height, width) of an image
+    padded at the bottom and right to the arrays' (and the cameras') larger size, a shape
+    bucket (:mod:`jaxcr.segmentation.buckets`, docs/decisions.md S29). The padded pixels weigh
+    nothing (:func:`jaxcr.segmentation.energy.pyramid` ``valid``), never enter a band, the
+    projection is clamped and the silhouette area counted on the real image, and the masks
+    are False there: the result equals the unpadded image's up to float rounding (sums over
+    arrays of another shape), and every real size padded to one shape runs one program.
     """
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     if not (len(cameras) == len(images) == len(backgrounds)):
@@ -999,6 +1030,11 @@ def _refine_frame(
             field="steps",
         )
     dtype = base.p.dtype
+    if sizes is None:
+        real = (None,) * len(cameras)
+    else:
+        sizes = jnp.asarray(sizes, jnp.int32).reshape(len(cameras), 2)
+        real = tuple((sizes[k, 0], sizes[k, 1]) for k in range(len(cameras)))
     finite_in = jnp.all(jnp.isfinite(base.p)) & jnp.all(jnp.isfinite(base.u))
     finite_in = finite_in & jnp.all(jnp.isfinite(base.R)) & jnp.all(jnp.isfinite(base.rho))
     finite_in = finite_in & jnp.asarray(valid)
@@ -1028,7 +1064,8 @@ def _refine_frame(
 
     def tubes_of(params):
         cl = perturbed_centreline(base, params["c"], config.torsion)
-        return cl, tuple(project_tube(cam, cl) for cam in cameras_of(params))
+        cams = cameras_of(params)
+        return cl, tuple(project_tube(c, cl, size=sz) for c, sz in zip(cams, real, strict=True))
 
     def reg_of(params):
         r = weights.g_reg * regularisation(params["c"], base.s, config.torsion)
@@ -1080,10 +1117,21 @@ def _refine_frame(
     zeros = jax.tree.map(jnp.zeros_like, params0)
 
     _, nominal_tubes = tubes_of(zeros)
-    area_ref = sum(_tube_area(t, cam) for t, cam in zip(nominal_tubes, cameras, strict=True))
+    area_ref = sum(
+        _tube_area(t, cam, sz) for t, cam, sz in zip(nominal_tubes, cameras, real, strict=True)
+    )
     area_ref = jax.lax.stop_gradient(jnp.maximum(area_ref, 1.0))
     in_view = area_ref > 1.0
     full_size = tuple(im.shape[:2] for im in images)
+
+    def valid_of(shape, sz):
+        """The real pixels (True) of an array of ``shape`` whose real size is ``sz``."""
+        if sz is None:
+            return None
+        return (jnp.arange(shape[0])[:, None] < sz[0]) & (jnp.arange(shape[1])[None, :] < sz[1])
+
+    valids = tuple(valid_of(fs, sz) for fs, sz in zip(full_size, real, strict=True))
+    real_full = tuple(fs if sz is None else sz for fs, sz in zip(full_size, real, strict=True))
     if roi is not None:
         if tuple(config.levels) != (0,) or not config.local:
             raise InputError(
@@ -1097,11 +1145,17 @@ def _refine_frame(
         rois = tuple((min(roi[0], h), min(roi[1], w)) for h, w in full_size)
         origins = tuple(
             _roi_origin([_tube_box(ti), _tube_box(tn)], rc, sz, config.tile)
-            for ti, tn, rc, sz in zip(init_tubes, nominal_tubes, rois, full_size, strict=True)
+            for ti, tn, rc, sz in zip(init_tubes, nominal_tubes, rois, real_full, strict=True)
         )
         roi_vars = tuple(
-            _image_variance(im, bg) for im, bg in zip(images, backgrounds, strict=True)
+            _image_variance(im, bg, v)
+            for im, bg, v in zip(images, backgrounds, valids, strict=True)
         )
+        if sizes is not None:  # the real part of each window (all of it, unless past the image)
+            real = tuple(
+                (jnp.clip(sz[0] - r0, 0, rc[0]), jnp.clip(sz[1] - c0, 0, rc[1]))
+                for sz, (r0, c0), rc in zip(real, origins, rois, strict=True)
+            )
         images = tuple(
             jax.lax.dynamic_slice(im, (r0, c0, 0), rc + (3,))
             for im, (r0, c0), rc in zip(images, origins, rois, strict=True)
@@ -1115,6 +1169,8 @@ def _refine_frame(
             for cam, (r0, c0), rc in zip(cameras, origins, rois, strict=True)
         )
         nominal_tubes = tubes_of(zeros)[1]
+    # the arrays the solves see (a window of the image with roi) and their real pixels
+    valids_in = tuple(valid_of(im.shape[:2], sz) for im, sz in zip(images, real, strict=True))
 
     def image_energy(tubes, args):
         """The data and penalty terms of J (everything but the regulariser) for the
@@ -1233,7 +1289,8 @@ def _refine_frame(
         have_h = jnp.all(jnp.isfinite(hinv))
         hinv = jnp.where(have_h, hinv, eye)
     pyramids = [
-        pyramid(im, bg, max(config.levels) + 1) for im, bg in zip(images, backgrounds, strict=True)
+        pyramid(im, bg, max(config.levels) + 1, v)
+        for im, bg, v in zip(images, backgrounds, valids_in, strict=True)
     ]
     data_ok = sum(jnp.sum(p[0][1]) for p in pyramids) > 0.5
 
@@ -1327,7 +1384,10 @@ def _refine_frame(
     carry = (params0, jnp.asarray(0, jnp.int32), hinv, have_h)
     n_solve = []
     for group in groups:
-        tables = _level_tables(pyramids, config, base.p.shape[0] - 1, dtype, group, steps)
+        tables = _level_tables(
+            pyramids, config, base.p.shape[0] - 1, dtype, group, steps,
+            None if sizes is None else real,
+        )  # fmt: skip
         # the schedule: solve j runs at row k of the table (config.outer[li] solves of level
         # li = group[k]); each level after the first starts from the identity Hessian
         rows = [(k, li) for k, li in enumerate(group) for _ in range(config.outer[li])]
@@ -1350,7 +1410,17 @@ def _refine_frame(
         masks, exact, fit = [], jnp.asarray(True), jnp.asarray(True)
         e = {"e_in": 0.0, "e_out": 0.0, "e_pen": 0.0, "J": 0.0}
         for i, (tube, data) in enumerate(zip(tubes, datas0, strict=True)):
-            band = select_band(tube, data.grid, k0, config.seg_merge * config.k_seg)
+            if sizes is None:
+                band = select_band(tube, data.grid, k0, config.seg_merge * config.k_seg)
+            else:  # tiles over real pixels only, as many as the unpadded image's band
+                grid = data.grid
+                rr, cr = ((x + config.tile - 1) // config.tile for x in real[i])
+                row = jnp.arange(grid.n_tiles) // grid.cols
+                col = jnp.arange(grid.n_tiles) % grid.cols
+                band = select_band(
+                    tube, grid, k0, config.seg_merge * config.k_seg,
+                    (row < rr) & (col < cr), jnp.minimum(k0, rr * cr),
+                )  # fmt: skip
             m = band_margin(tube, data.grid, band)  # once for the mask and the terms
             mask = _mask(tube, band, data, m)
             exact = exact & band.exact
@@ -1360,8 +1430,10 @@ def _refine_frame(
             else:
                 var = roi_vars[i]
                 r0, c0 = origins[i]
-                fit = fit & _band_clear_of_border(band, data.grid, r0, c0, full_size[i])
+                fit = fit & _band_clear_of_border(band, data.grid, r0, c0, real_full[i])
                 mask = jax.lax.dynamic_update_slice(jnp.zeros(full_size[i], bool), mask, (r0, c0))
+            if valids[i] is not None:
+                mask = mask & valids[i]
             masks.append(mask)
             e["e_in"] = e["e_in"] + t.e_in
             e["e_out"] = e["e_out"] + t.e_out
@@ -1474,6 +1546,29 @@ def _direct(fn, *args):
     return fn(*args)
 
 
+def bucket_cameras(cameras, images, shape_buckets: bool):
+    """For ``shape_buckets``: the cameras re-sized to their image arrays (padded at the
+    bottom/right to a shape bucket, :mod:`jaxcr.segmentation.buckets`) and the real sizes
+    (n_cameras, 2) = (height, width) as an int32 array, passed traced so that every real size
+    padded to one shape runs one compiled program (:func:`refine_frame`'s ``sizes``);
+    otherwise ``(cameras, None)``. ``images``: per camera an array (..., H, W, 3)."""
+    cameras = _as_tuple(cameras)
+    if not shape_buckets:
+        return cameras, None
+    out, sizes = [], []
+    for cam, im in zip(cameras, _as_tuple(images), strict=True):
+        H, W = im.shape[-3], im.shape[-2]
+        if H < cam.height or W < cam.width:
+            raise InputError(
+                f"shape buckets: the image array ({W}x{H}) is smaller than the camera's image "
+                f"({cam.width}x{cam.height})",
+                field="images",
+            )
+        out.append(dataclasses.replace(cam, height=int(H), width=int(W)))
+        sizes.append((cam.height, cam.width))
+    return tuple(out), jnp.asarray(sizes, jnp.int32)
+
+
 def _cam_rows(config: RefineConfig, n_cam: int) -> int:
     """Rows of the camera-correction parameters (:func:`refine_frame`'s ``params["cam"]``)."""
     rig = config.camera_correction_mode == "rig"
@@ -1522,11 +1617,13 @@ def refine_frame_jit(
 
 @eqx.filter_jit
 def _refine_batch_jit(
-    bases, cameras, images, backgrounds, config, inits, valid, mode, cams0, steps
+    bases, cameras, images, backgrounds, config, inits, valid, mode, cams0, steps, sizes=None
 ):
     def one(args):
         base, ims, bgs, init, v, cam0 = args
-        return refine_frame(base, cameras, ims, bgs, config, init, v, cam0, steps=steps)
+        return _refine_frame(
+            base, cameras, ims, bgs, config, init, v, cam0, steps=steps, sizes=sizes
+        )[0]
 
     args = (bases, images, backgrounds, inits, valid, cams0)
     if mode == "vmap":
@@ -1546,6 +1643,8 @@ def refine_batch(
     init_cams: Float[Array, "f c 6"] | None = None,
     devices: int | None = None,
     jit_call: Callable | None = None,
+    *,
+    shape_buckets: bool = False,
 ) -> RefineResult:
     """Refine F independent frames in one compiled call.
 
@@ -1571,6 +1670,14 @@ def refine_batch(
         jit_call: how the compiled function is called, ``jit_call(fn, *args)``; None calls
             ``fn(*args)``. ``jaxcr.io.exported.cached_call`` reuses the traced program of an
             earlier process (what ``jaxcr segment`` does).
+        shape_buckets: the image arrays may be larger than the cameras' images, padded at
+            the bottom and right (e.g. to :func:`jaxcr.segmentation.buckets.bucket_shape`,
+            with :func:`~jaxcr.segmentation.buckets.pad_frames`); the program is compiled
+            for the arrays' shape with the real sizes traced, so every size padded to one
+            shape shares it, and the padding weighs nothing (:func:`refine_frame`; results
+            equal to the unpadded images' up to float rounding; docs/decisions.md S29). The
+            masks keep the arrays' shape, False beyond the real image: crop them to
+            ``[:height, :width]``.
 
     Returns:
         :class:`RefineResult` with a leading frame axis; ``time_s`` is the batch wall time
@@ -1590,6 +1697,7 @@ def refine_batch(
     inits = jnp.zeros((f,) + config.coeff_shape, dtype) if inits is None else inits
     valid = jnp.ones(f, bool) if valid is None else jnp.asarray(valid, bool)
     cams0 = _cam_init(init_cams, (f,), len(cameras), dtype)
+    cameras, sizes = bucket_cameras(cameras, images, shape_buckets)
     from jaxcr.scale.devices import map_frames
 
     t0 = time.perf_counter()
@@ -1597,13 +1705,14 @@ def refine_batch(
 
     config, steps = _steps_apart(config)
 
-    def body(batched, cameras, config, mode, steps):
+    def body(batched, cameras, config, mode, steps, *sizes):
         bases, images, backgrounds, inits, valid, cams0 = batched
         args = (bases, cameras, images, backgrounds, config, inits, valid, mode, cams0, steps)
-        return call(_refine_batch_jit, *args)
+        return call(_refine_batch_jit, *args, *sizes)
 
     batched = (bases, images, backgrounds, inits, valid, cams0)
-    out = map_frames(body, batched, cameras, config, mode, steps, devices=devices)
+    extra = () if sizes is None else (sizes,)
+    out = map_frames(body, batched, cameras, config, mode, steps, *extra, devices=devices)
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / max(f, 1)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))
@@ -1612,7 +1721,7 @@ def refine_batch(
 @eqx.filter_jit
 def _refine_sequence_jit(
     bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0, cold_first,
-    roi=None,
+    roi=None, sizes=None,
 ):  # fmt: skip
     n_levels = len(config.levels)
 
@@ -1620,7 +1729,9 @@ def _refine_sequence_jit(
         # a region of interest serves the warm schedule only (a cold first frame has no
         # previous answer to centre it on)
         r_roi = roi if cfg is warm_config else None
-        r, fit = _refine_frame(base, cameras, ims, bgs, cfg, c_prev, v, cam_prev, h_prev, roi=r_roi)
+        r, fit = _refine_frame(
+            base, cameras, ims, bgs, cfg, c_prev, v, cam_prev, h_prev, roi=r_roi, sizes=sizes
+        )
         # steps_per_level follows config's levels: levels a warm frame skips count 0 steps
         spl = r.steps_per_level
         pad = jnp.zeros((max(n_levels - spl.shape[0], 0),), spl.dtype)
@@ -1660,6 +1771,7 @@ def refine_sequence(
     jit_call: Callable | None = None,
     *,
     roi: tuple[int, int] | str | None = None,
+    shape_buckets: bool = False,
 ) -> RefineResult:
     """Refine a sequence, warm-starting frame t from frame t-1's delta-u and camera
     correction (in one compiled ``lax.scan``). A failed frame passes the last good values on.
@@ -1675,7 +1787,11 @@ def refine_sequence(
     each frame's warm start (``"auto"``: :func:`tracking_roi` of ``bases``; one-level warm
     schedules at level 0, as ``config.warm()``): region data, band selection and output masks
     on the region only (docs/decisions.md S21). When a frame's bands come near the region's
-    border, the whole sequence is refined again on the full images."""
+    border, the whole sequence is refined again on the full images.
+
+    ``shape_buckets``: images padded to a larger shape than the cameras', as
+    :func:`refine_batch`'s (the region of interest, sized from the real cameras, is placed in
+    the real image)."""
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     f = bases.p.shape[0]
     dtype = bases.p.dtype
@@ -1700,12 +1816,17 @@ def refine_sequence(
         if roi != "auto":
             raise InputError(f"roi must be (h, w), 'auto' or None, got {roi!r}", field="roi")
         roi = tracking_roi(bases, cameras, config=warm_config)
+    bcams, sizes = bucket_cameras(cameras, images, shape_buckets)
+    extra = () if sizes is None else (sizes,)
+    if sizes is not None:
+        args = (bases, bcams) + args[2:]
     fit = False
     if roi is not None:
-        out, fits = call(_refine_sequence_jit, *args, cold_first, tuple(int(x) for x in roi))
+        roi = tuple(int(x) for x in roi)
+        out, fits = call(_refine_sequence_jit, *args, cold_first, roi, *extra)
         fit = bool(jnp.all(fits))
     if not fit:
-        out = call(_refine_sequence_jit, *args, cold_first)
+        out = call(_refine_sequence_jit, *args, cold_first, *((None,) + extra if extra else ()))
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / max(f, 1)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))

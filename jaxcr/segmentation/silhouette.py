@@ -56,14 +56,25 @@ class TubeImage(eqx.Module):
     valid: Bool[Array, " m"]
 
 
-def project_tube(camera: Camera, centreline: Centreline, near: float = 1e-4) -> TubeImage:
+def project_tube(
+    camera: Camera, centreline: Centreline, near: float = 1e-4, size=None
+) -> TubeImage:
     """Project a centreline's tube (Watson et al. eq. 7 drawn by eqs. 3-4) to 2-D capsules.
 
     End points are projected with the full camera model (distortion included); the apparent
     radius is ``sqrt(fx fy) * rho / Z`` with ``Z`` the camera-frame depth (distortion of the
     radius itself is neglected). Segments with an end behind ``near`` are invalid.
+
+    ``size``: (height, width), possibly traced, of the real image when ``camera``'s own size
+    is a larger padded one (shape buckets, :mod:`jaxcr.segmentation.buckets`): the end points
+    are then clamped to that image's box as a camera of that size clamps them
+    (:func:`jaxcr.camera.project_xy`; a clamp inside the camera's own, larger box).
     """
     u, v, _ = project_xy(camera, centreline.p, near)
+    if size is not None:
+        h, w = (jnp.asarray(x, u.dtype) for x in size)
+        u = jnp.clip(u, -w, 2.0 * w)
+        v = jnp.clip(v, -h, 2.0 * h)
     z = centreline.p @ camera.R[2] + camera.t[2]
     in_front = z > near
     f = jnp.sqrt(camera.K[0, 0] * camera.K[1, 1])

@@ -144,7 +144,7 @@ def corrected_cameras(
 
 
 def fisher_matrix(
-    base, cameras, images, backgrounds, config, coeffs, camera_correction
+    base, cameras, images, backgrounds, config, coeffs, camera_correction, sizes=None
 ) -> tuple[Float[Array, "n n"], Float[Array, " c"], Float[Array, " 3"], Float[Array, "3 n"]]:
     """Gauss-Newton information matrix of the flat delta-u coefficients
     (``docs/uncertainty.md`` eq. U2), the per-camera per-channel noise variances, and the
@@ -163,28 +163,46 @@ def fisher_matrix(
     (:func:`jaxcr.segmentation.energy.residual_variance` / 3) are taken at ``coeffs``, the
     camera corrections are held fixed, the band is selected at ``coeffs``. Only band pixels
     have a non-zero ``grad s_p``.
+
+    ``sizes`` (n_cameras, 2) int: the real (height, width) of images padded to the cameras'
+    larger size (shape buckets, :func:`jaxcr.segmentation.refine.refine_frame`'s ``sizes``):
+    the padded pixels weigh nothing and never enter the band.
     """
     tau = config.tau[-1]
     shape = config.coeff_shape
     cams = corrected_cameras(cameras, camera_correction)
+    real = _real_sizes(sizes, len(cameras))
     datas = tuple(
-        region_data_from_level(*pyramid(im, bg, 1)[0], 0, config.tile)
-        for im, bg in zip(images, backgrounds, strict=True)
+        region_data_from_level(*pyramid(im, bg, 1, _valid(im.shape[:2], sz))[0], 0, config.tile)
+        for im, bg, sz in zip(images, backgrounds, real, strict=True)
     )
     flat0 = jax.lax.stop_gradient(coeffs.reshape(-1))
 
-    def tubes(flat):
-        cl = perturbed_centreline(base, flat.reshape(shape), config.torsion)
-        return tuple(level_tube(project_tube(c, cl), 0, config.seg_merge) for c in cams)
+    def tubes_of(cl):
+        return tuple(
+            level_tube(project_tube(c, cl, size=sz), 0, config.seg_merge)
+            for c, sz in zip(cams, real, strict=True)
+        )
 
-    bands = tuple(
-        select_band(t, d.grid, config.tiles_at(0), config.k_seg)
-        for t, d in zip(tubes(flat0), datas, strict=True)
-    )
+    def tubes(flat):
+        return tubes_of(perturbed_centreline(base, flat.reshape(shape), config.torsion))
+
+    def band_of(t, d, sz):
+        k = config.tiles_at(0)
+        if sz is None:
+            return select_band(t, d.grid, k, config.k_seg)
+        rr, cr = ((x + config.tile - 1) // config.tile for x in sz)
+        row = jnp.arange(d.grid.n_tiles) // d.grid.cols
+        col = jnp.arange(d.grid.n_tiles) % d.grid.cols
+        return select_band(
+            t, d.grid, k, config.k_seg, (row < rr) & (col < cr), jnp.minimum(k, rr * cr)
+        )
+
+    bands = tuple(band_of(t, d, sz) for t, d, sz in zip(tubes(flat0), datas, real, strict=True))
 
     def forward(flat):
         cl = perturbed_centreline(base, flat.reshape(shape), config.torsion)
-        ts = tuple(level_tube(project_tube(c, cl), 0, config.seg_merge) for c in cams)
+        ts = tubes_of(cl)
         softs = tuple(
             soft_band(t, band, d.grid, tau) for t, band, d in zip(ts, bands, datas, strict=True)
         )
@@ -197,6 +215,9 @@ def fisher_matrix(
     sig2 = []
     for soft, js, band, d in zip(s0s, jacs, bands, datas, strict=True):
         bw, bb, img = d.gather(band.tiles)
+        if band.active is not None:  # slots past the real image's band weigh nothing
+            act = band.active.astype(bw.dtype)[:, None]
+            bw, bb = bw * act, bb * act
         ins = band.inside.astype(soft.dtype)
         w_in = bw * soft
         s0 = jnp.sum(w_in) + jnp.dot(ins, d.tile_w)
@@ -217,6 +238,19 @@ def fisher_matrix(
         info = info + jnp.einsum("kp,kpi,kpj->ij", contrast, js, js) / s2
         sig2.append(s2)
     return jax.lax.stop_gradient((info, jnp.stack(sig2), tip, tip_jac))
+
+
+def _real_sizes(sizes, n_cam: int) -> tuple:
+    if sizes is None:
+        return (None,) * n_cam
+    sizes = jnp.asarray(sizes, jnp.int32).reshape(n_cam, 2)
+    return tuple((sizes[k, 0], sizes[k, 1]) for k in range(n_cam))
+
+
+def _valid(shape, sz):
+    if sz is None:
+        return None
+    return (jnp.arange(shape[0])[:, None] < sz[0]) & (jnp.arange(shape[1])[None, :] < sz[1])
 
 
 def laplace_covariance(
@@ -287,6 +321,7 @@ def shape_uncertainty(
     camera_correction: Float[Array, "c 6"] | None = None,
     *,
     rcond: float = RCOND,
+    sizes=None,
 ) -> ShapeUncertainty:
     """Laplace covariance of a refined frame and its tip (module docstring).
 
@@ -300,6 +335,8 @@ def shape_uncertainty(
             fixed); None = zeros.
         rcond: relative eigenvalue threshold of the pseudo-inverse
             (:func:`laplace_covariance`).
+        sizes: (n_cameras, 2) real (height, width) of images padded to the cameras' larger
+            size (shape buckets; :func:`fisher_matrix`); None = unpadded.
 
     Returns:
         :class:`ShapeUncertainty`.
@@ -314,7 +351,10 @@ def shape_uncertainty(
         else jnp.asarray(camera_correction, dtype).reshape(n_cam, 6)
     )
     coeffs = jnp.asarray(coeffs, dtype).reshape(config.coeff_shape)
-    H, sigma2, tip, Jt = fisher_matrix(base, cameras, images, backgrounds, config, coeffs, corr)
+    H, sigma2, tip, Jt = fisher_matrix(
+        base, cameras, images, backgrounds, config, coeffs, corr, sizes
+    )
+    real = _real_sizes(sizes, n_cam)
     lam, vec, cov, null = laplace_covariance(H, rcond)
 
     tip_cov = Jt @ cov @ Jt.T
@@ -323,9 +363,18 @@ def shape_uncertainty(
 
     cams = corrected_cameras(cameras, corr)
     depth, lat, px = [], [], []
-    for cam in cams:
+
+    def tip_px(p, cam, sz):
+        uv = project_points(cam, p[None])[0][0]
+        if sz is None:
+            return uv
+        # clamped to the real image's box, as a camera of that size clamps (project_xy)
+        lim = jnp.stack([sz[1], sz[0]]).astype(uv.dtype)
+        return jnp.clip(uv, -lim, 2.0 * lim)
+
+    for cam, sz in zip(cams, real, strict=True):
         depth.append(_sigma_of(cam.R[2:3], Jt, cov, vec, null))
-        Juv = jax.jacfwd(lambda p, cam=cam: project_points(cam, p[None])[0][0])(tip)
+        Juv = jax.jacfwd(lambda p, cam=cam, sz=sz: tip_px(p, cam, sz))(tip)
         spx = _sigma_of(Juv, Jt, cov, vec, null)
         px.append(spx)
         # image plane in metres: the pixel sigma at the tip's depth (a motion along the
@@ -361,10 +410,10 @@ def depth_ambiguous(unc: ShapeUncertainty, factor: float = DEPTH_FACTOR) -> Bool
 
 
 @eqx.filter_jit
-def _batch_jit(bases, cameras, images, backgrounds, config, coeffs, corrections, rcond):
+def _batch_jit(bases, cameras, images, backgrounds, config, coeffs, corrections, rcond, sizes=None):
     def one(args):
         base, ims, bgs, c, corr = args
-        return shape_uncertainty(base, cameras, ims, bgs, config, c, corr, rcond=rcond)
+        return shape_uncertainty(base, cameras, ims, bgs, config, c, corr, rcond=rcond, sizes=sizes)
 
     return jax.lax.map(one, (bases, images, backgrounds, coeffs, corrections))
 
@@ -380,16 +429,22 @@ def shape_uncertainty_batch(
     *,
     rcond: float = RCOND,
     jit_call=None,
+    shape_buckets: bool = False,
 ) -> ShapeUncertainty:
     """:func:`shape_uncertainty` of F frames in one compiled call (arguments as
     :func:`jaxcr.segmentation.refine.refine_batch`, plus the results' ``coeffs`` and
     ``camera_correction`` with a leading frame axis). ``jit_call``: how the compiled function
     is called, ``jit_call(fn, *args)``; None calls ``fn(*args)``
-    (``jaxcr.io.exported.cached_call``: as ``refine_batch``'s)."""
+    (``jaxcr.io.exported.cached_call``: as ``refine_batch``'s). ``shape_buckets``: images
+    padded to a larger shape than the cameras', as ``refine_batch``'s."""
+    from jaxcr.segmentation.refine import bucket_cameras
+
     as_t = lambda x: tuple(x) if isinstance(x, (tuple, list)) else (x,)  # noqa: E731
     cameras, images, backgrounds = as_t(cameras), as_t(images), as_t(backgrounds)
     f = bases.p.shape[0]
     if camera_corrections is None:
         camera_corrections = jnp.zeros((f, len(cameras), 6), bases.p.dtype)
+    cameras, sizes = bucket_cameras(cameras, images, shape_buckets)
     args = (bases, cameras, images, backgrounds, config, coeffs, camera_corrections, float(rcond))
+    args = args + (() if sizes is None else (sizes,))
     return _batch_jit(*args) if jit_call is None else jit_call(_batch_jit, *args)

@@ -237,6 +237,60 @@ def test_roi_choice_recorded_and_kept_by_a_resume(full_run, dataset, tmp_path):
     assert "roi" not in json.loads((old / "run.json").read_text())
 
 
+def test_shape_buckets_recorded_kept_by_a_resume_and_outputs_at_the_real_size(
+    full_run, dataset, tmp_path
+):
+    """--shape-buckets (decisions S29) is part of the job (run.json "shape_buckets", default
+    "on"): a resume keeps it and refuses another choice; a run.json written before the option
+    resumes as "off". The default run padded the 96x72 frames to the 96x80 bucket: its masks,
+    overlays and pixel coordinates keep 96x72 (asserted in the test above; here the
+    background PNG and the record's pixel fields). No refinement runs."""
+    from jaxcr.segmentation.buckets import bucket_shape
+
+    _, ref = full_run
+    assert bucket_shape(H, W) != (H, W)  # the default run was padded
+    assert json.loads((ref / "run.json").read_text())["shape_buckets"] == "on"
+    for fid in GOOD:
+        r = _records(ref)[fid]
+        assert R.read_mask_png(ref / r["files"]["background"]["main"]).shape == (H, W)
+        assert R.read_mask_png(ref / r["files"]["nominal"]["main"]).shape == (H, W)
+    base = ["segment", str(dataset), "-o"]
+    out = tmp_path / "new"
+    shutil.copytree(ref, out)
+    (out / "DONE").unlink()
+    assert main([*base, str(out), "--resume", "--shape-buckets", "off", *FAST]) == 2
+    assert main([*base, str(out), "--resume", *FAST]) == 1  # the bad frames, as ref
+    old = tmp_path / "old"
+    shutil.copytree(ref, old)
+    (old / "DONE").unlink()
+    info = json.loads((old / "run.json").read_text())
+    del info["shape_buckets"]
+    (old / "run.json").write_text(json.dumps(info))
+    assert main([*base, str(old), "--resume", "--shape-buckets", "on", *FAST]) == 2
+    assert main([*base, str(old), "--resume", *FAST]) == 1
+    assert "shape_buckets" not in json.loads((old / "run.json").read_text())
+
+
+@pytest.mark.slow
+def test_shape_buckets_off_gives_the_same_answer(full_run, dataset, tmp_path):
+    """The same run with --shape-buckets off (the unpadded program): the same frames ok and
+    the same tube. Tolerance as tests/segmentation/test_shape_buckets.py's end-to-end test
+    (the energies agree to float rounding; the solves amplify it): IoU between the two
+    runs' masks >= 0.97, tips within 0.5 mm (a third of the tube's radius here)."""
+    _, ref = full_run
+    out = tmp_path / "off"
+    assert main(["segment", str(dataset), "-o", str(out), "--shape-buckets", "off", *FAST]) == 1
+    a, b = _records(ref), _records(out)
+    for fid in GOOD:
+        assert b[fid]["ok"]
+        ma = R.read_mask_png(ref / a[fid]["files"]["masks"]["main"])
+        mb = R.read_mask_png(out / b[fid]["files"]["masks"]["main"])
+        assert _iou(ma, mb) >= 0.97
+        ca = np.load(ref / a[fid]["files"]["centreline"])
+        cb = np.load(out / b[fid]["files"]["centreline"])
+        assert np.linalg.norm(ca[-1] - cb[-1]) < 5e-4
+
+
 def _iou(a, b):
     u = np.logical_or(a, b).sum()
     return np.logical_and(a, b).sum() / u if u else 1.0

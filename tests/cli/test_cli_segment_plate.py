@@ -79,3 +79,22 @@ def test_segment_plate_needs_a_plate(tmp_path, capsys):
     assert code == 2
     err = capsys.readouterr().err
     assert "--background plate needs a background image" in err and "Traceback" not in err
+
+
+def test_segment_gmm_background_with_shape_buckets(tmp_path):
+    """--background gmm fits a per-pixel model of the plate's (real) size: with shape buckets
+    (the default; 96x72 pads to 96x80) its mask is computed at the real size and padded, and
+    every output keeps 96x72 (decisions S29)."""
+    from jaxcr.io import results as R
+    from jaxcr.segmentation.buckets import bucket_shape
+
+    assert bucket_shape(H, W) != (H, W)
+    root, _ = _make(tmp_path / "ds")
+    out = tmp_path / "out"
+    assert main(["segment", str(root), "-o", str(out), "--background", "gmm", *FAST]) in (0, 1)
+    recs = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+    assert len(recs) == 2 and any(r["ok"] for r in recs)
+    for rec in recs:
+        for kind in ("masks", "nominal", "background"):
+            if rec["ok"]:
+                assert R.read_mask_png(out / rec["files"][kind]["main"]).shape == (H, W)
