@@ -41,7 +41,7 @@ import numpy as np
 
 from jaxcr.errors import InputError
 from jaxcr.io.jsonfile import read_text
-from jaxcr.kinematics.batch import CHUNK, batch_forward, failure_reasons
+from jaxcr.kinematics.batch import CHUNK, batch_bucket, batch_forward, failure_reasons
 
 __all__ = ["CHUNK", "FORMAT", "batch_forward", "failure_reasons", "read_q_csv", "run"]
 
@@ -285,7 +285,7 @@ def run(args) -> int:
     worker = FkWorker(args.robot, args.q_csv, args.points, args.out, 1)  # validates the inputs
     model, q = worker.model, worker.q
     B = q.shape[0]
-    chunk = max(1, min(executor.chunk or CHUNK, B))
+    chunk = batch_bucket(B, executor.chunk or CHUNK)  # one program per power-of-two bucket
     worker.chunk = chunk
 
     # new, empty or an earlier fk output; an unwritable OUT fails now, not after the compile

@@ -28,6 +28,17 @@ import numpy as np
 CHUNK = 1024
 
 
+def batch_bucket(n_rows: int, chunk: int = CHUNK) -> int:
+    """The rows of one compiled forward program for a batch of ``n_rows``: the smallest
+    power of two >= ``n_rows``, at most ``chunk`` (issue 18, "compiles once per robot shape
+    class, not per batch size"). Batches of 65-128 rows share one program, and so on; a
+    batch over ``chunk`` runs in chunks of ``chunk``. The padding rows repeat the last row
+    and are discarded, so a row's result does not depend on the bucket beyond float rounding
+    of the vectorised program (tests/cli/test_cli_fk.py)."""
+    n = max(1, int(n_rows))
+    return max(1, min(int(chunk), 1 << (n - 1).bit_length()))
+
+
 @eqx.filter_jit
 def forward_batch(model, q):
     """The :class:`~jaxcr.kinematics.base.FkResult` of every row of ``q`` (B, n_joints):
@@ -71,8 +82,9 @@ def batch_forward(
 ) -> dict[str, np.ndarray]:
     """Forward kinematics of every row of ``q`` (B, m) with one jitted ``vmap`` (one compile).
 
-    Rows are processed in chunks of ``chunk`` (the last chunk padded to the same shape, so
-    there is a single trace). Returns numpy arrays keyed as in ``jaxcr fk``'s
+    Rows are processed in chunks of :func:`batch_bucket` ``(B, chunk)`` rows (the last chunk
+    padded to the same shape, so there is a single trace, and batches of sizes in one
+    power-of-two bucket share the compiled program). Returns numpy arrays keyed as in ``jaxcr fk``'s
     ``centrelines.npz``: ``s`` (B, N), ``p`` (B, N, 3), ``R`` (B, N, 3, 3), ``rho`` (B, N),
     ``ok``, ``residual``, ``energy``, ``num_steps`` (B,), ``tip_rotvec`` (B, 3).
 
@@ -85,7 +97,7 @@ def batch_forward(
     from jaxcr.scale.devices import map_frames
 
     B = q.shape[0]
-    chunk = max(1, min(chunk, B))
+    chunk = batch_bucket(B, chunk)
     outs = []
     starts = range(0, B, chunk)
     bar = None

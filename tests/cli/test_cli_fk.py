@@ -233,3 +233,40 @@ def test_batch_forward_traces_once_across_chunks():
             SingleSegment.make(length=0.03, radius=1e-3, n_points=7), jnp.asarray(q[i], jnp.float32)
         )
         np.testing.assert_allclose(out["p"][i], ref.centreline.p, atol=1e-7)
+
+
+def test_batch_bucket_is_the_next_power_of_two():
+    """batch_bucket against a slow loop: the smallest power of two >= n, capped at chunk."""
+    from jaxcr.kinematics.batch import batch_bucket
+
+    for chunk in (1, 2, 7, 64, 1024):
+        for n in range(1, 300):
+            p = 1
+            while p < n:
+                p *= 2
+            assert batch_bucket(n, chunk) == min(p, chunk), (n, chunk)
+
+
+def test_batch_sizes_in_one_bucket_share_one_program():
+    """Batches of 5 and 7 rows (bucket 8) trace the forward pass once (issue 18: not one
+    compile per batch size); each row equals the one-configuration forward within 1e-7 m."""
+    from jaxcr.kinematics.single_segment import SingleSegment
+
+    traces = []
+
+    class CountingSegment(SingleSegment):
+        def forward(self, q, guess=None):
+            traces.append(q.shape)  # runs at trace time only
+            return super().forward(q, guess)
+
+    model = CountingSegment.make(length=0.03, radius=1e-3, n_points=7)
+    rng = np.random.default_rng(1)
+    for n in (5, 7):
+        q = rng.uniform(-1.0, 1.0, size=(n, 2))
+        out = batch_forward(model, q, progress=False)
+        assert out["p"].shape[0] == n
+        ref_model = SingleSegment.make(length=0.03, radius=1e-3, n_points=7)
+        for i in range(n):
+            ref = _forward(ref_model, jnp.asarray(q[i], jnp.float32))
+            np.testing.assert_allclose(out["p"][i], ref.centreline.p, atol=1e-7)
+    assert len(traces) == 1
