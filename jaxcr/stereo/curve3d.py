@@ -105,7 +105,7 @@ def _project(P: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def fit_spline_pair(
     cams, backbone1, backbone2, *, n_ctrl: int | None = None, step_px: float = 4.0,
     max_samples: int = 150, bend: float = 0.01, loss_px: float = 2.0, tol_px: float = 3.0,
-    max_nfev: int = 40,
+    max_nfev: int = 40, ordered: bool = True,
 ) -> SplineFit | None:  # fmt: skip
     """The smooth 3-D curve whose projections best explain both traced backbones (module
     docstring).
@@ -117,7 +117,11 @@ def fit_spline_pair(
     longer backbone, 8 to 24: a hook of two tube widths' radius needs about four).
     ``bend``: weight of the control polygon's second differences (in pixels, per pixel of
     residual); ``loss_px``: the soft-L1 scale; ``tol_px``: the residual over which a point
-    is unexplained (3 px, as ``backbone_consistency``). None when a backbone has fewer
+    is unexplained (3 px, as ``backbone_consistency``). ``ordered``: each view's points keep
+    their order along the curve (their feet found by a monotone matching to the curve's
+    projection; both backbones run from the entry to the tip), else each point's foot is
+    its nearest point on the projected curve (a wrong end may then borrow the curve's
+    other parts). None when a backbone has fewer
     than two points or no finite matched point to start from."""
     bbs = [np.asarray(b, np.float64).reshape(-1, 2) for b in (backbone1, backbone2)]
     if any(len(b) < 2 for b in bbs):
@@ -173,14 +177,24 @@ def fit_spline_pair(
     # it the curve may wander where no backbone point is nearest to it).
     gsub = np.unique(np.linspace(0, n_grid - 1, max(len(y) for y in ys)).round().astype(int))
 
-    def _nearest_on(poly, pts):
-        """Index and fraction of the nearest point of polyline ``poly`` to each of ``pts``."""
+    def _nearest_on(poly, pts, in_order=False):
+        """Index and fraction of the nearest point of polyline ``poly`` to each of ``pts``;
+        ``in_order``: the points' feet keep their order along ``poly`` (the cheapest
+        monotone path through the distances, first point to first segment, last to last)."""
         a_, d_ = poly[:-1], np.diff(poly, axis=0)
         rel = pts[:, None, :] - a_[None]
         lam = np.clip(np.sum(rel * d_[None], -1) / np.maximum(np.sum(d_ * d_, -1), 1e-12),
                       0.0, 1.0)  # fmt: skip
         dist = np.linalg.norm(rel - lam[..., None] * d_[None], axis=-1)
-        g = np.argmin(dist, axis=1)
+        if in_order:
+            path = dtw_path(np.minimum(dist, 50.0))
+            g = np.zeros(len(pts), int)
+            best = np.full(len(pts), np.inf)
+            for i, j in path:
+                if dist[i, j] < best[i]:
+                    best[i], g[i] = dist[i, j], j
+        else:
+            g = np.argmin(dist, axis=1)
         return g, lam[np.arange(len(g)), g]
 
     def feet(ctrl):
@@ -191,7 +205,7 @@ def fit_spline_pair(
         out = []
         for k in range(2):
             uv, Jp = _project(Ps[k], Bg @ ctrl)
-            g, lg = _nearest_on(uv, ys[k])
+            g, lg = _nearest_on(uv, ys[k], in_order=ordered)
             g[0], lg[0] = 0, 0.0
             g[-1], lg[-1] = n_grid - 2, 1.0
             h, lh = _nearest_on(ys[k], uv[gsub])

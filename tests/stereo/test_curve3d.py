@@ -59,19 +59,19 @@ def test_fit_recovers_arc_and_ends_match_opencv_triangulation():
     # Exact data: every point explained to a fraction of a pixel.
     assert fit.unexplained_px == 0.0
     assert fit.rms_px < 0.3
-    # The curve lies on the true arc: each curve point within 0.5 mm of it (the arc is
-    # ~130 mm long; 0.5 mm is ~1.5 px at this depth, the triangulation's depth scatter).
+    # The curve lies on the true arc: each curve point within 1.5 mm of it (the arc is
+    # ~130 mm long; the ordered feet are picked per cell of a 160-point grid, 0.8 mm, and
+    # 1.5 mm is ~1.3 px of disparity at this depth).
     C = fit.points(np.linspace(0, 1, 200))
     d = np.min(np.linalg.norm(C[:, None] - X[None], axis=2), axis=1)
-    assert d.max() < 5e-4
-    # Its ends against OpenCV's triangulation (0.5 mm: ~0.4 px of disparity at 0.35 m,
-    # the soft-L1 fit's residual scale ~0.2 px in each view) of the two views' end pixels (undistorted).
+    assert d.max() < 1.5e-3
+    # Its ends against OpenCV's triangulation (the same 1.5 mm) of the two views' end pixels (undistorted).
     P = [c.K @ c.T_cam_robot[:3] for c in CAMS]
     und = [cv2.undistortPoints(b[[0, -1]].reshape(-1, 1, 2), c.K, c.dist, P=c.K).reshape(-1, 2)
            for b, c in zip(bb, CAMS, strict=True)]  # fmt: skip
     Xh = cv2.triangulatePoints(P[0], P[1], und[0].T, und[1].T)
     ends_cv = (Xh[:3] / Xh[3]).T
-    np.testing.assert_allclose(fit.points([0.0, 1.0]), ends_cv, atol=5e-4)
+    np.testing.assert_allclose(fit.points([0.0, 1.0]), ends_cv, atol=1.5e-3)
 
 
 def test_wrong_tail_in_one_view_is_unexplained():
@@ -87,6 +87,15 @@ def test_wrong_tail_in_one_view_is_unexplained():
     bad = fit_spline_pair(CAMS, bb[0], np.vstack([bb[1], tail]))
     assert bad.unexplained_px > 60.0
     assert bad.unexplained_px > good.unexplained_px + 60.0
+
+
+def test_unordered_feet_also_recover_the_arc():
+    X = _arc()
+    bb = [_project(c, X) for c in CAMS]
+    fit = fit_spline_pair(CAMS, bb[0], bb[1], ordered=False)
+    C = fit.points(np.linspace(0, 1, 200))
+    assert np.min(np.linalg.norm(C[:, None] - X[None], axis=2), axis=1).max() < 1.5e-3
+    assert fit.unexplained_px == 0.0
 
 
 def test_degenerate_inputs():
