@@ -18,7 +18,8 @@ scale ``loss_px``, ``s`` the pixels per metre at the curve's depth, so the bendi
 in pixels) by :func:`scipy.optimize.least_squares` with the analytic Jacobian, from the
 monotone matching's triangulated points. After the fit each point's reprojection residual
 tells whether the smooth curve explains it; ``unexplained_px`` is the length of the points
-whose residual exceeds ``tol_px``, both views summed (the same measure as
+whose residual exceeds ``tol_px``, both views summed, plus the projected length of the
+curve's stretches that a view's backbone does not follow (the same measure as
 :class:`~jaxcr.stereo.backbone_consistency.BackboneConsistency`'s ``inconsistent_px``, with
 the shape prior).
 
@@ -57,7 +58,8 @@ class SplineFit:
     frame); ``knots`` its knot vector; ``t`` [(n1,), (n2,)] each resampled point's foot
     parameter; ``residual_px`` [(n1,), (n2,)] each point's reprojection distance to the
     curve (undistorted px); ``unexplained_px`` the length (px, both views) of the points
-    over ``tol_px``; ``rms_px`` the root mean square residual of all points; ``samples``
+    over ``tol_px`` plus the projected length of the curve's stretches over ``tol_px`` from
+    a view's backbone; ``rms_px`` the root mean square residual of all points; ``samples``
     [(n1, 2), (n2, 2)] the resampled backbones (distorted px) and ``steps_px`` (2,) their
     steps; ``success`` the solver's flag; ``nfev`` its function evaluations."""
 
@@ -248,6 +250,17 @@ def fit_spline_pair(
         p = (1 - lg)[:, None] * uv[g] + lg[:, None] * uv[g + 1]
         resid.append(np.linalg.norm(p - ys[k], axis=1))
     bad = float(sum(np.sum(r > tol_px) * s for r, s in zip(resid, steps, strict=True)))
+    # The curve's own stretches that a view's backbone does not follow (the curve bent to
+    # explain one view's wrong end runs off the other view's backbone): their projected
+    # length in that view.
+    for k, (_, _, uv, _, _) in enumerate(feet(ctrl)):
+        h, lh = _nearest_on(ys[k], uv)
+        near = (1 - lh)[:, None] * ys[k][h] + lh[:, None] * ys[k][h + 1]
+        off = np.linalg.norm(uv - near, axis=1) > tol_px
+        seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
+        # At most the other view's length: near an epipolar plane the curve may run far
+        # along a ray of one camera, a long line in the other view, to explain a few points.
+        bad += min(float(np.sum(seg[off[:-1] & off[1:]])), lengths[1 - k])
     rms = float(np.sqrt(np.mean(np.concatenate(resid) ** 2)))
     return SplineFit(ctrl, knots, ts, resid, bad, rms, samples, steps, bool(sol.success),
                      int(sol.nfev))  # fmt: skip
