@@ -13,8 +13,8 @@ each trace's :func:`trace_alternatives`, pickled into ``--store`` (scratch). Ste
   alternatives returned for ``trace_alternatives``, which is deterministic);
 * ``spline`` -- the same, the branch choice's inconsistency the spline fit's unexplained
   length (flagged frames only, as the reference);
-* ``spline_all`` -- ``spline`` with the branch choice offered on every frame (a pair whose
-  tips agree may still be the wrong pair: both views on a cable);
+* ``dtw_both``, ``spline_both`` -- ``ref`` and ``spline`` with pairs in which both views
+  leave their traces offered too (``choose_branches(any_pair=True)``);
 * ``oracle`` -- the candidate pair (trace or alternatives, end-face tips) nearest the
   truth: the ceiling of any branch choice over these candidates.
 
@@ -85,7 +85,9 @@ def _spline_unexplained(cams, a, b, tips) -> float:
     return np.inf if fit is None else fit.unexplained_px
 
 
-def _branch_step(cams, traces, alts, flag_px: float, score: str, every_frame: bool):
+def _branch_step(
+    cams, traces, alts, flag_px: float, score: str, every_frame: bool, any_pair: bool = False
+):
     """``pipeline._branch_step`` with the stored alternatives and a choice of score."""
     traces = list(traces)
     tips, src = pipeline._stereo_or_own_tips(cams, traces)
@@ -105,6 +107,7 @@ def _branch_step(cams, traces, alts, flag_px: float, score: str, every_frame: bo
                 match_px=3.0 * flag_px,
                 margin_px=1.25 * float(np.mean([t.width_px for t in traces])),
                 inconsistency_of=inc,
+                any_pair=any_pair,
             )  # fmt: skip
             if choice is not None and choice.indices != (0, 0):
                 traces = [cands[k][choice.indices[k]] for k in range(2)]
@@ -113,9 +116,11 @@ def _branch_step(cams, traces, alts, flag_px: float, score: str, every_frame: bo
     return traces, tips, src
 
 
-def _variant(rec, score: str, every_frame: bool):
+def _variant(rec, score: str, every_frame: bool, any_pair: bool = False):
     cams = rec["calib"]
-    traces, tips, src = _branch_step(cams, rec["traces"], rec["alts"], 5.0, score, every_frame)
+    traces, tips, src = _branch_step(
+        cams, rec["traces"], rec["alts"], 5.0, score, every_frame, any_pair
+    )
     tips, src, res, chosen = pipeline._tip_step(cams, traces, tips, src, 5.0)
     act = None if res is None else res.action
     branch = [c is not t for c, t in zip(chosen, rec["traces"], strict=True)]
@@ -141,17 +146,18 @@ def evaluate(seeds, store: Path, out: Path) -> None:
     if jpath.exists():
         rows = json.loads(jpath.read_text())["rows"]
     done = {r["seed"] for r in rows}
-    variants = {"ref": ("dtw", False), "spline": ("spline", False),
-                "spline_all": ("spline", True)}  # fmt: skip
+    variants = {"ref": ("dtw", False, False), "spline": ("spline", False, False),
+                "dtw_both": ("dtw", False, True),
+                "spline_both": ("spline", False, True)}  # fmt: skip
     for seed in seeds:
         if seed in done or not (store / f"{seed}.pkl").exists():
             continue
         with open(store / f"{seed}.pkl", "rb") as f:
             rec = pickle.load(f)
         row = {"seed": seed, "n_alts": [len(a) for a in rec["alts"]]}
-        for name, (score, every) in variants.items():
+        for name, (score, every, both) in variants.items():
             t0 = time.process_time()
-            tips, act, branch = _variant(rec, score, every)
+            tips, act, branch = _variant(rec, score, every, both)
             row[name] = {
                 "err_px": [float(np.linalg.norm(np.asarray(t) - g))
                            for t, g in zip(tips, rec["truth"], strict=True)],
@@ -162,7 +168,7 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                                    for t, g in zip(rec["traces"], rec["truth"], strict=True)]}  # fmt: skip
         rows.append(row)
         print(seed, {k: [round(x, 1) for x in row[k]["err_px"]] for k in
-                     ("trace", "ref", "spline", "spline_all", "oracle")}, flush=True)  # fmt: skip
+                     ("trace", *variants, "oracle")}, flush=True)  # fmt: skip
         tmp = jpath.with_suffix(".tmp")
         tmp.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
         os.replace(tmp, jpath)
