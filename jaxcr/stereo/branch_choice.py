@@ -76,7 +76,7 @@ def _follows_no_more(alt, orig) -> bool:
 
 def choose_branches(
     cams, candidates, *, tips_of=None, match_px: float = 15.0, inconsistency_of=None,
-    consistent_px: float = 40.0, margin_px: float = 20.0,
+    consistent_px: float = 40.0, margin_px: float = 20.0, any_pair: bool = False,
 ) -> BranchChoice | None:  # fmt: skip
     """The consistent pair of candidates with the smoothest paths (module docstring).
 
@@ -102,7 +102,9 @@ def choose_branches(
     first by whether that length is within ``consistent_px``, then as above (crossings
     followed, turns), then by the length. ``margin_px`` scales with the image: the
     caller gives it in tube widths (:func:`jaxcr.stereo.pipeline.traced_stereo_tips`:
-    1.25 widths)."""
+    1.25 widths). ``any_pair`` (with ``inconsistency_of``): pairs in which both views
+    leave their traces are offered too, each alternative under the same gate (not used
+    by the pipeline: docs/decisions.md S31)."""
     F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
                                np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
     best, key, n_ok = None, None, 0
@@ -114,8 +116,8 @@ def choose_branches(
             base_bad = float(inconsistency_of(a, b, tips))
     for i0, a in enumerate(candidates[0]):
         for i1, b in enumerate(candidates[1]):
-            if i0 and i1:  # one view keeps its trace (the first candidate)
-                continue
+            if i0 and i1 and not (any_pair and inconsistency_of is not None):
+                continue  # one view keeps its trace (the first candidate)
             if (
                 inconsistency_of is None
                 and (i0 or i1)
@@ -140,10 +142,12 @@ def choose_branches(
             k = (followed, turn, e)
             if inconsistency_of is not None:
                 bad = base_bad if not (i0 or i1) else float(inconsistency_of(a, b, tips))
-                if (i0 or i1) and not (
-                    bad < base_bad - margin_px and _follows_no_more(a if i0 else b,
-                                                                    candidates[0 if i0 else 1][0])
-                ):  # fmt: skip
+                alts_ok = all(
+                    _follows_no_more(x, candidates[v][0])
+                    for v, (i, x) in enumerate(((i0, a), (i1, b)))
+                    if i
+                )
+                if (i0 or i1) and not (bad < base_bad - margin_px and alts_ok):
                     continue
                 k = (bad > consistent_px, followed, turn, bad, e)
             if key is None or k < key:

@@ -187,3 +187,31 @@ def test_an_alternative_that_comes_back_holds_the_hook():
         return float(np.min(np.linalg.norm(dense - apex, axis=1)))
 
     assert sorted(apex_px(a.backbone) for a in good)[0] < 4.5
+
+
+def test_any_pair_lets_both_views_leave_their_traces():
+    """Both views' tracers followed a cable to its end (a consistent pair of wrong ends,
+    but their whole backbones, the ``inconsistency_of`` here, leave 60 px unexplained);
+    each view's alternative is the tube's end, which only together explain everything.
+    One view kept (the default): no pair gains, nothing is chosen. ``any_pair``: the two
+    alternatives together, exactly."""
+    t0, t1 = _proj(T0, TIP)[0], _proj(T1, TIP)[0]
+    c0, c1 = _proj(T0, CABLE_END)[0], _proj(T1, CABLE_END)[0]
+    cands = [[_cand(c0, 0, 5.0), _cand(t0, 0, 5.0)], [_cand(c1, 0, 5.0), _cand(t1, 0, 5.0)]]
+    bad = {(0, 0): 60.0, (0, 1): 300.0, (1, 0): 300.0, (1, 1): 0.0}
+
+    def inconsistency(a, b, tips):
+        i0 = next(i for i, x in enumerate(cands[0]) if x is a)
+        i1 = next(i for i, x in enumerate(cands[1]) if x is b)
+        return bad[(i0, i1)]
+
+    res = choose_branches(CAMS, cands, inconsistency_of=inconsistency)
+    assert res is None or res.indices == (0, 0)
+    res = choose_branches(CAMS, cands, inconsistency_of=inconsistency, any_pair=True)
+    assert res.indices == (1, 1), res
+    np.testing.assert_array_equal(res.tips[0], t0)
+    np.testing.assert_array_equal(res.tips[1], t1)
+    # An alternative that follows more crossing objects than its view's trace is gated out.
+    cands[1][1] = _cand(t1, 1, 5.0)
+    res = choose_branches(CAMS, cands, inconsistency_of=inconsistency, any_pair=True)
+    assert res is None or res.indices == (0, 0)
