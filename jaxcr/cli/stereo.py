@@ -450,7 +450,8 @@ class StereoWorker:
                            single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]),
                            tip_epipolar_px=r["tip_epipolar_px"],
                            camera_order_suspect=r["camera_order_suspect"],
-                           camera_order_px=r["camera_order_px"])  # fmt: skip
+                           camera_order_px=r["camera_order_px"],
+                           camera_order_tip_px=r.get("camera_order_tip_px"))  # fmt: skip
             if r.get("key_check") is not None:
                 kc = r["key_check"]
                 rec["key_check"] = {"robot_fraction": kc.robot_fraction,
