@@ -22,7 +22,7 @@ pair reprojecting within ``tip_tol_px``, 10 px). The last condition is the S33 f
 right order but one view's trace followed an occluding cable beyond the tube's crossing;
 on that rig (two cameras at about one height) a wrong curve in one view pairs with the
 other view's tube almost everywhere in the exchanged order (60 of 852 px unexplained
-against 526 given), but not at its end (the ends' pairs reproject 35-38 px off exchanged,
+against 526 given), but not at its end (the ends' pairs reproject 33-38 px off exchanged,
 190 px given). A genuinely swapped order explains the whole of two right backbones,
 their ends included. Host numpy float64 and cv2 (undistortion), per frame, outside jit.
 """
@@ -102,8 +102,8 @@ def camera_order_check(
     1280x720, below which a short stub is explained by almost any geometry. ``tol_px`` as
     in :func:`backbone_consistency`. ``tip_tol_px`` (10 px, the CLI's tip-epipolar WARNING
     level): how close the exchanged order must explain the two backbones' ends (S33, module
-    docstring: measured 0.6 and 6.5 px on the two genuinely swapped real_like frames it flagged, 35-38 px on the false flag of
-    seed 4005)."""
+    docstring: 0.6 and 6.5 px on the two genuinely swapped real_like frames flagged, 33-38
+    px on the false flags of seed 4005; experiments/results/stereo/warnings_s33.md)."""
     given, total, shorter, tip_given = _unexplained_px(cams, backbone1, backbone2, tol_px)
     swapped, _, _, tip_swapped = _unexplained_px((cams[1], cams[0]), backbone1, backbone2, tol_px)
     suspect = bool(
