@@ -460,7 +460,7 @@ class StereoWorker:
             if r.get("trace_check") is not None:
                 tc = r["trace_check"]
                 rec["trace_check"] = {"length_px": tc.length_px, "width_px": tc.width_px,
-                                      "suspect": tc.suspect}  # fmt: skip
+                                      "edge_px": tc.edge_px, "suspect": tc.suspect}  # fmt: skip
             rec["timings"] = r["timings"]
         except StereoFailure as err:
             rec.update(ok=False, reason=err.reason, message=str(err))
@@ -699,7 +699,7 @@ def summary_lines(recs: list[dict], out) -> list[str]:
     :mod:`jaxcr.stereo.camera_order`); and one WARNING line for the whole run naming the
     one-camera chroma-key frames whose mask looks like a real background (``key_check``,
     :mod:`jaxcr.stereo.key_check`); for one-camera traced frames, one WARNING line naming
-    those whose trace stopped at the entry and one NOTE line counting the rest, whose tips
+    those whose trace stopped at the entry or ran out of the image and one NOTE line counting the rest, whose tips
     nothing checks (``trace_check``, :mod:`jaxcr.stereo.trace_check`)."""
     n_ok = sum(r["ok"] for r in recs)
     lines = [f"{n_ok}/{len(recs)} frames reconstructed; results in {out}"
@@ -726,7 +726,8 @@ def summary_lines(recs: list[dict], out) -> list[str]:
     traced = [r for r in recs if r["ok"] and r.get("trace_check") is not None]
     if traced:
         # One camera, traced (S33): no second view checks the tip. A trace that stopped
-        # at the entry is named; every other traced tip is said to be unchecked.
+        # at the entry or ran out of the image is named; every other traced tip is said to
+        # be unchecked.
         from jaxcr.stereo.trace_check import STUB_WIDTHS
 
         stub = [str(r["id"]) for r in traced if r["trace_check"]["suspect"]]
@@ -735,8 +736,9 @@ def summary_lines(recs: list[dict], out) -> list[str]:
                                                    if len(stub) > MAX_NAMED else "")  # fmt: skip
             lines.append(
                 f"WARNING: {len(stub)} frame(s) ({named}): one camera, the trace stopped within "
-                f"{STUB_WIDTHS:g} tube widths of the entry: their tip_px is not the tube's end; "
-                "check the overlays and the entry pixel (docs/stereo-format.md, trace_check)"
+                f"{STUB_WIDTHS:g} tube widths of the entry or ran out of the image: their tip_px "
+                "is not the tube's end; check the overlays and the entry pixel "
+                "(docs/stereo-format.md, trace_check)"
             )
         rest = len(traced) - len(stub)
         if rest:

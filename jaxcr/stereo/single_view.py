@@ -146,9 +146,10 @@ def reconstruct_view(
     if trace is not None:
         tip = np.asarray(trace.tip, np.float64)
         _traced_tips(vrec, [trace], ([tip], "trace", None, [trace]))
-        # No second view checks a traced tip: whether the trace stopped at the entry (S33).
+        # No second view checks a traced tip: whether the trace stopped at the entry or ran
+        # out of the image (S33).
         width = trace.measured_width_px or trace.width_px
-        trace_check = check_trace(vrec[0]["backbone_px"], width)
+        trace_check = check_trace(vrec[0]["backbone_px"], width, (cam.width, cam.height))
     return {
         "views_px": vrec,
         "skeleton_rc": rc,

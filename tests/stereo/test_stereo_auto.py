@@ -143,14 +143,19 @@ def test_plate_flags_refused_when_auto_chooses_chroma(real_like_one_camera, tmp_
     assert not (tmp_path / "o" / "results.jsonl").exists()
 
 
-def test_trace_check_flags_a_trace_that_stopped_at_the_entry():
-    """S33 (one camera, traced; real_like seed 4005: the trace stopped at the entry, tip
-    386 px off, no word). Closed form: the length of a polyline along a 3-4-5 triangle."""
+def test_trace_check_flags_a_trace_that_stopped_at_the_entry_or_left_the_image():
+    """S33 (one camera, traced; real_like seeds 4005: the trace stopped at the entry, and
+    4010: it ran out of the image; tips 386 / 392 px off, no word). Closed form: the length
+    of a polyline along a 3-4-5 triangle and its end's distance to the border."""
     from jaxcr.stereo.trace_check import STUB_WIDTHS, trace_check
 
-    line = np.array([[0.0, 0.0], [30.0, 40.0], [60.0, 80.0]])  # 100 px
-    res = trace_check(line, 15.0)
+    line = np.array([[100.0, 100.0], [130.0, 140.0], [160.0, 180.0]])  # 100 px
+    res = trace_check(line, 15.0, (320, 240))
     assert res.length_px == pytest.approx(100.0, abs=0.05) and res.width_px == 15.0
+    assert res.edge_px == pytest.approx(240 - 1 - 180.0, abs=0.05)  # 59 px to the bottom
     assert res.suspect == (100.0 < STUB_WIDTHS * 15.0)  # 60 px: not suspect
-    assert trace_check(line, 30.0).suspect  # 100 px < 4 widths of 30 px
-    assert trace_check(line[:1], 15.0).suspect  # a single point: length 0
+    assert trace_check(line, 30.0, (320, 240)).suspect  # 100 px < 4 widths of 30 px
+    assert trace_check(line[:1], 15.0, (320, 240)).suspect  # a single point: length 0
+    # the same line ending 9 px from the bottom border (under one tube width): suspect
+    assert trace_check(line, 15.0, (320, 190)).suspect
+    assert trace_check(line + [150.0, 0.0], 15.0, (320, 240)).edge_px == pytest.approx(9.0)

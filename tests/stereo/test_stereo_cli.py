@@ -204,7 +204,7 @@ def test_summary_one_camera_traced_frames():
     line; the other traced frames are counted in one NOTE line (their tips are unchecked)."""
     from jaxcr.cli.stereo import summary_lines
 
-    tc = {"length_px": 480.0, "width_px": 15.0, "suspect": False}
+    tc = {"length_px": 480.0, "width_px": 15.0, "edge_px": 150.0, "suspect": False}
     recs = [{"id": f"f{k}", "ok": True, "views": {"L": {}}, "segmentation": "trace",
              "trace_check": dict(tc)} for k in range(3)]  # fmt: skip
     recs[1]["trace_check"].update(length_px=2.2, suspect=True)
