@@ -6,7 +6,7 @@
 set -u
 HERE=$(cd "$(dirname "$0")" && pwd)
 A=$HERE/../issue16_audit_r31
-python $A/render.py 4000 4005                                   # rl_SEED.pkl
+python $A/render.py 4000 4005 4010                                # rl_SEED.pkl
 for seed in 4000 4005; do
   python $A/build.py $seed d$seed
   # 1. two cameras, right order and swapped order: each camera_order_check call's inputs
@@ -18,6 +18,9 @@ for seed in 4000 4005; do
   (cd d$seed/s_one_cam && jaxcr stereo . -o $PWD/../../r${seed}_one --no-overlays)
   python $A/score.py r${seed}_one d$seed/truth.json
 done
+python $A/build.py 4010 d4010                                   # one camera only
+(cd d4010/s_one_cam && jaxcr stereo . -o $PWD/../../r4010_one --no-overlays)
+python $A/score.py r4010_one d4010/truth.json
 python $HERE/recheck_order.py r*_order.pkl                      # before / after the S33 rule
 # 3. single-view signals of the trace on both views of seeds 4000-4015 vs the true tip
 python $HERE/single_view_stats.py $(seq 4000 4015) > sv_stats.jsonl
