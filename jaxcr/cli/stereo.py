@@ -450,12 +450,17 @@ class StereoWorker:
                            single_view_mm=1e3 * float(r["s"][-1] - r["s_stereo_end"]),
                            tip_epipolar_px=r["tip_epipolar_px"],
                            camera_order_suspect=r["camera_order_suspect"],
-                           camera_order_px=r["camera_order_px"])  # fmt: skip
+                           camera_order_px=r["camera_order_px"],
+                           camera_order_tip_px=r.get("camera_order_tip_px"))  # fmt: skip
             if r.get("key_check") is not None:
                 kc = r["key_check"]
                 rec["key_check"] = {"robot_fraction": kc.robot_fraction,
                                     "border_fraction": kc.border_fraction,
                                     "suspect": kc.suspect}  # fmt: skip
+            if r.get("trace_check") is not None:
+                tc = r["trace_check"]
+                rec["trace_check"] = {"length_px": tc.length_px, "width_px": tc.width_px,
+                                      "edge_px": tc.edge_px, "suspect": tc.suspect}  # fmt: skip
             rec["timings"] = r["timings"]
         except StereoFailure as err:
             rec.update(ok=False, reason=err.reason, message=str(err))
@@ -693,7 +698,9 @@ def summary_lines(recs: list[dict], out) -> list[str]:
     backbones the exchanged camera order explains much better (``camera_order_suspect``,
     :mod:`jaxcr.stereo.camera_order`); and one WARNING line for the whole run naming the
     one-camera chroma-key frames whose mask looks like a real background (``key_check``,
-    :mod:`jaxcr.stereo.key_check`)."""
+    :mod:`jaxcr.stereo.key_check`); for one-camera traced frames, one WARNING line naming
+    those whose trace stopped at the entry or ran out of the image and one NOTE line counting the rest, whose tips
+    nothing checks (``trace_check``, :mod:`jaxcr.stereo.trace_check`)."""
     n_ok = sum(r["ok"] for r in recs)
     lines = [f"{n_ok}/{len(recs)} frames reconstructed; results in {out}"
              + (f" (failed frames listed below and in {Path(out) / 'results.jsonl'})"
@@ -716,6 +723,30 @@ def summary_lines(recs: list[dict], out) -> list[str]:
             "their tip_px and backbone_px are unchecked; with background plates in "
             "stereo.json use --segmentation trace (docs/stereo-format.md, key_check)"
         )
+    traced = [r for r in recs if r["ok"] and r.get("trace_check") is not None]
+    if traced:
+        # One camera, traced (S33): no second view checks the tip. A trace that stopped
+        # at the entry or ran out of the image is named; every other traced tip is said to
+        # be unchecked.
+        from jaxcr.stereo.trace_check import STUB_WIDTHS
+
+        stub = [str(r["id"]) for r in traced if r["trace_check"]["suspect"]]
+        if stub:
+            named = ", ".join(stub[:MAX_NAMED]) + (f" and {len(stub) - MAX_NAMED} more"
+                                                   if len(stub) > MAX_NAMED else "")  # fmt: skip
+            lines.append(
+                f"WARNING: {len(stub)} frame(s) ({named}): one camera, the trace stopped within "
+                f"{STUB_WIDTHS:g} tube widths of the entry or ran out of the image: their tip_px "
+                "is not the tube's end; check the overlays and the entry pixel "
+                "(docs/stereo-format.md, trace_check)"
+            )
+        rest = len(traced) - len(stub)
+        if rest:
+            lines.append(
+                f"NOTE: one camera: the traced tip_px of {rest} frame(s) is unchecked (no second "
+                "view; a trace that followed an object crossing the tube is not detected): "
+                "check the overlays (docs/stereo-format.md, One camera)"
+            )
     for r in recs:
         e = r.get("tip_epipolar_px") if r["ok"] else None
         if e is not None and e > TIP_EPIPOLAR_WARN_PX:

@@ -37,7 +37,9 @@ class StereoReconstruction(eqx.Module):
             line of the other view's (px, undistorted pixels; docs/stereo-format.md).
         camera_order_suspect: the two skeletons are explained much better with the cameras
             exchanged (:mod:`jaxcr.stereo.camera_order`); camera_order_px: [unexplained
-            length under the given order, under the exchanged order, total length] (px).
+            length under the given order, under the exchanged order, total length] (px);
+            camera_order_tip_px: [given, exchanged], the two skeleton ends' residual (px),
+            which a swapped order must explain too (docs/decisions.md S33).
         extra: any further outputs of ``reconstruct_pair`` not listed above (empty today).
     """
 
@@ -67,6 +69,7 @@ class StereoReconstruction(eqx.Module):
     tip_epipolar_px: Any = None
     camera_order_suspect: Any = None
     camera_order_px: Any = None
+    camera_order_tip_px: Any = None
     extra: dict = eqx.field(default_factory=dict)
 
 

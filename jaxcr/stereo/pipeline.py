@@ -1260,5 +1260,6 @@ def reconstruct_pair(
         "tip_epipolar_px": _tip_epipolar_px(cams, vrec),
         "camera_order_suspect": order.suspect,
         "camera_order_px": [order.inconsistent_px, order.exchanged_px, order.length_px],
+        "camera_order_tip_px": list(order.tip_px),
         "timings": timings,
     }

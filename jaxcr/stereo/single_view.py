@@ -38,6 +38,7 @@ from jaxcr.stereo.pipeline import (
     entry_direction_px,
 )
 from jaxcr.stereo.shadow import shadow_cut
+from jaxcr.stereo.trace_check import trace_check as check_trace
 from jaxcr.stereo.view2d import view_record
 
 __all__ = ["base_pixel", "reconstruct_view"]
@@ -70,8 +71,10 @@ def reconstruct_view(
     """The 2-D backbone of one view (module docstring). ``image``: RGB (H, W, 3) uint8 or
     float [0, 1]; ``plate``: the empty scene (for plate segmentations). Returns
     ``{"views_px": [{"tip_px", "backbone_px"}], "skeleton_rc", "robot_mask", "base_px",
-    "key_check", "timings"}`` (``key_check``: with the chroma key, the
-    :class:`jaxcr.stereo.key_check.KeyMaskCheck` of its mask, else None). Per-frame problems
+    "key_check", "trace_check", "timings"}`` (``key_check``: with the chroma key, the
+    :class:`jaxcr.stereo.key_check.KeyMaskCheck` of its mask, else None; ``trace_check``:
+    with the trace, the :class:`jaxcr.stereo.trace_check.TraceCheck` of its backbone, else
+    None). Per-frame problems
     raise :class:`StereoFailure`."""
     cfg = config or StereoConfig()
     timings: dict = {}
@@ -139,14 +142,20 @@ def reconstruct_view(
     uv = _smooth_path(rc)
     _tick(timings, "ordering", t0)
     vrec = [view_record(uv, robot, search_px=cfg.tip_search_px)]
+    trace_check = None
     if trace is not None:
         tip = np.asarray(trace.tip, np.float64)
         _traced_tips(vrec, [trace], ([tip], "trace", None, [trace]))
+        # No second view checks a traced tip: whether the trace stopped at the entry or ran
+        # out of the image (S33).
+        width = trace.measured_width_px or trace.width_px
+        trace_check = check_trace(vrec[0]["backbone_px"], width, (cam.width, cam.height))
     return {
         "views_px": vrec,
         "skeleton_rc": rc,
         "robot_mask": robot,
         "base_px": list(buv),
         "key_check": key_check,
+        "trace_check": trace_check,
         "timings": timings,
     }

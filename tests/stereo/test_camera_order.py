@@ -9,6 +9,7 @@ test_stereo_markerless.py and test_stereo_cli.py."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -64,6 +65,8 @@ def test_a_swapped_order_is_flagged_and_the_right_one_is_not(cams):
     # the images given in the other order (view 1's image is camera 2's): the mirror image
     wrong = camera_order_check(cams, b2, b1)
     assert wrong.suspect and wrong.exchanged_px == 0.0, wrong
+    # S33: a swapped order of two right backbones explains their ends too (exact: << 1 px)
+    assert wrong.tip_px[1] < 0.1 and right.tip_px[0] < 0.1, (right, wrong)
     # the same pairs mirrored: equal up to a sample at each end (2 px steps)
     assert wrong.inconsistent_px == pytest.approx(right.exchanged_px, abs=2 * 2.0), (right, wrong)
 
@@ -73,3 +76,51 @@ def test_a_short_stub_is_never_flagged():
     b1, b2 = (_proj(c.T_cam_robot, X) for c in VERGED)
     res = camera_order_check(VERGED, b2, b1)
     assert res.length_px < 2 * 60.0 and not res.suspect, res
+
+
+def _fixture_rig():
+    """View 1 / view 2 skeletons and calibrated cameras of real_like development seed 4005,
+    frame f0001 (1280x720, `jaxcr stereo` on experiments/stereo/issue16_audit_r31's s_entry,
+    cameras in the right order; view 2's trace follows an occluding cable past the point
+    where it crosses the tube): tests/helpers/data/camera_order_s33_seed4005_f0001.npz."""
+    d = np.load(Path(__file__).parents[1] / "helpers/data/camera_order_s33_seed4005_f0001.npz")
+    cams = [SimpleNamespace(K=d[f"K{k}"], dist=d[f"dist{k}"], T_cam_robot=d[f"T_cam_robot{k}"])
+            for k in (1, 2)]  # fmt: skip
+    return cams, d["b1"], d["b2"]
+
+
+def _end_pair_reprojection_px(cams, b1, b2):
+    """Independent reference (OpenCV): the two skeletons' last samples undistorted,
+    triangulated (cv2.triangulatePoints) and reprojected; the larger error (px)."""
+    import cv2
+
+    x = [cv2.undistortPoints(b[-1:].reshape(1, 1, 2).astype(np.float64), c.K, c.dist).reshape(2)
+         for c, b in zip(cams, (b1, b2), strict=True)]  # fmt: skip
+    P = [np.asarray(c.T_cam_robot, np.float64)[:3] for c in cams]
+    Xh = cv2.triangulatePoints(P[0], P[1], x[0].reshape(2, 1), x[1].reshape(2, 1)).ravel()
+    err = []
+    for c, Pk, xk in zip(cams, P, x, strict=True):
+        p = Pk @ Xh
+        err.append(np.linalg.norm((p[:2] / p[2] - xk) * c.K[0, 0]))  # focal length scale
+    return max(err)
+
+
+def test_a_wrong_trace_in_one_view_is_not_a_swapped_order():
+    """S33 (issue 16): the false flag of seed 4005. The exchanged order explains all but
+    ~60 of 852 px (the two cameras at about one height pair the cable with the tube), which
+    met every S19 condition; its ends stay 30-40 px apart, which a swapped order of two
+    right backbones does not leave."""
+    cams, b1, b2 = _fixture_rig()
+    res = camera_order_check(cams, b1, b2)
+    # the conditions of S19 alone hold (measured 526 / 60 / 852 px) ...
+    assert (
+        res.inconsistent_px >= 0.1 * res.length_px and res.inconsistent_px >= 4 * res.exchanged_px
+    )
+    # ... but the exchanged order leaves the ends unexplained (measured 37.6 px > 10 px)
+    assert res.tip_px[1] > 20.0 and not res.suspect, res
+    # the end residual is the best pair of each end sample: at most the forced last pair's
+    # error (OpenCV reference; 1e-6 relative for the two triangulation methods)
+    ref = _end_pair_reprojection_px((cams[1], cams[0]), b1, b2)
+    assert res.tip_px[1] <= ref * (1 + 1e-6) + 0.05, (res, ref)
+    # the given order leaves the ends far apart too (measured 190.6 px): a wrong view
+    assert res.tip_px[0] > 100.0, res

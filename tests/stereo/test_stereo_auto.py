@@ -119,6 +119,12 @@ def test_one_camera_chroma_on_a_real_background_warns_once(real_like_one_camera,
     assert run["options"]["plate"]["max_gap_px"] == 60.0
     recs = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
     assert all(r["segmentation"] == "trace" and "key_check" not in r for r in recs)
+    # S33: one camera, traced: each record's trace_check; the tips nothing checks are said
+    # to be unchecked, in one line for the run
+    ok = [r for r in recs if r["ok"]]
+    assert ok and all(not r["trace_check"]["suspect"] for r in ok), recs
+    note = [x for x in printed if x.startswith("NOTE: one camera")]
+    assert len(note) == 1 and f"of {len(ok)} frame(s) is unchecked" in note[0], printed
 
 
 def test_plate_flags_refused_when_auto_chooses_chroma(real_like_one_camera, tmp_path, capsys):
@@ -135,3 +141,21 @@ def test_plate_flags_refused_when_auto_chooses_chroma(real_like_one_camera, tmp_
     assert len(err) == 1 and "--plate-dark needs --segmentation trace" in err[0], err
     assert "auto: no background plates" in err[0], err
     assert not (tmp_path / "o" / "results.jsonl").exists()
+
+
+def test_trace_check_flags_a_trace_that_stopped_at_the_entry_or_left_the_image():
+    """S33 (one camera, traced; real_like seeds 4005: the trace stopped at the entry, and
+    4010: it ran out of the image; tips 386 / 392 px off, no word). Closed form: the length
+    of a polyline along a 3-4-5 triangle and its end's distance to the border."""
+    from jaxcr.stereo.trace_check import STUB_WIDTHS, trace_check
+
+    line = np.array([[100.0, 100.0], [130.0, 140.0], [160.0, 180.0]])  # 100 px
+    res = trace_check(line, 15.0, (320, 240))
+    assert res.length_px == pytest.approx(100.0, abs=0.05) and res.width_px == 15.0
+    assert res.edge_px == pytest.approx(240 - 1 - 180.0, abs=0.05)  # 59 px to the bottom
+    assert res.suspect == (100.0 < STUB_WIDTHS * 15.0)  # 60 px: not suspect
+    assert trace_check(line, 30.0, (320, 240)).suspect  # 100 px < 4 widths of 30 px
+    assert trace_check(line[:1], 15.0, (320, 240)).suspect  # a single point: length 0
+    # the same line ending 9 px from the bottom border (under one tube width): suspect
+    assert trace_check(line, 15.0, (320, 190)).suspect
+    assert trace_check(line + [150.0, 0.0], 15.0, (320, 240)).edge_px == pytest.approx(9.0)

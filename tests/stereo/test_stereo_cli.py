@@ -199,6 +199,24 @@ def test_summary_warns_when_the_two_tips_disagree():
     assert '"cameras"' in warn[1] and "306 of" in warn[1], warn
 
 
+def test_summary_one_camera_traced_frames():
+    """S33: one camera, traced: a trace that stopped at the entry is named in one WARNING
+    line; the other traced frames are counted in one NOTE line (their tips are unchecked)."""
+    from jaxcr.cli.stereo import summary_lines
+
+    tc = {"length_px": 480.0, "width_px": 15.0, "edge_px": 150.0, "suspect": False}
+    recs = [{"id": f"f{k}", "ok": True, "views": {"L": {}}, "segmentation": "trace",
+             "trace_check": dict(tc)} for k in range(3)]  # fmt: skip
+    recs[1]["trace_check"].update(length_px=2.2, suspect=True)
+    lines = summary_lines(recs, "OUT")
+    warn = [x for x in lines if x.startswith("WARNING")]
+    assert len(warn) == 1 and "(f1)" in warn[0] and "stopped" in warn[0], lines
+    note = [x for x in lines if x.startswith("NOTE")]
+    assert len(note) == 1 and "of 2 frame(s) is unchecked" in note[0], lines
+    # two cameras or the chroma key (no trace_check): no such lines
+    assert len(summary_lines([{"id": "a", "ok": True, "views": {}}], "OUT")) == 1
+
+
 def test_bad_input_exit_2(tmp_path, capsys):
     assert main(["stereo", str(tmp_path), "-o", str(tmp_path / "o")]) == 2
     (tmp_path / "stereo.json").write_text('{"format": "other"}')
