@@ -212,16 +212,23 @@ def test_console_script_smoke(files):
     assert (files / "sp" / "tips.csv").exists()
 
 
-def test_batch_forward_traces_once_across_chunks():
+def _counting_segment(traces: list):
+    """A SingleSegment whose forward appends to ``traces`` (at trace time only)."""
     from jaxcr.kinematics.single_segment import SingleSegment
-
-    traces = []
 
     class CountingSegment(SingleSegment):
         def forward(self, q, guess=None):
             traces.append(q.shape)  # runs at trace time only
             return super().forward(q, guess)
 
+    return CountingSegment
+
+
+def test_batch_forward_traces_once_across_chunks():
+    from jaxcr.kinematics.single_segment import SingleSegment
+
+    traces = []
+    CountingSegment = _counting_segment(traces)
     model = CountingSegment.make(length=0.03, radius=1e-3, n_points=7)
     q = np.random.default_rng(0).uniform(-1.0, 1.0, size=(5, 2))
     out = batch_forward(model, q, chunk=2, progress=False)  # chunks of 2, 2, 1 (padded to 2)
@@ -253,12 +260,7 @@ def test_batch_sizes_in_one_bucket_share_one_program():
     from jaxcr.kinematics.single_segment import SingleSegment
 
     traces = []
-
-    class CountingSegment(SingleSegment):
-        def forward(self, q, guess=None):
-            traces.append(q.shape)  # runs at trace time only
-            return super().forward(q, guess)
-
+    CountingSegment = _counting_segment(traces)
     model = CountingSegment.make(length=0.03, radius=1e-3, n_points=7)
     rng = np.random.default_rng(1)
     for n in (5, 7):
