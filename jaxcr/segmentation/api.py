@@ -19,11 +19,15 @@ Example (one frame, one camera)::
 
 from __future__ import annotations
 
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from jaxcr.camera import Camera
 from jaxcr.kinematics.cosserat import Centreline
 from jaxcr.segmentation import refine as _refine
+from jaxcr.segmentation.buckets import bucket_shape, pad_frames
 from jaxcr.segmentation.refine import DEFAULT_CONFIG, RefineConfig, RefineResult
 
 
@@ -97,6 +101,7 @@ def refine_batch(
     valid: Bool[Array, " f"] | None = None,
     mode: str = "map",
     init_cams: Float[Array, "f c 6"] | None = None,
+    shape_buckets: bool = False,
 ) -> RefineResult:
     """Refine F independent frames in one compiled call (shared cameras).
 
@@ -118,6 +123,13 @@ def refine_batch(
         ``"vmap"`` (lock step).
     init_cams : float array (f, c, 6) | None
         (F, n_cameras, 6) warm-start camera corrections.
+    shape_buckets : bool
+        pad each camera's frames at the bottom and right to its image-size bucket
+        (:func:`jaxcr.segmentation.buckets.bucket_shape`; the padding weighs nothing) so that
+        every size of a bucket shares one compiled program, as ``jaxcr segment
+        --shape-buckets on`` does (docs/decisions.md S29); the masks are cropped back to the
+        cameras' sizes. Results equal the unpadded call's up to float rounding, which a
+        solve can amplify to a few pixels of mask. Off by default.
 
     Returns
     -------
@@ -138,14 +150,31 @@ def refine_batch(
     >>> out.ok.shape  # doctest: +SKIP
     (2,)
     """
-    return _refine.refine_batch(
-        bases,
-        cameras,
-        images,
-        backgrounds,
-        config or DEFAULT_CONFIG,
-        inits,
-        valid,
-        mode,
-        init_cams,
+    if not shape_buckets:
+        return _refine.refine_batch(
+            bases, cameras, images, backgrounds, config or DEFAULT_CONFIG, inits, valid, mode,
+            init_cams,
+        )  # fmt: skip
+    cams = _refine._as_tuple(cameras)
+    sizes = [(c.height, c.width) for c in cams]
+    shapes = [bucket_shape(*hw) for hw in sizes]
+    imgs = _refine._as_tuple(images)
+    bgs = _refine._as_tuple(backgrounds)
+    imgs = tuple(
+        jnp.asarray(pad_frames(np.asarray(x), sh)) for x, sh in zip(imgs, shapes, strict=True)
+    )
+    bgs = tuple(
+        jnp.asarray(pad_frames(np.asarray(b), sh, fill=True))
+        for b, sh in zip(bgs, shapes, strict=True)
+    )
+    out = _refine.refine_batch(
+        bases, cameras, imgs, bgs, config or DEFAULT_CONFIG, inits, valid, mode, init_cams,
+        shape_buckets=True,
+    )  # fmt: skip
+
+    def crop(masks):
+        return tuple(m[:, :h, :w] for m, (h, w) in zip(masks, sizes, strict=True))
+
+    return eqx.tree_at(
+        lambda r: (r.masks, r.nominal_masks), out, (crop(out.masks), crop(out.nominal_masks))
     )

@@ -212,3 +212,50 @@ def test_refine_batch_padded_finds_the_same_tube():
     for f in ("sigma_px", "sigma_depth", "tip"):
         np.testing.assert_allclose(np.asarray(getattr(ub, f)), np.asarray(getattr(ua, f)),
                                    rtol=1e-4)  # fmt: skip
+
+
+def test_front_door_pads_to_each_cameras_bucket_and_crops_the_masks(monkeypatch):
+    """``jcr.refine_batch(..., shape_buckets=True)``: each camera's frames reach the compiled
+    solver padded at the bottom and right to that camera's bucket (images with 0, background
+    masks with True, as ``jaxcr segment`` pads them), with ``shape_buckets=True``; the masks
+    come back cropped to each camera's real size. The solver is replaced by a recorder (its
+    padded answer is tested above); reference: NumPy slicing of the padded arrays."""
+    import jaxcr as jcr
+    from jaxcr.camera import Camera
+
+    calls = {}
+
+    class Out(eqx.Module):
+        masks: tuple
+        nominal_masks: tuple
+        coeffs: jax.Array
+
+    def fake(bases, cameras, images, backgrounds, config, *args, shape_buckets=False):
+        calls.update(images=images, backgrounds=backgrounds, shape_buckets=shape_buckets)
+        ms = tuple(jnp.ones(b.shape, bool) for b in backgrounds)
+        return Out(ms, tuple(~m for m in ms), jnp.zeros((2, 3, 4)))
+
+    def _cam(k, w, h):
+        return Camera(K=k, dist=jnp.zeros(5), T_cam_robot=jnp.eye(4), width=w, height=h)
+
+    monkeypatch.setattr(refine, "refine_batch", fake)
+    k = jnp.array([[80.0, 0, 48], [0, 80, 36], [0, 0, 1]])
+    cams = (_cam(k, RW, RH), _cam(k, 64, 48))
+    rng = np.random.default_rng(0)
+    imgs = (rng.random((2, RH, RW, 3), np.float32), rng.random((2, 48, 64, 3), np.float32))
+    bgs = (rng.random((2, RH, RW)) > 0.5, rng.random((2, 48, 64)) > 0.5)
+    out = jcr.refine_batch(None, cams, imgs, bgs, shape_buckets=True)
+    assert calls["shape_buckets"] is True
+    for c, im, bg, pim, pbg in zip(
+        cams, imgs, bgs, calls["images"], calls["backgrounds"], strict=True
+    ):
+        shape = buckets.bucket_shape(c.height, c.width)
+        assert pim.shape == (2, *shape, 3) and pbg.shape == (2, *shape)
+        np.testing.assert_array_equal(np.asarray(pim)[:, : c.height, : c.width], im)
+        np.testing.assert_array_equal(np.asarray(pbg)[:, : c.height, : c.width], bg)
+        assert not np.asarray(pim)[:, c.height :].any() and np.asarray(pbg)[:, c.height :].all()
+        assert not np.asarray(pim)[:, :, c.width :].any() and np.asarray(pbg)[:, :, c.width :].all()
+    assert buckets.bucket_shape(RH, RW) != (RH, RW)  # the first camera was padded
+    for m, n, c in zip(out.masks, out.nominal_masks, cams, strict=True):
+        assert m.shape == n.shape == (2, c.height, c.width) and m.all() and not n.any()
+    assert out.coeffs.shape == (2, 3, 4)
