@@ -219,22 +219,7 @@ def test_roi_choice_recorded_and_kept_by_a_resume(full_run, dataset, tmp_path):
     (the behaviour it was written with). Every frame is recorded: no refinement runs."""
     _, ref = full_run
     assert json.loads((ref / "run.json").read_text())["roi"] == "auto"
-    base = ["segment", str(dataset), "-o"]
-    out = tmp_path / "new"
-    shutil.copytree(ref, out)
-    (out / "DONE").unlink()
-    assert main([*base, str(out), "--resume", "--roi", "off", *FAST]) == 2
-    assert main([*base, str(out), "--resume", *FAST]) == 1  # the bad frames, as ref
-    old = tmp_path / "old"
-    shutil.copytree(ref, old)
-    (old / "DONE").unlink()
-    info = json.loads((old / "run.json").read_text())
-    del info["roi"]
-    (old / "run.json").write_text(json.dumps(info))
-    assert main([*base, str(old), "--resume", "--roi", "auto", *FAST]) == 2
-    assert main([*base, str(old), "--resume", *FAST]) == 1
-    assert main([*base, str(old), "--resume", "--roi", "off", *FAST]) == 1
-    assert "roi" not in json.loads((old / "run.json").read_text())
+    _check_resume_keeps_choice(ref, dataset, tmp_path, "roi", "auto")
 
 
 def test_shape_buckets_recorded_kept_by_a_resume_and_outputs_at_the_real_size(
@@ -254,21 +239,7 @@ def test_shape_buckets_recorded_kept_by_a_resume_and_outputs_at_the_real_size(
         r = _records(ref)[fid]
         assert R.read_mask_png(ref / r["files"]["background"]["main"]).shape == (H, W)
         assert R.read_mask_png(ref / r["files"]["nominal"]["main"]).shape == (H, W)
-    base = ["segment", str(dataset), "-o"]
-    out = tmp_path / "new"
-    shutil.copytree(ref, out)
-    (out / "DONE").unlink()
-    assert main([*base, str(out), "--resume", "--shape-buckets", "off", *FAST]) == 2
-    assert main([*base, str(out), "--resume", *FAST]) == 1  # the bad frames, as ref
-    old = tmp_path / "old"
-    shutil.copytree(ref, old)
-    (old / "DONE").unlink()
-    info = json.loads((old / "run.json").read_text())
-    del info["shape_buckets"]
-    (old / "run.json").write_text(json.dumps(info))
-    assert main([*base, str(old), "--resume", "--shape-buckets", "on", *FAST]) == 2
-    assert main([*base, str(old), "--resume", *FAST]) == 1
-    assert "shape_buckets" not in json.loads((old / "run.json").read_text())
+    _check_resume_keeps_choice(ref, dataset, tmp_path, "shape_buckets", "on")
 
 
 @pytest.mark.slow
@@ -289,6 +260,30 @@ def test_shape_buckets_off_gives_the_same_answer(full_run, dataset, tmp_path):
         ca = np.load(ref / a[fid]["files"]["centreline"])
         cb = np.load(out / b[fid]["files"]["centreline"])
         assert np.linalg.norm(ca[-1] - cb[-1]) < 5e-4
+
+
+def _check_resume_keeps_choice(ref, dataset, tmp_path, key, default):
+    """A resume of ``ref`` (run with the default ``default`` of option ``--KEY``, recorded as
+    run.json ``key``) keeps the recorded choice and refuses ``off``; a run.json written
+    before the option (no ``key``) resumes as ``off``, refusing ``default``. Every frame is
+    recorded, so no refinement runs; the bad frames make each accepted resume exit 1."""
+    flag = "--" + key.replace("_", "-")
+    base = ["segment", str(dataset), "-o"]
+    out = tmp_path / "new"
+    shutil.copytree(ref, out)
+    (out / "DONE").unlink()
+    assert main([*base, str(out), "--resume", flag, "off", *FAST]) == 2
+    assert main([*base, str(out), "--resume", *FAST]) == 1  # the bad frames, as ref
+    old = tmp_path / "old"
+    shutil.copytree(ref, old)
+    (old / "DONE").unlink()
+    info = json.loads((old / "run.json").read_text())
+    del info[key]
+    (old / "run.json").write_text(json.dumps(info))
+    assert main([*base, str(old), "--resume", flag, default, *FAST]) == 2
+    assert main([*base, str(old), "--resume", *FAST]) == 1
+    assert main([*base, str(old), "--resume", flag, "off", *FAST]) == 1
+    assert key not in json.loads((old / "run.json").read_text())
 
 
 def _iou(a, b):
