@@ -18,7 +18,12 @@ after each child. The parts (``only=``, all by default):
 - ``demo``: (d) a first ``jaxcr demo --frames F --size WxH --seed S``, reference: the same with
   ``--no-compile-cache``;
 - ``stereo``: (e) a first ``jaxcr stereo`` on ``jaxcr stereo synth --frames F --size WxH
-  --seed S``, reference: the same with ``--no-compile-cache``.
+  --seed S``, reference: the same with ``--no-compile-cache``;
+- ``bucket``: (f) ``jaxcr segment`` on a dataset of a new size in the same shape bucket
+  (:func:`bucket_size`: each side 1/16 smaller where that stays in its bucket, e.g. 600x450
+  for 640x480; docs/decisions.md S29) with the cache (a) filled (runs (a) when neither
+  ``segment`` nor ``second`` is selected), reference: the same command with
+  ``--shape-buckets off`` on a copy of that cache (what the new size costs without buckets).
 
 Targets (issue 18): a first process <= 10 s of compilation (:data:`FIRST_TARGET_S`), a second
 process (or one after ``jaxcr warmup``) ~0, taken as <= :data:`SECOND_TARGET_S`. A row is
@@ -38,6 +43,7 @@ import json
 import os
 import platform
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -47,7 +53,7 @@ from pathlib import Path
 
 from jaxcr.errors import InputError
 
-PARTS = ("segment", "second", "warmup", "demo", "stereo")
+PARTS = ("segment", "second", "warmup", "demo", "stereo", "bucket")
 #: issue 18: "<= 10 s at 640x480" for a first segment / demo / stereo process
 FIRST_TARGET_S = 10.0
 #: issue 18: "a second process pays ~0"; ~0 taken as at most this many seconds
@@ -65,6 +71,19 @@ class ChildRun:
     stderr: str = ""
     load_before: float = float("nan")
     load_after: float = float("nan")
+
+
+def bucket_size(width: int, height: int) -> tuple[int, int]:
+    """(width, height) of part (f)'s dataset: each side 1/16 smaller where the smaller side
+    keeps its shape bucket (:func:`jaxcr.segmentation.buckets.bucket_side`), else unchanged;
+    640x480 -> 600x450, 64x48 -> 60x45."""
+    from jaxcr.segmentation.buckets import bucket_side
+
+    def side(n):
+        m = n - n // 16
+        return m if bucket_side(m) == bucket_side(n) else n
+
+    return side(width), side(height)
 
 
 def run_child(argv: list[str], env: dict, cwd: str) -> ChildRun:
@@ -191,13 +210,21 @@ def run_compile_benchmark(
     loads = [_load()]
     with tempfile.TemporaryDirectory(prefix="jaxcr_bench_compile_") as tmp:
         run = _Runner(Path(tmp), runner or run_child)
-        seg_parts = [p for p in parts if p in ("segment", "second", "warmup")]
+        seg_parts = [p for p in parts if p in ("segment", "second", "warmup", "bucket")]
         if seg_parts:
             synth = ["synth", "--preset", "orthogonal", *common, "-o", "ds", "--quiet"]
             r = run(synth, None)
             if r.rc != 0:
                 rows.append(_failed_row("synth dataset", "jaxcr " + " ".join(synth), r))
                 seg_parts = []
+        bw, bh = bucket_size(*size)
+        if "bucket" in seg_parts:
+            common_b = ["--frames", str(frames), "--size", f"{bw}x{bh}", "--seed", str(seed)]
+            synth = ["synth", "--preset", "orthogonal", *common_b, "-o", "ds_b", "--quiet"]
+            r = run(synth, None)
+            if r.rc != 0:
+                rows.append(_failed_row("synth dataset (f)", "jaxcr " + " ".join(synth), r))
+                seg_parts.remove("bucket")
         stereo_ok = "stereo" in parts
         if stereo_ok:
             synth = ["stereo", "synth", "-o", "sds", *common]
@@ -206,8 +233,8 @@ def run_compile_benchmark(
                 rows.append(_failed_row("stereo synth dataset", "jaxcr " + " ".join(synth), r))
                 stereo_ok = False
 
-        def segment(out: str, cache: str | None) -> tuple[ChildRun, float | None]:
-            r = run(["segment", "ds", "-o", out, "--quiet", "--no-overlays"], cache)
+        def segment(out: str, cache: str | None, ds="ds", *extra) -> tuple[ChildRun, float | None]:
+            r = run(["segment", ds, "-o", out, "--quiet", "--no-overlays", *extra], cache)
             return r, _compile_s(Path(tmp) / out)
 
         def pair(ours, ref, k):
@@ -223,7 +250,8 @@ def run_compile_benchmark(
         for k in range(repeats):
             n0, tag = len(rows), f"_{k}"
             first = first_c = None
-            if "segment" in seg_parts or "second" in seg_parts:
+            fill_only = "bucket" in seg_parts and not {"segment", "second"} & set(seg_parts)
+            if "segment" in seg_parts or "second" in seg_parts or fill_only:
 
                 def ours(tag=tag):
                     f = segment("out_first" + tag, "cache_seg" + tag)
@@ -240,7 +268,7 @@ def run_compile_benchmark(
                     )
 
                 ((first, first_c), (second, second_c)), (ref_r, ref_c) = pair(ours, ref, k)
-                if ref_r is not None or second is None:
+                if ref_r is not None or (second is None and not fill_only):
                     rows.append(_row("(a) first segment", seg_cmd, "empty", first, first_c,
                                      FIRST_TARGET_S, "--no-compile-cache", ref_r, ref_c))  # fmt: skip
                 else:  # (a) ran only to fill the cache: still reported
@@ -249,6 +277,20 @@ def run_compile_benchmark(
                 if second is not None:
                     rows.append(_row("(b) second segment", seg_cmd, "filled by (a)", second,
                                      second_c, SECOND_TARGET_S, "row (a)", first, first_c))  # fmt: skip
+            if "bucket" in seg_parts and first is not None and first.rc == 0:
+                filled = "cache_seg" + tag
+                shutil.copytree(Path(tmp) / filled, Path(tmp) / ("cache_bucket_off" + tag))
+                b_cmd = (f"jaxcr segment DS_B -o OUT --quiet --no-overlays ({frames} frames "
+                         f"{bw}x{bh}, after (a) at {wh})")  # fmt: skip
+                (bk, bk_c), (off, off_c) = pair(
+                    lambda t=tag: segment("out_bucket" + t, "cache_seg" + t, "ds_b"),
+                    lambda t=tag: segment("out_bucket_off" + t, "cache_bucket_off" + t, "ds_b",
+                                          "--shape-buckets", "off"),
+                    k,
+                )  # fmt: skip
+                rows.append(_row("(f) new size, same bucket", b_cmd, "filled by (a)", bk, bk_c,
+                                 SECOND_TARGET_S, "--shape-buckets off, a copy of (a)'s cache",
+                                 off, off_c))  # fmt: skip
             if "warmup" in seg_parts:
                 w = run(["warmup", "ds", "--no-overlays"], "cache_warm" + tag)
                 if w.rc != 0:

@@ -87,10 +87,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--only", default=None, metavar="PARTS",
-        help="compile: comma-separated parts of segment,second,warmup,demo,stereo (default "
-        "all: a first and a second segment process, warmup then segment, a first demo and a "
-        "first stereo, each beside the same command with --no-compile-cache; minutes of CPU, "
-        "~10 first compilations per --repeats, the reference first in odd repeats)",
+        help="compile: comma-separated parts of segment,second,warmup,demo,stereo,bucket "
+        "(default all: a first and a second segment process, warmup then segment, a first "
+        "demo and a first stereo, each beside the same command with --no-compile-cache, and "
+        "a segment at a new size of (a)'s shape bucket beside --shape-buckets off; minutes "
+        "of CPU, ~11 first compilations per --repeats, the reference first in odd repeats)",
     )  # fmt: skip
     p.set_defaults(func=run)
     return p  # fmt: skip

@@ -35,6 +35,8 @@ class FakeChildren:
         cache = None if off else Path(env["JAXCR_CACHE_DIR"])
         filled = cache is not None and (cache / "filled").exists()
         c = OFF if off else FILLED if filled else FIRST
+        if cmd[-2:] == ["--shape-buckets", "off"] and filled:
+            c = FIRST  # a new size without buckets: new programs, as an empty cache
         if cache is not None:
             cache.mkdir(exist_ok=True)
             (cache / "filled").touch()
@@ -62,9 +64,13 @@ def test_all_parts_rows_references_and_targets(tmp_path, fake, capsys, monkeypat
     out = tmp_path / "c.md"
     assert main(["bench", "compile", "--size", "64x48", "--seed", "3", "-o", str(out)]) == 0
     rows = _rows(out)
-    assert list(rows) == ["(a) first segment", "(b) second segment", "(c) warmup, then segment",
+    assert list(rows) == ["(a) first segment", "(b) second segment",
+                          "(f) new size, same bucket", "(c) warmup, then segment",
                           "(d) first demo", "(e) first stereo"]  # fmt: skip
-    a, b, c, d, e = rows.values()
+    a, b, f, c, d, e = rows.values()
+    # (f): the cache (a) filled serves the new size; reference: buckets off on a copy of it
+    assert (f["compile_s"], f["ref_compile_s"], f["result"]) == (FILLED, FIRST, "met")
+    assert "60x45" in f["command"] and f["reference"].startswith("--shape-buckets off")
     # (a): empty cache 12 s compile > 10 s target; reference = --no-compile-cache, same run
     assert (a["compile_s"], a["ref_compile_s"], a["result"]) == (FIRST, OFF, "not met")
     assert a["ratio_wall"] == pytest.approx((OFF + 3) / (FIRST + 3))
@@ -83,8 +89,8 @@ def test_all_parts_rows_references_and_targets(tmp_path, fake, capsys, monkeypat
             assert "JAXCR_CACHE_DIR" not in env and "JAXCR_COMPILE_CACHE" not in env
         else:
             caches.setdefault(env["JAXCR_CACHE_DIR"], []).append(argv[0])
-    assert sorted(caches.values()) == [["demo"], ["segment", "segment"], ["stereo"],
-                                       ["warmup", "segment"]]  # fmt: skip
+    assert sorted(caches.values()) == [["demo"], ["segment"], ["segment", "segment", "segment"],
+                                       ["stereo"], ["warmup", "segment"]]  # fmt: skip
     synth = next(a for a, _ in fake.calls if "synth" in a)
     assert [synth[synth.index(o) + 1] for o in ("--frames", "--size", "--seed")] == [
         "2",
@@ -131,3 +137,23 @@ def test_repeats_alternate_the_order_with_new_caches(tmp_path, fake):
     flags = [(a[0] == "--no-compile-cache", e.get("JAXCR_CACHE_DIR")) for a, e in fake.calls]
     assert [f for f, _ in flags] == [False, True, True, False]
     assert len({c for _, c in flags if c}) == 2  # a new cache folder per repeat
+
+
+def test_bucket_size_stays_in_the_bucket():
+    """Part (f)'s size: each side 1/16 smaller where that keeps the side's bucket (reference:
+    the ladder's rule, jaxcr.segmentation.buckets.bucket_shape)."""
+    from jaxcr.segmentation.buckets import bucket_shape
+
+    assert bc.bucket_size(640, 480) == (600, 450)
+    for w, h in ((640, 480), (64, 48), (1280, 720), (600, 450), (33, 33)):
+        bw, bh = bc.bucket_size(w, h)
+        assert bucket_shape(bh, bw) == bucket_shape(h, w) and bw <= w and bh <= h
+
+
+def test_only_bucket_fills_the_cache_first(tmp_path, fake):
+    out = tmp_path / "c.md"
+    assert main(["bench", "compile", "--only", "bucket", "--size", "64x48", "-o", str(out)]) == 0
+    rows = _rows(out)
+    assert list(rows) == ["(a) first segment (fills the cache)", "(f) new size, same bucket"]
+    synths = [a for a, _ in fake.calls if "synth" in a]
+    assert [s[s.index("--size") + 1] for s in synths] == ["64x48", "60x45"]
