@@ -344,7 +344,7 @@ def run_compile_benchmark(
         "notes": (
             "Each child: `python -m jaxcr ...` with its own new cache folder (JAXCR_CACHE_DIR); "
             "reference = the same command with `--no-compile-cache` in the same run (rows b, c: "
-            "row (a)). wall/CPU = the whole child process (CPU: user + system from "
+            "row (a); row f: `--shape-buckets off` on a copy of (a)'s cache). wall/CPU = the whole child process (CPU: user + system from "
             "getrusage(RUSAGE_CHILDREN)); compile_s = the command's summary.json (segment, and "
             "the demo's segment/ folder). A row is judged on compile_s when present, else on "
             f"wall_s. Targets: first process <= {FIRST_TARGET_S:g} s, second ~0 (<= "
