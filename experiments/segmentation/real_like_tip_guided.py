@@ -15,6 +15,8 @@ calibrated cameras and the true tips). Per seed:
 * ``guided_bb`` -- also on frames whose tips agree but whose whole backbones do not (over
   ``--bb-widths`` tube widths of the two backbones left unexplained,
   :func:`backbone_consistency`);
+* ``pipeline`` -- :func:`traced_stereo_tips` of this tree (with the guided candidates
+  adopted, equal to ``guided``);
 * ``oracle`` / ``oracle_guided`` -- the candidate pair (trace or alternatives, and the
   guided candidates, end-face tips, before the tip step) nearest the truth.
 
@@ -129,6 +131,19 @@ def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> 
             tips, act, kind, flagged = _variant(rec, cands, bbw)
             row[name] = {"err_px": _errs(tips, rec["truth"]), "action": act, "chosen": kind,
                          "flagged": bool(flagged), "cpu_s": time.process_time() - t0}  # fmt: skip
+        # The pipeline's own function (the stored alternatives returned for
+        # trace_alternatives, which is deterministic): after adoption equal to `guided`.
+        alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
+        saved = pipeline.trace_alternatives
+        pipeline.trace_alternatives = lambda t: alts[id(t)]
+        try:
+            t0 = time.process_time()
+            tips, _, res, chosen = pipeline.traced_stereo_tips(cams, rec["traces"])
+            row["pipeline"] = {"err_px": _errs(tips, rec["truth"]),
+                               "action": None if res is None else res.action,
+                               "cpu_s": time.process_time() - t0}  # fmt: skip
+        finally:
+            pipeline.trace_alternatives = saved
         row["oracle"] = {"err_px": _oracle(rec, base)}
         row["oracle_guided"] = {"err_px": _oracle(rec, plus)}
         row["trace"] = {"err_px": _errs([t.tip for t in rec["traces"]], rec["truth"])}
@@ -145,7 +160,8 @@ def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> 
 def summary(path: Path) -> None:
     rows = {r["seed"]: r for r in json.loads(path.read_text())["rows"]}
     rows = [rows[s] for s in sorted(rows)]
-    names = ["trace", "ref", "guided", "guided_bb", "oracle", "oracle_guided"]
+    names = ["trace", "ref", "guided", "guided_bb", "pipeline", "oracle", "oracle_guided"]
+    names = [n for n in names if n in rows[0]]
 
     def table(sel, title):
         print(f"\n{title} ({len(sel)} frames)\n")
@@ -162,7 +178,7 @@ def summary(path: Path) -> None:
     for o in ("oracle", "oracle_guided"):
         reach = [r["seed"] for r in fail if max(r[o]["err_px"]) <= 5]
         print(f"\n`ref` fails {len(fail)}; `{o}` has a pair within 5 px in {len(reach)}: {reach}")
-    for n in ("guided", "guided_bb"):
+    for n in [n for n in ("guided", "guided_bb", "pipeline") if n in names]:
         diff = [
             f"{r['seed']} {r['ref']['err_px'][0]:.1f} / {r['ref']['err_px'][1]:.1f} -> "
             f"{r[n]['err_px'][0]:.1f} / {r[n]['err_px'][1]:.1f} ({'/'.join(r[n]['chosen'])})"
@@ -179,7 +195,7 @@ def summary(path: Path) -> None:
         f"\nguided_candidates CPU s a frame (both anchors, every frame): median "
         f"{np.median(cpu):.2f}, max {max(cpu):.2f}"
     )
-    for n in ("ref", "guided", "guided_bb"):
+    for n in [n for n in ("ref", "guided", "guided_bb", "pipeline") if n in names]:
         c = [r[n]["cpu_s"] for r in rows]
         print(f"{n} two-view steps CPU s a frame: median {np.median(c):.3f}, max {max(c):.2f}")
 

@@ -95,6 +95,7 @@ from jaxcr.stereo.diameter import (
     view_weights,
 )
 from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
+from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
@@ -347,9 +348,10 @@ def traced_stereo_tips(
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
     view's own traced tip where the two views leave it undetermined); where the two tips
     are over ``flag_px`` from each other's epipolar lines, the branches the tracers took at
-    the junctions they passed are chosen again by both views together (each view's trace
-    and its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
-    trace_alternatives`; the consistent pair whose whole backbones triangulate
+    the junctions they passed are chosen again by both views together (each view's trace,
+    its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
+    trace_alternatives`, and its tube found again along the other view's trace,
+    :func:`jaxcr.stereo.guided_retrace.guided_candidates`; the consistent pair whose whole backbones triangulate
     consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
     :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
     ``flag_px``, a view whose tube hooks back over its own silhouette gets its tip where
@@ -399,7 +401,10 @@ def _branch_step(cams, traces, flag_px: float):
     if epipolar_gap_px(cams, tips) > flag_px and all(
         getattr(t, "retrace", None) is not None for t in traces
     ):
-        cands = [[t] + trace_alternatives(t) for t in traces]
+        # Each view's trace, its re-traces from its own junctions, and its tube found
+        # again along the other view's trace (docs/decisions.md S35).
+        guided = guided_candidates(cams, traces)
+        cands = [[t] + trace_alternatives(t) + g for t, g in zip(traces, guided, strict=True)]
         if len(cands[0]) + len(cands[1]) > 2:
             choice = choose_branches(
                 cams,
