@@ -144,3 +144,33 @@ def test_guided_candidates_gate_an_anchor_that_stops_on_a_going_tube():
     assert out[0] == []
     assert len(out[1]) == 1
     assert np.linalg.norm(out[1][0].tip - bb[1][-1]) < 2.5
+
+
+def test_traced_stereo_tips_takes_the_guided_candidate():
+    """View 1's trace followed the cable from the junction (and noted no junction, so it has
+    no re-traces of its own); view 0 traced the tube. The branch choice of
+    :func:`jaxcr.stereo.pipeline.traced_stereo_tips` is offered view 1 re-traced along
+    view 0 and takes it: view 1's tip on the projected end (the bound of
+    test_guided_candidate_tip_on_the_projected_end), view 0's trace kept."""
+    from jaxcr.segmentation.foreground import PlateForegroundConfig, TubeTrace
+    from jaxcr.stereo.pipeline import traced_stereo_tips
+
+    X, bb, scores = _scene()
+    i = int(0.4 * len(X))
+    t = bb[1][i + 5] - bb[1][i - 5]
+    cable_path = np.vstack(
+        [bb[1][: i + 1], bb[1][i] + np.outer(np.arange(4, 240, 4), t / np.linalg.norm(t))]
+    )
+    assert np.all((cable_path >= 0) & (cable_path < [W, H]))
+    ctx = SimpleNamespace(low=SimpleNamespace(junctions=[]), cfg=PlateForegroundConfig(), k=1)
+
+    def trace(score, path):
+        tr = TubeTrace(score > 0.4, path, path[-1].copy(), path[0].copy(), score=score,
+                       seed_mask=score > 0.4, width_px=WIDTH)  # fmt: skip
+        tr.retrace = ctx
+        return tr
+
+    traces = [trace(scores[0], bb[0]), trace(scores[1], cable_path)]
+    tips, src, _, chosen = traced_stereo_tips(CAMS, traces)
+    assert "+branch" in src and chosen[0] is traces[0] and chosen[1].departure == -1
+    assert np.linalg.norm(tips[1] - bb[1][-1]) < 2.5, (tips[1], bb[1][-1])
