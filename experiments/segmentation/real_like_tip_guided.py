@@ -135,7 +135,7 @@ def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> 
         # trace_alternatives, which is deterministic): after adoption equal to `guided`.
         alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
         saved = pipeline.trace_alternatives
-        pipeline.trace_alternatives = lambda t: alts[id(t)]
+        pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
         try:
             t0 = time.process_time()
             tips, _, res, chosen = pipeline.traced_stereo_tips(cams, rec["traces"])
@@ -181,7 +181,8 @@ def summary(path: Path) -> None:
     for n in [n for n in ("guided", "guided_bb", "pipeline") if n in names]:
         diff = [
             f"{r['seed']} {r['ref']['err_px'][0]:.1f} / {r['ref']['err_px'][1]:.1f} -> "
-            f"{r[n]['err_px'][0]:.1f} / {r[n]['err_px'][1]:.1f} ({'/'.join(r[n]['chosen'])})"
+            f"{r[n]['err_px'][0]:.1f} / {r[n]['err_px'][1]:.1f}"
+            + (f" ({'/'.join(r[n]['chosen'])})" if "chosen" in r[n] else "")
             for r in rows
             if max(abs(a - b) for a, b in zip(r["ref"]["err_px"], r[n]["err_px"], strict=True))
             > 0.05
@@ -195,9 +196,14 @@ def summary(path: Path) -> None:
         f"\nguided_candidates CPU s a frame (both anchors, every frame): median "
         f"{np.median(cpu):.2f}, max {max(cpu):.2f}"
     )
+    flagged = [r for r in rows if r["ref"]["flagged"]]
+    print(f"frames flagged by the tips' epipolar test: {len(flagged)} of {len(rows)} "
+          f"({sum(4000 <= r['seed'] <= 4070 for r in flagged)} of the 71 of 4000-4070)")  # fmt: skip
     for n in [n for n in ("ref", "guided", "guided_bb", "pipeline") if n in names]:
         c = [r[n]["cpu_s"] for r in rows]
-        print(f"{n} two-view steps CPU s a frame: median {np.median(c):.3f}, max {max(c):.2f}")
+        cf = [r[n]["cpu_s"] for r in flagged]
+        print(f"{n} two-view steps CPU s a frame: median {np.median(c):.3f}, max {max(c):.2f}; "
+              f"flagged frames median {np.median(cf):.2f}, max {max(cf):.2f}")  # fmt: skip
 
 
 def main() -> int:
