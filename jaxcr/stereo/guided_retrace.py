@@ -22,12 +22,16 @@ own length (``length_cost``, preferring the direct way among equally supported o
 ``stall_cost`` per px by which it is shorter than ``stall_ratio`` times the anchor length
 it covers (where the other view's tube runs along the epipolar lines, one stretch of it
 meets many lines, and a path could stay there while the anchor goes on; a tube pointing
-at one camera is foreshortened in that view, so this is a soft prior). The
-path may end before the anchor's last line (the anchor's tail then unexplained, at
-``skip_cost``), and an end where the evidence goes on beyond it (along the path's last
-step, 0.75-2 widths ahead, the fraction over the level) costs ``beyond_cost`` widths: the tube ends where the anchor's
-tip's epipolar line meets the end of the evidence, and a path that stops on a structure
-going on (a cable, a crease) is the trace of something else.
+at one camera is foreshortened in that view, so this is a soft prior). The path may end
+before the anchor's last line (the anchor's tail then unexplained, at ``skip_cost``), and
+an end where the evidence goes on beyond it (along the path's chord over its last 1.5
+widths, 0.75-2 widths ahead, the fraction over the level) costs ``beyond_cost`` widths: the
+tube ends where the anchor's tip's epipolar line meets the end of the evidence, and a path
+that stops on a structure going on (a cable, a crease) is the trace of something else.
+
+:func:`guided_candidates` is what :func:`jaxcr.stereo.pipeline.traced_stereo_tips` calls
+(on frames whose tips the epipolar test flags): both views in turn as the anchor, each
+candidate offered under the gates in its docstring.
 
 :func:`guided_retrace` returns the path (:class:`GuidedPath`); :func:`guided_candidate`
 turns it into a :class:`jaxcr.segmentation.foreground.TubeTrace` of the re-traced view (the
@@ -242,7 +246,8 @@ def guided_retrace(
             continue
         if j < kmax:  # from the entry, skipping the anchor's first j samples
             c = (off_cost * _off_length(E, entry, q, level)[0]
-                 + length_cost * np.linalg.norm(q - entry, axis=1) + skip_cost * s_anchor[j])  # fmt: skip
+                 + length_cost * np.linalg.norm(q - entry, axis=1)
+                 + skip_cost * s_anchor[j])  # fmt: skip
             better = c < D[j]
             D[j][better] = c[better]
             back[j][better] = -1
