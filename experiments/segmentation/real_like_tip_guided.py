@@ -9,12 +9,15 @@ calibrated cameras and the true tips). Per seed:
 
 * ``ref`` -- :func:`jaxcr.stereo.pipeline.traced_stereo_tips` as committed (the stored
   alternatives returned for ``trace_alternatives``, which is deterministic);
-* ``guided`` -- the same, each view's candidates also holding its trace re-traced along the
-  other view's trace (:func:`jaxcr.stereo.guided_retrace.guided_candidates`), on frames
-  whose tips the epipolar flag catches (as the branch choice runs);
-* ``guided_bb`` -- also on frames whose tips agree but whose whole backbones do not (over
-  ``--bb-widths`` tube widths of the two backbones left unexplained,
-  :func:`backbone_consistency`);
+* ``guided_one`` -- the same, each view's candidates also holding its trace re-traced along
+  the other view's trace (:func:`jaxcr.stereo.guided_retrace.guided_candidates`), on frames
+  whose tips the epipolar flag catches (as the branch choice runs), in one choice;
+* ``guided`` -- two stages, as the pipeline: the guided candidates are added only where the
+  choice among the views' own candidates finds no pair whose whole backbones leave at most
+  40 px unexplained;
+* ``guided_bb`` (rows of the first run only) -- ``guided_one`` also on frames whose tips
+  agree but whose whole backbones do not (over ``--bb-widths`` tube widths left
+  unexplained, :func:`backbone_consistency`);
 * ``pipeline`` -- :func:`traced_stereo_tips` of this tree (with the guided candidates
   adopted, equal to ``guided``);
 * ``oracle`` / ``oracle_guided`` -- the candidate pair (trace or alternatives, and the
@@ -63,16 +66,34 @@ def _branch_step(cams, traces, cands, flag_px: float, bb_widths: float | None):
     if not flagged and bb_widths is not None and all(np.all(np.isfinite(t)) for t in tips):
         flagged = _inconsistent(cams, traces[0], traces[1], tips) > bb_widths * width
     if flagged and all(getattr(t, "retrace", None) is not None for t in traces):
-        if len(cands[0]) + len(cands[1]) > 2:
-            choice = choose_branches(
+
+        def choose(cands):
+            if len(cands[0]) + len(cands[1]) <= 2:
+                return None
+            return choose_branches(
                 cams, cands, tips_of=lambda a, b: pipeline._stereo_or_own_tips(cams, [a, b])[0],
                 match_px=3.0 * flag_px, margin_px=1.25 * width,
                 inconsistency_of=lambda a, b, tips: _inconsistent(cams, a, b, tips),
             )  # fmt: skip
-            if choice is not None and choice.indices != (0, 0):
-                traces = [cands[k][choice.indices[k]] for k in range(2)]
-                tips, src = pipeline._stereo_or_own_tips(cams, traces)
-                src = src + "+branch"
+
+        if isinstance(cands, tuple):  # (own candidates, guided): the two-stage choice
+            own, guided = cands
+            cands = own
+            choice = choose(own)
+            settled = (
+                choice is not None
+                and _inconsistent(cams, *(own[k][choice.indices[k]] for k in range(2)), choice.tips)
+                <= 40.0
+            )
+            if not settled and (guided[0] or guided[1]):
+                cands = [c + g for c, g in zip(own, guided, strict=True)]
+                choice = choose(cands)
+        else:
+            choice = choose(cands)
+        if choice is not None and choice.indices != (0, 0):
+            traces = [cands[k][choice.indices[k]] for k in range(2)]
+            tips, src = pipeline._stereo_or_own_tips(cams, traces)
+            src = src + "+branch"
     return traces, tips, src, flagged
 
 
@@ -125,8 +146,8 @@ def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> 
                "n_guided": [len(x) for x in g], "guided_cpu_s": g_cpu,
                "guided_err_px": [[float(np.linalg.norm(c.tip - rec["truth"][k])) for c in g[k]]
                                  for k in range(2)]}  # fmt: skip
-        for name, cands, bbw in (("ref", base, None), ("guided", plus, None),
-                                 ("guided_bb", plus, bb_widths)):  # fmt: skip
+        for name, cands, bbw in (("ref", base, None), ("guided_one", plus, None),
+                                 ("guided", (base, g), None)):  # fmt: skip
             t0 = time.process_time()
             tips, act, kind, flagged = _variant(rec, cands, bbw)
             row[name] = {"err_px": _errs(tips, rec["truth"]), "action": act, "chosen": kind,
@@ -149,7 +170,8 @@ def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> 
         row["trace"] = {"err_px": _errs([t.tip for t in rec["traces"]], rec["truth"])}
         rows.append(row)
         print(seed, {k: [round(x, 1) for x in row[k]["err_px"]] for k in
-                     ("trace", "ref", "guided", "guided_bb", "oracle", "oracle_guided")},
+                     ("trace", "ref", "guided_one", "guided", "pipeline", "oracle",
+                      "oracle_guided")},
               "g", [[round(x, 1) for x in e] for e in row["guided_err_px"]],
               f"{g_cpu:.2f}s", flush=True)  # fmt: skip
         tmp = jpath.with_suffix(".tmp")
@@ -160,7 +182,16 @@ def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> 
 def summary(path: Path) -> None:
     rows = {r["seed"]: r for r in json.loads(path.read_text())["rows"]}
     rows = [rows[s] for s in sorted(rows)]
-    names = ["trace", "ref", "guided", "guided_bb", "pipeline", "oracle", "oracle_guided"]
+    names = [
+        "trace",
+        "ref",
+        "guided_one",
+        "guided",
+        "guided_bb",
+        "pipeline",
+        "oracle",
+        "oracle_guided",
+    ]
     names = [n for n in names if n in rows[0]]
 
     def table(sel, title):
@@ -178,7 +209,7 @@ def summary(path: Path) -> None:
     for o in ("oracle", "oracle_guided"):
         reach = [r["seed"] for r in fail if max(r[o]["err_px"]) <= 5]
         print(f"\n`ref` fails {len(fail)}; `{o}` has a pair within 5 px in {len(reach)}: {reach}")
-    for n in [n for n in ("guided", "guided_bb", "pipeline") if n in names]:
+    for n in [n for n in ("guided_one", "guided", "guided_bb", "pipeline") if n in names]:
         diff = [
             f"{r['seed']} {r['ref']['err_px'][0]:.1f} / {r['ref']['err_px'][1]:.1f} -> "
             f"{r[n]['err_px'][0]:.1f} / {r[n]['err_px'][1]:.1f}"
@@ -199,7 +230,7 @@ def summary(path: Path) -> None:
     flagged = [r for r in rows if r["ref"]["flagged"]]
     print(f"frames flagged by the tips' epipolar test: {len(flagged)} of {len(rows)} "
           f"({sum(4000 <= r['seed'] <= 4070 for r in flagged)} of the 71 of 4000-4070)")  # fmt: skip
-    for n in [n for n in ("ref", "guided", "guided_bb", "pipeline") if n in names]:
+    for n in [n for n in ("ref", "guided_one", "guided", "guided_bb", "pipeline") if n in names]:
         c = [r[n]["cpu_s"] for r in rows]
         cf = [r[n]["cpu_s"] for r in flagged]
         print(f"{n} two-view steps CPU s a frame: median {np.median(c):.3f}, max {max(c):.2f}; "

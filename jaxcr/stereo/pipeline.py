@@ -395,35 +395,61 @@ def _tip_step(cams, traces, tips, src, flag_px: float):
 
 
 def _branch_step(cams, traces, flag_px: float):
-    """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source)."""
+    """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
+
+    First among each view's trace and its re-traces from its own junctions; where that
+    finds no pair whose whole backbones leave at most ``consistent_px`` (40 px, the
+    choice's own level) unexplained, again with each view's tube also searched along the
+    other view's trace (:func:`jaxcr.stereo.guided_retrace.guided_candidates`,
+    docs/decisions.md S35): a pair of the view's own candidates that explains itself is
+    not overruled by a guided path, which can stop at a hook's apex and explain the other
+    view as well (dev 4087)."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
     if epipolar_gap_px(cams, tips) > flag_px and all(
         getattr(t, "retrace", None) is not None for t in traces
     ):
-        # Each view's trace, its re-traces from its own junctions, and its tube found
-        # again along the other view's trace (docs/decisions.md S35).
-        guided = guided_candidates(cams, traces)
-        cands = [[t] + trace_alternatives(t) + g for t, g in zip(traces, guided, strict=True)]
-        if len(cands[0]) + len(cands[1]) > 2:
-            choice = choose_branches(
+
+        def inconsistency(a, b, tips):
+            return backbone_consistency(
+                cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
+            ).inconsistent_px
+
+        def choose(cands):
+            if len(cands[0]) + len(cands[1]) <= 2:
+                return None
+            return choose_branches(
                 cams,
                 cands,
                 tips_of=lambda a, b: _stereo_or_own_tips(cams, [a, b])[0],
                 match_px=3.0 * flag_px,
                 # 1.25 tube widths (20 px for the 16 px tubes of real_like at 1280x720).
                 margin_px=1.25 * float(np.mean([t.width_px for t in traces])),
-                inconsistency_of=lambda a, b, tips: (
-                    backbone_consistency(
-                        cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
-                    ).inconsistent_px
-                ),
+                inconsistency_of=inconsistency,
+                consistent_px=_CONSISTENT_PX,
             )
-            if choice is not None and choice.indices != (0, 0):
-                traces = [cands[k][choice.indices[k]] for k in range(2)]
-                tips, src = _stereo_or_own_tips(cams, traces)
-                src = src + "+branch"
+
+        cands = [[t] + trace_alternatives(t) for t in traces]
+        choice = choose(cands)
+        settled = choice is not None and (
+            inconsistency(*(cands[k][choice.indices[k]] for k in range(2)), choice.tips)
+            <= _CONSISTENT_PX
+        )
+        if not settled:
+            guided = guided_candidates(cams, traces)
+            if guided[0] or guided[1]:
+                cands = [c + g for c, g in zip(cands, guided, strict=True)]
+                choice = choose(cands)
+        if choice is not None and choice.indices != (0, 0):
+            traces = [cands[k][choice.indices[k]] for k in range(2)]
+            tips, src = _stereo_or_own_tips(cams, traces)
+            src = src + "+branch"
     return traces, tips, src
+
+
+# The branch choice's level of a pair whose whole backbones explain each other
+# (choose_branches' consistent_px default).
+_CONSISTENT_PX = 40.0
 
 
 def _ending_at(backbone, tip) -> np.ndarray:
