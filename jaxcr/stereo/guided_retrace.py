@@ -30,8 +30,9 @@ tube ends where the anchor's tip's epipolar line meets the end of the evidence, 
 that stops on a structure going on (a cable, a crease) is the trace of something else.
 
 :func:`guided_candidates` is what :func:`jaxcr.stereo.pipeline.traced_stereo_tips` calls
-(on frames whose tips the epipolar test flags): both views in turn as the anchor, each
-candidate offered under the gates in its docstring.
+on frames whose tips the epipolar test flags and where the views' own candidates give no
+pair whose backbones explain each other: both views in turn as the anchor, each candidate
+offered under the gates in its docstring.
 
 :func:`guided_retrace` returns the path (:class:`GuidedPath`); :func:`guided_candidate`
 turns it into a :class:`jaxcr.segmentation.foreground.TubeTrace` of the re-traced view (the

@@ -350,7 +350,8 @@ def traced_stereo_tips(
     are over ``flag_px`` from each other's epipolar lines, the branches the tracers took at
     the junctions they passed are chosen again by both views together (each view's trace,
     its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
-    trace_alternatives`, and its tube found again along the other view's trace,
+    trace_alternatives`, and, where no pair of those explains the other's whole backbone,
+    its tube found again along the other view's trace,
     :func:`jaxcr.stereo.guided_retrace.guided_candidates`; the consistent pair whose whole backbones triangulate
     consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
     :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
