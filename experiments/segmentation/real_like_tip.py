@@ -17,7 +17,9 @@ webcam noise, lens distortion, entry pixel with model error). Methods per view:
   :func:`jaxcr.stereo.pipeline.traced_stereo_tips`, what ``jaxcr stereo --segmentation
   trace`` records: where the two tips are over 5 px from each other's epipolar lines, the
   branch a view took at a crossing is chosen again by both views,
-  :mod:`jaxcr.stereo.branch_choice`, ranked by how much of the two whole backbones fails
+  :mod:`jaxcr.stereo.branch_choice` (candidates: each view's trace and its re-traces from
+  its junctions; where no pair of those explains itself, also its tube searched again along
+  the other view's trace, :mod:`jaxcr.stereo.guided_retrace`), ranked by how much of the two whole backbones fails
   to triangulate consistently, :mod:`jaxcr.stereo.backbone_consistency`; a view whose
   tube hooks back over its own silhouette gets its tip where the way back ends
   (``fold_back_tip``), else a view's trace whose end the other view does not explain is
@@ -364,7 +366,10 @@ def main(argv=None) -> int:
         "two tips are over 5 px from each other's epipolar lines, the branch a view took at "
         "a crossing chosen again by both views (jaxcr.stereo.branch_choice, ranked by the "
         "length of the two whole backbones that does not triangulate consistently, "
-        "jaxcr.stereo.backbone_consistency), a view whose tube hooks back over its own "
+        "jaxcr.stereo.backbone_consistency; each view's candidates its trace and its "
+        "re-traces from its junctions, and, since round 14, where no pair of those explains "
+        "itself, also its tube searched again along the other view's trace, "
+        "jaxcr.stereo.guided_retrace), a view whose tube hooks back over its own "
         "silhouette given the tip where the way back ends (folded, fold_back_tip), else a "
         "trace's end that the other view does not explain cut back (trimmed, placed by an "
         "open-ended match; before a hop of the path across background behind the cut, "

@@ -95,6 +95,7 @@ from jaxcr.stereo.diameter import (
     view_weights,
 )
 from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
+from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
@@ -347,9 +348,11 @@ def traced_stereo_tips(
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
     view's own traced tip where the two views leave it undetermined); where the two tips
     are over ``flag_px`` from each other's epipolar lines, the branches the tracers took at
-    the junctions they passed are chosen again by both views together (each view's trace
-    and its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
-    trace_alternatives`; the consistent pair whose whole backbones triangulate
+    the junctions they passed are chosen again by both views together (each view's trace,
+    its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
+    trace_alternatives`, and, where no pair of those explains the other's whole backbone,
+    its tube found again along the other view's trace,
+    :func:`jaxcr.stereo.guided_retrace.guided_candidates`; the consistent pair whose whole backbones triangulate
     consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
     :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
     ``flag_px``, a view whose tube hooks back over its own silhouette gets its tip where
@@ -393,32 +396,61 @@ def _tip_step(cams, traces, tips, src, flag_px: float):
 
 
 def _branch_step(cams, traces, flag_px: float):
-    """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source)."""
+    """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
+
+    First among each view's trace and its re-traces from its own junctions; where that
+    finds no pair whose whole backbones leave at most ``consistent_px`` (40 px, the
+    choice's own level) unexplained, again with each view's tube also searched along the
+    other view's trace (:func:`jaxcr.stereo.guided_retrace.guided_candidates`,
+    docs/decisions.md S35): a pair of the view's own candidates that explains itself is
+    not overruled by a guided path, which can stop at a hook's apex and explain the other
+    view as well (dev 4087)."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
     if epipolar_gap_px(cams, tips) > flag_px and all(
         getattr(t, "retrace", None) is not None for t in traces
     ):
-        cands = [[t] + trace_alternatives(t) for t in traces]
-        if len(cands[0]) + len(cands[1]) > 2:
-            choice = choose_branches(
+
+        def inconsistency(a, b, tips):
+            return backbone_consistency(
+                cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
+            ).inconsistent_px
+
+        def choose(cands):
+            if len(cands[0]) + len(cands[1]) <= 2:
+                return None
+            return choose_branches(
                 cams,
                 cands,
                 tips_of=lambda a, b: _stereo_or_own_tips(cams, [a, b])[0],
                 match_px=3.0 * flag_px,
                 # 1.25 tube widths (20 px for the 16 px tubes of real_like at 1280x720).
                 margin_px=1.25 * float(np.mean([t.width_px for t in traces])),
-                inconsistency_of=lambda a, b, tips: (
-                    backbone_consistency(
-                        cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
-                    ).inconsistent_px
-                ),
+                inconsistency_of=inconsistency,
+                consistent_px=_CONSISTENT_PX,
             )
-            if choice is not None and choice.indices != (0, 0):
-                traces = [cands[k][choice.indices[k]] for k in range(2)]
-                tips, src = _stereo_or_own_tips(cams, traces)
-                src = src + "+branch"
+
+        cands = [[t] + trace_alternatives(t) for t in traces]
+        choice = choose(cands)
+        settled = choice is not None and (
+            inconsistency(*(cands[k][choice.indices[k]] for k in range(2)), choice.tips)
+            <= _CONSISTENT_PX
+        )
+        if not settled:
+            guided = guided_candidates(cams, traces)
+            if guided[0] or guided[1]:
+                cands = [c + g for c, g in zip(cands, guided, strict=True)]
+                choice = choose(cands)
+        if choice is not None and choice.indices != (0, 0):
+            traces = [cands[k][choice.indices[k]] for k in range(2)]
+            tips, src = _stereo_or_own_tips(cams, traces)
+            src = src + "+branch"
     return traces, tips, src
+
+
+# The branch choice's level of a pair whose whole backbones explain each other
+# (choose_branches' consistent_px default).
+_CONSISTENT_PX = 40.0
 
 
 def _ending_at(backbone, tip) -> np.ndarray:
