@@ -175,8 +175,13 @@ def run_cli(tree: Path, work: Path) -> dict:
         before = _entries(cache) if cache.exists() else set()
         load = os.getloadavg()[0]
         r0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
-        p = subprocess.run([sys.executable, "-m", "jaxcr", "segment", str(ds), "-o", str(out),
-                            *SEGMENT, *extra], env=env, capture_output=True, text=True)  # fmt: skip
+        p = subprocess.run(
+            [sys.executable, "-m", "jaxcr", "segment", str(ds), "-o", str(out), *SEGMENT, *extra],
+            env=env,
+            capture_output=True,
+            text=True,
+            cwd=tree,
+        )  # fmt: skip  (cwd: `python -m` puts it first on sys.path)
         wall = time.perf_counter() - t0
         r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         if p.returncode not in (0, 1):
