@@ -5,10 +5,10 @@ through jaxcr.io.exported.cached_call's stored program); the traced program give
 static program's answer (the config baked in as constants, ``eqx.filter_jit(refine_frame)``),
 and a changed weight changes the answer.
 
-One small frame (96x72, one pyramid level, 20 steps); four refinement programs are compiled
+One small frame (96x72, one pyramid level, 20 steps); five refinement programs are compiled
 here: the traced per-frame one (quadratic inside term), one baked reference, the traced Welsch
-one (``robust > 0`` is a structural switch), and the one-frame batch program through a stored
-program of its own.
+one (``robust > 0`` is a structural switch), the one-frame batch program through a stored
+program of its own, and a two-frame sequence.
 """
 
 import dataclasses
@@ -211,4 +211,20 @@ def test_stored_program_serves_a_changed_weight(scene, tmp_path, monkeypatch):
     assert sorted(p.name for p in (tmp_path / "exported").iterdir()) == [
         stored[0].rsplit("/", 1)[-1]
     ]
+    assert float(jnp.max(jnp.abs(a.coeffs - b.coeffs))) > 10 * COEFF_TOL
+
+
+def test_sequence_shares_its_program(scene):
+    """refine_sequence (a one-level config: its own warm schedule, one scan program) on two
+    frames, then with g_reg and ftol changed: the second call traces nothing and its answer
+    moves (g_reg); both frames ok."""
+    base, cam, img, bg, _ = scene
+    bases = jax.tree.map(lambda x: jnp.stack([x, x]), base)
+    imgs, bgs = jnp.stack([img, img]), jnp.stack([bg, bg])
+    a = refine.refine_sequence(bases, cam, imgs, bgs, CFG)
+    n = _traces("_refine_sequence_jit")
+    changed = dataclasses.replace(CFG, g_reg=CHANGES["g_reg"], ftol=CHANGES["ftol"])
+    b = refine.refine_sequence(bases, cam, imgs, bgs, changed)
+    assert _traces("_refine_sequence_jit") == n
+    assert bool(jnp.all(a.ok)) and bool(jnp.all(b.ok))
     assert float(jnp.max(jnp.abs(a.coeffs - b.coeffs))) > 10 * COEFF_TOL
