@@ -175,7 +175,7 @@ def main(argv=None) -> int:
     cold = refine_frame_jit(base, cam, ims[0][1], ims[0][0], RefineConfig())
     warm = RefineConfig().warm()
     zero = dataclasses.replace(warm, steps=(args.budget,) * len(warm.steps))
-    config, steps = rf._steps_apart(zero)
+    config, steps = rf._traced_apart(zero, base.p.dtype)  # steps: every traced setting
     call_args = (
         base, (cam,), (ims[1][1],), (ims[1][0],), config, cold.coeffs, jnp.asarray(True),
         cold.camera_correction, None, steps,

@@ -84,14 +84,14 @@ VARIANTS = {
 
 def _refine_frame_stacked(base, cameras, images, backgrounds, config, init, valid, cam, steps):
     # its own jit (own trace cache), traced while refine's region data is the stacked one
-    return rf.refine_frame(
-        base, cameras, images, backgrounds, config, init, valid, cam, None, steps=steps
-    )
+    return rf._refine_frame(
+        base, cameras, images, backgrounds, config, init, valid, cam, None, nums=steps
+    )[0]
 
 
 def _frame_stacked(base, cam, img, bg, config, init, valid, init_cam):
     """``refine_frame_jit`` (no region of interest) with the stacked per-tile sums."""
-    config, steps = rf._steps_apart(config)
+    config, steps = rf._traced_apart(config, base.p.dtype)  # every traced setting
     args = (base, (cam,), (img,), (bg,), config, init, jnp.asarray(valid, bool), init_cam)
     lib, rf.region_data_from_level = rf.region_data_from_level, region_data_stacked
     try:

@@ -233,7 +233,8 @@ def region_terms(
     silhouette), as in localised region-based active contours (Lankton & Tannenbaum 2008):
     mu_out is then the mean colour *around* the robot, not over the whole image.
 
-    With ``robust = k > 0`` the inside term is occlusion-robust: each band pixel contributes
+    With ``robust = k > 0`` (a Python number > 0, or any array: the scale may be traced, the
+    choice of term is not) the inside term is occlusion-robust: each band pixel contributes
     ``c^2 (1 - exp(-|I - mu_in|^2 / c^2))`` (Welsch) instead of ``|I - mu_in|^2``, with
     ``c^2 = k^2 * var`` and ``var`` the image's mean squared (centred) data colour, and
     mu_in the matching reweighted mean (two reweightings from the plain mean; the gradient
@@ -265,7 +266,9 @@ def region_terms(
     pen = jnp.sum(bb * soft) + jnp.dot(ins, data.tile_b)
     eps = 1e-6
     e_in = s2 - jnp.sum(s1 * s1) / jnp.maximum(s0, eps)
-    if robust > 0.0:
+    # an array scale (e.g. traced by the compiled refinement, docs/decisions.md S34) selects
+    # the Welsch term; a Python number selects it when > 0
+    if isinstance(robust, jax.Array) or robust > 0.0:
         c2 = robust**2 * data.total_s2 / jnp.maximum(data.total_w, eps)
         c2 = jax.lax.stop_gradient(jnp.maximum(c2, 1e-8))
         t_w, t_s1, t_s2 = jnp.dot(ins, data.tile_w), ins @ data.tile_s1, jnp.dot(ins, data.tile_s2)

@@ -104,9 +104,20 @@ WARM_FTOL_FACTOR = 10.0
 
 
 class RefineConfig(eqx.Module):
-    """Settings of the refinement (all static: a new config compiles a new function; only
-    ``steps`` is passed traced by :func:`refine_frame_jit` and :func:`refine_batch`, so
-    configs differing in nothing else share their compiled programs).
+    """Settings of the refinement.
+
+    A config is a hashable value of Python numbers (every field static). The compiled entry
+    points (:func:`refine_frame_jit`, :func:`refine_batch`, :func:`refine_sequence`, and so
+    ``jcr.refine``, ``jaxcr segment`` and ``jaxcr warmup``) pass its numeric settings traced,
+    as array arguments of the program: ``steps``, ``tau``, ``g_in``, ``g_out``, ``g_reg``,
+    ``g_pen``, ``xtol``, ``ftol``, ``robust`` (its value; ``robust > 0`` or ``== 0`` chooses
+    the Welsch or the quadratic inside term, a structural switch), ``g_cam``, ``g_cam_rel``
+    (its value; None or not is structural), ``gn_lambda`` and ``gn_max_px``. Configs
+    differing only in those share one compiled program (in a process, and through the
+    stored programs of :func:`jaxcr.io.exported.cached_call`); every other field (shapes,
+    schedule lengths, switches, solver) is part of the program (docs/decisions.md S34).
+    :func:`refine_frame` called inside a user's own ``jax.jit`` bakes the config in as
+    constants.
 
     Parameters
     ----------
@@ -330,6 +341,60 @@ class RefineConfig(eqx.Module):
 
 
 DEFAULT_CONFIG = RefineConfig()
+
+
+class _Numbers(eqx.Module):
+    """The numeric settings of a :class:`RefineConfig` as arrays (scalars; ``tau`` and
+    ``steps`` one per level): what the compiled entry points pass traced (:func:`_traced_apart`),
+    so that configs differing only in these values run one compiled program."""
+
+    steps: Int[Array, " L"]
+    tau: Float[Array, " L"]
+    g_in: Float[Array, ""]
+    g_out: Float[Array, ""]
+    g_reg: Float[Array, ""]
+    g_pen: Float[Array, ""]
+    xtol: Float[Array, ""]
+    ftol: Float[Array, ""]
+    robust: Float[Array, ""]
+    g_cam: Float[Array, ""]
+    g_cam_rel: Float[Array, ""] | None
+    gn_lambda: Float[Array, ""]
+    gn_max_px: Float[Array, ""]
+
+    @property
+    def weights(self) -> Weights:
+        return Weights(self.g_in, self.g_out, self.g_reg, self.g_pen)
+
+
+#: the fields of :class:`_Numbers` that are plain scalars of :class:`RefineConfig`
+_SCALARS = ("g_in", "g_out", "g_reg", "g_pen", "xtol", "ftol", "robust", "g_cam", "gn_lambda",
+            "gn_max_px")  # fmt: skip
+
+
+def _numbers(config: RefineConfig, dtype=jnp.float32) -> _Numbers:
+    """``config``'s numeric settings as arrays of ``dtype`` (the centreline's float type, so
+    that a traced setting computes in the same precision as the constant it replaces)."""
+    kw = {k: jnp.asarray(getattr(config, k), dtype) for k in _SCALARS}
+    rel = None if config.g_cam_rel is None else jnp.asarray(config.g_cam_rel, dtype)
+    return _Numbers(steps=jnp.asarray(config.steps, jnp.int32),
+                    tau=jnp.asarray(config.tau, dtype), g_cam_rel=rel, **kw)  # fmt: skip
+
+
+def _traced_apart(config: RefineConfig, dtype=jnp.float32) -> tuple[RefineConfig, _Numbers]:
+    """``config`` with its numeric settings replaced by placeholders (the structure only: one
+    value for every config of the same shape and switches), and the settings as arrays
+    (:func:`_numbers`): the compiled entry points take the arrays as traced arguments, so that
+    configs differing only in those values share one compiled program (and one trace, and one
+    stored program of :func:`jaxcr.io.exported.cached_call`). Structural switches on the
+    values stay in the placeholder: ``robust > 0`` (Welsch inside term) or 0 (eq. 6), and
+    ``g_cam_rel`` None (rigid rig) or a number (residual per-camera corrections)."""
+    n = len(config.levels)
+    ph = dict.fromkeys(_SCALARS, 1.0)
+    ph["robust"] = 1.0 if config.robust > 0 else 0.0
+    ph["g_cam_rel"] = None if config.g_cam_rel is None else 1.0
+    static = dataclasses.replace(config, steps=(1,) * n, tau=(1.0,) * n, **ph)
+    return static, _numbers(config, dtype)
 
 
 class RefineEnergy(eqx.Module):
@@ -880,12 +945,14 @@ def _level_tables(
     which: tuple[int, ...] | None = None,
     steps=None,
     sizes=None,
+    tau=None,
 ) -> _Levels:
     """:class:`_Levels` of ``config``'s levels (those at indices ``which``; all if None), with
     the capsule count every level's merged tube is padded to
     (:func:`silhouette.level_tube_padded`). ``steps``: the per-level step budgets as an
     array (e.g. traced) instead of ``config.steps``; the solver's static ``max_steps`` is
-    then None (no bound of its own: the traced budget ends every solve). ``sizes``: per
+    then None (no bound of its own: the traced budget ends every solve). ``tau``: the
+    per-level temperatures as an array (e.g. traced) instead of ``config.tau``. ``sizes``: per
     camera the real (height, width) at level 0 (traced) of images padded to a shape bucket:
     only the tiles over real pixels of each level may enter a band, and a band has as many
     active tiles as on the unpadded image."""
@@ -927,7 +994,11 @@ def _level_tables(
         tile_ok=tuple(tile_ok),
         k_active=tuple(k_active),
         level=jnp.asarray(levels, jnp.int32),
-        tau=jnp.asarray([config.tau[i] for i in which], dtype),
+        tau=(
+            jnp.asarray([config.tau[i] for i in which], dtype)
+            if tau is None
+            else jnp.asarray(tau, dtype)[jnp.asarray(which)]
+        ),
         steps=(
             jnp.asarray([config.steps[i] for i in which], jnp.int32)
             if steps is None
@@ -998,6 +1069,7 @@ def _refine_frame(
     steps: Int[Array, " L"] | None = None,
     roi: tuple[int, int] | None = None,
     sizes: Int[Array, "c 2"] | None = None,
+    nums: _Numbers | None = None,
 ) -> tuple[RefineResult, Bool[Array, ""]]:
     """:func:`refine_frame`, optionally on a region of interest of a tracked frame.
 
@@ -1019,6 +1091,10 @@ def _refine_frame(
     projection is clamped and the silhouette area counted on the real image, and the masks
     are False there: the result equals the unpadded image's up to float rounding (sums over
     arrays of another shape), and every real size padded to one shape runs one program.
+
+    ``nums``: the config's numeric settings as arrays (:func:`_traced_apart`, which gives
+    ``config`` as placeholders; ``steps`` is then ignored): traced by the compiled entry
+    points. None: ``config``'s own values (constants of the program).
     """
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     if not (len(cameras) == len(images) == len(backgrounds)):
@@ -1030,6 +1106,13 @@ def _refine_frame(
             field="steps",
         )
     dtype = base.p.dtype
+    # the numeric settings: read from ``num`` only (``config``'s may be placeholders)
+    budgets_traced = nums is not None or steps is not None
+    if nums is None:
+        nums = _numbers(config, dtype)
+        if steps is not None:
+            nums = eqx.tree_at(lambda n: n.steps, nums, jnp.asarray(steps, jnp.int32))
+    num = nums
     if sizes is None:
         real = (None,) * len(cameras)
     else:
@@ -1047,7 +1130,10 @@ def _refine_frame(
     n_cam = len(cameras)
     c0 = jnp.zeros(shape, dtype) if init is None else jnp.asarray(init, dtype).reshape(shape)
     c0 = jnp.where(jnp.all(jnp.isfinite(c0)), c0, 0.0)
-    weights = config.weights
+    weights = num.weights
+    # Welsch (robust > 0) or quadratic inside term: a structural switch, kept in the config;
+    # the scale itself is traced (region_terms takes an array scale as the Welsch path)
+    robust = num.robust if config.robust > 0 else 0.0
     z_ref = jax.lax.stop_gradient(tuple(jnp.mean(base.p @ cam.R[2] + cam.t[2]) for cam in cameras))
 
     rig = config.camera_correction_mode == "rig"
@@ -1071,9 +1157,9 @@ def _refine_frame(
         r = weights.g_reg * regularisation(params["c"], base.s, config.torsion)
         if config.camera_correction and residual:
             pc = params["cam"]
-            r = r + config.g_cam * jnp.sum(pc[0] ** 2) + config.g_cam_rel * jnp.sum(pc[1:] ** 2)
+            r = r + num.g_cam * jnp.sum(pc[0] ** 2) + num.g_cam_rel * jnp.sum(pc[1:] ** 2)
         elif config.camera_correction:
-            r = r + config.g_cam * jnp.sum(params["cam"] ** 2)
+            r = r + num.g_cam * jnp.sum(params["cam"] ** 2)
         return r
 
     def _tube_jacobian(params):
@@ -1187,7 +1273,7 @@ def _refine_frame(
                 lv.tau,
                 area_ref,
                 config.local,
-                config.robust,
+                robust,
                 var,
                 config.robust_envelope,
                 gat,
@@ -1239,7 +1325,7 @@ def _refine_frame(
                 softs, bands, datas, vars_, gathered, strict=True
             ):
                 J = J + chan_vese_soft(
-                    soft, band, data, weights, area_ref, config.local, config.robust, var,
+                    soft, band, data, weights, area_ref, config.local, robust, var,
                     config.robust_envelope, gat,
                 )[0]  # fmt: skip
             return J
@@ -1262,8 +1348,8 @@ def _refine_frame(
             return J, g, G
 
         out = damped_gauss_newton(
-            linearise, flat0, jac, xtol=config.xtol, ftol=config.ftol, budget=lv.steps,
-            lam0=config.gn_lambda, max_px=config.gn_max_px,
+            linearise, flat0, jac, xtol=num.xtol, ftol=num.ftol, budget=lv.steps,
+            lam0=num.gn_lambda, max_px=num.gn_max_px,
         )  # fmt: skip
         value = unravel(out.y)
         good = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(value)]))
@@ -1274,11 +1360,11 @@ def _refine_frame(
         return (new, _result_int(result), hinv, have_h), out.num_steps
 
     if config.solver == "lbfgs":
-        solver = ImageSpaceLBFGS(config.xtol, config.ftol)
+        solver = ImageSpaceLBFGS(num.xtol, num.ftol)
     elif config.solver == "gn":
         solver = None
     else:
-        solver = ImageSpaceBFGS(config.xtol, config.ftol)
+        solver = ImageSpaceBFGS(num.xtol, num.ftol)
     n_flat = jax.flatten_util.ravel_pytree(params0)[0].shape[0]
     memory = config.hessian_memory and config.solver == "bfgs"
     eye = jnp.eye(n_flat, dtype=dtype)
@@ -1319,7 +1405,7 @@ def _refine_frame(
                 residual_variance(
                     chan_vese_energy(
                         draw(t, lv), bd, d, 0.0, weights, lv.tau, area_ref, config.local,
-                        config.robust,
+                        robust,
                     )[1]
                 )
                 for t, bd, d in zip(tubes, bands, datas, strict=True)
@@ -1385,8 +1471,8 @@ def _refine_frame(
     n_solve = []
     for group in groups:
         tables = _level_tables(
-            pyramids, config, base.p.shape[0] - 1, dtype, group, steps,
-            None if sizes is None else real,
+            pyramids, config, base.p.shape[0] - 1, dtype, group,
+            num.steps if budgets_traced else None, None if sizes is None else real, num.tau,
         )  # fmt: skip
         # the schedule: solve j runs at row k of the table (config.outer[li] solves of level
         # li = group[k]); each level after the first starts from the identity Hessian
@@ -1424,7 +1510,7 @@ def _refine_frame(
             m = band_margin(tube, data.grid, band)  # once for the mask and the terms
             mask = _mask(tube, band, data, m)
             exact = exact & band.exact
-            t = _hard_terms(tube, band, data, config.local, config.robust, m)
+            t = _hard_terms(tube, band, data, config.local, robust, m)
             if roi is None:
                 var = data.total_s2 / jnp.maximum(data.total_w, 1e-6)
             else:
@@ -1515,30 +1601,27 @@ def _refine_frame(
     return result, jnp.all(fit2)
 
 
-def _steps_apart(config: RefineConfig):
-    """``config`` without its step budgets (all 1) and the budgets as an array: the compiled
-    entry points below take the budgets as a traced argument, so that configs differing only
-    in ``steps`` share one compiled program (and one trace)."""
-    steps = jnp.asarray(config.steps, jnp.int32)
-    return dataclasses.replace(config, steps=(1,) * len(config.steps)), steps
+# The compiled entry points below take ``config`` as placeholders (static) and its numeric
+# settings ``nums`` as traced arrays (:func:`_traced_apart`), so that configs differing only in
+# step budgets, temperatures, weights or tolerances share one compiled program (and one trace).
 
 
 @eqx.filter_jit
 def _refine_frame_jit(
-    base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, steps
+    base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, nums
 ):
-    return refine_frame(
-        base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, steps=steps
-    )
+    return _refine_frame(
+        base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, nums=nums
+    )[0]
 
 
 @eqx.filter_jit
 def _refine_frame_roi_jit(
-    base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, steps, roi
+    base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, nums, roi
 ):
     return _refine_frame(
-        base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, steps=steps,
-        roi=roi,
+        base, cameras, images, backgrounds, config, init, valid, init_cam, init_h, roi=roi,
+        nums=nums,
     )  # fmt: skip
 
 
@@ -1602,27 +1685,27 @@ def refine_frame_jit(
     cameras, images, backgrounds = _as_tuple(cameras), _as_tuple(images), _as_tuple(backgrounds)
     init = jnp.zeros(config.coeff_shape, base.p.dtype) if init is None else init
     init_cam = _cam_init(init_cam, (), len(cameras), base.p.dtype)
-    config, steps = _steps_apart(config)
+    config, nums = _traced_apart(config, base.p.dtype)
     args = (base, cameras, images, backgrounds, config, init, jnp.asarray(valid, bool), init_cam)
     t0 = time.perf_counter()
     fit = False
     if roi is not None:
-        out, fit = _refine_frame_roi_jit(*args, init_hessian, steps, tuple(roi))
+        out, fit = _refine_frame_roi_jit(*args, init_hessian, nums, tuple(roi))
         fit = bool(fit)
     if not fit:
-        out = _refine_frame_jit(*args, init_hessian, steps)
+        out = _refine_frame_jit(*args, init_hessian, nums)
     jax.block_until_ready(out)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.asarray(time.perf_counter() - t0))
 
 
 @eqx.filter_jit
 def _refine_batch_jit(
-    bases, cameras, images, backgrounds, config, inits, valid, mode, cams0, steps, sizes=None
+    bases, cameras, images, backgrounds, config, inits, valid, mode, cams0, nums, sizes=None
 ):
     def one(args):
         base, ims, bgs, init, v, cam0 = args
         return _refine_frame(
-            base, cameras, ims, bgs, config, init, v, cam0, steps=steps, sizes=sizes
+            base, cameras, ims, bgs, config, init, v, cam0, sizes=sizes, nums=nums
         )[0]
 
     args = (bases, images, backgrounds, inits, valid, cams0)
@@ -1703,16 +1786,16 @@ def refine_batch(
     t0 = time.perf_counter()
     call = _direct if jit_call is None else jit_call
 
-    config, steps = _steps_apart(config)
+    config, nums = _traced_apart(config, dtype)
 
-    def body(batched, cameras, config, mode, steps, *sizes):
+    def body(batched, cameras, config, mode, nums, *sizes):
         bases, images, backgrounds, inits, valid, cams0 = batched
-        args = (bases, cameras, images, backgrounds, config, inits, valid, mode, cams0, steps)
+        args = (bases, cameras, images, backgrounds, config, inits, valid, mode, cams0, nums)
         return call(_refine_batch_jit, *args, *sizes)
 
     batched = (bases, images, backgrounds, inits, valid, cams0)
     extra = () if sizes is None else (sizes,)
-    out = map_frames(body, batched, cameras, config, mode, steps, *extra, devices=devices)
+    out = map_frames(body, batched, cameras, config, mode, nums, *extra, devices=devices)
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / max(f, 1)
     return eqx.tree_at(lambda r: r.time_s, out, jnp.full((f,), dt, dtype))
@@ -1723,15 +1806,17 @@ def _refine_sequence_jit(
     bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0, cold_first,
     roi=None, sizes=None,
 ):  # fmt: skip
-    n_levels = len(config.levels)
+    # config and warm_config: each (placeholders, traced numeric settings), _traced_apart
+    n_levels = len(config[0].levels)
 
     def one(cfg, c_prev, cam_prev, h_prev, base, ims, bgs, v):
         # a region of interest serves the warm schedule only (a cold first frame has no
         # previous answer to centre it on)
         r_roi = roi if cfg is warm_config else None
         r, fit = _refine_frame(
-            base, cameras, ims, bgs, cfg, c_prev, v, cam_prev, h_prev, roi=r_roi, sizes=sizes
-        )
+            base, cameras, ims, bgs, cfg[0], c_prev, v, cam_prev, h_prev, roi=r_roi,
+            sizes=sizes, nums=cfg[1],
+        )  # fmt: skip
         # steps_per_level follows config's levels: levels a warm frame skips count 0 steps
         spl = r.steps_per_level
         pad = jnp.zeros((max(n_levels - spl.shape[0], 0),), spl.dtype)
@@ -1811,11 +1896,14 @@ def refine_sequence(
     h0 = jnp.full((n_flat, n_flat), jnp.nan, dtype) if init_hessian is None else init_hessian
     t0 = time.perf_counter()
     call = _direct if jit_call is None else jit_call
-    args = (bases, cameras, images, backgrounds, config, warm_config, init, valid, cam0, h0)
     if isinstance(roi, str):
         if roi != "auto":
             raise InputError(f"roi must be (h, w), 'auto' or None, got {roi!r}", field="roi")
         roi = tracking_roi(bases, cameras, config=warm_config)
+    # the numeric settings of both schedules traced (_traced_apart): one program for configs
+    # that differ only in them
+    cfg_t, warm_t = _traced_apart(config, dtype), _traced_apart(warm_config, dtype)
+    args = (bases, cameras, images, backgrounds, cfg_t, warm_t, init, valid, cam0, h0)
     bcams, sizes = bucket_cameras(cameras, images, shape_buckets)
     extra = () if sizes is None else (sizes,)
     if sizes is not None:

@@ -144,7 +144,7 @@ def corrected_cameras(
 
 
 def fisher_matrix(
-    base, cameras, images, backgrounds, config, coeffs, camera_correction, sizes=None
+    base, cameras, images, backgrounds, config, coeffs, camera_correction, sizes=None, nums=None
 ) -> tuple[Float[Array, "n n"], Float[Array, " c"], Float[Array, " 3"], Float[Array, "3 n"]]:
     """Gauss-Newton information matrix of the flat delta-u coefficients
     (``docs/uncertainty.md`` eq. U2), the per-camera per-channel noise variances, and the
@@ -167,8 +167,15 @@ def fisher_matrix(
     ``sizes`` (n_cameras, 2) int: the real (height, width) of images padded to the cameras'
     larger size (shape buckets, :func:`jaxcr.segmentation.refine.refine_frame`'s ``sizes``):
     the padded pixels weigh nothing and never enter the band.
+
+    ``nums``: ``config``'s numeric settings as arrays when ``config`` holds placeholders
+    (:func:`jaxcr.segmentation.refine._traced_apart`, traced by :func:`shape_uncertainty_batch`).
     """
-    tau = config.tau[-1]
+    if nums is None:
+        tau, robust, g_pen = config.tau[-1], config.robust, config.g_pen
+    else:  # Welsch (robust > 0) or quadratic: structural, kept in the placeholders
+        tau, g_pen = nums.tau[-1], nums.g_pen
+        robust = nums.robust if config.robust > 0 else 0.0
     shape = config.coeff_shape
     cams = corrected_cameras(cameras, camera_correction)
     real = _real_sizes(sizes, len(cameras))
@@ -228,13 +235,13 @@ def fisher_matrix(
             mu_out = jnp.einsum("kp,kpc->c", w_out, img) / jnp.maximum(jnp.sum(w_out), eps)
         else:
             mu_out = (d.total_s1 - s1) / jnp.maximum(d.total_w - s0, eps)
-        t = region_terms(soft, band, d, config.local, config.robust)
+        t = region_terms(soft, band, d, config.local, robust)
         s2 = residual_variance(
             {"e_in": t.e_in, "e_out": t.e_out, "area_in": t.area_in, "area_out": t.area_out}
         )
         s2 = jnp.maximum(s2 / 3.0, 1e-10)
         v = d.total_s2 / jnp.maximum(d.total_w, eps)
-        contrast = bw * jnp.sum((mu_in - mu_out) ** 2) + bb * config.g_pen * v  # (k, p)
+        contrast = bw * jnp.sum((mu_in - mu_out) ** 2) + bb * g_pen * v  # (k, p)
         info = info + jnp.einsum("kp,kpi,kpj->ij", contrast, js, js) / s2
         sig2.append(s2)
     return jax.lax.stop_gradient((info, jnp.stack(sig2), tip, tip_jac))
@@ -322,6 +329,7 @@ def shape_uncertainty(
     *,
     rcond: float = RCOND,
     sizes=None,
+    nums=None,
 ) -> ShapeUncertainty:
     """Laplace covariance of a refined frame and its tip (module docstring).
 
@@ -337,6 +345,7 @@ def shape_uncertainty(
             (:func:`laplace_covariance`).
         sizes: (n_cameras, 2) real (height, width) of images padded to the cameras' larger
             size (shape buckets; :func:`fisher_matrix`); None = unpadded.
+        nums: (private) the config's numeric settings as arrays (:func:`fisher_matrix`).
 
     Returns:
         :class:`ShapeUncertainty`.
@@ -352,7 +361,7 @@ def shape_uncertainty(
     )
     coeffs = jnp.asarray(coeffs, dtype).reshape(config.coeff_shape)
     H, sigma2, tip, Jt = fisher_matrix(
-        base, cameras, images, backgrounds, config, coeffs, corr, sizes
+        base, cameras, images, backgrounds, config, coeffs, corr, sizes, nums
     )
     real = _real_sizes(sizes, n_cam)
     lam, vec, cov, null = laplace_covariance(H, rcond)
@@ -411,9 +420,13 @@ def depth_ambiguous(unc: ShapeUncertainty, factor: float = DEPTH_FACTOR) -> Bool
 
 @eqx.filter_jit
 def _batch_jit(bases, cameras, images, backgrounds, config, coeffs, corrections, rcond, sizes=None):
+    config, nums = config  # placeholders and traced numeric settings (_traced_apart)
+
     def one(args):
         base, ims, bgs, c, corr = args
-        return shape_uncertainty(base, cameras, ims, bgs, config, c, corr, rcond=rcond, sizes=sizes)
+        return shape_uncertainty(
+            base, cameras, ims, bgs, config, c, corr, rcond=rcond, sizes=sizes, nums=nums
+        )
 
     return jax.lax.map(one, (bases, images, backgrounds, coeffs, corrections))
 
@@ -437,7 +450,7 @@ def shape_uncertainty_batch(
     is called, ``jit_call(fn, *args)``; None calls ``fn(*args)``
     (``jaxcr.io.exported.cached_call``: as ``refine_batch``'s). ``shape_buckets``: images
     padded to a larger shape than the cameras', as ``refine_batch``'s."""
-    from jaxcr.segmentation.refine import bucket_cameras
+    from jaxcr.segmentation.refine import _traced_apart, bucket_cameras
 
     as_t = lambda x: tuple(x) if isinstance(x, (tuple, list)) else (x,)  # noqa: E731
     cameras, images, backgrounds = as_t(cameras), as_t(images), as_t(backgrounds)
@@ -445,6 +458,9 @@ def shape_uncertainty_batch(
     if camera_corrections is None:
         camera_corrections = jnp.zeros((f, len(cameras), 6), bases.p.dtype)
     cameras, sizes = bucket_cameras(cameras, images, shape_buckets)
+    # the config's numeric settings traced: one program for configs differing only in them
+    # (e.g. `jaxcr segment --prior-weight`, which this covariance does not even read)
+    config = _traced_apart(config, bases.p.dtype)
     args = (bases, cameras, images, backgrounds, config, coeffs, camera_corrections, float(rcond))
     args = args + (() if sizes is None else (sizes,))
     return _batch_jit(*args) if jit_call is None else jit_call(_batch_jit, *args)

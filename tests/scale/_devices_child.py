@@ -61,7 +61,7 @@ def main() -> None:
     # anew (the padding path is covered by fk's 5 rows above). "The same program" needs the
     # same arguments as map_frames gives device 0's copy: every array committed to device 0
     # (jit compiles an uncommitted argument separately from a committed one), including the
-    # step budgets refine_batch makes itself (_steps_apart), hence the commit in ``jit_call``
+    # traced settings refine_batch makes itself (_traced_apart), hence the commit in ``jit_call``
     # (refine_batch's hook for calling its compiled function) rather than on the inputs:
     # measured, three refinement compiles with the budgets uncommitted, two with this
     cam = Camera.look_at([0.0, -0.2, 0.03], [0.0, 0.0, 0.03], [0.0, 0.0, 1.0], 90.0, (48, 36))
