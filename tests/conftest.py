@@ -66,6 +66,7 @@ SLOW_MODULES = (
     "tests/segmentation/test_refine_multicam.py",
     "tests/segmentation/test_refine_convergence.py",
     "tests/segmentation/test_uncertainty.py",  # two compiles of the covariance (1 and 2 views)
+    "tests/segmentation/test_refine_traced.py",  # five refinement programs (decisions S34)
     "tests/cli/test_cli_segment.py",
     "tests/cli/test_cli_demo.py",
     # a local Ray instance per module: mostly waiting for Ray's processes (wall, not CPU, so
@@ -92,6 +93,7 @@ LONGEST_FIRST = (
     "tests/segmentation/test_refine_convergence.py",
     "tests/core/test_examples.py",  # (148)
     "tests/cli/test_cli_segment.py",  # (145)
+    "tests/segmentation/test_refine_traced.py",  # (260 at load 7) five refinement programs
     "tests/scale/test_devices.py",  # (97) one test, a subprocess with 2 host devices
     "tests/stereo/test_stereo_chain_fit.py",  # (79)
     "tests/scale/test_ray_fault.py",  # (64)
