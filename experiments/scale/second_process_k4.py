@@ -181,6 +181,8 @@ def main() -> None:
             for which in ("first", "second"):
                 argv = [str(x).replace("{out}", str(base / f"out_{which}")) for x in all_rows[name]]
                 rec[which] = run_probe(tree, cache, argv, base / f"{which}.log")
+                # traced programs stored by jaxcr.io.exported.cached_call (0: none, or a fallback)
+                rec[which]["stored"] = len(list((cache / "exported").glob("*.jaxexport")))
             rec["load_after"] = uptime()
             rec["argv"] = " ".join(["jaxcr", *map(str, all_rows[name])]).replace(str(inputs), "IN")
             print(json.dumps(rec), flush=True)
@@ -196,8 +198,8 @@ def _load(s: str) -> str:
 def table(recs: list[dict]) -> str:
     out = ["| row | tree | first: wall / CPU s | first: trace / lower / backend s (n) | "
            "second: wall / CPU s | second: import / trace / lower / backend s (n) | "
-           "second: cache hits / misses | exit codes | load (1-min) before, after |",
-           "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+           "second: cache hits / misses | stored programs | exit codes | load (1-min) before, after |",
+           "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for r in recs:
         f, s = r["first"], r["second"]
         out.append(
@@ -206,7 +208,7 @@ def table(recs: list[dict]) -> str:
             f" ({int(f.get('backend_n', 0))}) | **{s['wall_s']:.1f} / {s['cpu_s']:.1f}** | "
             f"{s.get('import_s', 0):.1f} / {s.get('trace_s', 0):.1f} / {s.get('lower_s', 0):.1f} / "
             f"{s.get('backend_s', 0):.1f} ({int(s.get('backend_n', 0))}) | "
-            f"{int(s.get('hits', 0))} / {int(s.get('misses', 0))} | "
+            f"{int(s.get('hits', 0))} / {int(s.get('misses', 0))} | {s.get('stored', '?')} | "
             f"{f['status']}, {s['status']} | {_load(r['load_before'])}, {_load(r['load_after'])} |"
         )
     return "\n".join(out)
