@@ -161,7 +161,12 @@ def main() -> None:
     ap.add_argument("--jsonl", type=Path, default=None)
     ap.add_argument("--report", nargs="*", type=Path, default=None, help="JSON lines to table")
     ap.add_argument("--md", type=Path, default=None)
+    ap.add_argument("--compare", default="", help="rows whose outputs to compare across runs")
     a = ap.parse_args()
+    if a.compare:
+        for row in a.compare.split(","):
+            print(compare(a.work / "runs", row))
+        return
     if a.report:
         print(table([json.loads(x) for f in a.report for x in f.read_text().splitlines() if x]))
         return
@@ -189,6 +194,31 @@ def main() -> None:
             if a.jsonl:
                 with open(a.jsonl, "a") as fh:
                     fh.write(json.dumps(rec) + "\n")
+
+
+def compare(runs: Path, row: str) -> str:
+    """Largest difference of every tree's and process's outputs from the first tree's first
+    process: ``centrelines.npz`` (fk rows) or ``fit.json``'s q and rms (fit)."""
+    import numpy as np
+
+    outs = sorted(runs.glob(f"*/{row}/out_*"))
+    if not outs:
+        return f"{row}: no outputs"
+    ref_dir = outs[0]
+    lines = []
+    for d in outs:
+        if row.startswith("fk"):
+            with np.load(ref_dir / "centrelines.npz") as a, np.load(d / "centrelines.npz") as b:
+                diff = max(float(np.nanmax(np.abs(a[k].astype(float) - b[k].astype(float))))
+                           for k in ("p", "R", "rho", "residual", "energy", "num_steps", "ok"))  # fmt: skip
+            same = (ref_dir / "tips.csv").read_bytes() == (d / "tips.csv").read_bytes()
+            lines.append(f"{d.relative_to(runs)}: max |diff| {diff:.3g}, tips.csv identical {same}")
+        elif row == "fit":
+            a, b = (json.loads((x / "fit.json").read_text()) for x in (ref_dir, d))
+            dq = float(np.max(np.abs(np.subtract(a["q"], b["q"]))))
+            lines.append(f"{d.relative_to(runs)}: max |dq| {dq:.3g}, rms {b['rms']:.6g} "
+                         f"(ref {a['rms']:.6g})")  # fmt: skip
+    return f"{row} (reference {ref_dir.relative_to(runs)}):\n" + "\n".join(lines)
 
 
 def _load(s: str) -> str:
