@@ -144,7 +144,7 @@ def rows(d: Path) -> dict[str, list]:
         "motion": ["motion", d / "mot", "-o", "{out}"],
         "model_object": ["model-object", d / "mo", "-o", "{out}"],
         "calibrate": ["calibrate", d / "L", d / "R", "--cols", "6", "--rows", "5", "--pitch",
-                      "0.01", "-o", "{out}"],
+                      "0.01", "-o", "{out}.yaml"],
         "warmup": ["warmup", d / "syn"],
     }  # fmt: skip
 
