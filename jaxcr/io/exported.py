@@ -39,6 +39,15 @@ FORMAT = b"jaxcr.exported/2\n"
 #: programs) into code that runs up to ~2x slower (the legacy loop emitter instead of the MLIR
 #: fusion emitters; docs/decisions.md T1 and S22): for programs that run rarely per process.
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+#: LAPACK kernels of jaxlib that ``jax.export`` refuses by default because their calling
+#: convention is not promised stable *across jaxlib versions* (QR's "apply Q", which lineax's
+#: QR solve inside Optimistix's Levenberg-Marquardt uses: ``jaxcr fit``'s solve). A stored
+#: program is keyed by the exact jaxlib version that wrote it (:func:`_versions`), so it is only
+#: ever loaded by that jaxlib, where the kernel is the one it was traced against. Host callbacks
+#: stay unexportable (JAX refuses them regardless): such a function is traced as usual.
+_SAME_VERSION_CUSTOM_CALLS = tuple(
+    f"lapack_{t}_ffi" for t in ("sormqr", "dormqr", "cunmqr", "zunmqr")
+)
 _memo: dict[tuple, tuple[Callable, object, list, list]] = {}
 _source_hash: str | None = None
 #: XLA compilations started by :func:`compile_ahead`, by memo key; a call waits for its own
@@ -170,7 +179,9 @@ def cached_call(fn: Callable, *args, compiler_options: dict | None = None):
             except (OSError, ValueError, EOFError, pickle.UnpicklingError):
                 try:
                     shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
-                    exported = jax.export.export(jax.jit(flat))(*shapes)
+                    checks = [jax.export.DisabledSafetyCheck.custom_call(t)
+                              for t in _SAME_VERSION_CUSTOM_CALLS]  # fmt: skip
+                    exported = jax.export.export(jax.jit(flat), disabled_checks=checks)(*shapes)
                 except Exception:  # not exportable (e.g. a host callback): trace as usual
                     return fn(*args)
                 out_tree = out_box[0]

@@ -19,7 +19,6 @@ Example::
 
 from __future__ import annotations
 
-import functools
 import types
 
 import equinox as eqx
@@ -46,35 +45,41 @@ def forward_batch(model, q):
     leading axis B, e.g. the nominal centrelines :func:`jaxcr.refine_batch` takes).
 
     The model is an argument, not a closure, so one program serves every robot of the same
-    structure; and it is the one batched forward program of the library: the synthetic-data
-    generator :mod:`jaxcr.synth` and ``jaxcr segment`` call it through
+    structure; the synthetic-data generator :mod:`jaxcr.synth` and ``jaxcr segment`` call it through
     ``jaxcr.io.exported.cached_call`` with ``FAST_COMPILE`` (one stored program and one
     compile for both, docs/decisions.md S25; a direct call is the plain jit of the same
-    body). For failure reasons and numpy outputs use :func:`forward`.
+    body). For failure reasons and numpy outputs use :func:`forward` (its program,
+    :func:`forward_batch_rotvec`, adds the tip's rotation vector).
     """
     import jax
 
     return jax.vmap(model.forward)(q)
 
 
-@functools.cache
-def _compiled_forward():
-    """The jitted, vmapped forward pass (built once per process; one compile per model/shape)."""
+@eqx.filter_jit
+def forward_batch_rotvec(model, qs):
+    """:func:`forward_batch` of ``qs`` (B, n_joints) and the rotation vector of every row's tip
+    frame (B, 3): the one program of :func:`batch_forward` (``jaxcr fk``, :func:`forward`).
+
+    A module-level function of its arguments alone, so that :func:`batch_forward` can call it
+    through :func:`jaxcr.io.exported.cached_call`: a second process loads the stored traced
+    program instead of tracing the CTR solver again (docs/decisions.md K4)."""
     import jax
 
     from jaxcr.geometry import so3_log
 
-    @eqx.filter_jit
-    def run_chunk(model, qs):
-        res = jax.vmap(model.forward)(qs)
-        rotvec = jax.vmap(so3_log)(res.centreline.R[:, -1])
-        return res, rotvec
-
-    return run_chunk
+    res = jax.vmap(model.forward)(qs)
+    rotvec = jax.vmap(so3_log)(res.centreline.R[:, -1])
+    return res, rotvec
 
 
 def _run_chunk_body(qs, model):
-    return _compiled_forward()(model, qs)
+    # the stored traced program when the persistent cache is on (XLA's default options: the
+    # program's run time is the command's work, unlike segment's once-per-process kinematics),
+    # else the plain jit of the same body
+    from jaxcr.io.exported import cached_call
+
+    return cached_call(forward_batch_rotvec, model, qs)
 
 
 def batch_forward(
@@ -84,7 +89,9 @@ def batch_forward(
 
     Rows are processed in chunks of :func:`batch_bucket` ``(B, chunk)`` rows (the last chunk
     padded to the same shape, so there is a single trace, and batches of sizes in one
-    power-of-two bucket share the compiled program). Returns numpy arrays keyed as in ``jaxcr fk``'s
+    power-of-two bucket share the compiled program; with the persistent compilation cache on,
+    the traced program is stored too, so a later process neither traces nor lowers it:
+    :func:`jaxcr.io.exported.cached_call`, docs/decisions.md K4). Returns numpy arrays keyed as in ``jaxcr fk``'s
     ``centrelines.npz``: ``s`` (B, N), ``p`` (B, N, 3), ``R`` (B, N, 3, 3), ``rho`` (B, N),
     ``ok``, ``residual``, ``energy``, ``num_steps`` (B,), ``tip_rotvec`` (B, 3).
 

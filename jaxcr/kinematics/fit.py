@@ -432,6 +432,22 @@ def _cold_forward(model, q: Float[Array, " m"]):
     return model.forward(q)
 
 
+def _solve_stored(model, data, q0, T0, guess, options: tuple):
+    """:func:`_solve` with its keyword options as one static tuple of (name, value) pairs: the
+    positional form :func:`jaxcr.io.exported.cached_call` takes."""
+    return _solve(model, data, q0, T0, guess, **dict(options))
+
+
+def _stored(fn, *args):
+    """``fn(*args)`` through a stored traced program when the persistent compilation cache is
+    on (:func:`jaxcr.io.exported.cached_call`): a second process (``jaxcr fit`` again) loads
+    the LM solve, the cold forward kinematics and the summary instead of tracing them through
+    the CTR solver again (docs/decisions.md K4); with the cache off, ``fn(*args)``."""
+    from jaxcr.io.exported import cached_call
+
+    return cached_call(fn, *args)
+
+
 def _tolerances(dtype, rtol, atol, model=None):
     # float32: the cost's relative resolution is ~eps32 = 1.2e-7, so a step test much below
     # ~1e-6 never triggers; float64 can go to 1e-10. A CTR's equilibrium is itself solved
@@ -477,12 +493,13 @@ def _fit(
         rtol=rtol,
         atol=atol,
     )
+    options = tuple(sorted(kw.items()))
     if model.kind != "ctr" or model.n_tubes == 1:
-        return _solve(model, data, q0, T0, None, **kw)
+        return _stored(_solve_stored, model, data, q0, T0, None, options)
     q, steps, out = q0, 0, None
     for _ in range(max(1, rounds)):
-        guess = _cold_forward(model, q).state
-        out = _solve(model, data, q0, T0, guess, **kw)
+        guess = _stored(_cold_forward, model, q).state
+        out = _stored(_solve_stored, model, data, q0, T0, guess, options)
         steps += int(out[-1])
         q = out[0]
     return (*out[:-1], jnp.asarray(steps, jnp.int32))
@@ -544,7 +561,7 @@ def fit_backbone(
         atol=atol,
         rounds=rounds,
     )
-    return _backbone_result(model, points, q, T, r, tip, fk_ok, result, steps)
+    return _stored(_backbone_result, model, points, q, T, r, tip, fk_ok, result, steps)
 
 
 def fit_tip_pixels(
@@ -587,7 +604,7 @@ def fit_tip_pixels(
         atol=atol,
         rounds=rounds,
     )
-    return _tips_result(model, len(cameras), q, T, r, fk_ok, result, steps)
+    return _stored(_tips_result, model, len(cameras), q, T, r, fk_ok, result, steps)
 
 
 # The summaries below are compiled (one small program per model structure and data shape):

@@ -272,3 +272,67 @@ def test_batch_sizes_in_one_bucket_share_one_program():
             ref = _forward(ref_model, jnp.asarray(q[i], jnp.float32))
             np.testing.assert_allclose(out["p"][i], ref.centreline.p, atol=1e-7)
     assert len(traces) == 1
+
+
+@pytest.fixture
+def stored_programs(tmp_path, monkeypatch):
+    """cached_call's folder in tmp_path with an empty memo (clearing the memo stands for a new
+    process, as in tests/io/test_io_exported.py); returns the list of programs stored."""
+    from jaxcr.io import exported
+
+    folder = str(tmp_path / "exported")
+    monkeypatch.setattr(exported, "_folder", lambda: folder)
+    monkeypatch.setattr(exported, "_memo", {})
+    stores = []
+    store = exported._store
+
+    def counting_store(*a):  # a program is stored exactly when it was traced and exported
+        stores.append(a[0])
+        store(*a)
+
+    monkeypatch.setattr(exported, "_store", counting_store)
+    return stores
+
+
+def test_second_process_loads_the_stored_program_instead_of_tracing(stored_programs):
+    """K4: batch_forward (`jaxcr fk`, jcr.forward) goes through jaxcr.io.exported.cached_call.
+    The first process traces the forward pass once and stores it; a second one (empty memo)
+    loads it and traces nothing. Both equal the direct jit of model.forward per row within
+    1e-7 m (float32 rounding of the vectorised program, as above)."""
+    from jaxcr.io import exported
+    from jaxcr.kinematics.single_segment import SingleSegment
+
+    traces = []
+    model = _counting_segment(traces).make(length=0.03, radius=1e-3, n_points=7)
+    q = np.random.default_rng(2).uniform(-1.0, 1.0, size=(3, 2))
+    first = batch_forward(model, q, progress=False)
+    assert len(traces) == 1 and len(stored_programs) == 1
+    exported._memo.clear()  # a new process
+    second = batch_forward(model, q, progress=False)
+    assert len(traces) == 1, "the second process traced the forward pass again"
+    assert len(stored_programs) == 1
+    ref_model = SingleSegment.make(length=0.03, radius=1e-3, n_points=7)
+    for i in range(3):
+        ref = _forward(ref_model, jnp.asarray(q[i], jnp.float32))
+        for out in (first, second):
+            np.testing.assert_allclose(out["p"][i], ref.centreline.p, atol=1e-7)
+            np.testing.assert_allclose(out["R"][i], ref.centreline.R, atol=1e-6)
+    np.testing.assert_allclose(second["tip_rotvec"], first["tip_rotvec"], atol=1e-6)
+
+
+def test_no_compile_cache_switch_stores_no_program(files, tmp_path, monkeypatch):
+    """`jaxcr fk` stores its traced program in <cache folder>/exported/; `--no-compile-cache`
+    still turns that off (nothing written to the cache folder), with the same outputs within
+    1e-7 m (the same arithmetic traced in the process)."""
+    from jaxcr.io import exported
+
+    monkeypatch.setattr(exported, "_memo", {})
+    argv = [str(files / "ss.json"), str(files / "q.csv"), "-o"]
+    monkeypatch.setenv("JAXCR_CACHE_DIR", str(tmp_path / "on"))
+    assert main(["fk", *argv, str(tmp_path / "a")]) == 0
+    assert list((tmp_path / "on" / "exported").glob("forward_batch_rotvec-*.jaxexport"))
+    monkeypatch.setenv("JAXCR_CACHE_DIR", str(tmp_path / "off"))
+    assert main(["--no-compile-cache", "fk", *argv, str(tmp_path / "b")]) == 0
+    assert not (tmp_path / "off").exists()
+    a, b = np.load(tmp_path / "a" / "centrelines.npz"), np.load(tmp_path / "b" / "centrelines.npz")
+    np.testing.assert_allclose(a["p"], b["p"], atol=1e-7)

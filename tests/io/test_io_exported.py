@@ -181,3 +181,55 @@ def test_compile_ahead_compiles_each_program_once_and_gives_the_sequential_resul
         again = _chain(x, p)
     assert not exported._compiling
     assert jax.tree.structure(again) == jax.tree.structure(seq)
+
+
+@eqx.filter_jit
+def _qr_solve(A, b):
+    """A least-squares solve through lineax's QR (LAPACK geqrf + ormqr): what Optimistix's
+    Levenberg-Marquardt runs inside `jaxcr fit`."""
+    import lineax as lx
+
+    # throw=False as inside Optimistix (a raising solve is a host callback: never exportable)
+    return lx.linear_solve(lx.MatrixLinearOperator(A), b, solver=lx.QR(), throw=False).value
+
+
+def test_programs_with_lapack_qr_are_stored(folder):
+    """jax.export refuses jaxlib's `ormqr` kernel (no cross-version guarantee) unless allowed;
+    cached_call allows it (its entries are keyed by the exact jaxlib version), so a QR solve is
+    stored and reloaded instead of being traced in every process. Reference: numpy's lstsq
+    (float32 on a well-conditioned 6x3 system: rtol 1e-4)."""
+    rng = np.random.default_rng(0)
+    A = jnp.asarray(rng.normal(size=(6, 3)), jnp.float32)
+    b = jnp.asarray(rng.normal(size=6), jnp.float32)
+    ref = np.linalg.lstsq(np.asarray(A, np.float64), np.asarray(b, np.float64), rcond=None)[0]
+    np.testing.assert_allclose(exported.cached_call(_qr_solve, A, b), ref, rtol=1e-4, atol=1e-5)
+    assert len(STORED) == 1
+    exported._memo.clear()  # a new process loads it
+    np.testing.assert_allclose(exported.cached_call(_qr_solve, A, b), ref, rtol=1e-4, atol=1e-5)
+    assert len(STORED) == 1
+
+
+def test_fit_backbone_second_process_loads_its_programs(folder):
+    """`jaxcr fit` (jaxcr.kinematics.fit) runs its Levenberg-Marquardt solve and its summary as
+    stored programs (docs/decisions.md K4): a second process stores (= traces) nothing new.
+    Reference: the true q of noise-free points sampled from the model (the LM's float32
+    resolution on unit-scale q is ~1e-5: atol 1e-4); the two processes run the same program
+    (atol 1e-6)."""
+    import jaxcr as jcr
+    from jaxcr.kinematics.fit import _cold_forward, fit_backbone
+
+    robot = jcr.robot_from_dict(
+        {"kind": "single_segment", "length": 0.1, "radius": 0.003, "n_points": 12}
+    )
+    q_true = np.array([0.55, 0.8])
+    p = np.asarray(_cold_forward(robot, jnp.asarray(q_true)).centreline.p)
+    pts = jnp.asarray(p[np.r_[0:12:3, 11]], jnp.float32)  # the last point is the tip
+    first = fit_backbone(robot, pts)
+    stored = len(STORED)
+    assert stored >= 2  # the LM solve and the summary
+    exported._memo.clear()
+    second = fit_backbone(robot, pts)
+    assert len(STORED) == stored
+    np.testing.assert_allclose(first.q, q_true, atol=1e-4)
+    np.testing.assert_allclose(second.q, first.q, atol=1e-6)
+    assert bool(first.ok) and bool(second.ok)
