@@ -34,6 +34,7 @@ import argparse
 import json
 import os
 import pickle
+import sys
 import time
 from pathlib import Path
 
@@ -45,6 +46,9 @@ from jaxcr.stereo.backbone_consistency import backbone_consistency
 from jaxcr.stereo.branch_choice import choose_branches
 from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from real_like_tip_spline import _oracle  # noqa: E402  (the sibling script's candidate ceiling)
 
 FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run here
 
@@ -107,18 +111,6 @@ def _variant(rec, cands, bb_widths=None):
         for c, t in zip(chosen, rec["traces"], strict=True)
     ]
     return tips, act, kind, flagged
-
-
-def _oracle(rec, cands):
-    cams = rec["calib"]
-    best = None
-    for a in cands[0]:
-        for b in cands[1]:
-            tips = pipeline._stereo_or_own_tips(cams, [a, b])[0]
-            e = [float(np.linalg.norm(t - g)) for t, g in zip(tips, rec["truth"], strict=True)]
-            if best is None or max(e) < max(best):
-                best = e
-    return best
 
 
 def _errs(tips, truth):

@@ -127,9 +127,13 @@ def _variant(rec, score: str, every_frame: bool, any_pair: bool = False):
     return tips, act, branch
 
 
-def _oracle(rec):
+def _oracle(rec, cands=None):
+    """The worse view's error of the candidate pair nearest the truth (end-face tips): the
+    ceiling of any choice among ``cands`` (per view; default each trace and its
+    alternatives). Also used by real_like_tip_guided.py."""
     cams = rec["calib"]
-    cands = [[t] + list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)]
+    if cands is None:
+        cands = [[t] + list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)]
     best = None
     for a in cands[0]:
         for b in cands[1]:

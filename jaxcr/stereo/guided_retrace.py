@@ -55,6 +55,7 @@ from scipy import ndimage as ndi
 from jaxcr.stereo.backbone_consistency import resample_polyline
 from jaxcr.stereo.tip_consistency import _distort, undistort_pixels
 from jaxcr.stereo.tip_geometry import fundamental_from_poses
+from jaxcr.stereo.trace3d import _sample  # bilinear samples, 0 outside the image or at NaN
 
 __all__ = [
     "GuidedPath",
@@ -140,16 +141,6 @@ def _line_samples(cam, lines, shape, step: float = 1.0, margin: float = 40.0):
     out = _distort(cam, pts.reshape(-1, 2)).reshape(n, m, 2)
     out[~ok] = np.nan
     return out
-
-
-def _sample(E, uv) -> np.ndarray:
-    """Bilinear samples of ``E`` (H, W) at ``uv`` (..., 2); 0 outside the image or at NaN."""
-    shp = uv.shape[:-1]
-    u, v = uv[..., 0].ravel(), uv[..., 1].ravel()
-    ok = np.isfinite(u) & np.isfinite(v)
-    out = np.zeros(u.shape)
-    out[ok] = ndi.map_coordinates(E, [v[ok], u[ok]], order=1, mode="constant", cval=0.0)
-    return out.reshape(shp)
 
 
 def _candidates(pts, ev, level: float, width: float) -> np.ndarray:

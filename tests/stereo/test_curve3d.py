@@ -1,29 +1,14 @@
 """jaxcr.stereo.curve3d: one smooth 3-D curve fitted to two views' backbones, against a
 closed-form curve projected by OpenCV and OpenCV's triangulatePoints."""
 
-from types import SimpleNamespace
-
 import cv2
 import numpy as np
 import pytest
 from scipy.interpolate import BSpline
 
 from jaxcr.stereo.curve3d import fit_spline_pair, spline_basis
-
-
-def _cam(rvec, tvec, dist=(-0.05, 0.01, 0.0, 0.0, 0.0)):
-    K = np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]])
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
-    T[:3, 3] = tvec
-    return SimpleNamespace(K=K, dist=np.asarray(dist, np.float64), T_cam_robot=T)
-
-
-def _project(cam, X):
-    T = cam.T_cam_robot
-    uv, _ = cv2.projectPoints(X.reshape(-1, 1, 3), cv2.Rodrigues(T[:3, :3])[0], T[:3, 3],
-                              cam.K, cam.dist)  # fmt: skip
-    return uv.reshape(-1, 2)
+from tests.helpers.stereo_views import cam as _cam
+from tests.helpers.stereo_views import project as _project
 
 
 def _arc(n=400):
