@@ -94,9 +94,12 @@ def test_command_fills_cache(tmp_path):
     cache = tmp_path / "cache"
     p = _fk(tmp_path, {"JAXCR_CACHE_DIR": str(cache)})
     assert p.returncode == 0, p.stderr
-    # JAX names entries <program>-<key>-cache; fk's compiled batch (run_chunk) must be there
+    # JAX names entries <program>-<key>-cache; fk's compiled batch must be there: since K4 it
+    # is the stored traced program (jit_forward_batch_rotvec_stored), kept in exported/ too
     names = _entries(cache)
-    assert any(n.startswith("jit_run_chunk-") and n.endswith("-cache") for n in names), names
+    prog = "jit_forward_batch_rotvec_stored-"
+    assert any(n.startswith(prog) and n.endswith("-cache") for n in names), names
+    assert any(n.endswith(".jaxexport") for n in _entries(cache / "exported")), names
 
 
 @pytest.mark.parametrize(
