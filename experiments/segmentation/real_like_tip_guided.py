@@ -34,11 +34,11 @@ import argparse
 import json
 import os
 import pickle
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from real_like_tip_spline import _oracle  # the sibling script's candidate ceiling
 
 from jaxcr.benchmarks import parse_seeds
 from jaxcr.stereo import pipeline
@@ -46,9 +46,6 @@ from jaxcr.stereo.backbone_consistency import backbone_consistency
 from jaxcr.stereo.branch_choice import choose_branches
 from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_like_tip_spline import _oracle  # noqa: E402  (the sibling script's candidate ceiling)
 
 FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run here
 

@@ -175,6 +175,7 @@ def run(args) -> int:
     import jax.numpy as jnp
 
     from jaxcr.io.backbone import read_backbone, read_tips
+    from jaxcr.io.exported import cached_call  # the stored traced programs (K4)
     from jaxcr.io.results import atomic_write_json, atomic_write_text
     from jaxcr.io.robot import load_robot
     from jaxcr.kinematics.fit import fit_backbone, fit_tip_pixels, pose_start
@@ -225,6 +226,7 @@ def run(args) -> int:
                 jnp.asarray(points, jnp.float32),
                 tip_weight=args.tip_weight,
                 base_weight=args.base_weight,
+                jit_call=cached_call,
                 **o,
             ),
             model,
@@ -247,7 +249,10 @@ def run(args) -> int:
         cams = tuple(ds.cameras[c] for c in names)
         uv = jnp.asarray([tips[c] for c in names], jnp.float32)
         res = _best_of_starts(
-            lambda o: fit_tip_pixels(model, cams, uv, **o), model, opts, args.starts
+            lambda o: fit_tip_pixels(model, cams, uv, jit_call=cached_call, **o),
+            model,
+            opts,
+            args.starts,
         )
         mode, unit, source = "tips", "px", args.tips
         labels = names

@@ -183,7 +183,9 @@ class FkWorker:
         q = self.q[rows]
         pad = self.chunk - len(rows)
         qp = np.concatenate([q, np.repeat(q[-1:], pad, axis=0)]) if pad > 0 else q
-        res = batch_forward(self.model, qp, chunk=self.chunk, progress=False)
+        from jaxcr.io.exported import cached_call  # the stored traced program (K4)
+
+        res = batch_forward(self.model, qp, chunk=self.chunk, progress=False, jit_call=cached_call)
         res = {k: v[: len(rows)] for k, v in res.items()}
         reasons = failure_reasons(self.model, q, res)
         part = f"{PARTS}/{rows[0]:08d}-{rows[-1]:08d}.npz"

@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import types
 
 import equinox as eqx
@@ -73,25 +74,31 @@ def forward_batch_rotvec(model, qs):
     return res, rotvec
 
 
-def _run_chunk_body(qs, model):
-    # the stored traced program when the persistent cache is on (XLA's default options: the
-    # program's run time is the command's work, unlike segment's once-per-process kinematics),
-    # else the plain jit of the same body
-    from jaxcr.io.exported import cached_call
-
-    return cached_call(forward_batch_rotvec, model, qs)
+def _run_chunk_body(qs, model, jit_call=None):
+    # ``jit_call(fn, *args)``: how the program is called; ``jaxcr fk`` passes
+    # jaxcr.io.exported.cached_call (the stored traced program when the persistent cache is
+    # on, XLA's default options: the program's run time is the command's work, unlike
+    # segment's once-per-process kinematics); None: the plain jit of the same body
+    if jit_call is None:
+        return forward_batch_rotvec(model, qs)
+    return jit_call(forward_batch_rotvec, model, qs)
 
 
 def batch_forward(
-    model, q: np.ndarray, chunk: int = CHUNK, progress: bool = True, devices: int | None = None
+    model,
+    q: np.ndarray,
+    chunk: int = CHUNK,
+    progress: bool = True,
+    devices: int | None = None,
+    jit_call=None,
 ) -> dict[str, np.ndarray]:
     """Forward kinematics of every row of ``q`` (B, m) with one jitted ``vmap`` (one compile).
 
     Rows are processed in chunks of :func:`batch_bucket` ``(B, chunk)`` rows (the last chunk
     padded to the same shape, so there is a single trace, and batches of sizes in one
-    power-of-two bucket share the compiled program; with the persistent compilation cache on,
-    the traced program is stored too, so a later process neither traces nor lowers it:
-    :func:`jaxcr.io.exported.cached_call`, docs/decisions.md K4). Returns numpy arrays keyed as in ``jaxcr fk``'s
+    power-of-two bucket share the compiled program; ``jit_call`` =
+    :func:`jaxcr.io.exported.cached_call`, as ``jaxcr fk`` passes, also stores the traced
+    program, so a later process neither traces nor lowers it, docs/decisions.md K4). Returns numpy arrays keyed as in ``jaxcr fk``'s
     ``centrelines.npz``: ``s`` (B, N), ``p`` (B, N, 3), ``R`` (B, N, 3, 3), ``rho`` (B, N),
     ``ok``, ``residual``, ``energy``, ``num_steps`` (B,), ``tip_rotvec`` (B, 3).
 
@@ -118,7 +125,10 @@ def batch_forward(
         if n < chunk:
             part = np.concatenate([part, np.repeat(part[-1:], chunk - n, axis=0)])
         res, rotvec = map_frames(
-            _run_chunk_body, jnp.asarray(part, jnp.float32), model, devices=devices
+            functools.partial(_run_chunk_body, jit_call=jit_call),
+            jnp.asarray(part, jnp.float32),
+            model,
+            devices=devices,
         )
         c = res.centreline
         outs.append(

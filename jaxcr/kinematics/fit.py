@@ -438,14 +438,12 @@ def _solve_stored(model, data, q0, T0, guess, options: tuple):
     return _solve(model, data, q0, T0, guess, **dict(options))
 
 
-def _stored(fn, *args):
-    """``fn(*args)`` through a stored traced program when the persistent compilation cache is
-    on (:func:`jaxcr.io.exported.cached_call`): a second process (``jaxcr fit`` again) loads
+def _caller(jit_call):
+    """How the fit's programs are called: ``jit_call(fn, *args)``, e.g.
+    :func:`jaxcr.io.exported.cached_call` (what ``jaxcr fit`` passes: a second process loads
     the LM solve, the cold forward kinematics and the summary instead of tracing them through
-    the CTR solver again (docs/decisions.md K4); with the cache off, ``fn(*args)``."""
-    from jaxcr.io.exported import cached_call
-
-    return cached_call(fn, *args)
+    the CTR solver again, docs/decisions.md K4); None: ``fn(*args)``."""
+    return jit_call if jit_call is not None else (lambda fn, *args: fn(*args))
 
 
 def _tolerances(dtype, rtol, atol, model=None):
@@ -475,6 +473,7 @@ def _fit(
     atol,
     rounds,
     base_weight=0.0,
+    jit_call=None,
 ):
     """Solve; for a CTR, ``rounds`` LM solves each warm-started from the equilibrium (least
     energy branch, cold-solved outside the LM) at the previous round's q: a cold solve at
@@ -494,6 +493,7 @@ def _fit(
         atol=atol,
     )
     options = tuple(sorted(kw.items()))
+    _stored = _caller(jit_call)
     if model.kind != "ctr" or model.n_tubes == 1:
         return _stored(_solve_stored, model, data, q0, T0, None, options)
     q, steps, out = q0, 0, None
@@ -519,6 +519,7 @@ def fit_backbone(
     rtol: float | None = None,
     atol: float | None = None,
     rounds: int = 3,
+    jit_call=None,
 ) -> FitResult:
     """Fit q (and the base pose with ``fit_pose``) to a measured backbone.
 
@@ -538,6 +539,9 @@ def fit_backbone(
             in float32 (1e-4 for a CTR, whose equilibrium is solved to ~1e-5 rad), 1e-10 in
             float64).
         rounds: CTR only: warm-started solves, each from the equilibrium at the last q.
+        jit_call: how the compiled programs are called, ``jit_call(fn, *args)``; None calls
+            them directly; ``jaxcr.io.exported.cached_call`` stores their traced programs
+            for a later process (what ``jaxcr fit`` passes, docs/decisions.md K4).
 
     Returns:
         :class:`FitResult` with ``errors`` the (k,) point-to-centreline distances (m).
@@ -560,8 +564,9 @@ def fit_backbone(
         rtol=rtol,
         atol=atol,
         rounds=rounds,
+        jit_call=jit_call,
     )
-    return _stored(_backbone_result, model, points, q, T, r, tip, fk_ok, result, steps)
+    return _caller(jit_call)(_backbone_result, model, points, q, T, r, tip, fk_ok, result, steps)
 
 
 def fit_tip_pixels(
@@ -577,6 +582,7 @@ def fit_tip_pixels(
     rtol: float | None = None,
     atol: float | None = None,
     rounds: int = 3,
+    jit_call=None,
 ) -> FitResult:
     """Fit q (and the base-pose correction with ``fit_pose``) to tip pixels in calibrated
     views (one (u, v) per camera, OpenCV pixel convention).
@@ -603,8 +609,9 @@ def fit_tip_pixels(
         rtol=rtol,
         atol=atol,
         rounds=rounds,
+        jit_call=jit_call,
     )
-    return _stored(_tips_result, model, len(cameras), q, T, r, fk_ok, result, steps)
+    return _caller(jit_call)(_tips_result, model, len(cameras), q, T, r, fk_ok, result, steps)
 
 
 # The summaries below are compiled (one small program per model structure and data shape):

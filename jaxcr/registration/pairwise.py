@@ -45,28 +45,6 @@ from jaxcr.registration.projective import (
 from jaxcr.registration.ransac import estimate_transform, inlier_set
 
 
-def _projective_icp_stored(src, tgt, T0, cfg, kp, window, src_image, photometric, photo_points):
-    """:func:`~jaxcr.registration.projective.projective_icp` (jitted) with its keyword options
-    positional: the form :func:`jaxcr.io.exported.cached_call` takes (docs/decisions.md K4)."""
-    return projective_icp_jit(src, tgt, T0, cfg, kp, window=window, src_image=src_image,
-                              photometric=photometric, photo_points=photo_points)  # fmt: skip
-
-
-def _sandwich_information_stored(T, src, tgt, cfg, kp, tile, window, src_image, photometric,
-                                 photo_points):  # fmt: skip
-    """:func:`~jaxcr.registration.covariance.projective_sandwich_information` (jitted),
-    positional as :func:`_projective_icp_stored`."""
-    return projective_sandwich_information_jit(T, src, tgt, cfg, kp, tile=tile, window=window,
-                                               src_image=src_image, photometric=photometric,
-                                               photo_points=photo_points)  # fmt: skip
-
-
-def _information_stored(T, src, tgt, cfg, kp, window, src_image, photometric, photo_points):
-    """:func:`~jaxcr.registration.projective.projective_information` (jitted), positional."""
-    return projective_information_jit(T, src, tgt, cfg, kp, window=window, src_image=src_image,
-                                      photometric=photometric, photo_points=photo_points)  # fmt: skip
-
-
 class RegistrationFailed(Exception):
     """Two frames could not be registered (no overlap, empty cloud)."""
 
@@ -431,14 +409,8 @@ def register_pair(
         photo_points=src.sample_plane if photometric else None,
     )
     src_sample = geometric_sample(src, geometric_points)
-    # the projective ICP and its information through stored traced programs when the
-    # persistent cache is on: a second `jaxcr model-object` process loads them instead of
-    # tracing them (docs/decisions.md K4); with it off, the jitted functions themselves
-    from jaxcr.io.exported import cached_call
-
-    proj_args = tuple(proj_kw[k] for k in ("window", "src_image", "photometric", "photo_points"))
     if association == "projective":
-        res = cached_call(_projective_icp_stored, src_sample, tgt_image, T0, cfg, kp, *proj_args)
+        res = projective_icp_jit(src_sample, tgt_image, T0, cfg, kp, **proj_kw)
     else:
         res = icp_jit(src.arrays, tgt.arrays, T0, cfg, kp)
     T = np.asarray(res.T, np.float64)
@@ -446,11 +418,11 @@ def register_pair(
     info = None
     if association == "projective" and np.all(np.isfinite(T)):
         if information == "sandwich":
-            info, _ = cached_call(_sandwich_information_stored, res.T, src_sample, tgt_image,
-                                  cfg, kp, int(information_tile), *proj_args)  # fmt: skip
+            info, _ = projective_sandwich_information_jit(
+                res.T, src_sample, tgt_image, cfg, kp, tile=int(information_tile), **proj_kw
+            )
         else:
-            info, _ = cached_call(_information_stored, res.T, src_sample, tgt_image, cfg, kp,
-                                  *proj_args)  # fmt: skip
+            info, _ = projective_information_jit(res.T, src_sample, tgt_image, cfg, kp, **proj_kw)
         info = np.asarray(info, np.float64)
     if not np.all(np.isfinite(T)) or fitness < min_fitness:
         raise RegistrationFailed(

@@ -295,7 +295,8 @@ def stored_programs(tmp_path, monkeypatch):
 
 
 def test_second_process_loads_the_stored_program_instead_of_tracing(stored_programs):
-    """K4: batch_forward (`jaxcr fk`, jcr.forward) goes through jaxcr.io.exported.cached_call.
+    """K4: batch_forward with ``jit_call=cached_call`` (what `jaxcr fk` passes) goes through
+    jaxcr.io.exported.cached_call.
     The first process traces the forward pass once and stores it; a second one (empty memo)
     loads it and traces nothing. Both equal the direct jit of model.forward per row within
     1e-7 m (float32 rounding of the vectorised program, as above)."""
@@ -305,10 +306,10 @@ def test_second_process_loads_the_stored_program_instead_of_tracing(stored_progr
     traces = []
     model = _counting_segment(traces).make(length=0.03, radius=1e-3, n_points=7)
     q = np.random.default_rng(2).uniform(-1.0, 1.0, size=(3, 2))
-    first = batch_forward(model, q, progress=False)
+    first = batch_forward(model, q, progress=False, jit_call=exported.cached_call)
     assert len(traces) == 1 and len(stored_programs) == 1
     exported._memo.clear()  # a new process
-    second = batch_forward(model, q, progress=False)
+    second = batch_forward(model, q, progress=False, jit_call=exported.cached_call)
     assert len(traces) == 1, "the second process traced the forward pass again"
     assert len(stored_programs) == 1
     ref_model = SingleSegment.make(length=0.03, radius=1e-3, n_points=7)

@@ -19,6 +19,8 @@ OPTIONAL = {"open3d"}
 SYS_PATH = {
     "scale/bench_scale.py": "imports tests.helpers.scale_data (make_segment_dataset) from the "
     "repository root",
+    "segmentation/static_args_s34.py": "measures archived trees side by side (--tree "
+    "NAME=PATH): each child puts its tree first",
 }
 
 

@@ -210,8 +210,8 @@ def test_programs_with_lapack_qr_are_stored(folder):
 
 
 def test_fit_backbone_second_process_loads_its_programs(folder):
-    """`jaxcr fit` (jaxcr.kinematics.fit) runs its Levenberg-Marquardt solve and its summary as
-    stored programs (docs/decisions.md K4): a second process stores (= traces) nothing new.
+    """`jaxcr fit` (jaxcr.kinematics.fit with ``jit_call=cached_call``) runs its
+    Levenberg-Marquardt solve and its summary as stored programs (docs/decisions.md K4): a second process stores (= traces) nothing new.
     Reference: the true q of noise-free points sampled from the model (the LM's float32
     resolution on unit-scale q is ~1e-5: atol 1e-4); the two processes run the same program
     (atol 1e-6)."""
@@ -224,11 +224,11 @@ def test_fit_backbone_second_process_loads_its_programs(folder):
     q_true = np.array([0.55, 0.8])
     p = np.asarray(_cold_forward(robot, jnp.asarray(q_true)).centreline.p)
     pts = jnp.asarray(p[np.r_[0:12:3, 11]], jnp.float32)  # the last point is the tip
-    first = fit_backbone(robot, pts)
+    first = fit_backbone(robot, pts, jit_call=exported.cached_call)
     stored = len(STORED)
     assert stored >= 2  # the LM solve and the summary
     exported._memo.clear()
-    second = fit_backbone(robot, pts)
+    second = fit_backbone(robot, pts, jit_call=exported.cached_call)
     assert len(STORED) == stored
     np.testing.assert_allclose(first.q, q_true, atol=1e-4)
     np.testing.assert_allclose(second.q, first.q, atol=1e-6)

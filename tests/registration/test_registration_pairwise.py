@@ -112,35 +112,3 @@ def test_box_corner_pose_recovered_from_the_true_pose(corner, sigma, points, tol
     r = register_pair(a, b, K, prior=truth, geometric_points=points)
     r_err, t_err = pose_error(r.T, truth)
     assert 1000 * t_err < tol_mm and r_err < 0.3
-
-
-def test_register_pair_second_process_loads_the_stored_icp(corner, tmp_path, monkeypatch):
-    """K4: with the persistent cache on, register_pair (`jaxcr model-object`) runs the
-    projective ICP and its information as stored traced programs (jaxcr.io.exported): a
-    second process (empty memo) stores, i.e. traces, nothing new, and gives the first's pose
-    within 2e-6 and information within rtol 1e-5 (+ 1e-6 of its largest entry; the same
-    program, float32). The direct
-    projective_icp_jit reference is test_register_pair_runs_the_icp_on_the_chosen_sample's
-    (the tests run with the cache on)."""
-    from jaxcr.io import exported
-
-    monkeypatch.setattr(exported, "_folder", lambda: str(tmp_path / "exported"))
-    monkeypatch.setattr(exported, "_memo", {})
-    stores, store = [], exported._store
-
-    def counting_store(*a):
-        stores.append(a[0])
-        store(*a)
-
-    monkeypatch.setattr(exported, "_store", counting_store)
-    frames, truth = corner
-    a, b = frames[0.001]
-    first = register_pair(a, b, K, prior=truth, geometric_points="plane")
-    n = len(stores)
-    assert n >= 2  # the ICP and its information
-    exported._memo.clear()  # a new process
-    second = register_pair(a, b, K, prior=truth, geometric_points="plane")
-    assert len(stores) == n
-    np.testing.assert_allclose(second.T, first.T, atol=2e-6)
-    scale = np.abs(first.information).max()
-    np.testing.assert_allclose(second.information, first.information, rtol=1e-5, atol=1e-6 * scale)
