@@ -53,13 +53,19 @@ class BranchChoice:
     """Result of :func:`choose_branches`: ``indices`` (i0, i1) the chosen candidate of each
     view; ``tips`` [(2,), (2,)] their tips (distorted (u, v), from ``tips_of``);
     ``epipolar_px`` their epipolar distance; ``turn_deg`` the sum of their
-    ``crossing_turn_deg``; ``consistent_pairs`` how many pairs were within ``match_px``."""
+    ``crossing_turn_deg``; ``consistent_pairs`` how many pairs were within ``match_px``;
+    ``inconsistent_px`` the chosen pair's ``inconsistency_of`` (None without it)."""
 
     indices: tuple[int, int]
     tips: list
     epipolar_px: float
     turn_deg: float
     consistent_pairs: int
+    inconsistent_px: float | None = None
+
+
+#: :func:`choose_branches`' level (px) of a pair whose whole backbones explain each other
+CONSISTENT_PX = 40.0
 
 
 def _smoother(alt, orig) -> bool:
@@ -76,7 +82,7 @@ def _follows_no_more(alt, orig) -> bool:
 
 def choose_branches(
     cams, candidates, *, tips_of=None, match_px: float = 15.0, inconsistency_of=None,
-    consistent_px: float = 40.0, margin_px: float = 20.0, any_pair: bool = False,
+    consistent_px: float = CONSISTENT_PX, margin_px: float = 20.0, any_pair: bool = False,
 ) -> BranchChoice | None:  # fmt: skip
     """The consistent pair of candidates with the smoothest paths (module docstring).
 
@@ -139,7 +145,7 @@ def choose_branches(
             followed = int(getattr(a, "crossings_followed", 0)) + int(
                 getattr(b, "crossings_followed", 0)
             )
-            k = (followed, turn, e)
+            k, bad = (followed, turn, e), None
             if inconsistency_of is not None:
                 bad = base_bad if not (i0 or i1) else float(inconsistency_of(a, b, tips))
                 alts_ok = all(
@@ -151,7 +157,7 @@ def choose_branches(
                     continue
                 k = (bad > consistent_px, followed, turn, bad, e)
             if key is None or k < key:
-                best, key = ((i0, i1), tips, e, turn), k
+                best, key = ((i0, i1), tips, e, turn, bad), k
     if best is None:
         return None
-    return BranchChoice(best[0], best[1], best[2], best[3], n_ok)
+    return BranchChoice(best[0], best[1], best[2], best[3], n_ok, best[4])

@@ -71,7 +71,7 @@ from jaxcr.stereo.base_frame import (
     triangulate_entry,
 )
 from jaxcr.stereo.base_locate import flood_component, locate_base
-from jaxcr.stereo.branch_choice import choose_branches
+from jaxcr.stereo.branch_choice import CONSISTENT_PX, choose_branches
 from jaxcr.stereo.camera_order import camera_order_check
 from jaxcr.stereo.chain_fit import (
     _direct,  # the default jit_call: fn(*args)
@@ -399,8 +399,9 @@ def _branch_step(cams, traces, flag_px: float):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
     First among each view's trace and its re-traces from its own junctions; where that
-    finds no pair whose whole backbones leave at most ``consistent_px`` (40 px, the
-    choice's own level) unexplained, again with each view's tube also searched along the
+    finds no pair whose whole backbones leave at most
+    :data:`jaxcr.stereo.branch_choice.CONSISTENT_PX` (40 px, the choice's own level)
+    unexplained, again with each view's tube also searched along the
     other view's trace (:func:`jaxcr.stereo.guided_retrace.guided_candidates`,
     docs/decisions.md S35): a pair of the view's own candidates that explains itself is
     not overruled by a guided path, which can stop at a hook's apex and explain the other
@@ -427,15 +428,11 @@ def _branch_step(cams, traces, flag_px: float):
                 # 1.25 tube widths (20 px for the 16 px tubes of real_like at 1280x720).
                 margin_px=1.25 * float(np.mean([t.width_px for t in traces])),
                 inconsistency_of=inconsistency,
-                consistent_px=_CONSISTENT_PX,
             )
 
         cands = [[t] + trace_alternatives(t) for t in traces]
         choice = choose(cands)
-        settled = choice is not None and (
-            inconsistency(*(cands[k][choice.indices[k]] for k in range(2)), choice.tips)
-            <= _CONSISTENT_PX
-        )
+        settled = choice is not None and choice.inconsistent_px <= CONSISTENT_PX
         if not settled:
             guided = guided_candidates(cams, traces)
             if guided[0] or guided[1]:
@@ -446,11 +443,6 @@ def _branch_step(cams, traces, flag_px: float):
             tips, src = _stereo_or_own_tips(cams, traces)
             src = src + "+branch"
     return traces, tips, src
-
-
-# The branch choice's level of a pair whose whole backbones explain each other
-# (choose_branches' consistent_px default).
-_CONSISTENT_PX = 40.0
 
 
 def _ending_at(backbone, tip) -> np.ndarray:
