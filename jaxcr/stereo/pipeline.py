@@ -71,7 +71,7 @@ from jaxcr.stereo.base_frame import (
     triangulate_entry,
 )
 from jaxcr.stereo.base_locate import flood_component, locate_base
-from jaxcr.stereo.branch_choice import CONSISTENT_PX, choose_branches
+from jaxcr.stereo.branch_choice import choose_branches
 from jaxcr.stereo.camera_order import camera_order_check
 from jaxcr.stereo.chain_fit import (
     _direct,  # the default jit_call: fn(*args)
@@ -96,6 +96,7 @@ from jaxcr.stereo.diameter import (
 )
 from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
 from jaxcr.stereo.guided_retrace import guided_candidates
+from jaxcr.stereo.guided_turns import with_own_turns
 from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
@@ -350,9 +351,9 @@ def traced_stereo_tips(
     are over ``flag_px`` from each other's epipolar lines, the branches the tracers took at
     the junctions they passed are chosen again by both views together (each view's trace,
     its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
-    trace_alternatives`, and, where no pair of those explains the other's whole backbone,
-    its tube found again along the other view's trace,
-    :func:`jaxcr.stereo.guided_retrace.guided_candidates`; the consistent pair whose whole backbones triangulate
+    trace_alternatives`, and its tube found again along the other view's trace,
+    :func:`jaxcr.stereo.guided_retrace.guided_candidates`, ranked by its own turns at the
+    view's junctions, :mod:`jaxcr.stereo.guided_turns`; the consistent pair whose whole backbones triangulate
     consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
     :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
     ``flag_px``, a view whose tube hooks back over its own silhouette gets its tip where
@@ -398,14 +399,15 @@ def _tip_step(cams, traces, tips, src, flag_px: float):
 def _branch_step(cams, traces, flag_px: float):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
-    First among each view's trace and its re-traces from its own junctions; where that
-    finds no pair whose whole backbones leave at most
-    :data:`jaxcr.stereo.branch_choice.CONSISTENT_PX` (40 px, the choice's own level)
-    unexplained, again with each view's tube also searched along the
-    other view's trace (:func:`jaxcr.stereo.guided_retrace.guided_candidates`,
-    docs/decisions.md S35): a pair of the view's own candidates that explains itself is
-    not overruled by a guided path, which can stop at a hook's apex and explain the other
-    view as well (dev 4087)."""
+    One choice among each view's trace, its re-traces from its own junctions and its tube
+    searched again along the other view's trace
+    (:func:`jaxcr.stereo.guided_retrace.guided_candidates`, docs/decisions.md S35), each
+    guided candidate with its own turns at its view's junctions
+    (:func:`jaxcr.stereo.guided_turns.with_own_turns`, S36). Round 14 offered the guided
+    candidates only where the views' own candidates held no pair that explains itself,
+    because a guided path carried the turn of the trace it may replace (a path stopped at a
+    hook's apex outranked the right hook, dev 4087); that second stage missed the frames
+    whose own candidates hold a wrong pair that explains itself (4079, 4185)."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
     if epipolar_gap_px(cams, tips) > flag_px and all(
@@ -431,13 +433,11 @@ def _branch_step(cams, traces, flag_px: float):
             )
 
         cands = [[t] + trace_alternatives(t) for t in traces]
+        # One choice among the views' own candidates and the guided ones, each guided
+        # candidate ranked by its own turns at its view's junctions (S36).
+        guided = with_own_turns(guided_candidates(cams, traces), traces)
+        cands = [c + g for c, g in zip(cands, guided, strict=True)]
         choice = choose(cands)
-        settled = choice is not None and choice.inconsistent_px <= CONSISTENT_PX
-        if not settled:
-            guided = guided_candidates(cams, traces)
-            if guided[0] or guided[1]:
-                cands = [c + g for c, g in zip(cands, guided, strict=True)]
-                choice = choose(cands)
         if choice is not None and choice.indices != (0, 0):
             traces = [cands[k][choice.indices[k]] for k in range(2)]
             tips, src = _stereo_or_own_tips(cams, traces)

@@ -1,0 +1,78 @@
+"""A guided candidate's own turns at its view's junctions (issue 16 item 2, round 15a,
+docs/decisions.md S36).
+
+The branch choice (:func:`jaxcr.stereo.branch_choice.choose_branches`) ranks consistent
+pairs by how many crossing objects their paths follow (``crossings_followed``) and by their
+largest turn where they pass a junction (``crossing_turn_deg``): a tube goes on smoothly
+behind a crossing cable, a path that turned onto the cable turns by the crossing angle. A
+candidate found along the other view's trace
+(:func:`jaxcr.stereo.guided_retrace.guided_candidate`) has no junctions of its own, so it
+was given the values of the trace it may replace (round 14, S35). That made it "neither
+smoother nor rougher" than that trace, but it is wrong exactly where it matters: where the
+view's trace turned onto a cable, the guided path that goes on behind the cable carries the
+trace's large turn; where the trace went on and the guided path turns (a path stopped at a
+hook's apex, or led onto the cable by a wrong anchor), it carries the trace's small one.
+
+Here the guided path is measured as the tracer measures its own paths, at the same
+junctions: each junction the view's tracer saw (``TubeTrace.junctions`` of the trace at its
+traced scale) that the guided path passes within a tube width of is a junction of the
+guided path, and its turn (:func:`jaxcr.segmentation.foreground.crossing_turn`, two look
+lengths on) and whether it leaves along a crossing object
+(:func:`jaxcr.segmentation.foreground.crosses_through`, on the traced view's mask) are
+computed on the guided path itself. Nothing is tuned: the lengths are the tracer's own.
+
+Pixels are distorted (as the camera records them). Numpy, per frame, at the edge of the
+stereo pipeline: nothing here is jitted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["guided_turns", "with_own_turns"]
+
+
+def guided_turns(candidate, trace) -> tuple[float, int] | None:
+    """``(crossing_turn_deg, crossings_followed)`` of the path ``candidate.backbone`` (full
+    resolution, distorted (u, v)) at the junctions of ``trace`` (a
+    :class:`jaxcr.segmentation.foreground.TubeTrace` of :func:`plate_foreground` with its
+    ``retrace`` state) that it passes within one tube width of (module docstring); None
+    when ``trace`` has no ``retrace`` state. A path that passes none of the junctions turns
+    by 0 and follows no crossing object (the tracer's own convention for a path without
+    junctions)."""
+    from jaxcr.segmentation.foreground import _to_low, crosses_through, crossing_turn
+
+    ctx = getattr(trace, "retrace", None)
+    if ctx is None:
+        return None
+    k, cfg, low = ctx.k, ctx.cfg, ctx.low
+    bb = _to_low(np.asarray(candidate.backbone, np.float64).reshape(-1, 2), k)
+    if len(bb) < 3 or not low.junctions:
+        return 0.0, 0
+    # The tracer walks in steps of cfg.step_px at the traced scale; the guided path is
+    # densified to that step, so the look lengths mean the same number of points.
+    width = float(low.width_px)
+    turn, followed = 0.0, 0
+    for j in low.junctions:
+        p = np.asarray(j[1], np.float64)
+        d = np.linalg.norm(bb - p[None], axis=1)
+        i = int(np.argmin(d))
+        if not (d[i] <= width and 0 < i < len(bb) - 1):
+            continue
+        turn = max(turn, crossing_turn(bb, i, 2.0 * cfg.look_px))
+        followed += int(crosses_through(ctx.seeds_l, bb, i, 2.0 * cfg.look_px, width))
+    return float(turn), int(followed)
+
+
+def with_own_turns(candidates, traces) -> list[list]:
+    """``candidates`` (per view a list, as :func:`jaxcr.stereo.guided_retrace.
+    guided_candidates` returns them) with each candidate's ``crossing_turn_deg`` and
+    ``crossings_followed`` replaced by its own (:func:`guided_turns` against its view's
+    trace in ``traces``); a candidate whose view has no ``retrace`` state keeps the
+    copied values. The candidates are changed in place and returned."""
+    for v, cands in enumerate(candidates):
+        for c in cands:
+            own = guided_turns(c, traces[v])
+            if own is not None:
+                c.crossing_turn_deg, c.crossings_followed = own
+    return candidates
