@@ -13,6 +13,9 @@ true tips). Per seed:
 * ``one_own`` -- one stage, each guided candidate with its own turn and crossings at its
   view's junctions (:func:`jaxcr.stereo.guided_turns.with_own_turns`);
 * ``two_own`` -- two stages (as ``ref``), own turns;
+* ``one_own_x`` -- ``one_own``, and an alternative that follows more crossing objects than
+  its view's trace allowed when the pair explains itself
+  (``choose_branches(more_crossings_if_consistent=True)``);
 * ``pipeline`` -- this tree's :func:`traced_stereo_tips` (the stored alternatives returned
   for ``trace_alternatives``, which is deterministic);
 * ``oracle_guided`` -- the candidate pair nearest the truth (the ceiling of any choice).
@@ -38,11 +41,14 @@ from real_like_tip_spline import _oracle  # the candidate ceiling
 
 from jaxcr.benchmarks import parse_seeds
 from jaxcr.stereo import pipeline
+from jaxcr.stereo.backbone_consistency import backbone_consistency
+from jaxcr.stereo.branch_choice import choose_branches
 from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.guided_turns import with_own_turns
+from jaxcr.stereo.tip_consistency import epipolar_gap_px
 
 FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run here
-VARIANTS = ("ref", "one", "one_own", "two_own", "pipeline")
+VARIANTS = ("ref", "one", "one_own", "two_own", "one_own_x", "pipeline")
 
 
 def _pipeline(rec):
@@ -58,6 +64,38 @@ def _pipeline(rec):
         for c, t in zip(chosen, rec["traces"], strict=True)
     ]
     return tips, None if res is None else res.action, kind
+
+
+def _one_choice(rec, cands, **choose_kw):
+    """``pipeline._branch_step`` with given candidates (one choice) and ``choose_branches``
+    keywords, then the tip step: (tips, action, chosen kinds, flagged)."""
+    cams, traces = rec["calib"], list(rec["traces"])
+    tips, src = pipeline._stereo_or_own_tips(cams, traces)
+    width = float(np.mean([t.width_px for t in traces]))
+    flagged = epipolar_gap_px(cams, tips) > 5.0
+    if flagged and len(cands[0]) + len(cands[1]) > 2:
+
+        def bad(a, b, tips):
+            return backbone_consistency(
+                cams,
+                pipeline._ending_at(a.backbone, tips[0]),
+                pipeline._ending_at(b.backbone, tips[1]),
+            ).inconsistent_px
+
+        choice = choose_branches(
+            cams, cands, tips_of=lambda a, b: pipeline._stereo_or_own_tips(cams, [a, b])[0],
+            match_px=15.0, margin_px=1.25 * width, inconsistency_of=bad, **choose_kw,
+        )  # fmt: skip
+        if choice is not None and choice.indices != (0, 0):
+            traces = [cands[k][choice.indices[k]] for k in range(2)]
+            tips, src = pipeline._stereo_or_own_tips(cams, traces)
+            src += "+branch"
+    tips, src, res, chosen = pipeline._tip_step(cams, traces, tips, src, 5.0)
+    kind = [
+        "trace" if c is t else ("guided" if getattr(c, "departure", None) == -1 else "alt")
+        for c, t in zip(chosen, rec["traces"], strict=True)
+    ]
+    return tips, None if res is None else res.action, kind, flagged
 
 
 def evaluate(seeds, store: Path, out: Path) -> None:
@@ -93,6 +131,10 @@ def evaluate(seeds, store: Path, out: Path) -> None:
             tips, act, kind, flagged = _variant(rec, cands)
             row[name] = {"err_px": _errs(tips, rec["truth"]), "action": act, "chosen": kind,
                          "flagged": bool(flagged), "cpu_s": time.process_time() - t0}  # fmt: skip
+        t0 = time.process_time()
+        tips, act, kind, flagged = _one_choice(rec, plus_own, more_crossings_if_consistent=True)
+        row["one_own_x"] = {"err_px": _errs(tips, rec["truth"]), "action": act, "chosen": kind,
+                            "flagged": bool(flagged), "cpu_s": time.process_time() - t0}  # fmt: skip
         t0 = time.process_time()
         tips, act, kind = _pipeline(rec)
         row["pipeline"] = {"err_px": _errs(tips, rec["truth"]), "action": act, "chosen": kind,
