@@ -11,11 +11,15 @@ true tips). Per seed:
   may replace) offered in a second stage only;
 * ``one`` -- the guided candidates in one stage (round 14's ``guided_one``);
 * ``one_own`` -- one stage, each guided candidate with its own turn and crossings at its
-  view's junctions (:func:`jaxcr.stereo.guided_turns.with_own_turns`);
+  view's junctions (:func:`jaxcr.stereo.guided_ranking.with_own_turns`);
 * ``two_own`` -- two stages (as ``ref``), own turns;
 * ``one_own_x`` -- ``one_own``, and an alternative that follows more crossing objects than
   its view's trace allowed when the pair explains itself
   (``choose_branches(more_crossings_if_consistent=True)``);
+* ``one_own_g`` -- ``one_own``, a view's guided candidate offered only where none of the
+  view's own re-traces explains the other view's trace
+  (:func:`jaxcr.stereo.guided_ranking.offered_guided`); ``one_own_gx`` the same with
+  ``more_crossings_if_consistent``;
 * ``pipeline`` -- this tree's :func:`traced_stereo_tips` (the stored alternatives returned
   for ``trace_alternatives``, which is deterministic);
 * ``oracle_guided`` -- the candidate pair nearest the truth (the ceiling of any choice).
@@ -42,13 +46,13 @@ from real_like_tip_spline import _oracle  # the candidate ceiling
 from jaxcr.benchmarks import parse_seeds
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.backbone_consistency import backbone_consistency
-from jaxcr.stereo.branch_choice import choose_branches
+from jaxcr.stereo.branch_choice import CONSISTENT_PX, choose_branches
+from jaxcr.stereo.guided_ranking import offered_guided, with_own_turns
 from jaxcr.stereo.guided_retrace import guided_candidates
-from jaxcr.stereo.guided_turns import with_own_turns
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
 
 FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run here
-VARIANTS = ("ref", "one", "one_own", "two_own", "one_own_x", "pipeline")
+VARIANTS = ("ref", "one", "one_own", "two_own", "one_own_x", "one_own_g", "one_own_gx", "pipeline")
 
 
 def _pipeline(rec):
@@ -64,6 +68,21 @@ def _pipeline(rec):
         for c, t in zip(chosen, rec["traces"], strict=True)
     ]
     return tips, None if res is None else res.action, kind
+
+
+def _explains(cams, a, b) -> bool:
+    """The pipeline's test of a pair that explains itself: tips within the choice's
+    ``match_px`` (15) of each other's epipolar lines, backbones within
+    ``CONSISTENT_PX``."""
+    tips = pipeline._stereo_or_own_tips(cams, [a, b])[0]
+    if not all(np.all(np.isfinite(t)) for t in tips) or epipolar_gap_px(cams, tips) > 15.0:
+        return False
+    return (
+        backbone_consistency(
+            cams, pipeline._ending_at(a.backbone, tips[0]), pipeline._ending_at(b.backbone, tips[1])
+        ).inconsistent_px
+        <= CONSISTENT_PX
+    )
 
 
 def _one_choice(rec, cands, **choose_kw):
@@ -135,6 +154,14 @@ def evaluate(seeds, store: Path, out: Path) -> None:
         tips, act, kind, flagged = _one_choice(rec, plus_own, more_crossings_if_consistent=True)
         row["one_own_x"] = {"err_px": _errs(tips, rec["truth"]), "action": act, "chosen": kind,
                             "flagged": bool(flagged), "cpu_s": time.process_time() - t0}  # fmt: skip
+        g_off = offered_guided(g_own, base, lambda a, b, cams=cams: _explains(cams, a, b))
+        row["n_guided_offered"] = [len(x) for x in g_off]
+        plus_g = [base[k] + g_off[k] for k in range(2)]
+        for name, kw in (("one_own_g", {}), ("one_own_gx", {"more_crossings_if_consistent": True})):
+            t0 = time.process_time()
+            tips, act, kind, flagged = _one_choice(rec, plus_g, **kw)
+            row[name] = {"err_px": _errs(tips, rec["truth"]), "action": act, "chosen": kind,
+                         "flagged": bool(flagged), "cpu_s": time.process_time() - t0}  # fmt: skip
         t0 = time.process_time()
         tips, act, kind = _pipeline(rec)
         row["pipeline"] = {"err_px": _errs(tips, rec["truth"]), "action": act, "chosen": kind,

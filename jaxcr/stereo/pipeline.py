@@ -71,7 +71,7 @@ from jaxcr.stereo.base_frame import (
     triangulate_entry,
 )
 from jaxcr.stereo.base_locate import flood_component, locate_base
-from jaxcr.stereo.branch_choice import choose_branches
+from jaxcr.stereo.branch_choice import CONSISTENT_PX, choose_branches
 from jaxcr.stereo.camera_order import camera_order_check
 from jaxcr.stereo.chain_fit import (
     _direct,  # the default jit_call: fn(*args)
@@ -95,8 +95,8 @@ from jaxcr.stereo.diameter import (
     view_weights,
 )
 from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
+from jaxcr.stereo.guided_ranking import offered_guided, with_own_turns
 from jaxcr.stereo.guided_retrace import guided_candidates
-from jaxcr.stereo.guided_turns import with_own_turns
 from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
@@ -353,7 +353,7 @@ def traced_stereo_tips(
     its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
     trace_alternatives`, and its tube found again along the other view's trace,
     :func:`jaxcr.stereo.guided_retrace.guided_candidates`, ranked by its own turns at the
-    view's junctions, :mod:`jaxcr.stereo.guided_turns`; the consistent pair whose whole backbones triangulate
+    view's junctions, :mod:`jaxcr.stereo.guided_ranking`; the consistent pair whose whole backbones triangulate
     consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
     :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
     ``flag_px``, a view whose tube hooks back over its own silhouette gets its tip where
@@ -402,12 +402,13 @@ def _branch_step(cams, traces, flag_px: float):
     One choice among each view's trace, its re-traces from its own junctions and its tube
     searched again along the other view's trace
     (:func:`jaxcr.stereo.guided_retrace.guided_candidates`, docs/decisions.md S35), each
-    guided candidate with its own turns at its view's junctions
-    (:func:`jaxcr.stereo.guided_turns.with_own_turns`, S36). Round 14 offered the guided
-    candidates only where the views' own candidates held no pair that explains itself,
-    because a guided path carried the turn of the trace it may replace (a path stopped at a
-    hook's apex outranked the right hook, dev 4087); that second stage missed the frames
-    whose own candidates hold a wrong pair that explains itself (4079, 4185)."""
+    guided candidate with its own turns at its view's junctions and offered only where
+    none of the view's own re-traces explains the other view's trace
+    (:mod:`jaxcr.stereo.guided_ranking`, S36: a guided path agrees with the trace it was
+    searched along by construction, a re-trace that agrees is independent evidence).
+    Round 14 offered the guided candidates only where the views' own candidates held no
+    pair that explains itself; that missed the frames whose own candidates hold a wrong
+    pair that explains itself (a re-trace onto a cable both views see: dev 4079, 4185)."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
     if epipolar_gap_px(cams, tips) > flag_px and all(
@@ -433,9 +434,20 @@ def _branch_step(cams, traces, flag_px: float):
             )
 
         cands = [[t] + trace_alternatives(t) for t in traces]
-        # One choice among the views' own candidates and the guided ones, each guided
-        # candidate ranked by its own turns at its view's junctions (S36).
+        # One choice among the views' own candidates and the guided ones (S36): a view's
+        # guided candidate ranked by its own turns at the view's junctions, and offered
+        # only where none of the view's own re-traces explains the other view's trace.
+
+        def explains(a, b):
+            tips = _stereo_or_own_tips(cams, [a, b])[0]
+            return (
+                all(np.all(np.isfinite(t)) for t in tips)
+                and epipolar_gap_px(cams, tips) <= 3.0 * flag_px
+                and inconsistency(a, b, tips) <= CONSISTENT_PX
+            )
+
         guided = with_own_turns(guided_candidates(cams, traces), traces)
+        guided = offered_guided(guided, cands, explains)
         cands = [c + g for c, g in zip(cands, guided, strict=True)]
         choice = choose(cands)
         if choice is not None and choice.indices != (0, 0):

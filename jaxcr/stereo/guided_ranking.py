@@ -1,5 +1,6 @@
-"""A guided candidate's own turns at its view's junctions (issue 16 item 2, round 15a,
-docs/decisions.md S36).
+"""How the candidates found along the other view's trace enter the branch choice (issue 16
+item 2, round 15a, docs/decisions.md S36): their own turns at their view's junctions, and
+the view's own re-traces first.
 
 The branch choice (:func:`jaxcr.stereo.branch_choice.choose_branches`) ranks consistent
 pairs by how many crossing objects their paths follow (``crossings_followed``) and by their
@@ -21,6 +22,17 @@ lengths on) and whether it leaves along a crossing object
 (:func:`jaxcr.segmentation.foreground.crosses_through`, on the traced view's mask) are
 computed on the guided path itself. Nothing is tuned: the lengths are the tracer's own.
 
+A guided candidate agrees with its anchor (the other view's trace) *by construction*: it
+was searched along the anchor's epipolar lines, so that the pair explains itself is no
+evidence that it is the tube (a trace stopped at a hook's apex or a little short guides the
+other view to a path that stops there too, dev 4087, 4010). A re-trace of the view's own
+(:func:`jaxcr.segmentation.foreground.trace_alternatives`) that explains the other view's
+trace is two independent traces agreeing in 3-D. :func:`offered_guided` therefore offers a
+view's guided candidate only where none of the view's own re-traces explains the other
+view's trace; where the *other* view's own candidates hold a pair that explains itself (a
+re-trace onto a cable seen by both views: a real 3-D object, dev 4079, 4185), the guided
+candidate still competes with it, ranked by its own turns.
+
 Pixels are distorted (as the camera records them). Numpy, per frame, at the edge of the
 stereo pipeline: nothing here is jitted.
 """
@@ -29,7 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["guided_turns", "with_own_turns"]
+__all__ = ["guided_turns", "offered_guided", "with_own_turns"]
 
 
 def guided_turns(candidate, trace) -> tuple[float, int] | None:
@@ -76,3 +88,22 @@ def with_own_turns(candidates, traces) -> list[list]:
             if own is not None:
                 c.crossing_turn_deg, c.crossings_followed = own
     return candidates
+
+
+def offered_guided(guided, own, explains) -> list[list]:
+    """``guided`` (per view a list, :func:`jaxcr.stereo.guided_retrace.guided_candidates`)
+    without the candidates of a view ``v`` where one of ``v``'s own re-traces ``own[v][1:]``
+    (``own[v][0]`` is ``v``'s trace) explains the other view's trace ``own[1 - v][0]``
+    (module docstring). ``explains(a, b)``: whether the pair (view 0's ``a``, view 1's
+    ``b``) explains itself (e.g. tips within the choice's epipolar ``match_px`` and whole
+    backbones within its ``consistent_px``, as :func:`jaxcr.stereo.pipeline.
+    traced_stereo_tips` passes)."""
+    out = [[], []]
+    for v in (0, 1):
+        if not guided[v]:
+            continue
+        other = own[1 - v][0]
+        pairs = ((alt, other) if v == 0 else (other, alt) for alt in own[v][1:])
+        if not any(explains(a, b) for a, b in pairs):
+            out[v] = list(guided[v])
+    return out

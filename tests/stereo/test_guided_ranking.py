@@ -1,4 +1,4 @@
-"""jaxcr.stereo.guided_turns: a guided candidate's own turns at its view's junctions, against
+"""jaxcr.stereo.guided_ranking: a guided candidate's own turns at its view's junctions, against
 closed-form crossing angles, and the branch choice of ``traced_stereo_tips`` with them on a
 closed-form 3-D tube and a cable that leaves it, projected by OpenCV (``cv2.projectPoints``
 with lens distortion)."""
@@ -15,7 +15,7 @@ from jaxcr.segmentation.foreground import (
     crossing_turn,
 )
 from jaxcr.stereo import pipeline
-from jaxcr.stereo.guided_turns import guided_turns, with_own_turns
+from jaxcr.stereo.guided_ranking import guided_turns, offered_guided, with_own_turns
 from tests.helpers.stereo_views import cam as _cam
 from tests.helpers.stereo_views import project as _project
 
@@ -145,3 +145,25 @@ def test_traced_stereo_tips_one_choice_with_own_turns():
     # The bound of test_guided_retrace's refined guided tip (2.5 px).
     assert np.linalg.norm(tips[1] - bb[1][-1]) < 2.5, (tips[1], bb[1][-1])
     assert np.linalg.norm(tips[0] - bb[0][-1]) < 2.5, (tips[0], bb[0][-1])
+
+
+def test_offered_guided_own_retraces_first():
+    """A view's guided candidate is dropped exactly where one of the view's own re-traces
+    explains the other view's trace (here: the pairs named in ``ok``); the other view's
+    guided candidate is unaffected, and the trace itself does not count."""
+    t0, a0, t1, a1 = (SimpleNamespace(name=n) for n in ("t0", "a0", "t1", "a1"))
+    g0, g1 = SimpleNamespace(name="g0"), SimpleNamespace(name="g1")
+    own = [[t0, a0], [t1, a1]]
+
+    def explains_of(ok):
+        return lambda a, b: (a.name, b.name) in ok
+
+    # t0 with a1 explains: view 1's own re-trace agrees with view 0's trace -> g1 dropped.
+    out = offered_guided([[g0], [g1]], own, explains_of({("t0", "a1")}))
+    assert out == [[g0], []]
+    # a0 with t1: view 0's guided dropped instead.
+    out = offered_guided([[g0], [g1]], own, explains_of({("a0", "t1")}))
+    assert out == [[], [g1]]
+    # The traces' own pair, or a pair of two re-traces, does not gate anything.
+    out = offered_guided([[g0], [g1]], own, explains_of({("t0", "t1"), ("a0", "a1")}))
+    assert out == [[g0], [g1]]
