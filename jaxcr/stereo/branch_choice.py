@@ -113,7 +113,9 @@ def choose_branches(
     leave their traces are offered too, each alternative under the same gate (not used
     by the pipeline: docs/decisions.md S31). ``more_crossings_if_consistent``: an
     alternative that follows more crossing objects than its view's trace is allowed when
-    the pair's length is within ``consistent_px`` (round 15a's variant, S36)."""
+    the pair's length is within ``consistent_px`` (what :func:`jaxcr.stereo.pipeline.
+    traced_stereo_tips` passes since S36: a tube that crosses its own silhouette is an X
+    as a cable is, :func:`jaxcr.segmentation.foreground.crosses_through`)."""
     F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
                                np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
     best, key, n_ok = None, None, 0

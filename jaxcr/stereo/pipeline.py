@@ -431,6 +431,9 @@ def _branch_step(cams, traces, flag_px: float):
                 # 1.25 tube widths (20 px for the 16 px tubes of real_like at 1280x720).
                 margin_px=1.25 * float(np.mean([t.width_px for t in traces])),
                 inconsistency_of=inconsistency,
+                # A re-trace may follow more crossing objects than its trace when the pair
+                # explains itself: a tube crossing its own silhouette is an X too (S36).
+                more_crossings_if_consistent=True,
             )
 
         cands = [[t] + trace_alternatives(t) for t in traces]
