@@ -83,6 +83,7 @@ def _follows_no_more(alt, orig) -> bool:
 def choose_branches(
     cams, candidates, *, tips_of=None, match_px: float = 15.0, inconsistency_of=None,
     consistent_px: float = CONSISTENT_PX, margin_px: float = 20.0, any_pair: bool = False,
+    more_crossings_if_consistent: bool = False,
 ) -> BranchChoice | None:  # fmt: skip
     """The consistent pair of candidates with the smoothest paths (module docstring).
 
@@ -110,7 +111,11 @@ def choose_branches(
     caller gives it in tube widths (:func:`jaxcr.stereo.pipeline.traced_stereo_tips`:
     1.25 widths). ``any_pair`` (with ``inconsistency_of``): pairs in which both views
     leave their traces are offered too, each alternative under the same gate (not used
-    by the pipeline: docs/decisions.md S31)."""
+    by the pipeline: docs/decisions.md S31). ``more_crossings_if_consistent``: an
+    alternative that follows more crossing objects than its view's trace is allowed when
+    the pair's length is within ``consistent_px`` (what :func:`jaxcr.stereo.pipeline.
+    traced_stereo_tips` passes since S36: a tube that crosses its own silhouette is an X
+    as a cable is, :func:`jaxcr.segmentation.foreground.crosses_through`)."""
     F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
                                np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
     best, key, n_ok = None, None, 0
@@ -153,6 +158,10 @@ def choose_branches(
                     for v, (i, x) in enumerate(((i0, a), (i1, b)))
                     if i
                 )
+                # A pair that explains itself may follow more crossing objects than the
+                # traces (a tube that crosses its own silhouette is an X too); it still
+                # ranks after every such pair that follows fewer (the key below).
+                alts_ok = alts_ok or (more_crossings_if_consistent and bad <= consistent_px)
                 if (i0 or i1) and not (bad < base_bad - margin_px and alts_ok):
                     continue
                 k = (bad > consistent_px, followed, turn, bad, e)

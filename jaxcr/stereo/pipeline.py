@@ -95,6 +95,7 @@ from jaxcr.stereo.diameter import (
     view_weights,
 )
 from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
+from jaxcr.stereo.guided_ranking import offered_guided, with_own_turns
 from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.ordering import order_skeleton
 from jaxcr.stereo.segments import segment_backbone
@@ -350,9 +351,9 @@ def traced_stereo_tips(
     are over ``flag_px`` from each other's epipolar lines, the branches the tracers took at
     the junctions they passed are chosen again by both views together (each view's trace,
     its re-traces from its junctions, :func:`jaxcr.segmentation.foreground.
-    trace_alternatives`, and, where no pair of those explains the other's whole backbone,
-    its tube found again along the other view's trace,
-    :func:`jaxcr.stereo.guided_retrace.guided_candidates`; the consistent pair whose whole backbones triangulate
+    trace_alternatives`, and its tube found again along the other view's trace,
+    :func:`jaxcr.stereo.guided_retrace.guided_candidates`, ranked by its own turns at the
+    view's junctions, :mod:`jaxcr.stereo.guided_ranking`; the consistent pair whose whole backbones triangulate
     consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
     :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
     ``flag_px``, a view whose tube hooks back over its own silhouette gets its tip where
@@ -398,14 +399,16 @@ def _tip_step(cams, traces, tips, src, flag_px: float):
 def _branch_step(cams, traces, flag_px: float):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
-    First among each view's trace and its re-traces from its own junctions; where that
-    finds no pair whose whole backbones leave at most
-    :data:`jaxcr.stereo.branch_choice.CONSISTENT_PX` (40 px, the choice's own level)
-    unexplained, again with each view's tube also searched along the
-    other view's trace (:func:`jaxcr.stereo.guided_retrace.guided_candidates`,
-    docs/decisions.md S35): a pair of the view's own candidates that explains itself is
-    not overruled by a guided path, which can stop at a hook's apex and explain the other
-    view as well (dev 4087)."""
+    One choice among each view's trace, its re-traces from its own junctions and its tube
+    searched again along the other view's trace
+    (:func:`jaxcr.stereo.guided_retrace.guided_candidates`, docs/decisions.md S35), each
+    guided candidate with its own turns at its view's junctions and offered only where
+    none of the view's own re-traces explains the other view's trace
+    (:mod:`jaxcr.stereo.guided_ranking`, S36: a guided path agrees with the trace it was
+    searched along by construction, a re-trace that agrees is independent evidence).
+    Round 14 offered the guided candidates only where the views' own candidates held no
+    pair that explains itself; that missed the frames whose own candidates hold a wrong
+    pair that explains itself (a re-trace onto a cable both views see: dev 4079, 4185)."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
     if epipolar_gap_px(cams, tips) > flag_px and all(
@@ -428,16 +431,28 @@ def _branch_step(cams, traces, flag_px: float):
                 # 1.25 tube widths (20 px for the 16 px tubes of real_like at 1280x720).
                 margin_px=1.25 * float(np.mean([t.width_px for t in traces])),
                 inconsistency_of=inconsistency,
+                # A re-trace may follow more crossing objects than its trace when the pair
+                # explains itself: a tube crossing its own silhouette is an X too (S36).
+                more_crossings_if_consistent=True,
             )
 
         cands = [[t] + trace_alternatives(t) for t in traces]
+        # One choice among the views' own candidates and the guided ones (S36): a view's
+        # guided candidate ranked by its own turns at the view's junctions, and offered
+        # only where none of the view's own re-traces explains the other view's trace.
+
+        def explains(a, b):
+            tips = _stereo_or_own_tips(cams, [a, b])[0]
+            return (
+                all(np.all(np.isfinite(t)) for t in tips)
+                and epipolar_gap_px(cams, tips) <= 3.0 * flag_px
+                and inconsistency(a, b, tips) <= CONSISTENT_PX
+            )
+
+        guided = with_own_turns(guided_candidates(cams, traces), traces)
+        guided = offered_guided(guided, cands, explains)
+        cands = [c + g for c, g in zip(cands, guided, strict=True)]
         choice = choose(cands)
-        settled = choice is not None and choice.inconsistent_px <= CONSISTENT_PX
-        if not settled:
-            guided = guided_candidates(cams, traces)
-            if guided[0] or guided[1]:
-                cands = [c + g for c, g in zip(cands, guided, strict=True)]
-                choice = choose(cands)
         if choice is not None and choice.indices != (0, 0):
             traces = [cands[k][choice.indices[k]] for k in range(2)]
             tips, src = _stereo_or_own_tips(cams, traces)

@@ -1,5 +1,5 @@
 """Two-view test cameras and OpenCV projection shared by the stereo curve tests
-(tests/stereo/test_curve3d.py, test_guided_retrace.py): a 1280x720 pinhole with distortion,
+(tests/stereo/test_curve3d.py, test_guided_retrace.py, test_guided_ranking.py): a 1280x720 pinhole with distortion,
 posed by a Rodrigues vector and a translation, and ``cv2.projectPoints`` as the reference
 projection."""
 

@@ -215,3 +215,40 @@ def test_any_pair_lets_both_views_leave_their_traces():
     cands[1][1] = _cand(t1, 1, 5.0)
     res = choose_branches(CAMS, cands, inconsistency_of=inconsistency, any_pair=True)
     assert res is None or res.indices == (0, 0)
+
+
+def test_more_crossings_allowed_only_for_a_pair_that_explains_itself():
+    """View 0 traced a cable (its tip the cable's end, no crossing followed); its
+    alternative is the tube's end but "follows" one crossing object (a tube crossing its
+    own silhouette is an X as a cable is). View 1 traced the tube. By default the
+    alternative is gated out; with ``more_crossings_if_consistent`` it is chosen because
+    the pair explains itself (0 px), and it is not chosen when the pair leaves more than
+    ``consistent_px`` unexplained, or when a pair that follows fewer crossings also
+    explains itself."""
+    t0, t1 = _proj(T0, TIP)[0], _proj(T1, TIP)[0]
+    c0 = _proj(T0, CABLE_END)[0]
+    cands = [[_cand(c0, 0, 5.0), _cand(t0, 1, 30.0)], [_cand(t1, 0, 5.0)]]
+    bad = {(0, 0): 300.0, (1, 0): 0.0}
+
+    def inconsistency(a, b, tips):
+        return bad[(next(i for i, x in enumerate(cands[0]) if x is a), 0)]
+
+    res = choose_branches(CAMS, cands, inconsistency_of=inconsistency)
+    assert res is None or res.indices == (0, 0)
+    res = choose_branches(
+        CAMS, cands, inconsistency_of=inconsistency, more_crossings_if_consistent=True
+    )
+    assert res.indices == (1, 0) and res.inconsistent_px == 0.0
+    bad[(1, 0)] = 41.0  # over CONSISTENT_PX (40): gated as before
+    res = choose_branches(
+        CAMS, cands, inconsistency_of=inconsistency, more_crossings_if_consistent=True
+    )
+    assert res is None or res.indices == (0, 0)
+    # A second alternative, also the tube's end (1 px off) with no crossing followed and
+    # also explaining itself, outranks it (crossings followed come first).
+    bad[(1, 0)], bad[(2, 0)] = 0.0, 10.0
+    cands[0].append(_cand(t0 + [1.0, 0.0], 0, 30.0))
+    res = choose_branches(
+        CAMS, cands, inconsistency_of=inconsistency, more_crossings_if_consistent=True
+    )
+    assert res.indices == (2, 0)
