@@ -12,7 +12,11 @@ Input: stored traces (``real_like_tip_spline.py trace --store STORE``). Per seed
   (``trace_stereo_tips``), branch choice, tip step (fold, trim, cut, re-search);
 * ``calib`` -- the same, the tip step's flag the tips' calibration tolerance
   (:func:`jaxcr.stereo.epipolar_tolerance.tip_epipolar_tolerance_px`) with the preset's
-  stated calibration uncertainty, instead of 5 px (the branch choice's flag unchanged).
+  stated calibration uncertainty, instead of 5 px (the branch choice's flag unchanged);
+* ``calib_both`` -- the branch choice's flag that tolerance too (of the views' own
+  end-face tips);
+* ``pipeline`` -- this tree's :func:`traced_stereo_tips` with
+  ``calibration=REAL_LIKE_CALIBRATION`` (equal to ``calib``).
 
     python experiments/segmentation/real_like_tip_end.py --seeds 4000-4100 --store STORE \\
         --out ROWS
@@ -54,13 +58,15 @@ def _sigma(s):
     return None if s is None else [float(x) for x in s]
 
 
-def _run(rec, tip_flag=None):
+def _run(rec, tip_flag=None, branch_too=False):
     """``traced_stereo_tips`` split into its steps; ``tip_flag(cams, traces, tips)`` the tip
-    step's flag (None: 5 px as committed)."""
+    step's flag (None: 5 px as committed); ``branch_too``: the branch choice's flag too
+    (from the end-face tips of the views' own traces)."""
     cams = rec["calib"]
     traces0 = list(rec["traces"])
     own = pipeline._stereo_or_own_tips(cams, traces0)[0]
-    traces, tips, src = pipeline._branch_step(cams, traces0, 5.0)
+    bflag = 5.0 if not branch_too else float(tip_flag(cams, traces0, own))
+    traces, tips, src = pipeline._branch_step(cams, traces0, bflag)
     flag = 5.0 if tip_flag is None else float(tip_flag(cams, traces, tips))
     tips2, src2, res, chosen = pipeline._tip_step(cams, traces, tips, src, flag)
     return {
@@ -98,13 +104,14 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                "trace": _errs([t.tip for t in rec["traces"]], truth),
                "truth_epipolar_px": epipolar_gap_px(cams, truth)}  # fmt: skip
         try:
-            for name, flag in (
-                ("ref", None),
-                ("calib", lambda c, tr, tp: tip_epipolar_tolerance_px(
-                    c, tp, REAL_LIKE_CALIBRATION)),
-            ):  # fmt: skip
+
+            def tol(c, tr, tp):
+                return tip_epipolar_tolerance_px(c, tp, REAL_LIKE_CALIBRATION)
+
+            for name, flag, both in (("ref", None, False), ("calib", tol, False),
+                                     ("calib_both", tol, True)):  # fmt: skip
                 t0 = time.process_time()
-                r = _run(rec, flag)
+                r = _run(rec, flag, both)
                 cpu = time.process_time() - t0
                 row[name] = {
                     "err_px": _errs(r["final"], truth), "own_px": _errs(r["own"], truth),
@@ -116,6 +123,18 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                                      zip(r["traces"], r["final"], truth, strict=True)],
                     "cpu_s": cpu,
                 }  # fmt: skip
+            t0 = time.process_time()
+            for _ in range(20):
+                tol(cams, None, truth)
+            row["tolerance_cpu_s"] = (time.process_time() - t0) / 20
+            # This tree's traced_stereo_tips with the preset's stated calibration (as
+            # real_like_tip.py's trace_stereo calls it): equal to `calib`.
+            t0 = time.process_time()
+            tips, _, res, _ = pipeline.traced_stereo_tips(
+                cams, rec["traces"], calibration=REAL_LIKE_CALIBRATION
+            )
+            row["pipeline"] = {"err_px": _errs(tips, truth), "cpu_s": time.process_time() - t0,
+                               "action": None if res is None else res.action}  # fmt: skip
         finally:
             pipeline.trace_alternatives = saved
         rows.append(row)
@@ -155,20 +174,22 @@ def summary(path: Path) -> None:
               f"{e[0]:.1f} / {e[1]:.1f} | {r['calib']['err_px'][0]:.1f} / "
               f"{r['calib']['err_px'][1]:.1f} | {cls} v{k + 1} | {aa[0]:.1f} / {aa[1]:.1f} | "
               f"{_step(ref, k)} | {r['truth_epipolar_px']:.1f} | {r['calib']['flag_px']:.1f} |")  # fmt: skip
-    for name in ("ref", "calib"):
+    for name in ("ref", "calib", "calib_both"):
         for title, sel in (("4000-4100", [r for r in rows if 4000 <= r["seed"] <= 4100]),
                            ("all", rows)):  # fmt: skip
             ok = sum(max(r[name]["err_px"]) <= 5 for r in sel)
             print(f"{name} {title}: {ok} of {len(sel)} frames with both views within 5 px")
-    fixed = [r["seed"] for r in rows if max(r["ref"]["err_px"]) > 5 >= max(r["calib"]["err_px"])]
-    broken = [r["seed"] for r in rows if max(r["ref"]["err_px"]) <= 5 < max(r["calib"]["err_px"])]
-    print("fixed", fixed, "broken", broken)
-    for r in rows:
-        a, b = r["ref"]["err_px"], r["calib"]["err_px"]
-        if max(abs(x - y) for x, y in zip(a, b, strict=True)) > 0.05:
-            print(f"changed {r['seed']}: {a[0]:.1f} / {a[1]:.1f} -> {b[0]:.1f} / {b[1]:.1f} "
-                  f"({r['ref']['action']} -> {r['calib']['action']}, flag "
-                  f"{r['calib']['flag_px']:.1f} px)")  # fmt: skip
+    for v in ("calib", "calib_both", "pipeline"):
+        fixed = [r["seed"] for r in rows if max(r["ref"]["err_px"]) > 5 >= max(r[v]["err_px"])]
+        broken = [r["seed"] for r in rows if max(r["ref"]["err_px"]) <= 5 < max(r[v]["err_px"])]
+        print(f"\n`{v}`: fixed {fixed}, broken {broken}")
+        for r in rows:
+            a, b = r["ref"]["err_px"], r[v]["err_px"]
+            if max(abs(x - y) for x, y in zip(a, b, strict=True)) > 0.05:
+                print(f"- {r['seed']}: {a[0]:.1f} / {a[1]:.1f} -> {b[0]:.1f} / {b[1]:.1f} "
+                      f"({r['ref']['action']} -> {r[v]['action']}, tip flag "
+                      f"{r['calib']['flag_px']:.1f} px, gap after branch "
+                      f"{r['ref']['epipolar_branch_px']:.1f} px)")  # fmt: skip
     te = np.array([r["truth_epipolar_px"] for r in rows])
     fl = np.array([r["calib"]["flag_px"] for r in rows])
     print(
@@ -176,7 +197,9 @@ def summary(path: Path) -> None:
         f"max {te.max():.2f}; over the calib flag in {int(np.sum(te > fl))} of {len(rows)}; "
         f"flag median {np.median(fl):.2f}, range {fl.min():.2f}-{fl.max():.2f}"
     )
-    for name in ("ref", "calib"):
+    c = [r["tolerance_cpu_s"] for r in rows]
+    print(f"tip_epipolar_tolerance_px CPU s a call: median {np.median(c):.5f}, max {max(c):.5f}")
+    for name in ("ref", "calib", "calib_both", "pipeline"):
         c = [r[name]["cpu_s"] for r in rows]
         print(f"{name} CPU s a frame: median {np.median(c):.3f}, max {max(c):.2f}")
 

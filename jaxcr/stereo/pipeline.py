@@ -94,6 +94,7 @@ from jaxcr.stereo.diameter import (
     report_interpolation_diameters,
     view_weights,
 )
+from jaxcr.stereo.epipolar_tolerance import CalibrationUncertainty, tip_epipolar_tolerance_px
 from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
 from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.ordering import order_skeleton
@@ -342,7 +343,7 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
 
 
 def traced_stereo_tips(
-    cams, traces, *, flag_px: float = 5.0
+    cams, traces, *, flag_px: float = 5.0, calibration: CalibrationUncertainty | None = None
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -366,9 +367,18 @@ def traced_stereo_tips(
     :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
     (u, v), source ``"trace_stereo"`` or ``"trace"`` (``"+branch"`` appended when a branch
     choice replaced a view's trace), the re-search's result or None when a tip is not
-    finite, the two traces the tips belong to)."""
+    finite, the two traces the tips belong to).
+
+    ``calibration``: the rig's calibration uncertainty, given: the fold, trim and re-search
+    act only on tips further apart than right tips can be under it
+    (:func:`jaxcr.stereo.epipolar_tolerance.tip_epipolar_tolerance_px`, at least
+    ``flag_px``; docs/decisions.md S37: a right pair 5.4 px apart was cut back, dev 4177);
+    the branch choice's flag stays ``flag_px``."""
     traces, tips, src = _branch_step(cams, traces, flag_px)
-    return _tip_step(cams, traces, tips, src, flag_px)
+    tip_flag = flag_px
+    if calibration is not None:
+        tip_flag = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
+    return _tip_step(cams, traces, tips, src, tip_flag)
 
 
 def _tip_step(cams, traces, tips, src, flag_px: float):
