@@ -369,21 +369,24 @@ def traced_stereo_tips(
     choice replaced a view's trace), the re-search's result or None when a tip is not
     finite, the two traces the tips belong to).
 
-    ``calibration``: the rig's calibration uncertainty, given: the fold, trim and re-search
-    act only on tips further apart than right tips can be under it
-    (:func:`jaxcr.stereo.epipolar_tolerance.tip_epipolar_tolerance_px`, at least
-    ``flag_px``; docs/decisions.md S37: a right pair 5.4 px apart was cut back, dev 4177);
-    the branch choice's flag stays ``flag_px``."""
+    ``calibration``: the rig's calibration uncertainty, given: the tips' re-search, which
+    moves a tip onto the other's epipolar line, acts only on tips further apart than right
+    tips can be under it (:func:`jaxcr.stereo.epipolar_tolerance.tip_epipolar_tolerance_px`,
+    at least ``flag_px``; docs/decisions.md S37: a right pair 5.4 px apart was cut back, dev
+    4177). The branch choice, fold and trim keep ``flag_px``: they act on whole backbones
+    that leave over a tube width unexplained, which no calibration error of a few pixels
+    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074)."""
     traces, tips, src = _branch_step(cams, traces, flag_px)
-    tip_flag = flag_px
+    research_px = None
     if calibration is not None:
-        tip_flag = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
-    return _tip_step(cams, traces, tips, src, tip_flag)
+        research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
+    return _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
 
 
-def _tip_step(cams, traces, tips, src, flag_px: float):
+def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | None = None):
     """:func:`traced_stereo_tips` after the branch choice: a fold, a trim or the tips'
-    re-search (its return value)."""
+    re-search (its return value; flagged over ``research_px`` when given, else
+    ``flag_px``)."""
     if not all(np.all(np.isfinite(t)) for t in tips):
         return tips, src, None, traces
     res = None
@@ -401,7 +404,9 @@ def _tip_step(cams, traces, tips, src, flag_px: float):
         else:
             res = trim_unexplained_tail(cams, traces, tips, bc, tails=open_end_tails(cams, bc))
     if res is None:
-        res = reconcile_tips(cams, traces, tips, flag_px=flag_px)
+        res = reconcile_tips(
+            cams, traces, tips, flag_px=flag_px if research_px is None else research_px
+        )
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
 
 

@@ -93,37 +93,59 @@ def test_tolerance_floor_and_undefined():
     assert tip_epipolar_tolerance_px(CAMS, bad, REAL_LIKE_CALIBRATION) == 5.0
 
 
-def test_traced_stereo_tips_leaves_a_gap_within_the_calibrations_tolerance():
-    """The rig of tests/stereo/test_tip_consistency.py: view 1's trace ran on past the tube's
-    end (a shadow), its tips some 5-20 px from each other's epipolar lines. Without a
-    stated calibration the tip step moves a tip (5 px flag); with an uncertainty whose
-    tolerance exceeds the gap, the tips are left as they are ("consistent"), and with one
-    whose tolerance is under it, the step acts as without."""
+def _overshooting_traces(length_px):
+    """The rig of tests/stereo/test_tip_consistency.py, view 1's trace run on ``length_px``
+    past the tube's end (turned by -50 deg: a shadow); 5 px wide tubes."""
     from types import SimpleNamespace
 
-    from jaxcr.stereo.pipeline import traced_stereo_tips
-    from jaxcr.stereo.tip_consistency import epipolar_gap_px
     from tests.stereo.test_tip_consistency import CAMS as RIG
     from tests.stereo.test_tip_consistency import LINES, _overshoot, _score
 
-    lines = [_overshoot(LINES[0], -50.0, 12.0), LINES[1]]
+    lines = [_overshoot(LINES[0], -50.0, length_px), LINES[1]]
     traces = [SimpleNamespace(backbone=ln, score=_score(ln), width_px=5.0, tip=ln[-1],
                               end_dir=np.zeros(2), cap_px=0.0, end_half_width_px=0.0)
               for ln in lines]  # fmt: skip
-    tips = [ln[-1] for ln in lines]
-    gap = epipolar_gap_px(RIG, tips)
+    return RIG, traces, [ln[-1] for ln in lines]
+
+
+WIDE = CalibrationUncertainty(0.01, 2.0, 0.02, 2e-3)
+
+
+def test_traced_stereo_tips_leaves_a_gap_within_the_calibrations_tolerance():
+    """A 10 px overshoot (under two widths: no trim) leaves the tips 8 px apart: without a
+    stated calibration the re-search cuts view 1 back; with an uncertainty whose tolerance
+    exceeds the gap the tips are left as they are ("consistent"); with one whose tolerance
+    is under it (the 5 px floor) the result is the plain one."""
+    from jaxcr.stereo.pipeline import traced_stereo_tips
+    from jaxcr.stereo.tip_consistency import epipolar_gap_px
+
+    rig, traces, tips = _overshooting_traces(10.0)
+    gap = epipolar_gap_px(rig, tips)
     assert gap > 5.0
-    plain = traced_stereo_tips(RIG, traces)
-    assert plain[2].action != "consistent"
-    wide = CalibrationUncertainty(0.01, 2.0, 0.02, 2e-3)
-    assert tip_epipolar_tolerance_px(RIG, tips, wide) > gap
-    out = traced_stereo_tips(RIG, traces, calibration=wide)
+    plain = traced_stereo_tips(rig, traces)
+    assert plain[2].action == "cut"
+    assert tip_epipolar_tolerance_px(rig, tips, WIDE) > gap
+    out = traced_stereo_tips(rig, traces, calibration=WIDE)
     assert out[2].action == "consistent"
     for a, b in zip(out[0], tips, strict=True):
         np.testing.assert_array_equal(a, b)
     tight = CalibrationUncertainty(1e-4, 0.01, 1e-5, 1e-6, tip_px=0.01)
-    assert tip_epipolar_tolerance_px(RIG, tips, tight) == 5.0
-    again = traced_stereo_tips(RIG, traces, calibration=tight)
+    assert tip_epipolar_tolerance_px(rig, tips, tight) == 5.0
+    again = traced_stereo_tips(rig, traces, calibration=tight)
     assert again[2].action == plain[2].action
     for a, b in zip(again[0], plain[0], strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_trim_keeps_the_5px_flag_under_a_wide_calibration():
+    """A 12 px overshoot leaves a tail over a tube width unexplained: the trim cuts it with
+    or without a stated calibration (a tail that long is no calibration error)."""
+    from jaxcr.stereo.pipeline import traced_stereo_tips
+
+    rig, traces, tips = _overshooting_traces(12.0)
+    plain = traced_stereo_tips(rig, traces)
+    assert plain[2].action == "trimmed"
+    out = traced_stereo_tips(rig, traces, calibration=WIDE)
+    assert out[2].action == "trimmed"
+    for a, b in zip(out[0], plain[0], strict=True):
         np.testing.assert_array_equal(a, b)
