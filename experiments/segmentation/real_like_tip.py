@@ -70,6 +70,7 @@ from jaxcr.segmentation import background as bgm
 from jaxcr.segmentation.foreground import PlateForegroundConfig, plate_foreground
 from jaxcr.stereo.base_locate import flood_component
 from jaxcr.stereo.chroma import plate_alpha
+from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
 from jaxcr.stereo.pipeline import traced_stereo_tips
 from jaxcr.stereo.tip_consistency import undistort_pixels
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
@@ -157,10 +158,14 @@ def stereo_step(fr, views: list[dict]) -> dict:
     (:func:`jaxcr.stereo.pipeline.traced_stereo_tips`, which ``jaxcr stereo --segmentation
     trace`` records as ``tip_px``) instead of the end's shape in one view; and the epipolar
     distance (px, undistorted) of both methods' tip pairs."""
-    # The rig's calibration (with the preset's calibration error), not the rendering cameras.
-    cams = [getattr(v, "calib_camera", None) or v.camera for v in fr.views]
+    # The rig's calibration (with the preset's calibration error), not the rendering cameras;
+    # the preset states that error (REAL_LIKE_CALIBRATION, docs/decisions.md S37).
+    calibrated = all(getattr(v, "calib_camera", None) is not None for v in fr.views)
+    cams = [v.calib_camera if calibrated else v.camera for v in fr.views]
     objs = [v.pop("_trace_obj") for v in views]
-    tips, source, recheck, chosen = traced_stereo_tips(cams, objs)
+    tips, source, recheck, chosen = traced_stereo_tips(
+        cams, objs, calibration=REAL_LIKE_CALIBRATION if calibrated else None
+    )
     for k, v in enumerate(views):
         v["trace_stereo"] = {
             "tip": [float(x) for x in tips[k]], "fallback": source != "trace_stereo",
@@ -377,7 +382,10 @@ def main(argv=None) -> int:
         "cut passes no junction, gap or hop, the other view's end re-decided instead: the "
         "end of the branch of its mask on the kept tip's epipolar line, rebranched), else "
         "the tips "
-        "re-searched along the traced tubes "
+        "re-searched along the traced tubes (since round 15, fold, trim and re-search only "
+        "where the tips are further apart than 3 standard deviations of right tips' "
+        "epipolar distance under the preset's stated calibration error, at least 5 px, "
+        "jaxcr.stereo.epipolar_tolerance) "
         "(jaxcr.stereo.tip_consistency; jaxcr.stereo.pipeline."
         "traced_stereo_tips, what `jaxcr stereo --segmentation trace` records), with the "
         "rig's calibration (`calib_camera`, with the preset's calibration error); `trace_r1` "

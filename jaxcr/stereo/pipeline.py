@@ -94,6 +94,7 @@ from jaxcr.stereo.diameter import (
     report_interpolation_diameters,
     view_weights,
 )
+from jaxcr.stereo.epipolar_tolerance import CalibrationUncertainty, tip_epipolar_tolerance_px
 from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
 from jaxcr.stereo.guided_ranking import offered_guided, with_own_turns
 from jaxcr.stereo.guided_retrace import guided_candidates
@@ -343,7 +344,7 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
 
 
 def traced_stereo_tips(
-    cams, traces, *, flag_px: float = 5.0
+    cams, traces, *, flag_px: float = 5.0, calibration: CalibrationUncertainty | None = None
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -367,14 +368,26 @@ def traced_stereo_tips(
     :class:`jaxcr.segmentation.foreground.TubeTrace`. Returns (tips [(2,), (2,)] distorted
     (u, v), source ``"trace_stereo"`` or ``"trace"`` (``"+branch"`` appended when a branch
     choice replaced a view's trace), the re-search's result or None when a tip is not
-    finite, the two traces the tips belong to)."""
+    finite, the two traces the tips belong to).
+
+    ``calibration``: the rig's calibration uncertainty, given: the tips' re-search, which
+    moves a tip onto the other's epipolar line, acts only on tips further apart than right
+    tips can be under it (:func:`jaxcr.stereo.epipolar_tolerance.tip_epipolar_tolerance_px`,
+    at least ``flag_px``; docs/decisions.md S37: a right pair 5.4 px apart was cut back, dev
+    4177). The branch choice, fold and trim keep ``flag_px``: they act on whole backbones
+    that leave over a tube width unexplained, which no calibration error of a few pixels
+    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074)."""
     traces, tips, src = _branch_step(cams, traces, flag_px)
-    return _tip_step(cams, traces, tips, src, flag_px)
+    research_px = None
+    if calibration is not None:
+        research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
+    return _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
 
 
-def _tip_step(cams, traces, tips, src, flag_px: float):
+def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | None = None):
     """:func:`traced_stereo_tips` after the branch choice: a fold, a trim or the tips'
-    re-search (its return value)."""
+    re-search (its return value; flagged over ``research_px`` when given, else
+    ``flag_px``)."""
     if not all(np.all(np.isfinite(t)) for t in tips):
         return tips, src, None, traces
     res = None
@@ -392,7 +405,9 @@ def _tip_step(cams, traces, tips, src, flag_px: float):
         else:
             res = trim_unexplained_tail(cams, traces, tips, bc, tails=open_end_tails(cams, bc))
     if res is None:
-        res = reconcile_tips(cams, traces, tips, flag_px=flag_px)
+        res = reconcile_tips(
+            cams, traces, tips, flag_px=flag_px if research_px is None else research_px
+        )
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
 
 
