@@ -93,7 +93,11 @@ LONGEST_FIRST = (
     "tests/segmentation/test_refine_convergence.py",
     "tests/core/test_examples.py",  # (148)
     "tests/cli/test_cli_segment.py",  # (145)
-    "tests/segmentation/test_refine_traced.py",  # (260 at load 7) five refinement programs
+    # (260 at load 7 with five refinement programs; four since stop 34: 58-76 CPU-s alone)
+    "tests/segmentation/test_refine_traced.py",
+    # (74 CPU-s alone at stop 34, 58 of them its padded-vs-unpadded refine_batch test) after
+    # test_refine: its unpadded program is test_refine's map program on the canonical scene
+    "tests/segmentation/test_shape_buckets.py",
     "tests/scale/test_devices.py",  # (97) one test, a subprocess with 2 host devices
     "tests/stereo/test_stereo_chain_fit.py",  # (79)
     "tests/scale/test_ray_fault.py",  # (64)
