@@ -40,6 +40,9 @@ The base frame ("base"; docs/stereo-format.md):
 The calibration is an OpenCV FileStorage stereo file as ``cv2.stereoCalibrate`` users
 save it (``K1 D1 K2 D2 R T [E F]``, image sizes; read by :mod:`jaxcr.io.calibration`); with
 one camera, a single-camera file (``camera_matrix``, ``distortion_coefficients``, size).
+A stereo file's optional ``uncertainty`` block (``jaxcr calibrate`` writes it) or
+``--calibration-sigma`` gives the tips' re-search under ``--segmentation trace`` its
+tolerance (docs/stereo-format.md, "The calibration's uncertainty"; without either: 5 px).
 One camera gives the 2-D results alone (tip pixel and backbone polyline, no triangulation,
 no segments); its base must be ``entry_px`` or ``T_cam_base`` (projected). With
 ``--segmentation trace`` its tip is the view's own traced tip (``tip_source`` ``"trace"``).

@@ -31,6 +31,7 @@ from tests.cli.test_calibrate_rig import COLS, OBJ, ROWS, SIZE, SQUARE, _poses, 
 # ------------------------------------------------------------------- jaxcr calibrate
 
 
+@pytest.mark.slow  # renders and detects 10 boards, two calibrations (2-3 s)
 def test_calibrate_writes_opencvs_standard_deviations(tmp_path):
     """Five rendered 320x240 pairs, fx fy cx cy free, no distortion: the file's
     ``std_intrinsics_1/_2`` are ``cv2.calibrateCameraExtended``'s stdDeviationsIntrinsics on
@@ -85,6 +86,7 @@ def test_calibrate_writes_opencvs_standard_deviations(tmp_path):
     assert load_stereo_uncertainty(tmp_path / "s.json") == unc
 
 
+@pytest.mark.slow  # 100 stereo calibrations (~1 s)
 def test_rig_pose_std_matches_monte_carlo_scatter():
     """R's and T's predicted 1-sigma (``stereo_pose_std``, the fit's Jacobian) against the
     scatter of ``cv2.stereoCalibrateExtended`` (intrinsics fixed) over 100 noise seeds at
