@@ -333,6 +333,12 @@ def run(args) -> int:
         return 1
     res["flags"] = constraints.describe()
     save_calibration(res, args.out)
+    from jaxcr.io.calibration import uncertainty_block
+
+    if has_fits and uncertainty_block(res) is None:
+        print("WARNING: no 'uncertainty' block written (a standard deviation is not finite "
+              "or implausibly large): jaxcr stereo will use the fixed 5 px for the tips "
+              "unless given --calibration-sigma")  # fmt: skip
     skipped = sorted(set(range(len(lf))) - set(res["used"]))
     print(f"used {len(res['used'])} of {len(lf)} pairs (intrinsic constraints: "
           f"{res['flags']}); RMS reprojection error: camera 1 {res['rms_1']:.3f} px, "

@@ -779,7 +779,8 @@ def uncertainty_block(res: dict) -> dict[str, Any] | None:
     """The ``uncertainty`` block (module docstring, ``unit: m``) of a
     :func:`jaxcr.stereo.calibration.calibrate_stereo` result: OpenCV's
     ``stdDeviationsIntrinsics`` of each camera and the stereo fit's ``R``, ``T`` deviations,
-    summarised; None when the result carries none or a deviation is not finite."""
+    summarised; None when the result carries none, or a deviation is not finite or beyond
+    the reader's plausible range (:func:`uncertainty_from_dict`)."""
     cals = [res.get("cal1"), res.get("cal2")]
     if any(c is None or getattr(c, "std_intrinsics_cv", None) is None for c in cals):
         return None
@@ -792,7 +793,7 @@ def uncertainty_block(res: dict) -> dict[str, Any] | None:
     if not all(np.all(np.isfinite(a)) for a in (*std_i, rot, trans)):
         return None
     focal = max(max(s[0] / K[0, 0], s[1] / K[1, 1]) for s, K in zip(std_i, Ks, strict=True))
-    return {
+    block = {
         "focal_rel": float(focal),
         "principal_px": float(max(np.max(s[2:4]) for s in std_i)),
         "rotation_deg": float(np.max(rot)),
@@ -803,3 +804,8 @@ def uncertainty_block(res: dict) -> dict[str, Any] | None:
         "std_rotation_deg": rot.reshape(1, 3),
         "std_translation": trans.reshape(1, 3),
     }
+    try:  # never write a block the reader refuses (e.g. --max-std raised past 10 % of f)
+        uncertainty_from_dict(block)
+    except InputError:
+        return None
+    return block

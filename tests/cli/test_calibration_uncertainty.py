@@ -119,6 +119,29 @@ def test_rig_pose_std_matches_monte_carlo_scatter():
     assert np.all((ratio > 0.7) & (ratio < 1.3)), ratio
 
 
+def test_no_block_when_a_deviation_is_not_finite_or_implausible():
+    """The writer never writes a block the reader refuses: a focal deviation of 20 % of f
+    (--max-std raised), an infinite T deviation (a free direction) give no block."""
+    from types import SimpleNamespace
+
+    from jaxcr.io.calibration import uncertainty_block, uncertainty_from_dict
+
+    K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+    sd = np.array([0.6, 0.6, 0.8, 0.5, 0, 0, 0, 0, 0.0])
+    res = {"K1": K, "K2": K, "cal1": SimpleNamespace(std_intrinsics_cv=sd),
+           "cal2": SimpleNamespace(std_intrinsics_cv=sd), "std_R_rad": np.full(3, 1e-4),
+           "std_T": np.full(3, 2e-4)}  # fmt: skip
+    block = uncertainty_block(res)
+    assert block["focal_rel"] == 0.002 and block["principal_px"] == 0.8
+    assert block["rotation_deg"] == pytest.approx(np.degrees(1e-4), rel=1e-12)
+    assert uncertainty_from_dict(block).translation_m == pytest.approx(2e-4 / np.sqrt(2))
+    big = sd.copy()
+    big[0] = 60.0
+    assert uncertainty_block({**res, "cal2": SimpleNamespace(std_intrinsics_cv=big)}) is None
+    assert uncertainty_block({**res, "std_T": np.array([2e-4, np.inf, 2e-4])}) is None
+    assert uncertainty_block({k: v for k, v in res.items() if k != "std_T"}) is None
+
+
 # ------------------------------------------------------------------------- the reader
 
 
