@@ -4,7 +4,11 @@ circle-grid image pairs with OpenCV, written as an OpenCV FileStorage stereo fil
 reads, ``unit: m``) plus the RMS reprojection errors ``rms_1``, ``rms_2`` (each camera
 alone, ``cv2.calibrateCamera``) and ``rms_stereo`` (``cv2.stereoCalibrate`` with the
 intrinsics fixed), per pair ``per_view_rms_1/_2/_stereo``, board tilts ``tilt_deg_1/_2``,
-distances ``distance_1/_2``, coverages ``coverage_1/_2`` and ``calibrate_flags``.
+distances ``distance_1/_2``, coverages ``coverage_1/_2``, ``calibrate_flags`` and the
+``uncertainty`` block: the standard deviations of each camera's intrinsics
+(``cv2.calibrateCameraExtended``'s stdDeviationsIntrinsics) and of the stereo fit's R and T,
+which ``jaxcr stereo --segmentation trace`` uses for the tips (docs/stereo-format.md, "The
+calibration's uncertainty").
 
 Inputs. LEFT and RIGHT are folders (all ``*.png``/``*.jpg`` files, paired by sorted name) or
 glob patterns, not the same images. ``--pattern chessboard`` uses ``--cols x --rows`` inner
@@ -329,6 +333,12 @@ def run(args) -> int:
         return 1
     res["flags"] = constraints.describe()
     save_calibration(res, args.out)
+    from jaxcr.io.calibration import uncertainty_block
+
+    if has_fits and uncertainty_block(res) is None:
+        print("WARNING: no 'uncertainty' block written (a standard deviation is not finite "
+              "or implausibly large): jaxcr stereo will use the fixed 5 px for the tips "
+              "unless given --calibration-sigma")  # fmt: skip
     skipped = sorted(set(range(len(lf))) - set(res["used"]))
     print(f"used {len(res['used'])} of {len(lf)} pairs (intrinsic constraints: "
           f"{res['flags']}); RMS reprojection error: camera 1 {res['rms_1']:.3f} px, "

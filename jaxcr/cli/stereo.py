@@ -40,6 +40,9 @@ The base frame ("base"; docs/stereo-format.md):
 The calibration is an OpenCV FileStorage stereo file as ``cv2.stereoCalibrate`` users
 save it (``K1 D1 K2 D2 R T [E F]``, image sizes; read by :mod:`jaxcr.io.calibration`); with
 one camera, a single-camera file (``camera_matrix``, ``distortion_coefficients``, size).
+A stereo file's optional ``uncertainty`` block (``jaxcr calibrate`` writes it) or
+``--calibration-sigma`` gives the tips' re-search under ``--segmentation trace`` its
+tolerance (docs/stereo-format.md, "The calibration's uncertainty"; without either: 5 px).
 One camera gives the 2-D results alone (tip pixel and backbone polyline, no triangulation,
 no segments); its base must be ``entry_px`` or ``T_cam_base`` (projected). With
 ``--segmentation trace`` its tip is the view's own traced tip (``tip_source`` ``"trace"``).
@@ -153,6 +156,20 @@ def add_parser(subparsers) -> None:
 
     add_shard_argument(p)
     add_executor_arguments(p, "1 frame")
+    p.add_argument(
+        "--calibration-sigma",
+        default=None,
+        metavar="SPEC",
+        help="the rig's calibration uncertainty, for --segmentation trace: the tips' "
+        "re-search acts only on tips further from each other's epipolar lines than 3 "
+        "standard deviations of right tips' distance under it (at least 5 px; "
+        "docs/decisions.md S37). Default: the calibration file's 'uncertainty' block "
+        "(jaxcr calibrate writes it), or, without one, none: the fixed 5 px. 'none': the "
+        "fixed 5 px. Or by hand, standard deviations: "
+        "focal_rel=0.002,principal_px=1,rotation_deg=0.05,translation_mm=0.3 (focal "
+        "lengths relative; principal point px; the rotation and translation between the "
+        "two cameras, R and T, per axis; translation_m/_cm/_mm)",
+    )
     add_plate_arguments(p, "--segmentation trace, or auto with background_plates")
     p.set_defaults(func=run)
 
@@ -345,6 +362,8 @@ def _check_run(out: Path, dataset: dict, log_dir: Path | None = None) -> None:
         import dataclasses
 
         info["options"]["plate"] = dataclasses.asdict(cfg.plate_foreground)
+        if cfg.calibration is not None:  # (absent: the fixed 5 px, as before S37)
+            info["options"]["calibration_sigma"] = dataclasses.asdict(cfg.calibration)
     from jaxcr.scale.shards import shard_dirs
 
     log_dir = out if log_dir is None else log_dir
@@ -667,6 +686,21 @@ def run(args) -> int:
             + ("" if why.startswith("--") else f" (segmentation is {mode}, {why})"),
             field=given[0],
         )
+    if args.calibration_sigma is not None:
+        from jaxcr.io.calibration import parse_calibration_sigma
+
+        if mode != "trace":
+            raise InputError(f"needs --segmentation trace (segmentation is {mode}, {why})",
+                             field="--calibration-sigma")  # fmt: skip
+        ds["config"].calibration = parse_calibration_sigma(args.calibration_sigma)
+        sigma_from = "--calibration-sigma"
+    else:
+        sigma_from = f"the calibration file's uncertainty block ({ds['meta']['calibration']})"
+    tips_line = (
+        "tips' re-search: fixed 5 px (no calibration uncertainty; see --calibration-sigma)"
+        if ds["config"].calibration is None
+        else f"tips' re-search: 3 sigma of the epipolar distance under {sigma_from}"
+    )
     if mode == "trace":
         ds["config"].plate_foreground = plate_config(args)
     if mode != "chroma" and ds["plates"] is None:
@@ -675,7 +709,9 @@ def run(args) -> int:
     claim_output(args.out, "stereo", shard, marker="run.json")
     recs = run_batch(ds, args.out, overlays=not args.no_overlays, shard=shard,
                      executor=executor,
-                     announce=lambda: print(f"segmentation: {mode} ({why})", flush=True))  # fmt: skip
+                     announce=lambda: print(f"segmentation: {mode} ({why})"
+                                            + (f"\n{tips_line}" if mode == "trace" else ""),
+                                            flush=True))  # fmt: skip
     for line in summary_lines(recs, args.out):
         print(line)
     return 0 if all(r["ok"] for r in recs) else 1

@@ -39,6 +39,20 @@ finiteness only), optional ``T_cam_robot`` for camera 1 and ``unit``. Camera 2's
 composed: ``T_cam2_robot = [R | T] @ T_cam1_robot``. ``unit`` applies to ``T`` and
 ``T_cam_robot``.
 
+Optional ``uncertainty`` block (written by ``jaxcr calibrate``): the calibration's standard
+deviations, ``focal_rel`` (of fx and fy, relative; the larger of the two cameras'),
+``principal_px`` (of cx and cy, px; the larger), ``rotation_deg`` (of ``R``'s rotation
+vector per axis, deg; the largest axis), ``translation`` (of ``T`` per axis, the largest, in
+the block's ``unit``, default the file's), all required; and, informational, OpenCV's
+per-parameter values ``std_intrinsics_1``/``_2`` (9: fx fy cx cy k1 k2 p1 p2 k3, px, of
+``cv2.calibrateCameraExtended``), ``std_rotation_deg`` (3), ``std_translation`` (3, the
+block's unit) of the stereo fit (:func:`jaxcr.stereo.calibration.stereo_pose_std`).
+:func:`load_stereo_uncertainty` reads it as a
+:class:`jaxcr.stereo.epipolar_tolerance.CalibrationUncertainty` (whose pose components are
+per camera: the rig's ``R``, ``T`` deviations divided by sqrt(2), two cameras moved
+independently giving the rig's); ``jaxcr stereo`` passes it to the tips' re-search
+(docs/decisions.md S37).
+
 Every problem raises :class:`jaxcr.errors.InputError` naming the file and the field.
 """
 
@@ -58,7 +72,13 @@ from jaxcr.camera import Camera, camera_from_arrays
 from jaxcr.errors import InputError
 from jaxcr.io.jsonfile import read_json
 from jaxcr.io.results import atomic_write_bytes, atomic_write_text
-from jaxcr.io.units import MIN_BASELINE_M, check_known_keys, check_length, unit_scale
+from jaxcr.io.units import (
+    MIN_BASELINE_M,
+    check_known_keys,
+    check_length,
+    nearest_key,
+    unit_scale,
+)
 
 _FS_EXT = (".yaml", ".yml", ".xml")
 _DIST_LENGTHS = (4, 5, 8, 12, 14)
@@ -67,7 +87,19 @@ SINGLE_KEYS = ("camera_matrix", "K", "distortion_coefficients", "dist", "image_w
 STEREO_KEYS = ("K1", "D1", "K2", "D2", "M1", "M2", "camera_matrix_1", "camera_matrix_2",
                "distortion_coefficients_1", "distortion_coefficients_2", "image_width",
                "image_height", "image_width_1", "image_height_1", "image_width_2",
-               "image_height_2", "R", "T", "E", "F", "T_cam_robot", "unit")  # fmt: skip
+               "image_height_2", "R", "T", "E", "F", "T_cam_robot", "unit",
+               "uncertainty")  # fmt: skip
+#: Keys of a stereo file's optional ``uncertainty`` block (see the module docstring).
+UNCERTAINTY_KEYS = ("focal_rel", "principal_px", "rotation_deg", "translation", "unit",
+                    "std_intrinsics_1", "std_intrinsics_2", "std_rotation_deg",
+                    "std_translation")  # fmt: skip
+# Plausible upper bounds of the block's standard deviations: past them the calibration is
+# useless or the number is in another unit (a percentage for focal_rel, metres written
+# under "unit": "mm" for translation).
+MAX_FOCAL_REL = 0.1
+MAX_PRINCIPAL_PX = 50.0
+MAX_ROTATION_DEG = 5.0
+MAX_TRANSLATION_STD_M = 0.05
 # Written by OpenCV's calibration / stereo_calib samples, cv2.stereoRectify users and
 # jaxcr calibrate; accepted and ignored (they never change the cameras).
 INFO_KEYS = ("calibration_time", "calibration_date", "nframes", "nr_of_frames", "board_width",
@@ -412,6 +444,8 @@ def load_stereo(path: str | os.PathLike) -> tuple[Camera, Camera]:
     for key in ("E", "F"):
         if key in d and d[key] is not None:
             _matrix(d[key], lambda s: s == (3, 3), "3x3", path, key)
+    if d.get("uncertainty") is not None:
+        uncertainty_from_dict(d["uncertainty"], path, scale)
     T1 = d.get("T_cam_robot")
     T1 = np.eye(4) if T1 is None else check_transform(T1, path, "T_cam_robot", scale)
     T21 = np.eye(4)
@@ -422,6 +456,114 @@ def load_stereo(path: str | os.PathLike) -> tuple[Camera, Camera]:
     T2 = T21 @ T1
     (K1, D1, s1), (K2, D2, s2) = cams_intr
     return (camera_from_arrays(K1, D1, T1, *s1), camera_from_arrays(K2, D2, T2, *s2))
+
+
+def _std_value(v, file, field, hi: float, what: str) -> float:
+    try:
+        f = float(np.asarray(v, np.float64).reshape(()))
+    except (TypeError, ValueError):
+        raise InputError("expected a number", file=file, field=field) from None
+    if not np.isfinite(f) or f < 0:
+        raise InputError(f"expected a finite standard deviation >= 0, got {v!r}", file=file,
+                         field=field)  # fmt: skip
+    if f > hi:
+        raise InputError(f"{f:g} is implausible ({what})", file=file, field=field)
+    return f
+
+
+def uncertainty_from_dict(block, file=None, file_scale: float = 1.0, prefix="uncertainty."):
+    """The :class:`jaxcr.stereo.epipolar_tolerance.CalibrationUncertainty` of a stereo file's
+    ``uncertainty`` block (module docstring); ``file_scale``: metres per unit of the file's
+    ``unit`` (the block's own ``unit`` overrides it). InputError naming ``uncertainty.<key>``
+    for a missing, unknown, non-finite, negative or implausible value."""
+    from jaxcr.stereo.epipolar_tolerance import CalibrationUncertainty
+
+    if not isinstance(block, Mapping):
+        raise InputError("expected a map of standard deviations", file=file,
+                         field=prefix.rstrip("."))  # fmt: skip
+    check_known_keys(block, UNCERTAINTY_KEYS, file, prefix)
+    scale = unit_scale(block, file, prefix) if "unit" in block else file_scale
+    for k in ("focal_rel", "principal_px", "rotation_deg", "translation"):
+        if block.get(k) is None:
+            raise InputError("missing required key", file=file, field=prefix + k)
+    focal = _std_value(block["focal_rel"], file, prefix + "focal_rel", MAX_FOCAL_REL,
+                       f"a fraction of the focal length, at most {MAX_FOCAL_REL:g}; "
+                       "0.002 is 0.2 %")  # fmt: skip
+    principal = _std_value(block["principal_px"], file, prefix + "principal_px",
+                           MAX_PRINCIPAL_PX, f"pixels, at most {MAX_PRINCIPAL_PX:g}")  # fmt: skip
+    rot = _std_value(block["rotation_deg"], file, prefix + "rotation_deg", MAX_ROTATION_DEG,
+                     f"degrees, at most {MAX_ROTATION_DEG:g}")  # fmt: skip
+    trans = _std_value(block["translation"], file, prefix + "translation", np.inf, "")
+    check_length(trans * scale, "translation standard deviation", scale, file,
+                 prefix + "translation", hi=MAX_TRANSLATION_STD_M, typical=3e-4)  # fmt: skip
+    for k, n in (("std_intrinsics_1", 9), ("std_intrinsics_2", 9), ("std_rotation_deg", 3),
+                 ("std_translation", 3)):  # fmt: skip
+        if block.get(k) is not None:
+            a = _matrix(block[k], lambda s, n=n: int(np.prod(s)) == n, f"1x{n}", file, prefix + k)
+            if np.any(a < 0):
+                raise InputError("standard deviations must be >= 0", file=file, field=prefix + k)
+    return CalibrationUncertainty(
+        focal_rel=focal,
+        principal_px=principal,
+        rotation_rad=float(np.radians(rot) / np.sqrt(2.0)),
+        translation_m=float(trans * scale / np.sqrt(2.0)),
+    )
+
+
+def load_stereo_uncertainty(path: str | os.PathLike):
+    """The ``uncertainty`` block of a stereo calibration file as a
+    :class:`jaxcr.stereo.epipolar_tolerance.CalibrationUncertainty`, or None when the file
+    has none (module docstring)."""
+    path = os.fspath(path)
+    d = read_raw(path)
+    if d.get("uncertainty") is None:
+        return None
+    return uncertainty_from_dict(d["uncertainty"], path, _unit_scale(d, path, ""))
+
+
+#: ``--calibration-sigma``'s keys: the block's, with the translation's unit in its name.
+SIGMA_FLAG_KEYS = ("focal_rel", "principal_px", "rotation_deg", "translation_m",
+                   "translation_cm", "translation_mm")  # fmt: skip
+
+
+def parse_calibration_sigma(text: str, flag: str = "--calibration-sigma"):
+    """``jaxcr stereo --calibration-sigma``'s value: ``none`` (None), or
+    ``focal_rel=F,principal_px=P,rotation_deg=A,translation_mm=T`` (``translation_m`` or
+    ``_cm`` also; every key once, all four given; the same meaning as a calibration file's
+    ``uncertainty`` block) as a :class:`jaxcr.stereo.epipolar_tolerance.CalibrationUncertainty`.
+    InputError naming ``--calibration-sigma.<key>`` otherwise."""
+    if text.strip().lower() == "none":
+        return None
+    block: dict[str, Any] = {}
+    for item in text.split(","):
+        key, eq, value = (x.strip() for x in item.partition("="))
+        if not eq:
+            raise InputError(f"expected key=value, got {item.strip()!r} (or 'none')",
+                             field=flag)  # fmt: skip
+        if key not in SIGMA_FLAG_KEYS:
+            near = nearest_key(key, SIGMA_FLAG_KEYS)
+            hint = (
+                f" (did you mean {near!r}?)" if near else f" (known: {', '.join(SIGMA_FLAG_KEYS)})"
+            )
+            raise InputError(f"unknown key {key!r}{hint}", field=f"{flag}.{key}")
+        name = "translation" if key.startswith("translation_") else key
+        if name in block:
+            raise InputError("given twice", field=f"{flag}.{key}")
+        try:
+            block[name] = float(value)
+        except ValueError:
+            raise InputError(f"expected a number, got {value!r}", field=f"{flag}.{key}") from None
+        if name == "translation":
+            block["unit"] = key.split("_", 1)[1]
+    missing = [k for k in ("focal_rel", "principal_px", "rotation_deg") if k not in block]
+    missing += [] if "translation" in block else ["translation_mm"]
+    if missing:
+        raise InputError(f"missing {', '.join(missing)}", field=f"{flag}.{missing[0]}")
+    try:
+        return uncertainty_from_dict(block, None, 1.0, prefix="")
+    except InputError as err:
+        field = err.field if err.field != "translation" else f"translation_{block['unit']}"
+        raise InputError(err.message, field=f"{flag}.{field}") from None
 
 
 #: Keys of a dataset camera entry that takes one camera of a stereo calibration file.
@@ -506,7 +648,13 @@ def _write_fs(path: str, entries: dict[str, Any]) -> None:
     fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
     try:
         for k, v in entries.items():
-            fs.write(k, v)
+            if isinstance(v, Mapping):  # a nested map (the uncertainty block)
+                fs.startWriteStruct(k, cv2.FileNode_MAP)
+                for k2, v2 in v.items():
+                    fs.write(k2, v2)
+                fs.endWriteStruct()
+            else:
+                fs.write(k, v)
     finally:
         fs.release()
     os.replace(tmp, path)
@@ -518,7 +666,13 @@ def _write_entries(path: str, entries: dict) -> None:
     if path.lower().endswith(_FS_EXT):
         _write_fs(path, entries)
     elif path.lower().endswith(".json"):
-        js = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in entries.items()}
+
+        def plain(v):
+            if isinstance(v, Mapping):
+                return {k: plain(x) for k, x in v.items()}
+            return v.tolist() if isinstance(v, np.ndarray) else v
+
+        js = {k: plain(v) for k, v in entries.items()}
         atomic_write_text(path, json.dumps(js, indent=2) + "\n")
     else:
         raise InputError(
@@ -544,7 +698,10 @@ def save_camera(camera: Camera, path: str | os.PathLike) -> None:
 def save_stereo(cam1: Camera, cam2: Camera, path: str | os.PathLike) -> None:
     """Write a stereo file in the layout :func:`load_stereo` reads (R, T between the two
     cameras, plus E = [T]x R and F = K2^-T E K1^-1 as cv2.stereoCalibrate reports them)."""
-    path = os.fspath(path)
+    _write_entries(os.fspath(path), _stereo_entries(cam1, cam2))
+
+
+def _stereo_entries(cam1: Camera, cam2: Camera) -> dict[str, Any]:
     T1 = np.asarray(cam1.T_cam_robot, np.float64)
     T2 = np.asarray(cam2.T_cam_robot, np.float64)
     T21 = T2 @ np.linalg.inv(T1)
@@ -570,7 +727,7 @@ def save_stereo(cam1: Camera, cam2: Camera, path: str | os.PathLike) -> None:
         "T_cam_robot": T1,
         "unit": "m",
     }
-    _write_entries(path, entries)
+    return entries
 
 
 def save_calibration(res: dict, path: str) -> None:
@@ -598,7 +755,7 @@ def _write_calibration(res: dict, path: str) -> None:
     T2[:3, 3] = res["T"]
     c1 = camera_from_arrays(res["K1"], res["D1"], np.eye(4), *res["size1"])
     c2 = camera_from_arrays(res["K2"], res["D2"], T2, *res["size2"])
-    save_stereo(c1, c2, path)
+    entries = _stereo_entries(c1, c2)
     extra = {k: res[k] for k in ("rms_1", "rms_2", "rms_stereo")}
     if "cal1" in res:  # per-view report (absent in hand-made result dicts)
         pv = np.asarray(res["per_view_rms_stereo"], np.float64)
@@ -611,12 +768,44 @@ def _write_calibration(res: dict, path: str) -> None:
             extra[f"coverage_{i}"] = float(cal.coverage)
     if "flags" in res:
         extra["calibrate_flags"] = res["flags"]
-    if path.lower().endswith((".yaml", ".yml", ".xml")):
-        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_APPEND)
-        for k, v in extra.items():
-            fs.write(k, v)
-        fs.release()
-    else:
-        d = json.loads(Path(path).read_text())
-        d.update({k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in extra.items()})
-        Path(path).write_text(json.dumps(d, indent=2) + "\n")
+    block = uncertainty_block(res)
+    if block is not None:
+        extra["uncertainty"] = block
+    # one document (an appended FileStorage document is invisible to read_filestorage)
+    _write_entries(path, {**entries, **extra})
+
+
+def uncertainty_block(res: dict) -> dict[str, Any] | None:
+    """The ``uncertainty`` block (module docstring, ``unit: m``) of a
+    :func:`jaxcr.stereo.calibration.calibrate_stereo` result: OpenCV's
+    ``stdDeviationsIntrinsics`` of each camera and the stereo fit's ``R``, ``T`` deviations,
+    summarised; None when the result carries none, or a deviation is not finite or beyond
+    the reader's plausible range (:func:`uncertainty_from_dict`)."""
+    cals = [res.get("cal1"), res.get("cal2")]
+    if any(c is None or getattr(c, "std_intrinsics_cv", None) is None for c in cals):
+        return None
+    if res.get("std_R_rad") is None or res.get("std_T") is None:
+        return None
+    std_i = [np.asarray(c.std_intrinsics_cv, np.float64).reshape(9) for c in cals]
+    Ks = [np.asarray(res[f"K{i}"], np.float64) for i in (1, 2)]
+    rot = np.degrees(np.asarray(res["std_R_rad"], np.float64).reshape(3))
+    trans = np.asarray(res["std_T"], np.float64).reshape(3)
+    if not all(np.all(np.isfinite(a)) for a in (*std_i, rot, trans)):
+        return None
+    focal = max(max(s[0] / K[0, 0], s[1] / K[1, 1]) for s, K in zip(std_i, Ks, strict=True))
+    block = {
+        "focal_rel": float(focal),
+        "principal_px": float(max(np.max(s[2:4]) for s in std_i)),
+        "rotation_deg": float(np.max(rot)),
+        "translation": float(np.max(trans)),
+        "unit": "m",
+        "std_intrinsics_1": std_i[0].reshape(1, 9),
+        "std_intrinsics_2": std_i[1].reshape(1, 9),
+        "std_rotation_deg": rot.reshape(1, 3),
+        "std_translation": trans.reshape(1, 3),
+    }
+    try:  # never write a block the reader refuses (e.g. --max-std raised past 10 % of f)
+        uncertainty_from_dict(block)
+    except InputError:
+        return None
+    return block

@@ -134,7 +134,9 @@ def parse_base(base, file: str, names: list[str], cam1, cam2, scale: float = 1.0
 
 def load_stereo_dataset(folder: str | os.PathLike) -> dict:
     """Parse ``stereo.json`` (see module docstring): returns ``{"root", "meta", "cam1",
-    "cam2", "config", "plates", "frames"}``. Bad input raises :class:`InputError`."""
+    "cam2", "config", "plates", "frames"}`` (``config.calibration``: the calibration file's
+    ``uncertainty`` block, :func:`jaxcr.io.calibration.load_stereo_uncertainty`, or None).
+    Bad input raises :class:`InputError`."""
     from jaxcr.io.calibration import load_stereo
     from jaxcr.io.dataset import is_safe_frame_id
     from jaxcr.stereo.aruco import MarkerLayout
@@ -168,8 +170,14 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
         or len(set(names)) != len(names)
     ):
         raise InputError("expected one or two distinct camera names", file=file, field="cameras")
+    calibration = None
     if len(names) == 2:
+        from jaxcr.io.calibration import load_stereo_uncertainty
+
         cam1, cam2 = load_stereo(root / meta["calibration"])
+        # the calibration file's "uncertainty" block (jaxcr calibrate writes it): the tips'
+        # re-search under --segmentation trace is flagged by it (docs/decisions.md S37)
+        calibration = load_stereo_uncertainty(root / meta["calibration"])
     else:
         from jaxcr.io.calibration import load_camera
 
@@ -227,7 +235,7 @@ def load_stereo_dataset(folder: str | os.PathLike) -> dict:
         if not isinstance(name, str) or name not in KEY_COLOURS:
             raise InputError(f"unknown key colour {name!r}", file=file, field="background.key")
         key = KEY_COLOURS[name]
-    cfg = StereoConfig(layout=layout, key_rgb=key, base=spec)
+    cfg = StereoConfig(layout=layout, key_rgb=key, base=spec, calibration=calibration)
     if meta.get("robot_base") is not None:
         base_xyz = tuple(
             v * scale for v in _finite_tuple(meta["robot_base"], 3, file, "robot_base")

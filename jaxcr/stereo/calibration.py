@@ -136,7 +136,10 @@ class CameraCalibration:
     board normal and the optical axis; ``distance`` (n,) distance to the board centre
     (metres); ``coverage`` fraction of the image inside the board's outline in some view;
     ``orientations`` number of distinct board orientations (normals more than
-    ``SAME_ORIENTATION_DEG`` apart)."""
+    ``SAME_ORIENTATION_DEG`` apart); ``std_intrinsics_cv`` (9,): OpenCV's own
+    ``stdDeviationsIntrinsics`` of ``cv2.calibrateCameraExtended`` (fx fy cx cy k1 k2 p1 p2
+    k3; 0 for a fixed parameter), which ``jaxcr calibrate`` writes to the calibration file's
+    ``uncertainty`` block."""
 
     K: np.ndarray
     dist: np.ndarray
@@ -153,6 +156,7 @@ class CameraCalibration:
     coverage: float
     orientations: int
     constraints: IntrinsicConstraints = field(default_factory=IntrinsicConstraints)
+    std_intrinsics_cv: np.ndarray | None = None
 
 
 def _intrinsic_map(K: np.ndarray, constraints: IntrinsicConstraints) -> np.ndarray:
@@ -203,7 +207,7 @@ def calibrate_camera(
     out = cv2.calibrateCameraExtended(
         obj, img, size, initial_camera_matrix(size), np.zeros(5), flags=constraints.cv_flags()
     )
-    rms, K, D, rvecs, tvecs, _, _, per_view = out
+    rms, K, D, rvecs, tvecs, std_cv, _, per_view = out
     D = np.asarray(D, np.float64).reshape(-1)[:5]
     rvecs = np.asarray(rvecs, np.float64).reshape(-1, 3)
     tvecs = np.asarray(tvecs, np.float64).reshape(-1, 3)
@@ -235,6 +239,7 @@ def calibrate_camera(
         std=std, sigma_px=sigma, ray_std_px=ray, tilt_deg=tilt, distance=distance,
         coverage=image_coverage(img, size), orientations=_n_orientations(rvecs),
         constraints=constraints,
+        std_intrinsics_cv=np.asarray(std_cv, np.float64).reshape(-1)[:9],
     )  # fmt: skip
 
 
@@ -408,11 +413,59 @@ def calibrate_stereo(
         flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit,
     )  # fmt: skip
     rms, K1, D1, K2, D2, R, T = out[:7]
+    rvecs, tvecs = out[9], out[10]
     per_view = np.asarray(out[-1], np.float64).reshape(-1, 2)
+    std_r, std_t = stereo_pose_std(o, p1, p2, K1, D1, K2, D2, R, T, rvecs, tvecs)
     return {"K1": K1, "D1": D1.ravel()[:5], "K2": K2, "D2": D2.ravel()[:5], "R": R, "T": T.ravel(),
             "size1": s1, "size2": s2, "rms_1": cal1.rms, "rms_2": cal2.rms,
             "rms_stereo": float(rms), "per_view_rms_stereo": per_view, "cal1": cal1,
-            "cal2": cal2, "used": used, "via_plate": via_plate}  # fmt: skip
+            "cal2": cal2, "used": used, "via_plate": via_plate,
+            "std_R_rad": std_r, "std_T": std_t}  # fmt: skip
+
+
+def stereo_pose_std(obj, img1, img2, K1, D1, K2, D2, R, T, rvecs, tvecs):
+    """Standard deviations of the stereo fit's ``R`` (its rotation vector, rad, per axis) and
+    ``T`` (per axis, the board's unit), shapes (3,), (3,): what ``cv2.calibrateCameraExtended``
+    computes for its parameters (``sigma^2 (J^T J)^-1``, ``sigma^2`` the squared residuals'
+    sum over residuals minus parameters), for ``cv2.stereoCalibrate``'s fit with the
+    intrinsics fixed, which OpenCV does not report: the parameters are ``R``, ``T`` and each
+    view's board pose in camera 1 (``rvecs``, ``tvecs``); camera 2's pose of a board is the
+    composition (``cv2.composeRT``, with its derivatives), the residuals both cameras'
+    reprojections (``cv2.projectPoints``, with its Jacobian). ``obj``, ``img1``, ``img2``:
+    per view (n_i, 3) board points and their (n_i, 2) detections."""
+    r = cv2.Rodrigues(np.asarray(R, np.float64))[0].reshape(3)
+    t = np.asarray(T, np.float64).reshape(3)
+    n = len(obj)
+    rows, res = [], []
+    for i in range(n):
+        o = np.asarray(obj[i], np.float64).reshape(-1, 3)
+        rv = np.asarray(rvecs[i], np.float64).reshape(3)
+        tv = np.asarray(tvecs[i], np.float64).reshape(3)
+        p, J1 = cv2.projectPoints(o, rv, tv, K1, D1)
+        res.append(p.reshape(-1) - np.asarray(img1[i], np.float64).reshape(-1))
+        Jrow = np.zeros((J1.shape[0], 6 + 6 * n))
+        Jrow[:, 6 + 6 * i : 12 + 6 * i] = J1[:, :6]
+        rows.append(Jrow)
+        rv2, tv2, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(
+            rv, tv, r, t
+        )
+        p, J2 = cv2.projectPoints(o, rv2, tv2, K2, D2)
+        res.append(p.reshape(-1) - np.asarray(img2[i], np.float64).reshape(-1))
+        Jr, Jt = J2[:, :3], J2[:, 3:6]
+        Jrow = np.zeros((J2.shape[0], 6 + 6 * n))
+        Jrow[:, :3] = Jr @ dr3dr2 + Jt @ dt3dr2
+        Jrow[:, 3:6] = Jr @ dr3dt2 + Jt @ dt3dt2
+        Jrow[:, 6 + 6 * i : 9 + 6 * i] = Jr @ dr3dr1 + Jt @ dt3dr1
+        Jrow[:, 9 + 6 * i : 12 + 6 * i] = Jr @ dr3dt1 + Jt @ dt3dt1
+        rows.append(Jrow)
+    J = np.concatenate(rows)
+    e = np.concatenate(res)
+    dof = J.shape[0] - J.shape[1]
+    sigma = float(np.sqrt(e @ e / dof)) if dof > 0 else float("inf")
+    cov, free = _marginal_std(J, 6, sigma)
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    std[free] = np.inf
+    return std[:3], std[3:]
 
 
 def fill_from_plate(gray: np.ndarray, plate: np.ndarray, threshold: float = 40.0) -> np.ndarray:

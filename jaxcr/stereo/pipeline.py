@@ -167,6 +167,9 @@ class StereoConfig:
     ``shadow_tolerance_deg``: tolerance of the slope-angle segmentation that cuts a shadow
     branch off the start of each view's ordered skeleton (:func:`shadow_cut`; report
     sec. 5.3, Fig. 18 uses 10-30 deg); ``None`` disables it.
+    ``calibration``: the rig's calibration uncertainty, passed to :func:`traced_stereo_tips`
+    (``segmentation="trace"``; None: the fixed 5 px; ``jaxcr stereo`` reads it from the
+    calibration file's ``uncertainty`` block or ``--calibration-sigma``).
     """
 
     layout: MarkerLayout = field(default_factory=MarkerLayout)
@@ -195,6 +198,7 @@ class StereoConfig:
     single_view_tail: bool = True
     tip_search_px: int = 40
     plate_foreground: PlateForegroundConfig = field(default_factory=PlateForegroundConfig)
+    calibration: CalibrationUncertainty | None = None
 
 
 def _given_base_pose(cam1: Camera, cam2: Camera, spec: BaseSpec) -> dict:
@@ -979,7 +983,7 @@ def reconstruct_pair(
         ]
         # The two views' tips and chosen branches before triangulation, so that the 3-D
         # backbone is made of the traces the tips belong to and ends at the tips.
-        traced = traced_stereo_tips(cams, tr)
+        traced = traced_stereo_tips(cams, tr, calibration=cfg.calibration)
         masks = _image_stack([t.mask.astype(np.uint8) for t in traced[3]])
         alpha_j = jax.device_put(masks.astype(np.float32))
     t0 = _tick(timings, "segmentation", t0)
