@@ -9,14 +9,13 @@ Input: stored traces (``real_like_tip_spline.py trace --store STORE``). Per seed
   choice, S37 re-search tolerance; this tree's functions with
   ``both_if_traces_cross=False``, main's code path), the stored alternatives returned for
   ``trace_alternatives`` (deterministic);
-* ``both`` -- the same with ``both_if_traces_cross=True``;
-* ``calib_bc`` -- ``ref`` with the backbone-consistency level of the branch choice, the
-  fold and the trim scaled by the calibration's tip tolerance
-  (``pipeline._consistency_tol_px``);
-* ``both_calib_bc`` -- both changes;
+* ``both`` -- the same with ``both_if_traces_cross=True`` (adopted);
 * ``pipeline`` -- this tree's :func:`traced_stereo_tips` with
   ``calibration=REAL_LIKE_CALIBRATION`` (as ``real_like_tip.py`` calls it; equal to
-  ``both_calib_bc``).
+  ``both``).
+
+(Commit 043f63e also had ``calib_bc``: the backbone-consistency level of the branch
+choice, fold and trim scaled by the calibration's tip tolerance; tried, not kept, S39.)
 
 Each row records whether the branch choice ran (the epipolar flag of the views' own
 tips) and the CPU seconds of each variant.
@@ -43,12 +42,7 @@ from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION, tip_epipolar_
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
 
 FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run here
-VARIANTS = {
-    "ref": {"both_if_traces_cross": False},
-    "both": {"both_if_traces_cross": True},
-    "calib_bc": {"both_if_traces_cross": False, "calibration": REAL_LIKE_CALIBRATION},
-    "both_calib_bc": {"both_if_traces_cross": True, "calibration": REAL_LIKE_CALIBRATION},
-}
+VARIANTS = {"ref": {"both_if_traces_cross": False}, "both": {"both_if_traces_cross": True}}
 
 
 def _errs(tips, truth):
@@ -58,10 +52,7 @@ def _errs(tips, truth):
 def _run(cams, traces0, kw):
     traces, tips, src = pipeline._branch_step(cams, list(traces0), 5.0, **kw)
     research = tip_epipolar_tolerance_px(cams, tips, REAL_LIKE_CALIBRATION, floor_px=5.0)
-    tol = pipeline._consistency_tol_px(cams, tips, kw.get("calibration"), 5.0)
-    tips2, _, res, chosen = pipeline._tip_step(
-        cams, traces, tips, src, 5.0, research_px=research, consistency_tol_px=tol
-    )
+    tips2, _, res, chosen = pipeline._tip_step(cams, traces, tips, src, 5.0, research_px=research)
     kind = ["trace" if c is t else ("guided" if c.departure == -1 else "alt")
             for c, t in zip(chosen, traces0, strict=True)]  # fmt: skip
     return tips, tips2, None if res is None else res.action, kind

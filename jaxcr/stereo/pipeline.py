@@ -356,7 +356,8 @@ def traced_stereo_tips(
     :func:`jaxcr.stereo.guided_retrace.guided_candidates`, ranked by its own turns at the
     view's junctions, :mod:`jaxcr.stereo.guided_ranking`; the consistent pair whose whole backbones triangulate
     consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
-    :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
+    :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`; one view keeps its
+    trace unless both traces follow a crossing object, docs/decisions.md S39); then, still over
     ``flag_px``, a view whose tube hooks back over its own silhouette gets its tip where
     the way back ends (:func:`jaxcr.stereo.backbone_consistency.fold_back_tip`, action
     ``"folded"``), else a view's backbone end that the other view does not explain is cut
@@ -377,34 +378,25 @@ def traced_stereo_tips(
     4177). The branch choice, fold and trim keep ``flag_px``: they act on whole backbones
     that leave over a tube width unexplained, which no calibration error of a few pixels
     makes (a tip gap of 7 px hid a trace 536 px off, dev 4074)."""
-    traces, tips, src = _branch_step(cams, traces, flag_px, calibration=calibration)
+    traces, tips, src = _branch_step(cams, traces, flag_px)
     research_px = None
     if calibration is not None:
         research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
-    return _tip_step(
-        cams, traces, tips, src, flag_px, research_px=research_px,
-        consistency_tol_px=_consistency_tol_px(cams, tips, calibration, flag_px),
-    )  # fmt: skip
+    return _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
 
 
-def _tip_step(
-    cams, traces, tips, src, flag_px: float, *, research_px: float | None = None,
-    consistency_tol_px: float = 3.0,
-):  # fmt: skip
+def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | None = None):
     """:func:`traced_stereo_tips` after the branch choice: a fold, a trim or the tips'
     re-search (its return value; flagged over ``research_px`` when given, else
-    ``flag_px``). ``consistency_tol_px``: the backbones' consistency level of the fold and
-    the trim (:func:`_consistency_tol_px`)."""
+    ``flag_px``)."""
     if not all(np.all(np.isfinite(t)) for t in tips):
         return tips, src, None, traces
     res = None
     if epipolar_gap_px(cams, tips) > flag_px:
-        tol = consistency_tol_px
         bc = backbone_consistency(
-            cams, _ending_at(traces[0].backbone, tips[0]), _ending_at(traces[1].backbone, tips[1]),
-            tol_px=tol,
-        )  # fmt: skip
-        fold = fold_back_tip(cams, bc, [t.width_px for t in traces], tol_px=tol)
+            cams, _ending_at(traces[0].backbone, tips[0]), _ending_at(traces[1].backbone, tips[1])
+        )
+        fold = fold_back_tip(cams, bc, [t.width_px for t in traces])
         if fold is not None:
             j, tip_j, _ = fold
             new = [np.asarray(t, np.float64) for t in tips]
@@ -412,9 +404,7 @@ def _tip_step(
             res = TipConsistency(new, "folded", j, float("nan"), epipolar_gap_px(cams, tips),
                                  epipolar_gap_px(cams, new))  # fmt: skip
         else:
-            res = trim_unexplained_tail(
-                cams, traces, tips, bc, tol_px=tol, tails=open_end_tails(cams, bc, tol_px=tol)
-            )
+            res = trim_unexplained_tail(cams, traces, tips, bc, tails=open_end_tails(cams, bc))
     if res is None:
         res = reconcile_tips(
             cams, traces, tips, flag_px=flag_px if research_px is None else research_px
@@ -422,25 +412,7 @@ def _tip_step(
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
 
 
-def _consistency_tol_px(cams, tips, calibration, flag_px: float) -> float:
-    """The level (px) above which a backbone sample's reprojection error is inconsistent
-    (:func:`jaxcr.stereo.backbone_consistency.backbone_consistency`'s ``tol_px``): 3 px
-    (the 5 px tip flag split over two views, with a calibration good to half a pixel)
-    without ``calibration``; given, 3 px times the calibration's tip tolerance over
-    ``flag_px`` (:func:`jaxcr.stereo.epipolar_tolerance.tip_epipolar_tolerance_px` at
-    ``tips``, at least ``flag_px``: the same share of a level set by the calibration;
-    docs/decisions.md S39). 3 px where a tip is not finite."""
-    if calibration is None or not all(np.all(np.isfinite(t)) for t in tips):
-        return 3.0
-    return (
-        3.0 * float(tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)) / flag_px
-    )
-
-
-def _branch_step(
-    cams, traces, flag_px: float, *, both_if_traces_cross: bool = True,
-    calibration: CalibrationUncertainty | None = None,
-):  # fmt: skip
+def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = True):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
     One choice among each view's trace, its re-traces from its own junctions and its tube
@@ -455,27 +427,17 @@ def _branch_step(
     pair that explains itself (a re-trace onto a cable both views see: dev 4079, 4185).
     Where both views' traces follow a crossing object, a pair of two re-traces that each
     follow fewer is offered too (``both_if_traces_cross``, S39: neither trace is evidence
-    for the other view then; dev 4187, both traces on a cable); False: as S36.
-
-    ``calibration`` (given): the whole backbones' consistency level
-    (:func:`jaxcr.stereo.backbone_consistency.backbone_consistency`'s ``tol_px``, 3 px:
-    the 5 px tip flag split over two views with a calibration good to half a pixel) is
-    scaled by the calibration's tip tolerance over ``flag_px``
-    (:func:`jaxcr.stereo.epipolar_tolerance.tip_epipolar_tolerance_px` at the views' own
-    tips, at least ``flag_px``; S39: a right pair 8 px apart under the preset's
-    calibration error left 64 px of backbone "unexplained", dev 4169)."""
+    for the other view then; dev 4187, both traces on a cable); False: as S36."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
     if epipolar_gap_px(cams, tips) > flag_px and all(
         getattr(t, "retrace", None) is not None for t in traces
     ):
-        tol_px = _consistency_tol_px(cams, tips, calibration, flag_px)
 
         def inconsistency(a, b, tips):
             return backbone_consistency(
-                cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1]),
-                tol_px=tol_px,
-            ).inconsistent_px  # fmt: skip
+                cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
+            ).inconsistent_px
 
         def choose(cands):
             if len(cands[0]) + len(cands[1]) <= 2:
