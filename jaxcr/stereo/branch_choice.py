@@ -80,10 +80,15 @@ def _follows_no_more(alt, orig) -> bool:
     return int(getattr(alt, "crossings_followed", 0)) <= int(getattr(orig, "crossings_followed", 0))
 
 
+def _follows_fewer(alt, orig) -> bool:
+    """Whether ``alt`` follows fewer crossing objects than ``orig``."""
+    return int(getattr(alt, "crossings_followed", 0)) < int(getattr(orig, "crossings_followed", 0))
+
+
 def choose_branches(
     cams, candidates, *, tips_of=None, match_px: float = 15.0, inconsistency_of=None,
     consistent_px: float = CONSISTENT_PX, margin_px: float = 20.0, any_pair: bool = False,
-    more_crossings_if_consistent: bool = False,
+    more_crossings_if_consistent: bool = False, both_if_traces_cross: bool = False,
 ) -> BranchChoice | None:  # fmt: skip
     """The consistent pair of candidates with the smoothest paths (module docstring).
 
@@ -115,7 +120,14 @@ def choose_branches(
     alternative that follows more crossing objects than its view's trace is allowed when
     the pair's length is within ``consistent_px`` (what :func:`jaxcr.stereo.pipeline.
     traced_stereo_tips` passes since S36: a tube that crosses its own silhouette is an X
-    as a cable is, :func:`jaxcr.segmentation.foreground.crosses_through`)."""
+    as a cable is, :func:`jaxcr.segmentation.foreground.crosses_through`).
+    ``both_if_traces_cross`` (with ``inconsistency_of``): where *both* views' traces
+    follow a crossing object (each view's own tracer left a junction along an X, so
+    neither trace is evidence for the other view), pairs in which both views leave their
+    traces are offered too, each alternative following fewer crossing objects than its
+    view's trace and the pair under the same gate (what :func:`jaxcr.stereo.pipeline.
+    traced_stereo_tips` passes since S39; ``any_pair`` offers them everywhere, which S31
+    found breaks right frames whose one view's trace is right)."""
     F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
                                np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
     best, key, n_ok = None, None, 0
@@ -125,10 +137,22 @@ def choose_branches(
         tips = tips_of(a, b) if tips_of is not None else (a.tip, b.tip)
         if all(np.all(np.isfinite(np.asarray(t, np.float64))) for t in tips):
             base_bad = float(inconsistency_of(a, b, tips))
+    both_cross = (
+        both_if_traces_cross
+        and inconsistency_of is not None
+        and all(int(getattr(c[0], "crossings_followed", 0)) > 0 for c in candidates)
+    )
     for i0, a in enumerate(candidates[0]):
         for i1, b in enumerate(candidates[1]):
             if i0 and i1 and not (any_pair and inconsistency_of is not None):
-                continue  # one view keeps its trace (the first candidate)
+                # One view keeps its trace (the first candidate), unless both traces
+                # followed a crossing object and both alternatives follow fewer (S39).
+                if not (
+                    both_cross
+                    and _follows_fewer(a, candidates[0][0])
+                    and _follows_fewer(b, candidates[1][0])
+                ):
+                    continue
             if (
                 inconsistency_of is None
                 and (i0 or i1)

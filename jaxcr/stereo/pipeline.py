@@ -360,7 +360,8 @@ def traced_stereo_tips(
     :func:`jaxcr.stereo.guided_retrace.guided_candidates`, ranked by its own turns at the
     view's junctions, :mod:`jaxcr.stereo.guided_ranking`; the consistent pair whose whole backbones triangulate
     consistently, :func:`jaxcr.stereo.branch_choice.choose_branches` with
-    :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`); then, still over
+    :func:`jaxcr.stereo.backbone_consistency.backbone_consistency`; one view keeps its
+    trace unless both traces follow a crossing object, docs/decisions.md S39); then, still over
     ``flag_px``, a view whose tube hooks back over its own silhouette gets its tip where
     the way back ends (:func:`jaxcr.stereo.backbone_consistency.fold_back_tip`, action
     ``"folded"``), else a view's backbone end that the other view does not explain is cut
@@ -415,7 +416,7 @@ def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | N
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
 
 
-def _branch_step(cams, traces, flag_px: float):
+def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = True):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
     One choice among each view's trace, its re-traces from its own junctions and its tube
@@ -427,7 +428,10 @@ def _branch_step(cams, traces, flag_px: float):
     searched along by construction, a re-trace that agrees is independent evidence).
     Round 14 offered the guided candidates only where the views' own candidates held no
     pair that explains itself; that missed the frames whose own candidates hold a wrong
-    pair that explains itself (a re-trace onto a cable both views see: dev 4079, 4185)."""
+    pair that explains itself (a re-trace onto a cable both views see: dev 4079, 4185).
+    Where both views' traces follow a crossing object, a pair of two re-traces that each
+    follow fewer is offered too (``both_if_traces_cross``, S39: neither trace is evidence
+    for the other view then; dev 4187, both traces on a cable); False: as S36."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
     if epipolar_gap_px(cams, tips) > flag_px and all(
@@ -453,6 +457,7 @@ def _branch_step(cams, traces, flag_px: float):
                 # A re-trace may follow more crossing objects than its trace when the pair
                 # explains itself: a tube crossing its own silhouette is an X too (S36).
                 more_crossings_if_consistent=True,
+                both_if_traces_cross=both_if_traces_cross,
             )
 
         cands = [[t] + trace_alternatives(t) for t in traces]

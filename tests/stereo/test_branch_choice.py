@@ -252,3 +252,78 @@ def test_more_crossings_allowed_only_for_a_pair_that_explains_itself():
         CAMS, cands, inconsistency_of=inconsistency, more_crossings_if_consistent=True
     )
     assert res.indices == (2, 0)
+
+
+def _cv2_proj(T, X):
+    """``X`` (n, 3) projected by OpenCV (the reference camera model; no distortion)."""
+    rvec, _ = cv2.Rodrigues(np.asarray(T[:3, :3], np.float64))
+    uv, _ = cv2.projectPoints(np.atleast_2d(X).astype(np.float64), rvec, T[:3, 3], K, None)
+    return uv.reshape(-1, 2)
+
+
+def _arc(n=60):
+    """A closed-form planar arc (radius 6 cm, 70 deg) from the base up: the tube (m)."""
+    s = np.linspace(0.0, np.deg2rad(70.0), n)
+    return np.stack([0.06 * (1 - np.cos(s)), 0.0 * s, 0.06 * np.sin(s)], 1)
+
+
+def _turned_onto(T, arc, cable):
+    """One view's trace that turned onto the cable where its image crosses the tube's:
+    the arc's projection up to its point nearest the cable's image, then the cable's
+    projection from its own point nearest there to its far end."""
+    a, c = _cv2_proj(T, arc), _cv2_proj(T, cable)
+    d = np.linalg.norm(a[:, None] - c[None], axis=2)
+    i, j = np.unravel_index(np.argmin(d), d.shape)
+    return np.vstack([a[: i + 1], c[j:]])
+
+
+def test_both_traces_on_a_cable_offer_a_pair_of_two_re_traces():
+    """A 3-D arc (the tube) and a straight 3-D cable passing 2 cm in front of it, both
+    projected with ``cv2.projectPoints``. Each view's trace turned onto the cable where
+    the cable's image crosses the tube's (at a different point of the tube in each view,
+    so the traces' pair leaves most of its backbones unexplained, by
+    ``backbone_consistency``) and follows one crossing object; each view's re-trace is
+    the whole arc (no crossing followed). One view kept (the default): no pair with one
+    trace explains itself, nothing is chosen. ``both_if_traces_cross``: the two re-traces,
+    which explain each other (under 1 px of backbone unexplained; the traces' pair over
+    15 px), with the arc's
+    projected end as tips. Not offered where one trace follows no crossing object, nor
+    where an alternative follows as many as its trace."""
+    from jaxcr.stereo.backbone_consistency import backbone_consistency
+
+    arc = _arc()
+    # Through a point in front of the arc's middle (towards both cameras), across it.
+    mid = arc[30] + np.array([0.02, -0.02, 0.0])
+    cable = mid[None] + np.linspace(-0.08, 0.08, 80)[:, None] * np.array([0.3, 0.8, -0.5])
+    views = []
+    for T in (T0, T1):
+        tube = _cv2_proj(T, arc)
+        trace = _turned_onto(T, arc, cable)
+        views.append([
+            SimpleNamespace(tip=trace[-1], backbone=trace, crossings_followed=1,
+                            crossing_turn_deg=40.0),
+            SimpleNamespace(tip=tube[-1], backbone=tube, crossings_followed=0,
+                            crossing_turn_deg=0.0),
+        ])  # fmt: skip
+
+    def inconsistency(a, b, tips):
+        return backbone_consistency(CAMS, a.backbone, b.backbone).inconsistent_px
+
+    assert inconsistency(views[0][0], views[1][0], None) > 15.0
+    assert inconsistency(views[0][1], views[1][1], None) < 1.0
+    # margin_px: 1.25 widths of a 4 px tube at this image's scale (160 x 120 px).
+    kw = dict(inconsistency_of=inconsistency, more_crossings_if_consistent=True, margin_px=5.0)
+    res = choose_branches(CAMS, views, **kw)
+    assert res is None or res.indices == (0, 0)
+    res = choose_branches(CAMS, views, both_if_traces_cross=True, **kw)
+    assert res.indices == (1, 1), res
+    for k, T in enumerate((T0, T1)):
+        np.testing.assert_allclose(res.tips[k], _cv2_proj(T, arc[-1:])[0], atol=1e-9)
+    # One trace follows no crossing object: that view's trace is evidence, no pair of two.
+    views[1][0].crossings_followed = 0
+    res = choose_branches(CAMS, views, both_if_traces_cross=True, **kw)
+    assert res is None or 0 in res.indices
+    # An alternative that follows as many crossing objects as its trace: not offered.
+    views[1][0].crossings_followed, views[1][1].crossings_followed = 1, 1
+    res = choose_branches(CAMS, views, both_if_traces_cross=True, **kw)
+    assert res is None or 0 in res.indices
