@@ -66,6 +66,7 @@ __all__ = [
     "plate_foreground",
     "trace_alternatives",
     "end_before_hop",
+    "rewalk_end",
     "crossing_turn",
     "crosses_through",
 ]
@@ -1402,6 +1403,10 @@ def _finish(low: TubeTrace, ctx: _Retrace) -> TubeTrace:
         tr.backbone = _to_full(tr.backbone, k)
         tr.tip, tr.entry = _to_full(tr.tip, k), _to_full(tr.entry, k)
         tr.width_px = tr.width_px * k
+        if len(tr.backbone) >= 3:
+            turned = rewalk_end(ctx.seeds, tr.backbone, tr.width_px, cfg)
+            if turned is not None:
+                tr.backbone, tr.tip = turned, turned[-1].copy()
         tr.mask = _path_mask(ctx.seeds, tr.backbone, tr.gaps, tr.width_px)
     if cfg.refine and len(tr.backbone) >= 3:
         tip, tr.cap_px, tr.end_dir, tr.end_half_width_px = refine_tip_details(
@@ -1413,6 +1418,77 @@ def _finish(low: TubeTrace, ctx: _Retrace) -> TubeTrace:
     tr.scale, tr.measured_width_px = k, ctx.width0
     tr.retrace = ctx
     return tr
+
+
+# rewalk_end: the stretch re-walked (widths back from the end), how far beyond the traced
+# path its end must lie (widths: the end face's corners lie up to half a width off the
+# path's end, so a re-walk that only reaches a corner stays within that), and how far from
+# the traced end it may lie (widths: a tube's own end turn is short; a longer re-walk left
+# the tube along something touching it).
+_REWALK_BACK, _REWALK_OUT, _REWALK_FREE = 3.0, 0.75, 2.0
+
+
+def _dense(pts: np.ndarray, step: float = 0.5) -> np.ndarray:
+    """The polyline ``pts`` (n, 2) sampled every ``step`` px or less (its points kept)."""
+    seg = [pts[:1]]
+    for a, b in zip(pts[:-1], pts[1:], strict=True):
+        n = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1)
+        seg.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    return np.concatenate(seg)
+
+
+def rewalk_end(
+    mask: np.ndarray,
+    backbone: np.ndarray,
+    width_px: float,
+    cfg: PlateForegroundConfig = PlateForegroundConfig(),
+) -> np.ndarray | None:
+    """The ``backbone`` (n, 2) (u, v, full-resolution pixels) of a tube traced at a reduced
+    scale with its end re-walked on the full-resolution ``mask`` (H, W) bool, where the
+    tube turns at its end more sharply than the reduced walker can follow; else None.
+
+    :func:`plate_foreground` traces a wide tube on a view reduced ``k`` times, so its look
+    ray spans ``k look_px`` full-resolution pixels (20-30 px on the ``real_like`` preset's
+    15-22 px tube). A tube that hooks round within about its own width at its end (real_like
+    dev seed 4082, view 1: ~120 deg over the last width, the tail beside the apex) leaves
+    no ray that long on the mask past the turn, and the reduced walker stops at the hook's
+    apex, the tail (in the mask) untraced. On the full-resolution mask the same walker
+    (:func:`trace_tube`, ``cfg``'s lengths, no gap bridging) has a look ray shorter than the
+    tube's width and turns with it. The last ``3`` widths (``w = width_px``) are re-walked
+    from the traced path's point there, in its direction there.
+
+    The re-walk is taken only where it ends where the traced path does not reach: more
+    than ``0.75 w`` from every point of the traced path (a straight tube's re-walk ends on
+    its end face, within half a width of the traced end: no change), within ``2 w`` of
+    the traced end (a tube's own end turn is short; a re-walk that goes on left the tube
+    along something touching it, a shadow or another tube), and off the image border.
+    Returns the traced path up to the re-walk's start followed by the re-walk (its last
+    point the silhouette's end, to be refined as the traced end is), or None."""
+    bb = np.asarray(backbone, np.float64)
+    w = float(max(width_px, 2.0))
+    if len(bb) < 3:
+        return None
+    cum = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(bb, axis=0), axis=1))]
+    a0 = cum[-1] - _REWALK_BACK * w
+    if a0 <= 0.0:
+        return None
+    i = int(np.searchsorted(cum, a0))
+    d = bb[min(i + 3, len(bb) - 1)] - bb[max(i - 3, 0)]
+    if not np.linalg.norm(d) > 0:
+        return None
+    from dataclasses import replace
+
+    sub = trace_tube(mask, bb[i], d, replace(cfg, max_gap_px=0.0), _single=True)
+    if len(sub.backbone) < 3:
+        return None
+    end = sub.backbone[-1]
+    if np.min(np.linalg.norm(_dense(bb) - end, axis=1)) <= _REWALK_OUT * w:
+        return None
+    if np.linalg.norm(end - bb[-1]) > _REWALK_FREE * w:
+        return None
+    if _at_border(end, mask.shape, 2.0 * cfg.step_px):
+        return None
+    return np.vstack([bb[:i], sub.backbone])
 
 
 def _heading_at(bb: np.ndarray, i: int) -> float:
