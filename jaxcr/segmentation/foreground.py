@@ -1404,7 +1404,7 @@ def _finish(low: TubeTrace, ctx: _Retrace) -> TubeTrace:
         tr.tip, tr.entry = _to_full(tr.tip, k), _to_full(tr.entry, k)
         tr.width_px = tr.width_px * k
         if len(tr.backbone) >= 3:
-            turned = rewalk_end(ctx.seeds, tr.backbone, tr.width_px, cfg)
+            turned = rewalk_end(ctx.seeds, tr.backbone, tr.width_px, cfg=cfg)
             if turned is not None:
                 tr.backbone, tr.tip = turned, turned[-1].copy()
         tr.mask = _path_mask(ctx.seeds, tr.backbone, tr.gaps, tr.width_px)
@@ -1441,6 +1441,7 @@ def rewalk_end(
     mask: np.ndarray,
     backbone: np.ndarray,
     width_px: float,
+    *,
     cfg: PlateForegroundConfig = PlateForegroundConfig(),
 ) -> np.ndarray | None:
     """The ``backbone`` (n, 2) (u, v, full-resolution pixels) of a tube traced at a reduced
