@@ -1399,21 +1399,33 @@ def _finish(low: TubeTrace, ctx: _Retrace) -> TubeTrace:
 
     k, cfg = ctx.k, ctx.cfg
     tr = replace(low, backbone=low.backbone.copy(), tip=low.tip.copy(), gaps=list(low.gaps))
+    paths = [tr.backbone]
     if k > 1:
         tr.backbone = _to_full(tr.backbone, k)
         tr.tip, tr.entry = _to_full(tr.tip, k), _to_full(tr.entry, k)
         tr.width_px = tr.width_px * k
-        if len(tr.backbone) >= 3:
-            turned = rewalk_end(ctx.seeds, tr.backbone, tr.width_px, cfg=cfg)
-            if turned is not None:
-                tr.backbone, tr.tip = turned, turned[-1].copy()
-        tr.mask = _path_mask(ctx.seeds, tr.backbone, tr.gaps, tr.width_px)
-    if cfg.refine and len(tr.backbone) >= 3:
-        tip, tr.cap_px, tr.end_dir, tr.end_half_width_px = refine_tip_details(
-            ctx.score, tr.backbone, tr.width_px, _scaled(cfg, k)
-        )
-        tr.backbone = np.vstack([tr.backbone[:-1], tip])
-        tr.tip = tip
+        paths = [tr.backbone]
+        turned = rewalk_end(ctx.seeds, tr.backbone, tr.width_px, cfg=cfg)
+        if turned is not None:
+            paths.insert(0, turned)
+    for n, bb in enumerate(paths):
+        tr.backbone, tr.tip, traced = bb, bb[-1].copy(), bb
+        if cfg.refine and len(bb) >= 3:
+            tip, cap, end_dir, half_w = refine_tip_details(
+                ctx.score, bb, tr.width_px, _scaled(cfg, k)
+            )
+            # A re-walked end is kept where the score's end confirms it: past a real turn
+            # the tail is tube and the refined end lies at the re-walk's end; a re-walk
+            # that strayed onto something weaker touching the end (a shadow) has its
+            # refined end fall back short of it (dev 4024 view 2: 22 px).
+            if n < len(paths) - 1 and np.linalg.norm(tip - bb[-1]) > _REWALK_CONFIRM * tr.width_px:
+                continue
+            tr.cap_px, tr.end_dir, tr.end_half_width_px = cap, end_dir, half_w
+            tr.backbone = np.vstack([bb[:-1], tip])
+            tr.tip = tip
+        break
+    if k > 1:  # the hysteresis mask near the path as traced (before the tip's refinement)
+        tr.mask = _path_mask(ctx.seeds, traced, tr.gaps, tr.width_px)
     tr.shift, tr.score, tr.seed_mask = ctx.shift, ctx.score, ctx.seeds
     tr.scale, tr.measured_width_px = k, ctx.width0
     tr.retrace = ctx
@@ -1426,6 +1438,8 @@ def _finish(low: TubeTrace, ctx: _Retrace) -> TubeTrace:
 # the traced end it may lie (widths: a tube's own end turn is short; a longer re-walk left
 # the tube along something touching it).
 _REWALK_BACK, _REWALK_OUT, _REWALK_FREE = 3.0, 0.75, 2.0
+# ... and how near the re-walk's end its refined tip must lie (widths; see _finish).
+_REWALK_CONFIRM = 0.5
 
 
 def _dense(pts: np.ndarray, step: float = 0.5) -> np.ndarray:
