@@ -35,7 +35,9 @@ scipy on float RGB in [0, 1] (no cv2, no file I/O):
 The tracing lengths are in pixels of a view where the tube is about ``tube_width_px`` wide;
 :func:`plate_foreground` measures the tube's width near the entry and traces a view where it
 is ``k >= 2`` times wider on the frame and plate reduced ``k`` times, refining the tip at full
-resolution (:class:`PlateForegroundConfig`, "Scale").
+resolution (:class:`PlateForegroundConfig`, "Scale"); the last three widths are walked again
+on the full-resolution mask, whose shorter look follows a hook at the end that the reduced
+walker stops at the apex of (:func:`rewalk_end`, kept where the refined tip confirms it).
 
 Pixel convention: OpenCV's (u, v) = (column, row), pixel centres at integers.
 """
@@ -1466,11 +1468,16 @@ def rewalk_end(
     ray spans ``k look_px`` full-resolution pixels (20-30 px on the ``real_like`` preset's
     15-22 px tube). A tube that hooks round within about its own width at its end (real_like
     dev seed 4082, view 1: ~120 deg over the last width, the tail beside the apex) leaves
-    no ray that long on the mask past the turn, and the reduced walker stops at the hook's
-    apex, the tail (in the mask) untraced. On the full-resolution mask the same walker
-    (:func:`trace_tube`, ``cfg``'s lengths, no gap bridging) has a look ray shorter than the
-    tube's width and turns with it. The last ``3`` widths (``w = width_px``) are re-walked
-    from the traced path's point there, in its direction there.
+    no ray that long on the mask past the turn; and where the tail is a weak cue (a grey
+    tube over the white board, its lit side nearly the board's brightness), the reduction's
+    area average mixes it with the board beside it and the reduced mask loses most of it
+    (4082 v1: 2 of the tail's 8 full-resolution rows are left). The reduced walker stops
+    at the hook's apex. On the full-resolution hysteresis mask, which keeps the tail, the
+    same walker (:func:`trace_tube`, ``cfg``'s lengths, no gap bridging) has a look ray
+    shorter than the tube's width and turns with it. The last ``3`` widths
+    (``w = width_px``) are re-walked from the traced path's point there, in its direction
+    there. (A drawn hook of the same shape at full contrast is followed by the reduced
+    walker already: the re-walk then ends where the trace does and changes nothing.)
 
     The re-walk is taken only where it ends where the traced path does not reach: more
     than ``0.75 w`` from every point of the traced path (a straight tube's re-walk ends on
