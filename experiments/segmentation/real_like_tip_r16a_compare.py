@@ -1,6 +1,7 @@
 """Round 16a (issue 16 item 2, docs/decisions.md S38): the tracer's end re-walked at full
 resolution (:func:`jaxcr.segmentation.foreground.rewalk_end`), compared frame by frame
-with the reference traces.
+with the reference traces. (The re-walk was taken out of the tracer after round 16's fresh
+run, decisions S38; this script reads stored rows and needs it only to make new ones.)
 
 Input: two rows files of ``real_like_tip_end.py`` (its ``--out ROWS``), one on the
 reference store (traces of the tracer before the change) and one on a store re-traced

@@ -35,9 +35,7 @@ scipy on float RGB in [0, 1] (no cv2, no file I/O):
 The tracing lengths are in pixels of a view where the tube is about ``tube_width_px`` wide;
 :func:`plate_foreground` measures the tube's width near the entry and traces a view where it
 is ``k >= 2`` times wider on the frame and plate reduced ``k`` times, refining the tip at full
-resolution (:class:`PlateForegroundConfig`, "Scale"); the last three widths are walked again
-on the full-resolution mask, whose shorter look follows a hook at the end that the reduced
-walker stops at the apex of (:func:`rewalk_end`, kept where the refined tip confirms it).
+resolution (:class:`PlateForegroundConfig`, "Scale").
 
 Pixel convention: OpenCV's (u, v) = (column, row), pixel centres at integers.
 """
@@ -68,7 +66,6 @@ __all__ = [
     "plate_foreground",
     "trace_alternatives",
     "end_before_hop",
-    "rewalk_end",
     "crossing_turn",
     "crosses_through",
 ]
@@ -1401,116 +1398,21 @@ def _finish(low: TubeTrace, ctx: _Retrace) -> TubeTrace:
 
     k, cfg = ctx.k, ctx.cfg
     tr = replace(low, backbone=low.backbone.copy(), tip=low.tip.copy(), gaps=list(low.gaps))
-    paths = [tr.backbone]
     if k > 1:
         tr.backbone = _to_full(tr.backbone, k)
         tr.tip, tr.entry = _to_full(tr.tip, k), _to_full(tr.entry, k)
         tr.width_px = tr.width_px * k
-        paths = [tr.backbone]
-        turned = rewalk_end(ctx.seeds, tr.backbone, tr.width_px, cfg=cfg)
-        if turned is not None:
-            paths.insert(0, turned)
-    for n, bb in enumerate(paths):
-        tr.backbone, tr.tip, traced = bb, bb[-1].copy(), bb
-        if cfg.refine and len(bb) >= 3:
-            tip, cap, end_dir, half_w = refine_tip_details(
-                ctx.score, bb, tr.width_px, _scaled(cfg, k)
-            )
-            # A re-walked end is kept where the score's end confirms it: past a real turn
-            # the tail is tube and the refined end lies at the re-walk's end; a re-walk
-            # that strayed onto something weaker touching the end (a shadow) has its
-            # refined end fall back short of it (dev 4024 view 2: 22 px).
-            if n < len(paths) - 1 and np.linalg.norm(tip - bb[-1]) > _REWALK_CONFIRM * tr.width_px:
-                continue
-            tr.cap_px, tr.end_dir, tr.end_half_width_px = cap, end_dir, half_w
-            tr.backbone = np.vstack([bb[:-1], tip])
-            tr.tip = tip
-        break
-    if k > 1:  # the hysteresis mask near the path as traced (before the tip's refinement)
-        tr.mask = _path_mask(ctx.seeds, traced, tr.gaps, tr.width_px)
+        tr.mask = _path_mask(ctx.seeds, tr.backbone, tr.gaps, tr.width_px)
+    if cfg.refine and len(tr.backbone) >= 3:
+        tip, tr.cap_px, tr.end_dir, tr.end_half_width_px = refine_tip_details(
+            ctx.score, tr.backbone, tr.width_px, _scaled(cfg, k)
+        )
+        tr.backbone = np.vstack([tr.backbone[:-1], tip])
+        tr.tip = tip
     tr.shift, tr.score, tr.seed_mask = ctx.shift, ctx.score, ctx.seeds
     tr.scale, tr.measured_width_px = k, ctx.width0
     tr.retrace = ctx
     return tr
-
-
-# rewalk_end: the stretch re-walked (widths back from the end), how far beyond the traced
-# path its end must lie (widths: the end face's corners lie up to half a width off the
-# path's end, so a re-walk that only reaches a corner stays within that), and how far from
-# the traced end it may lie (widths: a tube's own end turn is short; a longer re-walk left
-# the tube along something touching it).
-_REWALK_BACK, _REWALK_OUT, _REWALK_FREE = 3.0, 0.75, 2.0
-# ... and how near the re-walk's end its refined tip must lie (widths; see _finish).
-_REWALK_CONFIRM = 0.5
-
-
-def _dense(pts: np.ndarray, step: float = 0.5) -> np.ndarray:
-    """The polyline ``pts`` (n, 2) sampled every ``step`` px or less (its points kept)."""
-    seg = [pts[:1]]
-    for a, b in zip(pts[:-1], pts[1:], strict=True):
-        n = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1)
-        seg.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
-    return np.concatenate(seg)
-
-
-def rewalk_end(
-    mask: np.ndarray,
-    backbone: np.ndarray,
-    width_px: float,
-    *,
-    cfg: PlateForegroundConfig = PlateForegroundConfig(),
-) -> np.ndarray | None:
-    """The ``backbone`` (n, 2) (u, v, full-resolution pixels) of a tube traced at a reduced
-    scale with its end re-walked on the full-resolution ``mask`` (H, W) bool, where the
-    tube turns at its end more sharply than the reduced walker can follow; else None.
-
-    :func:`plate_foreground` traces a wide tube on a view reduced ``k`` times, so its look
-    ray spans ``k look_px`` full-resolution pixels (20-30 px on the ``real_like`` preset's
-    15-22 px tube). A tube that hooks round within about its own width at its end (real_like
-    dev seed 4082, view 1: ~120 deg over the last width, the tail beside the apex) leaves
-    no ray that long on the mask past the turn; and where the tail is a weak cue (a grey
-    tube over the white board, its lit side nearly the board's brightness), the reduction's
-    area average mixes it with the board beside it and the reduced mask loses most of it
-    (4082 v1: 2 of the tail's 8 full-resolution rows are left). The reduced walker stops
-    at the hook's apex. On the full-resolution hysteresis mask, which keeps the tail, the
-    same walker (:func:`trace_tube`, ``cfg``'s lengths, no gap bridging) has a look ray
-    shorter than the tube's width and turns with it. The last ``3`` widths
-    (``w = width_px``) are re-walked from the traced path's point there, in its direction
-    there. (A drawn hook of the same shape at full contrast is followed by the reduced
-    walker already: the re-walk then ends where the trace does and changes nothing.)
-
-    The re-walk is taken only where it ends where the traced path does not reach: more
-    than ``0.75 w`` from every point of the traced path (a straight tube's re-walk ends on
-    its end face, within half a width of the traced end: no change), within ``2 w`` of
-    the traced end (a tube's own end turn is short; a re-walk that goes on left the tube
-    along something touching it, a shadow or another tube), and off the image border.
-    Returns the traced path up to the re-walk's start followed by the re-walk (its last
-    point the silhouette's end, to be refined as the traced end is), or None."""
-    bb = np.asarray(backbone, np.float64)
-    w = float(max(width_px, 2.0))
-    if len(bb) < 3:
-        return None
-    cum = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(bb, axis=0), axis=1))]
-    a0 = cum[-1] - _REWALK_BACK * w
-    if a0 <= 0.0:
-        return None
-    i = int(np.searchsorted(cum, a0))
-    d = bb[min(i + 3, len(bb) - 1)] - bb[max(i - 3, 0)]
-    if not np.linalg.norm(d) > 0:
-        return None
-    from dataclasses import replace
-
-    sub = trace_tube(mask, bb[i], d, replace(cfg, max_gap_px=0.0), _single=True)
-    if len(sub.backbone) < 3:
-        return None
-    end = sub.backbone[-1]
-    if np.min(np.linalg.norm(_dense(bb) - end, axis=1)) <= _REWALK_OUT * w:
-        return None
-    if np.linalg.norm(end - bb[-1]) > _REWALK_FREE * w:
-        return None
-    if _at_border(end, mask.shape, 2.0 * cfg.step_px):
-        return None
-    return np.vstack([bb[:i], sub.backbone])
 
 
 def _heading_at(bb: np.ndarray, i: int) -> float:

@@ -15,7 +15,6 @@ from jaxcr.segmentation.foreground import (
     downsample,
     measure_tube_width,
     plate_foreground,
-    rewalk_end,
 )
 
 GREEN = np.array([0.16, 0.50, 0.20])
@@ -124,40 +123,3 @@ def test_measure_tube_width_on_drawn_bands(width, angle):
     band[5:9, 90:110] = True  # a separate speck: not the component at the entry
     got = measure_tube_width(band, (10.0, 40.0))
     assert abs(got - width) <= 1.0, got
-
-
-def _band_mask(centre: np.ndarray, shape, width: float) -> np.ndarray:
-    """Pixels within ``width / 2`` of the densely sampled centre line (n, 2) (u, v): a tube
-    with round ends (scipy's KD-tree distance, independent of the tracer)."""
-    from scipy.spatial import cKDTree
-
-    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
-    d, _ = cKDTree(centre).query(np.stack([xx.ravel(), yy.ravel()], 1))
-    return (d <= width / 2).reshape(shape)
-
-
-def test_rewalk_end_follows_a_hook_the_reduced_walker_stopped_at():
-    """A tube 15 px wide (the real_like preset's, traced reduced twice) runs straight along
-    v = 60 to u = 100, then hooks round 150 deg on a centre-line radius of 9 px (under its
-    own width: the way out and the tail merge, as dev seed 4082 view 1). The traced path
-    given ends at the apex (u = 104), where the reduced walker stops. Reference: the drawn
-    centre line's end E and its direction t (closed form): the re-walk's last point is the
-    silhouette's end, the round cap's apex E + 7.5 t, within half a width (2.4 px measured:
-    the walker marches off a re-centred path). A straight tube's re-walk ends on its own end
-    face (None), and so does a hook whose tail goes on 90 px (something touching the tube's
-    end, not its own turn: None)."""
-    w = 15.0
-    straight = np.stack([np.arange(10.0, 100.01, 0.25), np.full(361, 60.0)], 1)
-    phi = np.radians(np.arange(0.0, 150.01, 0.5))
-    arc = np.stack([100 + 9.0 * np.sin(phi), 69 - 9.0 * np.cos(phi)], 1)
-    t = np.array([np.cos(phi[-1]), np.sin(phi[-1])])
-    apex = arc[-1] + w / 2 * t
-    traced = np.stack([np.arange(10.0, 104.01, 4.0), np.full(24, 60.0)], 1)
-    out = rewalk_end(_band_mask(np.vstack([straight, arc]), (120, 160), w), traced, w)
-    assert out is not None and np.linalg.norm(out[-1] - apex) < w / 2, out
-    assert np.allclose(out[:5], traced[:5])  # the path before the re-walk is kept
-    straight_traced = np.stack([np.arange(10.0, 107.01, 4.0), np.full(25, 60.0)], 1)
-    assert rewalk_end(_band_mask(straight, (120, 160), w), straight_traced, w) is None
-    tail = arc[-1][None] + np.arange(0.0, 90.0, 0.25)[:, None] * t[None]
-    long_mask = _band_mask(np.vstack([straight, arc, tail]), (200, 160), w)
-    assert rewalk_end(long_mask, traced, w) is None
