@@ -27,21 +27,18 @@ tips) and the CPU seconds of each variant.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import pickle
 import time
 from pathlib import Path
 
 import numpy as np
+from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records
 
-from jaxcr.benchmarks import parse_seeds
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION, tip_epipolar_tolerance_px
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
 
-FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run here
 VARIANTS = {"ref": {"both_if_traces_cross": False}, "both": {"both_if_traces_cross": True}}
 
 
@@ -59,16 +56,9 @@ def _run(cams, traces0, kw):
 
 
 def evaluate(seeds, store: Path, out: Path) -> None:
-    rows = []
     jpath = out.with_suffix(".json")
-    if jpath.exists():
-        rows = json.loads(jpath.read_text())["rows"]
-    done = {r["seed"] for r in rows}
-    for seed in seeds:
-        if seed in done or not (store / f"{seed}.pkl").exists():
-            continue
-        with open(store / f"{seed}.pkl", "rb") as f:
-            rec = pickle.load(f)
+    rows = resumed_rows(out)
+    for seed, rec in stored_records(seeds, store, rows):
         alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
         saved = pipeline.trace_alternatives
         pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
@@ -134,20 +124,12 @@ def summary(path: Path) -> None:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds")
-    ap.add_argument("--store", type=Path)
-    ap.add_argument("--out", type=Path, default=Path("/tmp/real_like_tip_bothcross"))
-    ap.add_argument("--summary", type=Path)
+    ap = harness_parser(__doc__, "/tmp/real_like_tip_bothcross")
     args = ap.parse_args()
     if args.summary is not None:
         summary(args.summary)
         return 0
-    if args.seeds is None or args.store is None:
-        ap.error("--seeds and --store are required (or --summary ROWS.json)")
-    seeds = parse_seeds(args.seeds)
-    if any(s >= FORBIDDEN_FROM for s in seeds):
-        ap.error(f"seeds from {FORBIDDEN_FROM} are reserved for the fresh run")
+    seeds = dev_seeds(ap, args)
     evaluate(seeds, args.store, args.out)
     return 0
 

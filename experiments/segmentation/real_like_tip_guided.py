@@ -30,24 +30,20 @@ calibrated cameras and the true tips). Per seed:
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import pickle
 import time
 from pathlib import Path
 
 import numpy as np
 from real_like_tip_spline import _oracle  # the sibling script's candidate ceiling
+from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records
 
-from jaxcr.benchmarks import parse_seeds
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.backbone_consistency import backbone_consistency
 from jaxcr.stereo.branch_choice import choose_branches
 from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
-
-FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run here
 
 
 def _inconsistent(cams, a, b, tips) -> float:
@@ -115,16 +111,9 @@ def _errs(tips, truth):
 
 
 def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> None:
-    rows = []
     jpath = out.with_suffix(".json")
-    if jpath.exists():
-        rows = json.loads(jpath.read_text())["rows"]
-    done = {r["seed"] for r in rows}
-    for seed in seeds:
-        if seed in done or not (store / f"{seed}.pkl").exists():
-            continue
-        with open(store / f"{seed}.pkl", "rb") as f:
-            rec = pickle.load(f)
+    rows = resumed_rows(out)
+    for seed, rec in stored_records(seeds, store, rows):
         cams = rec["calib"]
         base = [[t] + list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)]
         t0 = time.process_time()
@@ -227,22 +216,14 @@ def summary(path: Path) -> None:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds")
-    ap.add_argument("--store", type=Path)
-    ap.add_argument("--out", type=Path, default=Path("/tmp/real_like_tip_guided"))
+    ap = harness_parser(__doc__, "/tmp/real_like_tip_guided")
     ap.add_argument("--bb-widths", type=float, default=2.0)
     ap.add_argument("--tip-mode", choices=["refine", "line"], default="refine")
-    ap.add_argument("--summary", type=Path)
     args = ap.parse_args()
     if args.summary is not None:
         summary(args.summary)
         return 0
-    if args.seeds is None or args.store is None:
-        ap.error("--seeds and --store are required (or --summary ROWS.json)")
-    seeds = parse_seeds(args.seeds)
-    if any(s >= FORBIDDEN_FROM for s in seeds):
-        ap.error(f"seeds from {FORBIDDEN_FROM} are reserved for the fresh run")
+    seeds = dev_seeds(ap, args)
     evaluate(seeds, args.store, args.out, args.bb_widths, args.tip_mode)
     return 0
 

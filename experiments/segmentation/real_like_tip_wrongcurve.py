@@ -31,17 +31,16 @@ true tips). Per seed:
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import os
-import pickle
 import time
 from pathlib import Path
 
 import numpy as np
 from real_like_tip_guided import _errs, _variant  # the sibling script's round-14 variants
 from real_like_tip_spline import _oracle  # the candidate ceiling
+from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records
 
 from jaxcr.benchmarks import parse_seeds
 from jaxcr.stereo import pipeline
@@ -51,7 +50,6 @@ from jaxcr.stereo.guided_ranking import offered_guided, with_own_turns
 from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
 
-FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run here
 VARIANTS = ("ref", "one", "one_own", "two_own", "one_own_x", "one_own_g", "one_own_gx", "pipeline")
 
 
@@ -118,16 +116,9 @@ def _one_choice(rec, cands, **choose_kw):
 
 
 def evaluate(seeds, store: Path, out: Path) -> None:
-    rows = []
     jpath = out.with_suffix(".json")
-    if jpath.exists():
-        rows = json.loads(jpath.read_text())["rows"]
-    done = {r["seed"] for r in rows}
-    for seed in seeds:
-        if seed in done or not (store / f"{seed}.pkl").exists():
-            continue
-        with open(store / f"{seed}.pkl", "rb") as f:
-            rec = pickle.load(f)
+    rows = resumed_rows(out)
+    for seed, rec in stored_records(seeds, store, rows):
         cams = rec["calib"]
         base = [[t] + list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)]
         t0 = time.process_time()
@@ -211,11 +202,7 @@ def summary(path: Path, sets: dict) -> None:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds")
-    ap.add_argument("--store", type=Path)
-    ap.add_argument("--out", type=Path, default=Path("/tmp/real_like_tip_wrongcurve"))
-    ap.add_argument("--summary", type=Path)
+    ap = harness_parser(__doc__, "/tmp/real_like_tip_wrongcurve")
     ap.add_argument("--sets", default="", help="NAME=SEEDS;NAME=SEEDS for --summary")
     args = ap.parse_args()
     if args.summary is not None:
@@ -225,11 +212,7 @@ def main() -> int:
             sets[name] = parse_seeds(s)
         summary(args.summary, sets)
         return 0
-    if args.seeds is None or args.store is None:
-        ap.error("--seeds and --store are required (or --summary ROWS.json)")
-    seeds = parse_seeds(args.seeds)
-    if any(s >= FORBIDDEN_FROM for s in seeds):
-        ap.error(f"seeds from {FORBIDDEN_FROM} are reserved for the fresh run")
+    seeds = dev_seeds(ap, args)
     evaluate(seeds, args.store, args.out)
     return 0
 

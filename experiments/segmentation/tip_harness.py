@@ -1,0 +1,57 @@
+"""What the issue-16 tip harnesses that evaluate variants on stored traces share
+(``real_like_tip_guided.py``, ``_end.py``, ``_wrongcurve.py``, ``_bothcross.py``): their
+command line (``--seeds``, ``--store``, ``--out``, ``--summary``; development seeds only) and
+their resumable loop over the stored seeds (``real_like_tip_spline.py trace`` writes the
+store: one ``SEED.pkl`` per frame). Not a script of its own."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+from collections.abc import Iterator
+from pathlib import Path
+
+from jaxcr.benchmarks import parse_seeds
+
+FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run by a harness
+
+
+def harness_parser(doc: str, default_out: str) -> argparse.ArgumentParser:
+    """The harnesses' common options; a harness adds its own before parsing."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--seeds", help="development seeds, e.g. 4000-4100,4117")
+    ap.add_argument("--store", type=Path, help="folder of stored traces (SEED.pkl)")
+    ap.add_argument("--out", type=Path, default=Path(default_out),
+                    help="rows are written to OUT.json (resumed if it exists)")  # fmt: skip
+    ap.add_argument("--summary", type=Path, help="print the tables of a rows file and stop")
+    return ap
+
+
+def dev_seeds(ap: argparse.ArgumentParser, args) -> list[int]:
+    """``--seeds`` parsed, after checking that ``--store`` is given and that no seed is one
+    of the reserved fresh seeds (``ap.error`` otherwise)."""
+    if args.seeds is None or args.store is None:
+        ap.error("--seeds and --store are required (or --summary ROWS.json)")
+    seeds = parse_seeds(args.seeds)
+    if any(s >= FORBIDDEN_FROM for s in seeds):
+        ap.error(f"seeds from {FORBIDDEN_FROM} are reserved for the fresh run")
+    return seeds
+
+
+def resumed_rows(out: Path) -> list[dict]:
+    """The rows an earlier run wrote to ``out``.json (empty if none)."""
+    jpath = out.with_suffix(".json")
+    return json.loads(jpath.read_text())["rows"] if jpath.exists() else []
+
+
+def stored_records(seeds, store: Path, rows: list[dict]) -> Iterator[tuple[int, dict]]:
+    """(seed, stored record) for each seed not in ``rows`` whose ``SEED.pkl`` is in
+    ``store``, in the order given."""
+    done = {r["seed"] for r in rows}
+    for seed in seeds:
+        path = store / f"{seed}.pkl"
+        if seed in done or not path.exists():
+            continue
+        with open(path, "rb") as f:
+            yield seed, pickle.load(f)
