@@ -28,12 +28,11 @@ tips) and the CPU seconds of each variant.
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records
+from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION, tip_epipolar_tolerance_px
@@ -56,7 +55,6 @@ def _run(cams, traces0, kw):
 
 
 def evaluate(seeds, store: Path, out: Path) -> None:
-    jpath = out.with_suffix(".json")
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
         alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
@@ -86,9 +84,7 @@ def evaluate(seeds, store: Path, out: Path) -> None:
         rows.append(row)
         print(seed, {k: [round(x, 1) for x in row[k]["err_px"]] for k in ("ref", "both")},
               row["both"]["chosen"], flush=True)  # fmt: skip
-        tmp = jpath.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
-        os.replace(tmp, jpath)
+        write_rows(out, rows)
 
 
 def summary(path: Path) -> None:

@@ -29,12 +29,11 @@ Input: stored traces (``real_like_tip_spline.py trace --store STORE``). Per seed
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records
+from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
@@ -90,7 +89,6 @@ def evaluate(seeds, store: Path, out: Path) -> None:
         tip_epipolar_tolerance_px,
     )
 
-    jpath = out.with_suffix(".json")
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
         alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
@@ -138,9 +136,7 @@ def evaluate(seeds, store: Path, out: Path) -> None:
         print(seed, {k: [round(x, 1) for x in row[k]["err_px"]] for k in ("ref", "calib")},
               row["ref"]["action"], round(row["calib"]["flag_px"], 1),
               "truth epi", round(row["truth_epipolar_px"], 1), flush=True)  # fmt: skip
-        tmp = jpath.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
-        os.replace(tmp, jpath)
+        write_rows(out, rows)
 
 
 def _step(r, k):

@@ -31,13 +31,12 @@ calibrated cameras and the true tips). Per seed:
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 from real_like_tip_spline import _oracle  # the sibling script's candidate ceiling
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records
+from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.backbone_consistency import backbone_consistency
@@ -111,7 +110,6 @@ def _errs(tips, truth):
 
 
 def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> None:
-    jpath = out.with_suffix(".json")
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
         cams = rec["calib"]
@@ -152,9 +150,7 @@ def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> 
                       "oracle_guided")},
               "g", [[round(x, 1) for x in e] for e in row["guided_err_px"]],
               f"{g_cpu:.2f}s", flush=True)  # fmt: skip
-        tmp = jpath.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
-        os.replace(tmp, jpath)
+        write_rows(out, rows)
 
 
 def summary(path: Path) -> None:

@@ -33,14 +33,13 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 from real_like_tip_guided import _errs, _variant  # the sibling script's round-14 variants
 from real_like_tip_spline import _oracle  # the candidate ceiling
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records
+from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
 
 from jaxcr.benchmarks import parse_seeds
 from jaxcr.stereo import pipeline
@@ -116,7 +115,6 @@ def _one_choice(rec, cands, **choose_kw):
 
 
 def evaluate(seeds, store: Path, out: Path) -> None:
-    jpath = out.with_suffix(".json")
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
         cams = rec["calib"]
@@ -163,9 +161,7 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                      (*VARIANTS, "oracle_guided")},
               "g", row["guided_err_px"], row["guided_turn"], row["guided_own_turn"],
               flush=True)  # fmt: skip
-        tmp = jpath.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
-        os.replace(tmp, jpath)
+        write_rows(out, rows)
 
 
 def summary(path: Path, sets: dict) -> None:

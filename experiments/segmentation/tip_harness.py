@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pickle
 from collections.abc import Iterator
 from pathlib import Path
@@ -55,3 +56,12 @@ def stored_records(seeds, store: Path, rows: list[dict]) -> Iterator[tuple[int, 
             continue
         with open(path, "rb") as f:
             yield seed, pickle.load(f)
+
+
+def write_rows(out: Path, rows: list[dict]) -> None:
+    """``rows`` to ``out``.json, replaced whole (a run stopped part way leaves the last
+    complete file, which :func:`resumed_rows` resumes from)."""
+    jpath = out.with_suffix(".json")
+    tmp = jpath.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
+    os.replace(tmp, jpath)
