@@ -437,11 +437,23 @@ def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = T
     if epipolar_gap_px(cams, tips) > flag_px and all(
         getattr(t, "retrace", None) is not None for t in traces
     ):
+        # A pair's tips and inconsistency are asked for by `explains` and again by the
+        # choice (and its tips are a function of the pair): each computed once per pair.
+        pair_tips, pair_bad = {}, {}
+
+        def tips_of(a, b):
+            key = (id(a), id(b))
+            if key not in pair_tips:
+                pair_tips[key] = _stereo_or_own_tips(cams, [a, b])[0]
+            return pair_tips[key]
 
         def inconsistency(a, b, tips):
-            return backbone_consistency(
-                cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
-            ).inconsistent_px
+            key = (id(a), id(b))
+            if key not in pair_bad:
+                pair_bad[key] = backbone_consistency(
+                    cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
+                ).inconsistent_px
+            return pair_bad[key]
 
         def choose(cands):
             if len(cands[0]) + len(cands[1]) <= 2:
@@ -449,7 +461,7 @@ def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = T
             return choose_branches(
                 cams,
                 cands,
-                tips_of=lambda a, b: _stereo_or_own_tips(cams, [a, b])[0],
+                tips_of=tips_of,
                 match_px=3.0 * flag_px,
                 # 1.25 tube widths (20 px for the 16 px tubes of real_like at 1280x720).
                 margin_px=1.25 * float(np.mean([t.width_px for t in traces])),
@@ -466,7 +478,7 @@ def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = T
         # only where none of the view's own re-traces explains the other view's trace.
 
         def explains(a, b):
-            tips = _stereo_or_own_tips(cams, [a, b])[0]
+            tips = tips_of(a, b)
             return (
                 all(np.all(np.isfinite(t)) for t in tips)
                 and epipolar_gap_px(cams, tips) <= 3.0 * flag_px
