@@ -36,7 +36,14 @@ from pathlib import Path
 
 import numpy as np
 from real_like_tip_spline import _oracle  # the sibling script's candidate ceiling
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import (
+    dev_seeds,
+    harness_parser,
+    resumed_rows,
+    stored_records,
+    variant_table,
+    write_rows,
+)
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.backbone_consistency import backbone_consistency
@@ -168,17 +175,9 @@ def summary(path: Path) -> None:
     ]
     names = [n for n in names if n in rows[0]]
 
-    def table(sel, title):
-        print(f"\n{title} ({len(sel)} frames)\n")
-        print("| variant | frames with both views within 5 px | views within 5 px |\n|---|---|---|")
-        for n in names:
-            ok = sum(max(r[n]["err_px"]) <= 5 for r in sel)
-            v = sum(x <= 5 for r in sel for x in r[n]["err_px"])
-            print(f"| {n} | {ok} of {len(sel)} | {v} of {2 * len(sel)} |")
-
-    table([r for r in rows if 4000 <= r["seed"] <= 4070], "Contiguous 4000-4070")
-    table([r for r in rows if not 4000 <= r["seed"] <= 4070], "Outside 4000-4070")
-    table(rows, "All")
+    variant_table([r for r in rows if 4000 <= r["seed"] <= 4070], "Contiguous 4000-4070", names)
+    variant_table([r for r in rows if not 4000 <= r["seed"] <= 4070], "Outside 4000-4070", names)
+    variant_table(rows, "All", names)
     fail = [r for r in rows if max(r["ref"]["err_px"]) > 5]
     for o in ("oracle", "oracle_guided"):
         reach = [r["seed"] for r in fail if max(r[o]["err_px"]) <= 5]

@@ -39,7 +39,14 @@ from pathlib import Path
 import numpy as np
 from real_like_tip_guided import _errs, _variant  # the sibling script's round-14 variants
 from real_like_tip_spline import _oracle  # the candidate ceiling
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import (
+    dev_seeds,
+    harness_parser,
+    resumed_rows,
+    stored_records,
+    variant_table,
+    write_rows,
+)
 
 from jaxcr.benchmarks import parse_seeds
 from jaxcr.stereo import pipeline
@@ -168,13 +175,7 @@ def summary(path: Path, sets: dict) -> None:
     rows = {r["seed"]: r for r in json.loads(path.read_text())["rows"]}
     names = [n for n in (*VARIANTS, "oracle_guided") if n in next(iter(rows.values()))]
     for title, seeds in sets.items():
-        sel = [rows[s] for s in seeds if s in rows]
-        print(f"\n{title} ({len(sel)} frames)\n")
-        print("| variant | frames with both views within 5 px | views within 5 px |\n|---|---|---|")
-        for n in names:
-            ok = sum(max(r[n]["err_px"]) <= 5 for r in sel)
-            v = sum(x <= 5 for r in sel for x in r[n]["err_px"])
-            print(f"| {n} | {ok} of {len(sel)} | {v} of {2 * len(sel)} |")
+        variant_table([rows[s] for s in seeds if s in rows], title, names)
     allr = [rows[s] for s in sorted(rows)]
     for n in [n for n in names if n not in ("ref", "oracle_guided")]:
         fixed = [r["seed"] for r in allr if max(r["ref"]["err_px"]) > 5 >= max(r[n]["err_px"])]

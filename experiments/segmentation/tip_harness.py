@@ -65,3 +65,14 @@ def write_rows(out: Path, rows: list[dict]) -> None:
     tmp = jpath.with_suffix(".tmp")
     tmp.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
     os.replace(tmp, jpath)
+
+
+def variant_table(sel: list[dict], title: str, names) -> None:
+    """Print, for the rows ``sel``, each variant's frames with both views within 5 px and
+    views within 5 px (``row[name]["err_px"]``, one per view)."""
+    print(f"\n{title} ({len(sel)} frames)\n")
+    print("| variant | frames with both views within 5 px | views within 5 px |\n|---|---|---|")
+    for n in names:
+        ok = sum(max(r[n]["err_px"]) <= 5 for r in sel)
+        v = sum(x <= 5 for r in sel for x in r[n]["err_px"])
+        print(f"| {n} | {ok} of {len(sel)} | {v} of {2 * len(sel)} |")
