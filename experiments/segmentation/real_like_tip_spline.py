@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tip_harness import FORBIDDEN_FROM
 
 from jaxcr.benchmarks import parse_seeds
 from jaxcr.segmentation.foreground import (
@@ -47,7 +48,6 @@ from jaxcr.stereo.branch_choice import choose_branches
 from jaxcr.stereo.curve3d import fit_spline_pair
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
 
-FORBIDDEN_FROM = 4200  # the lead's fresh seeds: never run here
 
 
 def trace(seeds, cache: Path, store: Path) -> None:
