@@ -49,7 +49,6 @@ from jaxcr.stereo.curve3d import fit_spline_pair
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
 
 
-
 def trace(seeds, cache: Path, store: Path) -> None:
     cfg = PlateForegroundConfig()
     store.mkdir(parents=True, exist_ok=True)
