@@ -53,6 +53,16 @@ per camera: the rig's ``R``, ``T`` deviations divided by sqrt(2), two cameras mo
 independently giving the rig's); ``jaxcr stereo`` passes it to the tips' re-search
 (docs/decisions.md S37).
 
+Format version
+--------------
+Files written by jaxcr (``jaxcr calibrate``, :func:`save_camera`, :func:`save_stereo`) carry
+``format: jaxcr.calibration/1``. The key is optional on reading (labs' own OpenCV files have
+none, and earlier jaxcr versions ignore it). A ``jaxcr.calibration/N`` with ``N`` above
+:data:`CALIBRATION_FORMAT_VERSION` is refused (written by a newer jaxcr, whose keys this
+version may misread), as is another jaxcr file kind (``jaxcr.stereo/1``, a dataset's stereo
+description, given as the calibration); a ``format`` value not starting with ``jaxcr.`` is
+someone else's and ignored.
+
 Every problem raises :class:`jaxcr.errors.InputError` naming the file and the field.
 """
 
@@ -368,7 +378,37 @@ def _image_size(d, file, prefix: str, suffix: str = "") -> tuple[int, int]:
 
 
 def _unit_scale(d, file, prefix) -> float:
+    check_format(d, file, prefix)
     return unit_scale(d, file, prefix)
+
+
+#: The calibration file format this version writes and the newest it reads.
+CALIBRATION_FORMAT_VERSION = 1
+CALIBRATION_FORMAT = f"jaxcr.calibration/{CALIBRATION_FORMAT_VERSION}"
+
+
+def check_format(d: Mapping[str, Any], file=None, prefix: str = "") -> None:
+    """Refuse a ``format`` this version cannot read (module docstring, "Format version")."""
+    fmt = d.get("format")
+    if not isinstance(fmt, str) or not fmt.startswith("jaxcr."):
+        return  # absent, or another tool's informational key
+    kind, _, ver = fmt.partition("/")
+    if kind != "jaxcr.calibration":
+        raise InputError(
+            f"a {kind} file, not a calibration (expected format {CALIBRATION_FORMAT})",
+            file=file, field=prefix + "format",
+        )  # fmt: skip
+    if not ver.isdigit():
+        raise InputError(
+            f"unreadable format {fmt!r} (expected {CALIBRATION_FORMAT})",
+            file=file, field=prefix + "format",
+        )  # fmt: skip
+    if int(ver) > CALIBRATION_FORMAT_VERSION:
+        raise InputError(
+            f"format {fmt} was written by a newer jaxcr; this version reads up to "
+            f"{CALIBRATION_FORMAT} (upgrade jaxcr)",
+            file=file, field=prefix + "format",
+        )  # fmt: skip
 
 
 def camera_from_dict(d: Mapping[str, Any], file: str | None = None, prefix: str = "") -> Camera:
@@ -691,6 +731,7 @@ def save_camera(camera: Camera, path: str | os.PathLike) -> None:
         "image_height": int(camera.height),
         "T_cam_robot": np.asarray(camera.T_cam_robot, np.float64),
         "unit": "m",
+        "format": CALIBRATION_FORMAT,
     }
     _write_entries(path, entries)
 
@@ -726,6 +767,7 @@ def _stereo_entries(cam1: Camera, cam2: Camera) -> dict[str, Any]:
         "F": F,
         "T_cam_robot": T1,
         "unit": "m",
+        "format": CALIBRATION_FORMAT,
     }
     return entries
 

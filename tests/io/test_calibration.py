@@ -280,3 +280,56 @@ def test_stereo_missing_and_bad_fields(tmp_path):
     with pytest.raises(InputError, match="3x3") as ei:
         load_stereo(p)
     assert ei.value.field == "E"
+
+
+@pytest.mark.parametrize("ext", ["yaml", "json"])
+def test_written_files_carry_the_format_version(tmp_path, ext):
+    """Files jaxcr writes say ``format: jaxcr.calibration/1`` (read back by OpenCV's own
+    FileStorage reader for YAML, by json for JSON); a file without the key still loads."""
+    cam = Camera.look_at([0.1, 0.2, -0.3], [0, 0, 0], [0, 1, 0], 300.0, (160, 120), dist=D[0])
+    single, stereo = tmp_path / f"c.{ext}", tmp_path / f"s.{ext}"
+    save_camera(cam, single)
+    cam2 = Camera.look_at([0.15, 0.2, -0.3], [0, 0, 0], [0, 1, 0], 300.0, (160, 120))
+    save_stereo(cam, cam2, stereo)
+    for p in (single, stereo):
+        if ext == "json":
+            fmt = json.loads(p.read_text())["format"]
+        else:
+            fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+            fmt = fs.getNode("format").string()
+            fs.release()
+        assert fmt == "jaxcr.calibration/1"
+    d = json.loads(single.read_text()) if ext == "json" else None
+    if d is not None:
+        del d["format"]
+        assert camera_from_dict(d).size == (160, 120)
+
+
+@pytest.mark.parametrize(
+    ("fmt", "message"),
+    [
+        ("jaxcr.calibration/2", "written by a newer jaxcr"),
+        ("jaxcr.stereo/1", "a jaxcr.stereo file, not a calibration"),
+        ("jaxcr.calibration/x", "unreadable format"),
+    ],
+)
+def test_format_this_version_cannot_read_is_refused(tmp_path, fmt, message):
+    cam = Camera.look_at([0.1, 0.2, -0.3], [0, 0, 0], [0, 1, 0], 300.0, (160, 120))
+    cam2 = Camera.look_at([0.15, 0.2, -0.3], [0, 0, 0], [0, 1, 0], 300.0, (160, 120))
+    single, stereo = tmp_path / "c.json", tmp_path / "s.json"
+    save_camera(cam, single)
+    save_stereo(cam, cam2, stereo)
+    for p, load in ((single, load_camera), (stereo, load_stereo)):
+        d = json.loads(p.read_text())
+        d["format"] = fmt
+        p.write_text(json.dumps(d))
+        with pytest.raises(InputError, match=message) as e:
+            load(p)
+        assert e.value.field == "format" and str(p) in str(e.value)
+
+
+def test_foreign_format_key_is_ignored(tmp_path):
+    """A ``format`` not starting with ``jaxcr.`` belongs to another tool: read as before."""
+    p = write_fs(tmp_path / "cam.yaml", camera_matrix=K, distortion_coefficients=D,
+                 image_width=640, image_height=480, format="opencv-calib-v3")  # fmt: skip
+    assert load_camera(p).size == (640, 480)
