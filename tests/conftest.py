@@ -76,40 +76,45 @@ SLOW_MODULES = (
 )
 
 
-# The longest modules, longest first: whole-module seconds of the lead's `pytest -n 2
-# --durations=80` run of the merged tree at load ~4 (2 December 2026 04:53-05:19 UTC, the sum
-# of each module's listed calls and setups; experiments/results/suite_time.md), in brackets.
-# Only the order matters. With whole modules per worker the run ends when the last module
-# does: starting the longest first (LPT scheduling) keeps a long module from starting last
-# and running alone while the other worker idles. A module that loads programs another one
-# compiles (tests/helpers/refine_scene.py) comes after it.
+# The longest modules, longest first: summed test wall of each module in the lead's idle
+# `.ci/run` of stop 34 (a968f8b, 4 December 2026 23:34-23:47 UTC; experiments/results/
+# suite_time.md "Stop 34"), in brackets, with this stop's cuts (docs/decisions.md T3) noted;
+# the modules that run did not list keep their earlier figures (the lead's `pytest -n 2` of 2
+# December 2026 04:53-05:19 UTC, load ~4, "2 Dec") and order. Only the
+# order matters. With whole modules per worker the run ends when the last module does:
+# starting the longest first (LPT scheduling) keeps a long module from starting last and
+# running alone while the other worker idles. A module that loads programs another one
+# compiles comes after it (the first two start together).
 LONGEST_FIRST = (
-    "tests/segmentation/test_refine.py",  # (226) five refinement programs
-    "tests/kinematics/test_kinematics_fit.py",  # (208)
-    "tests/cli/test_tutorial.py",  # (172) one test
-    # (160 with four programs of its own; now two, and it loads test_refine's per-frame and
-    # vmap programs, so it must stay after test_refine: started together on the two
-    # workers, both would compile them)
-    "tests/segmentation/test_refine_convergence.py",
-    "tests/core/test_examples.py",  # (148)
-    "tests/cli/test_cli_segment.py",  # (145)
-    # (260 at load 7 with five refinement programs; four since stop 34: 58-76 CPU-s alone)
+    "tests/cli/test_tutorial.py",  # (82) one test, the doc's commands
+    # (77; one program fewer since stop 35: its camera-correction test runs
+    # test_refine_traced's per-frame program)
+    "tests/segmentation/test_refine.py",
+    # (82) after the tutorial: its stereo notebook loads the tutorial's stereo programs
+    "tests/core/test_examples.py",
+    # (70 of wall for ~19 CPU-s: Ray's processes; three of its Ray runs with one worker since
+    # stop 35) early, so that its waiting overlaps the other worker's compiles
+    "tests/scale/test_ray_equality.py",
+    "tests/kinematics/test_ctr.py",  # (58)
+    "tests/kinematics/test_kinematics_fit.py",  # (57)
+    "tests/cli/test_cli_segment.py",  # (54)
+    # (54, four refinement programs, T2) after test_refine, which compiles its per-frame
+    # program too (T3)
     "tests/segmentation/test_refine_traced.py",
-    # (74 CPU-s alone at stop 34, 58 of them its padded-vs-unpadded refine_batch test) after
-    # test_refine: its unpadded program is test_refine's map program on the canonical scene
+    # (46) after test_refine: it loads test_refine's per-frame and vmap programs
+    "tests/segmentation/test_refine_convergence.py",
+    # (40) after test_refine: its unpadded program is test_refine's map program
     "tests/segmentation/test_shape_buckets.py",
-    "tests/scale/test_devices.py",  # (97) one test, a subprocess with 2 host devices
-    "tests/stereo/test_stereo_chain_fit.py",  # (79)
-    "tests/scale/test_ray_fault.py",  # (64)
-    "tests/cli/test_cli_contract.py",  # (61)
-    "tests/kinematics/test_ctr.py",  # (59)
+    "tests/scale/test_devices.py",  # (97, 2 Dec) one test, a subprocess with 2 host devices
+    "tests/stereo/test_stereo_chain_fit.py",  # (79, 2 Dec)
+    "tests/scale/test_ray_fault.py",  # (64, 2 Dec)
+    "tests/cli/test_cli_contract.py",  # (61, 2 Dec)
     "tests/cli/test_cli_warmup.py",  # (70 before its smaller program)
-    "tests/segmentation/test_energy.py",  # (48)
-    "tests/scale/test_ray_equality.py",  # (48)
-    "tests/segmentation/test_refine_multicam.py",  # (45)
+    "tests/segmentation/test_energy.py",  # (48, 2 Dec)
+    "tests/segmentation/test_refine_multicam.py",  # (45, 2 Dec)
     # (38) after test_examples: its bench loads the example's CTR program
     "tests/cli/test_cli_bench_wheel.py",
-    "tests/segmentation/test_uncertainty.py",  # (23)
+    "tests/segmentation/test_uncertainty.py",  # (23, 2 Dec)
 )
 
 

@@ -69,3 +69,28 @@ RIG_CFG = RefineConfig(
     camera_correction=True,
     camera_correction_mode="rig",
 )
+
+#: the suite's small one-level per-frame program with camera correction:
+#: ``refine_frame_jit`` on a 96x72 frame of the arc seen by the front camera at fx = 120 px,
+#: with a config of this structure (the numbers -- weights, tolerances, tau, steps -- are
+#: traced arguments of refine_frame_jit, docs/decisions.md S34, so they may differ).
+#: tests/segmentation/test_refine_traced.py compiles it (its traced per-frame program) and
+#: test_refine.test_camera_correction_recovers_a_calibration_error runs it: one program for
+#: both modules (the run's compilation cache serves the second; docs/decisions.md T3)
+SMALL_W, SMALL_H = 96, 72
+SMALL_CFG = RefineConfig(
+    n_coeffs=3,
+    levels=(0,),
+    steps=(20,),
+    outer=(1,),
+    tau=(0.7,),
+    band_tiles=48,
+    min_tiles=16,
+    local=False,
+    camera_correction=True,
+)
+
+
+def small_camera():
+    """The front camera at fx = 120 px, SMALL_W x SMALL_H."""
+    return front_camera(120.0, (SMALL_W, SMALL_H))

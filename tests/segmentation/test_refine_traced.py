@@ -27,10 +27,14 @@ from jaxcr.segmentation import refine
 from jaxcr.segmentation.metrics import iou
 from jaxcr.segmentation.refine import RefineConfig, refine_batch, refine_frame, refine_frame_jit
 from jaxcr.segmentation.shape import perturbed_centreline
-from tests.helpers.tube_render import arc_base, front_camera, render_tube
+from tests.helpers import refine_scene
+from tests.helpers.tube_render import arc_base, render_tube
 
-W, H = 96, 72
-#: one level, camera correction on (so that g_cam is read), non-default numbers everywhere
+W, H = refine_scene.SMALL_W, refine_scene.SMALL_H  # 96x72
+#: one level, camera correction on (so that g_cam is read), non-default numbers everywhere.
+#: Its structure is refine_scene.SMALL_CFG's (test_refine's camera-correction test runs the
+#: same per-frame program with numbers of its own, docs/decisions.md T3; pinned by
+#: test_traced_apart_keeps_only_structure)
 CFG = RefineConfig(
     n_coeffs=3, levels=(0,), steps=(20,), outer=(1,), tau=(0.7,), band_tiles=48, min_tiles=16,
     g_in=1.3, g_out=0.8, g_reg=0.5, g_pen=3.0, xtol=0.05, ftol=3e-4, g_cam=0.5, local=False,
@@ -68,7 +72,7 @@ def _traces(name: str) -> int:
 @pytest.fixture(scope="module")
 def scene():
     base = arc_base(2.5e-3)
-    cam = front_camera(120.0, (W, H))
+    cam = refine_scene.small_camera()  # front_camera(120.0, (W, H))
     true = jnp.asarray([[0.3, -0.1, 0.05], [0.0, 0.0, 0.0]], jnp.float32)
     img, mask = render_tube(perturbed_centreline(base, true), cam, 0, (W, H))
     return base, cam, jnp.asarray(img), jnp.zeros((H, W), bool), mask
@@ -162,6 +166,10 @@ def test_traced_apart_keeps_only_structure():
         assert s1 == s0 and hash(s1) == hash(s0), name
         got = np.asarray(getattr(n1, name))
         assert np.array_equal(got, np.asarray(value, got.dtype)), name
+    # this module's config and test_refine's camera-correction config share one program
+    from tests.segmentation.test_refine import CC_CFG
+
+    assert refine._traced_apart(CFG)[0] == refine._traced_apart(CC_CFG)[0]
     for name, value in {"levels": (2, 0), "outer": (1, 1), "n_coeffs": 5, "solver": "gn",
                         "local": False, "robust": 1.0, "g_cam_rel": None}.items():  # fmt: skip
         s1, _ = refine._traced_apart(dataclasses.replace(base, **{name: value}))
