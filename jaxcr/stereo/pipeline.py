@@ -56,6 +56,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from jaxcr.camera import Camera, project_points
+from jaxcr.segmentation.capsule_end import with_capsule_end
 from jaxcr.segmentation.foreground import (
     PlateForegroundConfig,
     plate_foreground,
@@ -348,7 +349,12 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
 
 
 def traced_stereo_tips(
-    cams, traces, *, flag_px: float = 5.0, calibration: CalibrationUncertainty | None = None
+    cams,
+    traces,
+    *,
+    flag_px: float = 5.0,
+    calibration: CalibrationUncertainty | None = None,
+    end_fit: bool = False,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -381,8 +387,14 @@ def traced_stereo_tips(
     at least ``flag_px``; docs/decisions.md S37: a right pair 5.4 px apart was cut back, dev
     4177). The branch choice, fold and trim keep ``flag_px``: they act on whole backbones
     that leave over a tube width unexplained, which no calibration error of a few pixels
-    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074)."""
-    traces, tips, src = _branch_step(cams, traces, flag_px)
+    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074).
+
+    ``end_fit``: each trace's (and each alternative's) tip placed first by a blurred
+    capsule end fitted to its cue map (:func:`jaxcr.segmentation.capsule_end.
+    with_capsule_end`, docs/decisions.md S42; the paths are the tracer's)."""
+    if end_fit:
+        traces = [with_capsule_end(t) for t in traces]
+    traces, tips, src = _branch_step(cams, traces, flag_px, end_fit=end_fit)
     research_px = None
     if calibration is not None:
         research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
@@ -416,7 +428,9 @@ def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | N
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
 
 
-def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = True):
+def _branch_step(
+    cams, traces, flag_px: float, *, both_if_traces_cross: bool = True, end_fit: bool = False
+):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
     One choice among each view's trace, its re-traces from its own junctions and its tube
@@ -473,6 +487,8 @@ def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = T
             )
 
         cands = [[t] + trace_alternatives(t) for t in traces]
+        if end_fit:
+            cands = [[c[0]] + [with_capsule_end(a) for a in c[1:]] for c in cands]
         # One choice among the views' own candidates and the guided ones (S36): a view's
         # guided candidate ranked by its own turns at the view's junctions, and offered
         # only where none of the view's own re-traces explains the other view's trace.
