@@ -12,7 +12,9 @@ Input: stored traces (``real_like_tip_spline.py trace --store STORE``). Per seed
   ``calibration=REAL_LIKE_CALIBRATION`` (the stored alternatives returned for
   ``trace_alternatives``, which is deterministic);
 * ``capsule`` -- the same with ``end_fit=True`` (the two traces and their alternatives
-  placed by the fit; the guided candidates are not).
+  placed by the fit; the guided candidates are not);
+* ``capsule_image`` -- ``end_fit="image"``: and a fitted view keeps its fitted end face's
+  length in the two-view step (not the one from the tube's 3-D direction).
 
 The fit reads the full-resolution cue ``score`` the stored trace keeps (the one its own
 ``refine_tip_details`` read), so nothing is recomputed.
@@ -78,7 +80,7 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                                            for t, g in zip(placed, truth, strict=True)],
                           "cap_px": [float(t.cap_px) for t in placed],
                           "cpu_s": fit_cpu}  # fmt: skip
-            for name, end_fit in (("ref", False), ("capsule", True)):
+            for name, end_fit in (("ref", False), ("capsule", True), ("capsule_image", "image")):
                 t0 = time.process_time()
                 tips, src, res, _ = pipeline.traced_stereo_tips(
                     cams, traces, calibration=REAL_LIKE_CALIBRATION, end_fit=end_fit
@@ -90,19 +92,19 @@ def evaluate(seeds, store: Path, out: Path) -> None:
             pipeline.trace_alternatives = saved
         rows.append(row)
         print(seed, {k: [round(x, 1) for x in row[k]["err_px"]]
-                     for k in ("trace", "fit", "ref", "capsule")}, flush=True)  # fmt: skip
+                     for k in ("trace", "fit", "ref", "capsule", "capsule_image")}, flush=True)  # fmt: skip
         write_rows(out, rows)
 
 
 def summary(path: Path) -> None:
     rows = {r["seed"]: r for r in json.loads(path.read_text())["rows"]}
     rows = [rows[s] for s in sorted(rows)]
-    names = ("trace", "fit", "ref", "capsule")
+    names = ("trace", "fit", "ref", "capsule", "capsule_image")
     for title, sel in (("even seeds (design)", [r for r in rows if r["seed"] % 2 == 0]),
                        ("odd seeds (held out)", [r for r in rows if r["seed"] % 2 == 1]),
                        ("all", rows)):  # fmt: skip
         variant_table(sel, title, names)
-        for a, b in (("trace", "fit"), ("ref", "capsule")):
+        for a, b in (("trace", "fit"), ("ref", "capsule"), ("ref", "capsule_image")):
             fx = [r["seed"] for r in sel if max(r[a]["err_px"]) > 5 >= max(r[b]["err_px"])]
             br = [r["seed"] for r in sel if max(r[a]["err_px"]) <= 5 < max(r[b]["err_px"])]
             vf = [f"{r['seed']}v{k + 1}" for r in sel for k in range(2)
@@ -113,7 +115,7 @@ def summary(path: Path) -> None:
                   f"broken {vb}")  # fmt: skip
     fitted = [f for r in rows for f in r["fit"]["fitted"]]
     print(f"\nviews placed by the fit: {sum(fitted)} of {len(fitted)}")
-    for name in ("ref", "capsule"):
+    for name in ("ref", "capsule", "capsule_image"):
         c = [r[name]["cpu_s"] for r in rows]
         print(f"{name} CPU s a frame: median {np.median(c):.3f}, max {max(c):.2f}")
     c = [r["fit"]["cpu_s"] for r in rows]

@@ -246,13 +246,16 @@ def fit_capsule_end(
                       bend=float(k), rms=rms)  # fmt: skip
 
 
-def with_capsule_end(trace):
+def with_capsule_end(trace, *, cap_from_image: bool = False):
     """``trace`` (a :class:`jaxcr.segmentation.foreground.TubeTrace`) with its tip placed
     by :func:`fit_capsule_end` on its own cue ``score``, started from its traced end
     (``tip``, ``end_dir``, ``end_half_width_px`` or half of ``width_px``, ``cap_px``): a
     copy with ``tip``, ``cap_px``, ``end_dir``, ``end_half_width_px`` and the backbone's
     last point replaced; the path is the tracer's. ``trace`` itself where it has no score
-    or end direction, or the fit returns None."""
+    or end direction, or the fit returns None. ``cap_from_image``: the copy is marked
+    (attribute ``cap_from_image``) so that the two-view step keeps the fitted end face's
+    length instead of the one from the tube's 3-D direction
+    (:func:`jaxcr.stereo.pipeline.trace_stereo_tips`)."""
     from dataclasses import replace
 
     score = getattr(trace, "score", None)
@@ -265,5 +268,8 @@ def with_capsule_end(trace):
         return trace
     bb = np.asarray(trace.backbone, np.float64)
     bb = np.vstack([bb[:-1], fit.tip[None]]) if len(bb) else fit.tip[None]
-    return replace(trace, tip=fit.tip.copy(), cap_px=fit.cap, end_dir=fit.direction.copy(),
-                   end_half_width_px=fit.half_width, backbone=bb)  # fmt: skip
+    out = replace(trace, tip=fit.tip.copy(), cap_px=fit.cap, end_dir=fit.direction.copy(),
+                  end_half_width_px=fit.half_width, backbone=bb)  # fmt: skip
+    if cap_from_image:
+        out.cap_from_image = True
+    return out

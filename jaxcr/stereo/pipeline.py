@@ -345,7 +345,11 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
     )  # fmt: skip
     if res is None:
         return None
-    return [ends[k] - res[k] * dirs[k] for k in range(2)], [res[0], res[1]]
+    # A view whose end face was measured by the capsule fit with ``cap_from_image`` keeps
+    # that length (S42).
+    a = [t.cap_px if getattr(t, "cap_from_image", False) else res[k]
+         for k, t in enumerate(traces)]  # fmt: skip
+    return [ends[k] - a[k] * dirs[k] for k in range(2)], a
 
 
 def traced_stereo_tips(
@@ -354,7 +358,7 @@ def traced_stereo_tips(
     *,
     flag_px: float = 5.0,
     calibration: CalibrationUncertainty | None = None,
-    end_fit: bool = False,
+    end_fit: bool | str = False,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -391,9 +395,10 @@ def traced_stereo_tips(
 
     ``end_fit``: each trace's (and each alternative's) tip placed first by a blurred
     capsule end fitted to its cue map (:func:`jaxcr.segmentation.capsule_end.
-    with_capsule_end`, docs/decisions.md S42; the paths are the tracer's)."""
+    with_capsule_end`, docs/decisions.md S42; the paths are the tracer's); ``"image"``: and
+    the fitted end face's length kept in the two-view step."""
     if end_fit:
-        traces = [with_capsule_end(t) for t in traces]
+        traces = [with_capsule_end(t, cap_from_image=end_fit == "image") for t in traces]
     traces, tips, src = _branch_step(cams, traces, flag_px, end_fit=end_fit)
     research_px = None
     if calibration is not None:
@@ -429,7 +434,12 @@ def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | N
 
 
 def _branch_step(
-    cams, traces, flag_px: float, *, both_if_traces_cross: bool = True, end_fit: bool = False
+    cams,
+    traces,
+    flag_px: float,
+    *,
+    both_if_traces_cross: bool = True,
+    end_fit: bool | str = False,
 ):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
@@ -488,7 +498,8 @@ def _branch_step(
 
         cands = [[t] + trace_alternatives(t) for t in traces]
         if end_fit:
-            cands = [[c[0]] + [with_capsule_end(a) for a in c[1:]] for c in cands]
+            cands = [[c[0]] + [with_capsule_end(a, cap_from_image=end_fit == "image")
+                               for a in c[1:]] for c in cands]  # fmt: skip
         # One choice among the views' own candidates and the guided ones (S36): a view's
         # guided candidate ranked by its own turns at the view's junctions, and offered
         # only where none of the view's own re-traces explains the other view's trace.
