@@ -393,17 +393,26 @@ def traced_stereo_tips(
     that leave over a tube width unexplained, which no calibration error of a few pixels
     makes (a tip gap of 7 px hid a trace 536 px off, dev 4074).
 
-    ``end_fit``: each trace's (and each alternative's) tip placed first by a blurred
-    capsule end fitted to its cue map (:func:`jaxcr.segmentation.capsule_end.
-    with_capsule_end`, docs/decisions.md S42; the paths are the tracer's); ``"image"``: and
-    the fitted end face's length kept in the two-view step."""
+    ``end_fit``: after the branch choice, the two chosen traces' tips placed by a blurred
+    capsule end fitted to each one's cue map (:func:`jaxcr.segmentation.capsule_end.
+    with_capsule_end`, docs/decisions.md S42; the paths and the branch choice are the
+    tracer's), their two-view tips computed again, then the tip step; ``"image"``: and the
+    fitted end face's length kept in the two-view step."""
+    traces, tips, src = _branch_step(cams, traces, flag_px)
+    chosen = traces
     if end_fit:
+        # After the branch choice (its candidates and decisions are the tracer's), the
+        # chosen traces' ends placed by the fit, and their two-view tips again.
         traces = [with_capsule_end(t, cap_from_image=end_fit == "image") for t in traces]
-    traces, tips, src = _branch_step(cams, traces, flag_px, end_fit=end_fit)
+        tips, own = _stereo_or_own_tips(cams, traces)
+        src = own + ("+branch" if src.endswith("+branch") else "")
     research_px = None
     if calibration is not None:
         research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
-    return _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
+    out = _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
+    # The traces returned are the branch choice's (a placed copy is the same path: callers
+    # tell a replaced branch by identity).
+    return out[0], out[1], out[2], chosen
 
 
 def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | None = None):
@@ -433,14 +442,7 @@ def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | N
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
 
 
-def _branch_step(
-    cams,
-    traces,
-    flag_px: float,
-    *,
-    both_if_traces_cross: bool = True,
-    end_fit: bool | str = False,
-):
+def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = True):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
     One choice among each view's trace, its re-traces from its own junctions and its tube
@@ -497,9 +499,6 @@ def _branch_step(
             )
 
         cands = [[t] + trace_alternatives(t) for t in traces]
-        if end_fit:
-            cands = [[c[0]] + [with_capsule_end(a, cap_from_image=end_fit == "image")
-                               for a in c[1:]] for c in cands]  # fmt: skip
         # One choice among the views' own candidates and the guided ones (S36): a view's
         # guided candidate ranked by its own turns at the view's junctions, and offered
         # only where none of the view's own re-traces explains the other view's trace.
