@@ -56,6 +56,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from jaxcr.camera import Camera, project_points
+from jaxcr.segmentation.capsule_end import with_capsule_end
 from jaxcr.segmentation.foreground import (
     PlateForegroundConfig,
     plate_foreground,
@@ -344,11 +345,20 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
     )  # fmt: skip
     if res is None:
         return None
-    return [ends[k] - res[k] * dirs[k] for k in range(2)], [res[0], res[1]]
+    # A view whose end face was measured by the capsule fit with ``cap_from_image`` keeps
+    # that length (S42).
+    a = [t.cap_px if getattr(t, "cap_from_image", False) else res[k]
+         for k, t in enumerate(traces)]  # fmt: skip
+    return [ends[k] - a[k] * dirs[k] for k in range(2)], a
 
 
 def traced_stereo_tips(
-    cams, traces, *, flag_px: float = 5.0, calibration: CalibrationUncertainty | None = None
+    cams,
+    traces,
+    *,
+    flag_px: float = 5.0,
+    calibration: CalibrationUncertainty | None = None,
+    end_fit: bool | str = False,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -381,12 +391,28 @@ def traced_stereo_tips(
     at least ``flag_px``; docs/decisions.md S37: a right pair 5.4 px apart was cut back, dev
     4177). The branch choice, fold and trim keep ``flag_px``: they act on whole backbones
     that leave over a tube width unexplained, which no calibration error of a few pixels
-    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074)."""
+    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074).
+
+    ``end_fit``: after the branch choice, the two chosen traces' tips placed by a blurred
+    capsule end fitted to each one's cue map (:func:`jaxcr.segmentation.capsule_end.
+    with_capsule_end`, docs/decisions.md S42; the paths and the branch choice are the
+    tracer's), their two-view tips computed again, then the tip step; ``"image"``: and the
+    fitted end face's length kept in the two-view step."""
     traces, tips, src = _branch_step(cams, traces, flag_px)
+    chosen = traces
+    if end_fit:
+        # After the branch choice (its candidates and decisions are the tracer's), the
+        # chosen traces' ends placed by the fit, and their two-view tips again.
+        traces = [with_capsule_end(t, cap_from_image=end_fit == "image") for t in traces]
+        tips, own = _stereo_or_own_tips(cams, traces)
+        src = own + ("+branch" if src.endswith("+branch") else "")
     research_px = None
     if calibration is not None:
         research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
-    return _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
+    out = _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
+    # The traces returned are the branch choice's (a placed copy is the same path: callers
+    # tell a replaced branch by identity).
+    return out[0], out[1], out[2], chosen
 
 
 def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | None = None):
