@@ -99,6 +99,7 @@ from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
 from jaxcr.stereo.guided_ranking import offered_guided, with_own_turns
 from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.ordering import order_skeleton
+from jaxcr.stereo.run_on import with_run_on
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
@@ -348,7 +349,12 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
 
 
 def traced_stereo_tips(
-    cams, traces, *, flag_px: float = 5.0, calibration: CalibrationUncertainty | None = None
+    cams,
+    traces,
+    *,
+    flag_px: float = 5.0,
+    calibration: CalibrationUncertainty | None = None,
+    run_on: bool = False,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -381,8 +387,14 @@ def traced_stereo_tips(
     at least ``flag_px``; docs/decisions.md S37: a right pair 5.4 px apart was cut back, dev
     4177). The branch choice, fold and trim keep ``flag_px``: they act on whole backbones
     that leave over a tube width unexplained, which no calibration error of a few pixels
-    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074)."""
-    traces, tips, src = _branch_step(cams, traces, flag_px)
+    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074).
+
+    ``run_on``: where one view's trace ends where its tube ends and the other view's trace
+    explains it with its own beginning, then crosses background or turns sharply (it ran
+    on past the tube's end onto a crossing object), that trace cut back there is offered to
+    the branch choice and the first view's path along it is not
+    (:mod:`jaxcr.stereo.run_on`, docs/decisions.md S41)."""
+    traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on)
     research_px = None
     if calibration is not None:
         research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
@@ -416,7 +428,9 @@ def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | N
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
 
 
-def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = True):
+def _branch_step(
+    cams, traces, flag_px: float, *, both_if_traces_cross: bool = True, run_on: bool = False
+):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
     One choice among each view's trace, its re-traces from its own junctions and its tube
@@ -485,7 +499,11 @@ def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = T
                 and inconsistency(a, b, tips) <= CONSISTENT_PX
             )
 
-        guided = with_own_turns(guided_candidates(cams, traces), traces)
+        cut_back = []
+        guided = guided_candidates(cams, traces, cut_back=cut_back)
+        if run_on:  # S41: a trace that ran on past the other's end, cut back, is offered
+            guided = with_run_on(guided, traces, cut_back)
+        guided = with_own_turns(guided, traces)
         guided = offered_guided(guided, cands, explains)
         cands = [c + g for c, g in zip(cands, guided, strict=True)]
         choice = choose(cands)
