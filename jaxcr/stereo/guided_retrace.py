@@ -448,7 +448,8 @@ def _within(path, line, dist: float) -> bool:
 
 def guided_candidates(
     cams, traces, *, max_tail_widths: float = 2.0, absent: float = 0.3, low: float = 0.4,
-    probe_widths: float = 2.0, prefix_widths: float = 0.75, **kw,
+    probe_widths: float = 2.0, prefix_widths: float = 0.75, cut_back: list | None = None,
+    **kw,
 ) -> list[list]:  # fmt: skip
     """Per view, the candidates re-traced along the other view's trace (each view in turn
     the anchor; :func:`guided_candidate`): ``[[view 0 guided by view 1], [view 1 guided by
@@ -462,7 +463,10 @@ def guided_candidates(
     along the view's own trace (every point within ``prefix_widths`` widths of it): it
     is that trace cut back, which the trim after the branch choice decides with its own
     evidence test (a wrong anchor that ran on past the tube's end finds the other view's
-    trace cut short)."""
+    trace cut short). ``cut_back``: a list, given, gets ``(j, path)`` for each view ``j``
+    whose path along the other view's trace explains that trace to its end (within
+    ``max_tail_widths``), the anchor ending where its tube ends, and lies along ``j``'s own
+    trace (the path, not offered for that reason; :mod:`jaxcr.stereo.run_on` reads it)."""
     from jaxcr.stereo.tip_consistency import _beyond_evidence
 
     out = [[], []]
@@ -474,10 +478,10 @@ def guided_candidates(
         cand = guided_candidate(cams, anchor_view, anchor, traces[j], **kw)
         if cand is None:
             continue
-        if (
-            cand.guided.tail_px <= max_tail_widths * float(anchor.width_px)
-            and _beyond_evidence(cand, cand.tip, low, probe_widths) < absent
-            and not _within(cand.backbone, traces[j].backbone, prefix_widths * cand.width_px)
-        ):
+        explained = cand.guided.tail_px <= max_tail_widths * float(anchor.width_px)
+        along = _within(cand.backbone, traces[j].backbone, prefix_widths * cand.width_px)
+        if explained and along and cut_back is not None:
+            cut_back.append((j, cand))
+        if explained and _beyond_evidence(cand, cand.tip, low, probe_widths) < absent and not along:
             out[j].append(cand)
     return out

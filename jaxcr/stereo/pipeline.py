@@ -100,6 +100,7 @@ from jaxcr.stereo.fits import fit_arc, fit_plane, plane_angles
 from jaxcr.stereo.guided_ranking import offered_guided, with_own_turns
 from jaxcr.stereo.guided_retrace import guided_candidates
 from jaxcr.stereo.ordering import order_skeleton
+from jaxcr.stereo.run_on import with_run_on
 from jaxcr.stereo.segments import segment_backbone
 from jaxcr.stereo.shadow import shadow_cut
 from jaxcr.stereo.thinning import zhang_suen_thin
@@ -358,7 +359,8 @@ def traced_stereo_tips(
     *,
     flag_px: float = 5.0,
     calibration: CalibrationUncertainty | None = None,
-    end_fit: bool | str = False,
+    run_on: bool = True,
+    end_fit: bool | str = True,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -393,12 +395,19 @@ def traced_stereo_tips(
     that leave over a tube width unexplained, which no calibration error of a few pixels
     makes (a tip gap of 7 px hid a trace 536 px off, dev 4074).
 
+    ``run_on``: where one view's trace ends where its tube ends and the other view's trace
+    explains it with its own beginning, then crosses background or turns sharply (it ran
+    on past the tube's end onto a crossing object), that trace cut back there is offered to
+    the branch choice and the first view's path along it is not
+    (:mod:`jaxcr.stereo.run_on`, docs/decisions.md S41; on by default since stop 36).
+
     ``end_fit``: after the branch choice, the two chosen traces' tips placed by a blurred
     capsule end fitted to each one's cue map (:func:`jaxcr.segmentation.capsule_end.
     with_capsule_end`, docs/decisions.md S42; the paths and the branch choice are the
     tracer's), their two-view tips computed again, then the tip step; ``"image"``: and the
-    fitted end face's length kept in the two-view step."""
-    traces, tips, src = _branch_step(cams, traces, flag_px)
+    fitted end face's length kept in the two-view step. On (``True``) by default since stop 36
+    (S42); ``False`` gives the tracer's own end walk."""
+    traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on)
     chosen = traces
     if end_fit:
         # After the branch choice (its candidates and decisions are the tracer's), the
@@ -442,7 +451,9 @@ def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | N
     return [np.asarray(t, np.float64) for t in res.tips], src, res, traces
 
 
-def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = True):
+def _branch_step(
+    cams, traces, flag_px: float, *, both_if_traces_cross: bool = True, run_on: bool = False
+):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
     One choice among each view's trace, its re-traces from its own junctions and its tube
@@ -511,7 +522,11 @@ def _branch_step(cams, traces, flag_px: float, *, both_if_traces_cross: bool = T
                 and inconsistency(a, b, tips) <= CONSISTENT_PX
             )
 
-        guided = with_own_turns(guided_candidates(cams, traces), traces)
+        cut_back = []
+        guided = guided_candidates(cams, traces, cut_back=cut_back)
+        if run_on:  # S41: a trace that ran on past the other's end, cut back, is offered
+            guided = with_run_on(guided, traces, cut_back)
+        guided = with_own_turns(guided, traces)
         guided = offered_guided(guided, cands, explains)
         cands = [c + g for c, g in zip(cands, guided, strict=True)]
         choice = choose(cands)
