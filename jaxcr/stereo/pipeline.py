@@ -109,6 +109,7 @@ from jaxcr.stereo.tip_consistency import (
     trim_unexplained_tail,
     undistort_pixels,
 )
+from jaxcr.stereo.tip_fusion import fuse_traced_tips
 from jaxcr.stereo.tip_geometry import (
     end_face_lengths,
     epipolar_distances,
@@ -348,8 +349,9 @@ def trace_stereo_tips(cams, traces) -> tuple[list[np.ndarray], list[float]] | No
 
 
 def traced_stereo_tips(
-    cams, traces, *, flag_px: float = 5.0, calibration: CalibrationUncertainty | None = None
-) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
+    cams, traces, *, flag_px: float = 5.0, calibration: CalibrationUncertainty | None = None,
+    fuse_ends: bool = False,
+) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:  # fmt: skip
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
     view's own traced tip where the two views leave it undetermined); where the two tips
@@ -381,12 +383,22 @@ def traced_stereo_tips(
     at least ``flag_px``; docs/decisions.md S37: a right pair 5.4 px apart was cut back, dev
     4177). The branch choice, fold and trim keep ``flag_px``: they act on whole backbones
     that leave over a tube width unexplained, which no calibration error of a few pixels
-    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074)."""
+    makes (a tip gap of 7 px hid a trace 536 px off, dev 4074).
+
+    ``fuse_ends`` (with ``calibration``): tips the tip step calls ``"consistent"`` are
+    replaced by the projections of their end triangulated with each view's along/across
+    covariance (:func:`jaxcr.stereo.tip_fusion.fuse_traced_tips`, docs/decisions.md S40)."""
     traces, tips, src = _branch_step(cams, traces, flag_px)
     research_px = None
     if calibration is not None:
         research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
-    return _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
+    out = _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
+    consistent = out[2] is not None and out[2].action == "consistent"
+    if fuse_ends and calibration is not None and consistent:
+        fused = fuse_traced_tips(cams, out[3], out[0], calibration)
+        if fused is not None and fused.applied:
+            out = (fused.tips, out[1], out[2], out[3])
+    return out
 
 
 def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | None = None):

@@ -1,0 +1,202 @@
+"""Round 17a (issue 16 item 2, docs/decisions.md S40): the two views' consistent tips fused
+along the tube by a Mahalanobis triangulation (:mod:`jaxcr.stereo.tip_fusion`), on stored
+development traces, beside this tree's method in the same run.
+
+Per seed: ``ref`` -- this tree's :func:`jaxcr.stereo.pipeline.traced_stereo_tips` with
+``calibration=REAL_LIKE_CALIBRATION`` (fusion off); where its tip step says
+``"consistent"`` (the tips within the rig's epipolar tolerance), each variant
+``<along>_<gate>`` replaces the tips by :func:`jaxcr.stereo.tip_fusion.fuse_tips`'s, with
+the along-tube standard deviation
+
+* ``cN``: N px in both views (equal weights);
+* ``fK``: ``sqrt(1 + (K * falloff)^2)`` px, ``falloff`` the 20-80 % distance of the cue's
+  fall-off at the end (:func:`jaxcr.stereo.tip_fusion.end_falloff_px`; 8 px where the
+  profile has no step);
+
+and the gate ``g0`` (none), ``s3`` (both end lines at least asin 0.3 from the epipolar
+lines), ``x9`` (chi-square at most 9), ``s3x9`` (both). Elsewhere a variant is ``ref``.
+``pipeline`` -- this tree's ``traced_stereo_tips(..., fuse_ends=True)`` (the hook, with its
+defaults), to check it equals its variant.
+
+    python experiments/segmentation/real_like_tip_fusion.py --seeds 4000-4100 \\
+        --store /tmp/tip34/traces --out ROWS
+    python experiments/segmentation/real_like_tip_fusion.py --summary ROWS.json [ROWS2.json]
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+
+from jaxcr.stereo import pipeline
+from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
+from jaxcr.stereo.tip_fusion import end_falloff_px, fuse_tips
+
+ALONG = {"c1": 1.0, "c2": 2.0, "c3": 3.0, "c5": 5.0, "f0.5": 0.5, "f1": 1.0, "f2": 2.0}
+GATES = {"g0": (0.0, np.inf), "s3": (0.3, np.inf), "x9": (0.0, 9.0), "s3x9": (0.3, 9.0)}
+NO_STEP_PX = 8.0
+
+
+def _errs(tips, truth):
+    return [float(np.linalg.norm(np.asarray(t) - g)) for t, g in zip(tips, truth, strict=True)]
+
+
+def _along_across(d, tip, truth):
+    d = np.asarray(d, np.float64)
+    if not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
+        return [float("nan"), float("nan")]
+    d = d / np.linalg.norm(d)
+    r = np.asarray(truth, np.float64) - np.asarray(tip, np.float64)
+    return [float(r @ d), float(d[0] * r[1] - d[1] * r[0])]
+
+
+def sigma_along(name: str, falloff) -> list[float]:
+    if name.startswith("c"):
+        return [ALONG[name]] * 2
+    k = ALONG[name]
+    return [float(np.hypot(1.0, k * (f if np.isfinite(f) else NO_STEP_PX))) for f in falloff]
+
+
+def evaluate(seeds, store: Path, out: Path) -> None:
+    rows = resumed_rows(out)
+    for seed, rec in stored_records(seeds, store, rows):
+        alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
+        saved = pipeline.trace_alternatives
+        pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
+        cams, truth = rec["calib"], rec["truth"]
+        try:
+            t0 = time.process_time()
+            tips, _, res, chosen = pipeline.traced_stereo_tips(
+                cams, rec["traces"], calibration=REAL_LIKE_CALIBRATION
+            )
+            ref_cpu = time.process_time() - t0
+            t0 = time.process_time()
+            hook = pipeline.traced_stereo_tips(
+                cams, rec["traces"], calibration=REAL_LIKE_CALIBRATION, fuse_ends=True
+            )[0]
+            hook_cpu = time.process_time() - t0
+        finally:
+            pipeline.trace_alternatives = saved
+        action = None if res is None else res.action
+        row = {"seed": seed, "action": action, "ref": {"err_px": _errs(tips, truth), "cpu_s": ref_cpu},
+               "pipeline": {"err_px": _errs(hook, truth), "cpu_s": hook_cpu}}  # fmt: skip
+        dirs = [np.asarray(t.end_dir, np.float64) for t in chosen]
+        row["ref"]["along_across"] = [
+            _along_across(d, p, g) for d, p, g in zip(dirs, tips, truth, strict=True)
+        ]
+        if action == "consistent":
+            t0 = time.process_time()
+            falloff = [end_falloff_px(t.score, p, d, t.end_half_width_px)
+                       if t.score is not None and t.end_half_width_px > 0 else float("nan")
+                       for t, p, d in zip(chosen, tips, dirs, strict=True)]  # fmt: skip
+            row["falloff_px"] = falloff
+            row["falloff_cpu_s"] = time.process_time() - t0
+            for an in ALONG:
+                sa = sigma_along(an, falloff)
+                for gn, (ms, mx) in GATES.items():
+                    t0 = time.process_time()
+                    f = fuse_tips(cams, tips, dirs, sigma_along=sa, calibration=REAL_LIKE_CALIBRATION,
+                                  min_sin=ms, max_chi2=mx)  # fmt: skip
+                    cpu = time.process_time() - t0
+                    new = tips if f is None else f.tips
+                    row[f"{an}_{gn}"] = {
+                        "err_px": _errs(new, truth), "cpu_s": cpu,
+                        "reason": None if f is None else f.reason,
+                        "chi2": None if f is None else f.chi2,
+                        "sin": None if f is None else [float(x) for x in f.sin],
+                        "moved_px": None if f is None else [float(x) for x in f.moved_px],
+                        "along_across": [_along_across(d, p, g) for d, p, g in
+                                         zip(dirs, new, truth, strict=True)],
+                    }  # fmt: skip
+        rows.append(row)
+        print(seed, action, [round(x, 1) for x in row["ref"]["err_px"]],
+              [round(x, 1) for x in row.get("f1_g0", row["ref"])["err_px"]], flush=True)  # fmt: skip
+        write_rows(out, rows)
+
+
+def _variant(r, name):
+    return r[name] if name in r else r["ref"]
+
+
+def _table(rows, names, title):
+    print(
+        f"\n{title} ({len(rows)} frames, {sum(r['action'] == 'consistent' for r in rows)} consistent)\n"
+    )
+    print(
+        "| variant | frames both views <= 5 px | views <= 5 px | fixed | broken | median err (consistent views) |"
+    )
+    print("|---|---|---|---|---|---|")
+    for n in names:
+        ok = sum(max(_variant(r, n)["err_px"]) <= 5 for r in rows)
+        v = sum(x <= 5 for r in rows for x in _variant(r, n)["err_px"])
+        fx = [
+            r["seed"] for r in rows if max(r["ref"]["err_px"]) > 5 >= max(_variant(r, n)["err_px"])
+        ]
+        br = [
+            r["seed"] for r in rows if max(r["ref"]["err_px"]) <= 5 < max(_variant(r, n)["err_px"])
+        ]
+        med = np.median(
+            [x for r in rows if r["action"] == "consistent" for x in _variant(r, n)["err_px"]]
+        )
+        print(
+            f"| {n} | {ok} | {v} of {2 * len(rows)} | {len(fx)} {fx} | {len(br)} {br} | {med:.2f} |"
+        )
+
+
+def summary(paths) -> None:
+    rows = {}
+    for p in paths:
+        for r in json.loads(Path(p).read_text())["rows"]:
+            rows.setdefault(r["seed"], r)
+    rows = [rows[s] for s in sorted(rows)]
+    names = ["ref"] + [f"{a}_{g}" for a in ALONG for g in GATES] + ["pipeline"]
+    even = [r for r in rows if r["seed"] % 2 == 0]
+    odd = [r for r in rows if r["seed"] % 2 == 1]
+    _table(even, names, "even seeds (design)")
+    _table(odd, names, "odd seeds (test)")
+    cons = [r for r in rows if r["action"] == "consistent"]
+    # Calibration of the along-tube model: ref's along error over its falloff (z-score).
+    al = np.array([a[0] for r in cons for a in r["ref"]["along_across"]])
+    ac = np.array([a[1] for r in cons for a in r["ref"]["along_across"]])
+    fo = np.array([f for r in cons for f in r["falloff_px"]])
+    print(f"\nconsistent views: {len(al)}; |along| median {np.nanmedian(np.abs(al)):.2f} p90 "
+          f"{np.nanpercentile(np.abs(al), 90):.2f}; |across| median {np.nanmedian(np.abs(ac)):.2f} "
+          f"p90 {np.nanpercentile(np.abs(ac), 90):.2f}; falloff median {np.nanmedian(fo):.2f} "
+          f"p10 {np.nanpercentile(fo, 10):.2f} p90 {np.nanpercentile(fo, 90):.2f}, no step {int(np.sum(~np.isfinite(fo)))}")  # fmt: skip
+    big = np.abs(al) > 3
+    for lo, hi in ((0, 2), (2, 4), (4, 8), (8, 1e9)):
+        sel = np.isfinite(fo) & (fo >= lo) & (fo < hi)
+        if sel.any():
+            print(f"falloff {lo}-{hi} px: {int(sel.sum())} views, |along| median "
+                  f"{np.median(np.abs(al[sel])):.2f}, RMS {np.sqrt(np.mean(al[sel] ** 2)):.2f}, "
+                  f"over 3 px {int(np.sum(big & sel))}")  # fmt: skip
+    sins = np.array([min(r["c3_g0"]["sin"]) for r in cons if r["c3_g0"]["sin"] is not None])
+    print(
+        f"min sine per consistent frame: median {np.median(sins):.2f}, under 0.3: {int(np.sum(sins < 0.3))}"
+    )
+    for name in ("ref", "pipeline"):
+        c = [r[name]["cpu_s"] for r in rows]
+        print(f"{name} CPU s a frame: median {np.median(c):.3f}, max {max(c):.2f}")
+    c = [r["f1_g0"]["cpu_s"] + r["falloff_cpu_s"] for r in cons]
+    print(
+        f"fusion (fall-off + fuse_tips) CPU s a consistent frame: median {np.median(c):.4f}, max {max(c):.3f}"
+    )
+
+
+def main() -> int:
+    ap = harness_parser(__doc__, "/tmp/real_like_tip_fusion")
+    ap.add_argument("more", nargs="*", type=Path, help="further rows files for --summary")
+    args = ap.parse_args()
+    if args.summary is not None:
+        summary([args.summary, *args.more])
+        return 0
+    evaluate(dev_seeds(ap, args), args.store, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
