@@ -5,7 +5,7 @@ development traces, beside this tree's method in the same run.
 Per seed: ``ref`` -- this tree's :func:`jaxcr.stereo.pipeline.traced_stereo_tips` with
 ``calibration=REAL_LIKE_CALIBRATION`` (fusion off); where its tip step says
 ``"consistent"`` (the tips within the rig's epipolar tolerance), each variant
-``<along>_<gate>`` replaces the tips by :func:`jaxcr.stereo.tip_fusion.fuse_tips`'s, with
+``<output>_<along>_<gate>`` replaces the tips by :func:`jaxcr.stereo.tip_fusion.fuse_tips`'s, with
 the along-tube standard deviation
 
 * ``cN``: N px in both views (equal weights);
@@ -13,8 +13,11 @@ the along-tube standard deviation
   fall-off at the end (:func:`jaxcr.stereo.tip_fusion.end_falloff_px`; 8 px where the
   profile has no step);
 
-and the gate ``g0`` (none), ``s3`` (both end lines at least asin 0.3 from the epipolar
-lines), ``x9`` (chi-square at most 9), ``s3x9`` (both). Elsewhere a variant is ``ref``.
+the gate ``g0`` (none), ``s3`` (both end lines at least asin 0.3 from the epipolar
+lines), ``x9`` (chi-square at most 9), ``s3x9`` (both), and the output ``n`` (each tip
+minus its placement error's estimate, the calibration's share of the residual left) or
+``r`` (the end's reprojections): ``<output>_<along>_<gate>``. Elsewhere a variant is
+``ref``.
 ``pipeline`` -- this tree's ``traced_stereo_tips(..., fuse_ends=True)`` (the hook, with its
 defaults), to check it equals its variant.
 
@@ -38,7 +41,9 @@ from jaxcr.stereo.tip_fusion import end_falloff_px, fuse_tips
 
 ALONG = {"c1": 1.0, "c2": 2.0, "c3": 3.0, "c5": 5.0, "f0.5": 0.5, "f1": 1.0, "f2": 2.0}
 GATES = {"g0": (0.0, np.inf), "s3": (0.3, np.inf), "x9": (0.0, 9.0), "s3x9": (0.3, 9.0)}
+OUTPUTS = {"n": "noise_removed", "r": "reprojected"}
 NO_STEP_PX = 8.0
+VARIANTS = [(a, g, o) for o in OUTPUTS for a in ALONG for g in GATES]
 
 
 def _errs(tips, truth):
@@ -95,26 +100,26 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                        for t, p, d in zip(chosen, tips, dirs, strict=True)]  # fmt: skip
             row["falloff_px"] = falloff
             row["falloff_cpu_s"] = time.process_time() - t0
-            for an in ALONG:
+            for an, gn, on in VARIANTS:
                 sa = sigma_along(an, falloff)
-                for gn, (ms, mx) in GATES.items():
-                    t0 = time.process_time()
-                    f = fuse_tips(cams, tips, dirs, sigma_along=sa, calibration=REAL_LIKE_CALIBRATION,
-                                  min_sin=ms, max_chi2=mx)  # fmt: skip
-                    cpu = time.process_time() - t0
-                    new = tips if f is None else f.tips
-                    row[f"{an}_{gn}"] = {
-                        "err_px": _errs(new, truth), "cpu_s": cpu,
-                        "reason": None if f is None else f.reason,
-                        "chi2": None if f is None else f.chi2,
-                        "sin": None if f is None else [float(x) for x in f.sin],
-                        "moved_px": None if f is None else [float(x) for x in f.moved_px],
-                        "along_across": [_along_across(d, p, g) for d, p, g in
-                                         zip(dirs, new, truth, strict=True)],
-                    }  # fmt: skip
+                ms, mx = GATES[gn]
+                t0 = time.process_time()
+                f = fuse_tips(cams, tips, dirs, sigma_along=sa, calibration=REAL_LIKE_CALIBRATION,
+                              min_sin=ms, max_chi2=mx, output=OUTPUTS[on])  # fmt: skip
+                cpu = time.process_time() - t0
+                new = tips if f is None else f.tips
+                row[f"{on}_{an}_{gn}"] = {
+                    "err_px": _errs(new, truth), "cpu_s": cpu,
+                    "reason": None if f is None else f.reason,
+                    "chi2": None if f is None else f.chi2,
+                    "sin": None if f is None else [float(x) for x in f.sin],
+                    "moved_px": None if f is None else [float(x) for x in f.moved_px],
+                    "along_across": [_along_across(d, p, g) for d, p, g in
+                                     zip(dirs, new, truth, strict=True)],
+                }  # fmt: skip
         rows.append(row)
         print(seed, action, [round(x, 1) for x in row["ref"]["err_px"]],
-              [round(x, 1) for x in row.get("f1_g0", row["ref"])["err_px"]], flush=True)  # fmt: skip
+              [round(x, 1) for x in row.get("n_f1_g0", row["ref"])["err_px"]], flush=True)  # fmt: skip
         write_rows(out, rows)
 
 
@@ -147,17 +152,20 @@ def _table(rows, names, title):
         )
 
 
-def summary(paths) -> None:
+def summary(paths, half: str = "both") -> None:
     rows = {}
     for p in paths:
         for r in json.loads(Path(p).read_text())["rows"]:
             rows.setdefault(r["seed"], r)
     rows = [rows[s] for s in sorted(rows)]
-    names = ["ref"] + [f"{a}_{g}" for a in ALONG for g in GATES] + ["pipeline"]
+    names = ["ref"] + [f"{o}_{a}_{g}" for a, g, o in VARIANTS] + ["pipeline"]
     even = [r for r in rows if r["seed"] % 2 == 0]
     odd = [r for r in rows if r["seed"] % 2 == 1]
-    _table(even, names, "even seeds (design)")
-    _table(odd, names, "odd seeds (test)")
+    if half in ("even", "both"):
+        _table(even, names, "even seeds (design)")
+    if half in ("odd", "both"):
+        _table(odd, names, "odd seeds (test)")
+    rows = {"even": even, "odd": odd, "both": rows}[half]
     cons = [r for r in rows if r["action"] == "consistent"]
     # Calibration of the along-tube model: ref's along error over its falloff (z-score).
     al = np.array([a[0] for r in cons for a in r["ref"]["along_across"]])
@@ -174,14 +182,14 @@ def summary(paths) -> None:
             print(f"falloff {lo}-{hi} px: {int(sel.sum())} views, |along| median "
                   f"{np.median(np.abs(al[sel])):.2f}, RMS {np.sqrt(np.mean(al[sel] ** 2)):.2f}, "
                   f"over 3 px {int(np.sum(big & sel))}")  # fmt: skip
-    sins = np.array([min(r["c3_g0"]["sin"]) for r in cons if r["c3_g0"]["sin"] is not None])
+    sins = np.array([min(r["n_c3_g0"]["sin"]) for r in cons if r["n_c3_g0"]["sin"] is not None])
     print(
         f"min sine per consistent frame: median {np.median(sins):.2f}, under 0.3: {int(np.sum(sins < 0.3))}"
     )
     for name in ("ref", "pipeline"):
         c = [r[name]["cpu_s"] for r in rows]
         print(f"{name} CPU s a frame: median {np.median(c):.3f}, max {max(c):.2f}")
-    c = [r["f1_g0"]["cpu_s"] + r["falloff_cpu_s"] for r in cons]
+    c = [r["n_f1_g0"]["cpu_s"] + r["falloff_cpu_s"] for r in cons]
     print(
         f"fusion (fall-off + fuse_tips) CPU s a consistent frame: median {np.median(c):.4f}, max {max(c):.3f}"
     )
@@ -190,9 +198,11 @@ def summary(paths) -> None:
 def main() -> int:
     ap = harness_parser(__doc__, "/tmp/real_like_tip_fusion")
     ap.add_argument("more", nargs="*", type=Path, help="further rows files for --summary")
+    ap.add_argument("--half", choices=("even", "odd", "both"), default="both",
+                    help="--summary: the even (design) seeds, the odd (test) ones or both")  # fmt: skip
     args = ap.parse_args()
     if args.summary is not None:
-        summary([args.summary, *args.more])
+        summary([args.summary, *args.more], args.half)
         return 0
     evaluate(dev_seeds(ap, args), args.store, args.out)
     return 0

@@ -201,9 +201,17 @@ def _epipolar_sines(Ks, Ts, xs, dirs) -> np.ndarray:
 def fuse_tips(
     cams, tips, dirs, *, sigma_along, calibration: CalibrationUncertainty,
     sigma_across: float = 0.5, min_sin: float = 0.0, max_chi2: float = float("inf"),
+    output: str = "noise_removed",
 ) -> FusedTips | None:  # fmt: skip
-    """The two views' tips replaced by the projections of the end triangulated with each
-    view's along/across covariance (module docstring).
+    """The two views' tips corrected by the end triangulated with each view's along/across
+    covariance (module docstring).
+
+    ``output``: ``"reprojected"``, the end's projections through the calibrated cameras
+    (epipolar-consistent under the calibration, so a right pair is moved by the
+    calibration's own epipolar offset); ``"noise_removed"`` (default), each tip minus its
+    placement error's estimate ``C_meas,k C_k^-1 (x_k - pi_k(X))`` (the residual shared
+    between the calibration's offset and the placement error by their covariances: the
+    Gaussian posterior mean of the true pixel, to first order).
 
     ``cams``: the two calibrated cameras (``K``, ``dist``, ``T_cam_robot``); ``tips``: the
     two tips (distorted (u, v)), consistent within the rig's epipolar tolerance (the caller
@@ -236,13 +244,23 @@ def fuse_tips(
     # Each image's epipolar variance, the two tips' placement taken out, shared by the views.
     s_cal = np.sqrt(np.maximum(np.max(sig) ** 2 - 2.0 * calibration.tip_px**2, 0.0) / 2.0)
     s_cal = np.array([s_cal, s_cal])
-    covs = [end_covariance(d, a, sigma_across, c) for d, a, c in zip(du, sig_a, s_cal, strict=True)]
+    meas = [end_covariance(d, a, sigma_across) for d, a in zip(du, sig_a, strict=True)]
+    covs = [C + c**2 * np.eye(2) for C, c in zip(meas, s_cal, strict=True)]
     X, chi2 = mahalanobis_triangulate(Ks, Ts, xs, covs)
     if not all((T[:3, :3] @ X + T[:3, 3])[2] > 0 for T in Ts):
         return None
     sin = _epipolar_sines(Ks, Ts, xs, du)
     proj = [_project_jac(K, T, X)[0] for K, T in zip(Ks, Ts, strict=True)]
-    new = [_distort(c, p[None])[0] for c, p in zip(cams, proj, strict=True)]
+    if output == "reprojected":
+        est = proj
+    elif output == "noise_removed":
+        # The residual x_k - pi_k(X) is the calibration's offset plus the tip's placement
+        # error; only the latter's estimate (its share by covariance) is taken out.
+        est = [x - Cm @ np.linalg.solve(Ct, x - p)
+               for x, p, Cm, Ct in zip(xs, proj, meas, covs, strict=True)]  # fmt: skip
+    else:
+        raise ValueError(f"output must be 'noise_removed' or 'reprojected', not {output!r}")
+    new = [_distort(c, p[None])[0] for c, p in zip(cams, est, strict=True)]
     moved = np.array([np.linalg.norm(a - b) for a, b in zip(new, tips, strict=True)])
     reason = "fused"
     if np.min(sin) < min_sin:
@@ -261,6 +279,7 @@ NO_STEP_PX = 8.0
 def fuse_traced_tips(
     cams, traces, tips, calibration: CalibrationUncertainty, *, falloff_gain: float = 1.0,
     floor_px: float = 1.0, min_sin: float = 0.0, max_chi2: float = float("inf"),
+    output: str = "noise_removed",
 ) -> FusedTips | None:  # fmt: skip
     """:func:`fuse_tips` for two traced views (as :func:`jaxcr.stereo.pipeline.
     traced_stereo_tips` calls it on tips it found consistent): each view's along-tube
@@ -277,4 +296,4 @@ def fuse_traced_tips(
         dirs.append(d)
         sig.append(float(np.hypot(floor_px, falloff_gain * (f if np.isfinite(f) else NO_STEP_PX))))
     return fuse_tips(cams, tips, dirs, sigma_along=sig, calibration=calibration,
-                     min_sin=min_sin, max_chi2=max_chi2)  # fmt: skip
+                     min_sin=min_sin, max_chi2=max_chi2, output=output)  # fmt: skip
