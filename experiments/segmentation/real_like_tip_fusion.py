@@ -5,7 +5,7 @@ development traces, beside this tree's method in the same run.
 Per seed: ``ref`` -- this tree's :func:`jaxcr.stereo.pipeline.traced_stereo_tips` with
 ``calibration=REAL_LIKE_CALIBRATION`` (fusion off); where its tip step says
 ``"consistent"`` (the tips within the rig's epipolar tolerance), each variant
-``<output>_<along>_<gate>`` replaces the tips by :func:`jaxcr.stereo.tip_fusion.fuse_tips`'s, with
+``<output>_<along>_<across>_<gate>`` replaces the tips by :func:`jaxcr.stereo.tip_fusion.fuse_tips`'s, with
 the along-tube standard deviation
 
 * ``cN``: N px in both views (equal weights);
@@ -16,8 +16,10 @@ the along-tube standard deviation
 the gate ``g0`` (none), ``s3`` (both end lines at least asin 0.3 from the epipolar
 lines), ``x9`` (chi-square at most 9), ``s3x9`` (both), and the output ``n`` (each tip
 minus its placement error's estimate, the calibration's share of the residual left) or
-``r`` (the end's reprojections): ``<output>_<along>_<gate>``. Elsewhere a variant is
-``ref``.
+``r`` (the end's reprojections): ``<output>_<along>_<across>_<gate>``. Elsewhere a variant is
+``ref``. ``mT_cN``: ``n_cN_a1_g0`` where the chi-square of the tight model (both
+views along and across 1 px: two right tips) is over ``T`` (the residual is improbable for
+two right tips), ``ref`` elsewhere.
 ``pipeline`` -- this tree's ``traced_stereo_tips(..., fuse_ends=True)`` (the hook, with its
 defaults), to check it equals its variant.
 
@@ -29,6 +31,7 @@ defaults), to check it equals its variant.
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 
@@ -39,11 +42,13 @@ from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
 from jaxcr.stereo.tip_fusion import end_falloff_px, fuse_tips
 
-ALONG = {"c1": 1.0, "c2": 2.0, "c3": 3.0, "c5": 5.0, "f0.5": 0.5, "f1": 1.0, "f2": 2.0}
-GATES = {"g0": (0.0, np.inf), "s3": (0.3, np.inf), "x9": (0.0, 9.0), "s3x9": (0.3, 9.0)}
+ALONG = {"c1": 1.0, "c2": 2.0, "c3": 3.0, "c5": 5.0, "c8": 8.0, "c12": 12.0, "f1": 1.0, "f2": 2.0}
+ACROSS = {"a0.5": 0.5, "a1": 1.0}
+GATES = {"g0": (0.0, np.inf), "s1": (0.1, np.inf), "s3": (0.3, np.inf), "x9": (0.0, 9.0)}
 OUTPUTS = {"n": "noise_removed", "r": "reprojected"}
 NO_STEP_PX = 8.0
-VARIANTS = [(a, g, o) for o in OUTPUTS for a in ALONG for g in GATES]
+TIGHT_CHI2 = (2.7, 4.0, 6.6)
+VARIANTS = [(a, c, g, o) for o in OUTPUTS for a in ALONG for c in ACROSS for g in GATES]
 
 
 def _errs(tips, truth):
@@ -100,15 +105,16 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                        for t, p, d in zip(chosen, tips, dirs, strict=True)]  # fmt: skip
             row["falloff_px"] = falloff
             row["falloff_cpu_s"] = time.process_time() - t0
-            for an, gn, on in VARIANTS:
+            for an, cn, gn, on in VARIANTS:
                 sa = sigma_along(an, falloff)
                 ms, mx = GATES[gn]
                 t0 = time.process_time()
                 f = fuse_tips(cams, tips, dirs, sigma_along=sa, calibration=REAL_LIKE_CALIBRATION,
-                              min_sin=ms, max_chi2=mx, output=OUTPUTS[on])  # fmt: skip
+                              sigma_across=ACROSS[cn], min_sin=ms, max_chi2=mx,
+                              output=OUTPUTS[on])  # fmt: skip
                 cpu = time.process_time() - t0
                 new = tips if f is None else f.tips
-                row[f"{on}_{an}_{gn}"] = {
+                row[f"{on}_{an}_{cn}_{gn}"] = {
                     "err_px": _errs(new, truth), "cpu_s": cpu,
                     "reason": None if f is None else f.reason,
                     "chi2": None if f is None else f.chi2,
@@ -117,9 +123,21 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                     "along_across": [_along_across(d, p, g) for d, p, g in
                                      zip(dirs, new, truth, strict=True)],
                 }  # fmt: skip
+            # The two-hypothesis variants: fused (along N px, across 1 px) only where the
+            # tips' residual is improbable for two right tips (along 1 px, across 1 px):
+            # chi-square of that tight model over T.
+            tight = fuse_tips(cams, tips, dirs, sigma_along=[1.0, 1.0],
+                              calibration=REAL_LIKE_CALIBRATION, sigma_across=1.0)  # fmt: skip
+            row["chi2_tight"] = None if tight is None else tight.chi2
+            for t in TIGHT_CHI2:
+                for an in ("c3", "c5", "c8"):
+                    base = row[f"n_{an}_a1_g0"]
+                    use = tight is not None and tight.chi2 > t
+                    row[f"m{t:g}_{an}"] = base if use else {"err_px": row["ref"]["err_px"],
+                                                            "along_across": row["ref"]["along_across"]}  # fmt: skip
         rows.append(row)
         print(seed, action, [round(x, 1) for x in row["ref"]["err_px"]],
-              [round(x, 1) for x in row.get("n_f1_g0", row["ref"])["err_px"]], flush=True)  # fmt: skip
+              [round(x, 1) for x in row.get("n_f1_a0.5_g0", row["ref"])["err_px"]], flush=True)  # fmt: skip
         write_rows(out, rows)
 
 
@@ -152,13 +170,16 @@ def _table(rows, names, title):
         )
 
 
-def summary(paths, half: str = "both") -> None:
+def summary(paths, half: str = "both", only: str | None = None) -> None:
     rows = {}
     for p in paths:
         for r in json.loads(Path(p).read_text())["rows"]:
             rows.setdefault(r["seed"], r)
     rows = [rows[s] for s in sorted(rows)]
-    names = ["ref"] + [f"{o}_{a}_{g}" for a, g, o in VARIANTS] + ["pipeline"]
+    names = ["ref"] + [f"{o}_{a}_{c}_{g}" for a, c, g, o in VARIANTS]
+    names += [f"m{t:g}_{a}" for t in TIGHT_CHI2 for a in ("c3", "c5", "c8")] + ["pipeline"]
+    if only:
+        names = [n for n in names if n in ("ref", "pipeline") or re.search(only, n)]
     even = [r for r in rows if r["seed"] % 2 == 0]
     odd = [r for r in rows if r["seed"] % 2 == 1]
     if half in ("even", "both"):
@@ -182,14 +203,16 @@ def summary(paths, half: str = "both") -> None:
             print(f"falloff {lo}-{hi} px: {int(sel.sum())} views, |along| median "
                   f"{np.median(np.abs(al[sel])):.2f}, RMS {np.sqrt(np.mean(al[sel] ** 2)):.2f}, "
                   f"over 3 px {int(np.sum(big & sel))}")  # fmt: skip
-    sins = np.array([min(r["n_c3_g0"]["sin"]) for r in cons if r["n_c3_g0"]["sin"] is not None])
+    sins = np.array(
+        [min(r["n_c3_a0.5_g0"]["sin"]) for r in cons if r["n_c3_a0.5_g0"]["sin"] is not None]
+    )
     print(
         f"min sine per consistent frame: median {np.median(sins):.2f}, under 0.3: {int(np.sum(sins < 0.3))}"
     )
     for name in ("ref", "pipeline"):
         c = [r[name]["cpu_s"] for r in rows]
         print(f"{name} CPU s a frame: median {np.median(c):.3f}, max {max(c):.2f}")
-    c = [r["n_f1_g0"]["cpu_s"] + r["falloff_cpu_s"] for r in cons]
+    c = [r["n_f1_a0.5_g0"]["cpu_s"] + r["falloff_cpu_s"] for r in cons]
     print(
         f"fusion (fall-off + fuse_tips) CPU s a consistent frame: median {np.median(c):.4f}, max {max(c):.3f}"
     )
@@ -198,11 +221,12 @@ def summary(paths, half: str = "both") -> None:
 def main() -> int:
     ap = harness_parser(__doc__, "/tmp/real_like_tip_fusion")
     ap.add_argument("more", nargs="*", type=Path, help="further rows files for --summary")
+    ap.add_argument("--only", help="--summary: the variants matching this regular expression")
     ap.add_argument("--half", choices=("even", "odd", "both"), default="both",
                     help="--summary: the even (design) seeds, the odd (test) ones or both")  # fmt: skip
     args = ap.parse_args()
     if args.summary is not None:
-        summary([args.summary, *args.more], args.half)
+        summary([args.summary, *args.more], args.half, args.only)
         return 0
     evaluate(dev_seeds(ap, args), args.store, args.out)
     return 0
