@@ -21,7 +21,7 @@ minus its placement error's estimate, the calibration's share of the residual le
 views along and across 1 px: two right tips) is over ``T`` (the residual is improbable for
 two right tips), ``ref`` elsewhere.
 ``pipeline`` -- this tree's ``traced_stereo_tips(..., fuse_ends=True)`` (the hook, with its
-defaults), to check it equals its variant.
+defaults: equal to ``n_c8_a1_s1``, the variant chosen on the even seeds).
 
     python experiments/segmentation/real_like_tip_fusion.py --seeds 4000-4100 \\
         --store /tmp/tip34/traces --out ROWS

@@ -286,23 +286,31 @@ NO_STEP_PX = 8.0
 
 
 def fuse_traced_tips(
-    cams, traces, tips, calibration: CalibrationUncertainty, *, falloff_gain: float = 1.0,
-    floor_px: float = 1.0, min_sin: float = 0.0, max_chi2: float = float("inf"),
-    output: str = "noise_removed",
+    cams, traces, tips, calibration: CalibrationUncertainty, *, sigma_along_px: float | None = 8.0,
+    sigma_across_px: float = 1.0, falloff_gain: float = 1.0, floor_px: float = 1.0,
+    min_sin: float = 0.1, max_chi2: float = float("inf"), output: str = "noise_removed",
 ) -> FusedTips | None:  # fmt: skip
     """:func:`fuse_tips` for two traced views (as :func:`jaxcr.stereo.pipeline.
-    traced_stereo_tips` calls it on tips it found consistent): each view's along-tube
-    standard deviation is ``hypot(floor_px, falloff_gain * falloff)`` with ``falloff`` the
-    cue's fall-off at its end (:func:`end_falloff_px` on the trace's ``score``;
-    ``NO_STEP_PX`` where there is no step). ``traces``: objects with ``score``,
-    ``end_dir`` and ``end_half_width_px`` (:class:`jaxcr.segmentation.foreground.TubeTrace`)."""
+    traced_stereo_tips` calls it on tips it found consistent). Each view's along-tube
+    standard deviation is ``sigma_along_px``, or, where None, ``hypot(floor_px,
+    falloff_gain * falloff)`` with ``falloff`` the cue's fall-off at its end
+    (:func:`end_falloff_px` on the trace's ``score``; ``NO_STEP_PX`` where there is no
+    step). The defaults (8 px along, 1 px across, both end lines at least asin 0.1 from the
+    epipolar lines) are the variant chosen on the even development seeds
+    (docs/decisions.md S40; the fall-off's weights lost there). ``traces``: objects with
+    ``score``, ``end_dir`` and ``end_half_width_px``
+    (:class:`jaxcr.segmentation.foreground.TubeTrace`)."""
     dirs, sig = [], []
     for t, p in zip(traces, tips, strict=True):
         d = np.asarray(t.end_dir, np.float64)
+        dirs.append(d)
+        if sigma_along_px is not None:
+            sig.append(float(sigma_along_px))
+            continue
         f = float("nan")
         if t.score is not None and t.end_half_width_px > 0 and np.linalg.norm(d) > 0:
             f = end_falloff_px(t.score, p, d, t.end_half_width_px)
-        dirs.append(d)
         sig.append(float(np.hypot(floor_px, falloff_gain * (f if np.isfinite(f) else NO_STEP_PX))))
     return fuse_tips(cams, tips, dirs, sigma_along=sig, calibration=calibration,
-                     min_sin=min_sin, max_chi2=max_chi2, output=output)  # fmt: skip
+                     sigma_across=sigma_across_px, min_sin=min_sin, max_chi2=max_chi2,
+                     output=output)  # fmt: skip
