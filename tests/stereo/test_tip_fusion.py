@@ -22,6 +22,7 @@ from jaxcr.stereo.tip_fusion import (
     end_covariance,
     end_falloff_px,
     fuse_tips,
+    fuse_traced_tips,
     mahalanobis_triangulate,
 )
 from jaxcr.stereo.tip_geometry import epipolar_distances, fundamental_from_poses
@@ -187,3 +188,26 @@ def test_noise_removed_leaves_the_calibration_offset():
     assert rem.tips[1] == pytest.approx(tips[1], abs=0.01)
     with pytest.raises(ValueError, match="output must be"):
         fuse_tips(PINHOLE, tips, dirs, output="both", **kw)
+
+
+def test_fuse_traced_tips_reads_the_traces():
+    """The traced views' end directions and a constant along sigma, as fuse_tips; with
+    ``sigma_along_px=None`` the fall-off of the traces' scores decides the weights (here
+    view 0's end is blurred 3 px, view 1's sharp, so view 0 takes the along correction)."""
+    _, _, moved, dirs = _tube_tips(6.0)
+    v, u = np.mgrid[0:720, 0:1280].astype(np.float64)
+
+    def trace(tip, d, blur):
+        tau = (u - tip[0]) * d[0] + (v - tip[1]) * d[1]
+        score = 0.8 * 0.5 * (1.0 - erf(tau / (np.sqrt(2.0) * blur)))
+        return SimpleNamespace(end_dir=d, score=score, end_half_width_px=4.0)
+
+    traces = [trace(moved[0], dirs[0], 3.0), trace(moved[1], dirs[1], 0.3)]
+    a = fuse_traced_tips(PINHOLE, traces, moved, EXACT, sigma_along_px=8.0)
+    b = fuse_tips(PINHOLE, moved, dirs, sigma_along=[8.0, 8.0], calibration=EXACT,
+                  sigma_across=1.0, min_sin=0.1)  # fmt: skip
+    for x, y in zip(a.tips, b.tips, strict=True):
+        np.testing.assert_array_equal(x, y)
+    c = fuse_traced_tips(PINHOLE, traces, moved, EXACT, sigma_along_px=None)
+    assert c.sigma_along[0] > 2.0 * c.sigma_along[1]
+    assert c.moved_px[0] > 2.0 * c.moved_px[1]
