@@ -111,6 +111,7 @@ from jaxcr.stereo.tip_consistency import (
     trim_unexplained_tail,
     undistort_pixels,
 )
+from jaxcr.stereo.tip_fusion import fuse_traced_tips
 from jaxcr.stereo.tip_geometry import (
     end_face_lengths,
     epipolar_distances,
@@ -361,6 +362,7 @@ def traced_stereo_tips(
     calibration: CalibrationUncertainty | None = None,
     run_on: bool = True,
     end_fit: bool | str = True,
+    fuse_ends: bool = False,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -406,7 +408,12 @@ def traced_stereo_tips(
     with_capsule_end`, docs/decisions.md S42; the paths and the branch choice are the
     tracer's), their two-view tips computed again, then the tip step; ``"image"``: and the
     fitted end face's length kept in the two-view step. On (``True``) by default since stop 36
-    (S42); ``False`` gives the tracer's own end walk."""
+    (S42); ``False`` gives the tracer's own end walk.
+
+    ``fuse_ends`` (with ``calibration``; off: measured, not adopted, S40): tips the tip step
+    calls ``"consistent"`` are replaced by the ones the two views' ends give when
+    triangulated with each view's along/across covariance
+    (:func:`jaxcr.stereo.tip_fusion.fuse_traced_tips`)."""
     traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on)
     chosen = traces
     if end_fit:
@@ -419,6 +426,11 @@ def traced_stereo_tips(
     if calibration is not None:
         research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
     out = _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
+    consistent = out[2] is not None and out[2].action == "consistent"
+    if fuse_ends and calibration is not None and consistent:
+        fused = fuse_traced_tips(cams, out[3], out[0], calibration)
+        if fused is not None and fused.applied:
+            out = (fused.tips, out[1], out[2], out[3])
     # The traces returned are the branch choice's (a placed copy is the same path: callers
     # tell a replaced branch by identity).
     return out[0], out[1], out[2], chosen
