@@ -44,6 +44,10 @@ from jaxcr.segmentation.capsule_end import with_capsule_end
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
 
+#: the branch step and end placement as they were when the rows were made (stop 35, before
+#: S41 ``run_on`` and S42 ``end_fit`` were on by default): ``ref`` is that tree's method
+BEFORE_S41 = {"run_on": False}  # end_fit is the variant here
+
 
 def _errs(tips, truth):
     return [float(np.linalg.norm(np.asarray(t) - g)) for t, g in zip(tips, truth, strict=True)]
@@ -83,7 +87,7 @@ def evaluate(seeds, store: Path, out: Path) -> None:
             for name, end_fit in (("ref", False), ("capsule", True), ("capsule_image", "image")):
                 t0 = time.process_time()
                 tips, src, res, _ = pipeline.traced_stereo_tips(
-                    cams, traces, calibration=REAL_LIKE_CALIBRATION, end_fit=end_fit
+                    cams, traces, calibration=REAL_LIKE_CALIBRATION, end_fit=end_fit, **BEFORE_S41
                 )
                 row[name] = {"err_px": _errs(tips, truth), "source": src,
                              "action": None if res is None else res.action,

@@ -42,6 +42,10 @@ from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
 from jaxcr.stereo.tip_fusion import end_falloff_px, fuse_tips
 
+#: the branch step and end placement as they were when the rows were made (stop 35, before
+#: S41 ``run_on`` and S42 ``end_fit`` were on by default): ``ref`` is that tree's method
+BEFORE_S41_S42 = {"run_on": False, "end_fit": False}
+
 ALONG = {"c1": 1.0, "c2": 2.0, "c3": 3.0, "c5": 5.0, "c8": 8.0, "c12": 12.0, "f1": 1.0, "f2": 2.0}
 ACROSS = {"a0.5": 0.5, "a1": 1.0}
 GATES = {"g0": (0.0, np.inf), "s1": (0.1, np.inf), "s3": (0.3, np.inf), "x9": (0.0, 9.0)}
@@ -81,12 +85,16 @@ def evaluate(seeds, store: Path, out: Path) -> None:
         try:
             t0 = time.process_time()
             tips, _, res, chosen = pipeline.traced_stereo_tips(
-                cams, rec["traces"], calibration=REAL_LIKE_CALIBRATION
+                cams, rec["traces"], calibration=REAL_LIKE_CALIBRATION, **BEFORE_S41_S42
             )
             ref_cpu = time.process_time() - t0
             t0 = time.process_time()
             hook = pipeline.traced_stereo_tips(
-                cams, rec["traces"], calibration=REAL_LIKE_CALIBRATION, fuse_ends=True
+                cams,
+                rec["traces"],
+                calibration=REAL_LIKE_CALIBRATION,
+                fuse_ends=True,
+                **BEFORE_S41_S42,
             )[0]
             hook_cpu = time.process_time() - t0
         finally:

@@ -38,7 +38,10 @@ from jaxcr.stereo.guided_retrace import evidence_map, guided_candidate, guided_c
 from jaxcr.stereo.tip_consistency import _beyond_evidence, epipolar_gap_px
 
 #: keyword arguments of ``traced_stereo_tips`` for the variant (S41)
-VARIANT_KW: dict = {"run_on": True}
+VARIANT_KW: dict = {"run_on": True, "end_fit": False}
+#: the branch step and end placement as they were when the rows were made (stop 35, before
+#: S41 ``run_on`` and S42 ``end_fit`` were on by default): ``ref`` is that tree's method
+BEFORE_S41_S42 = {"run_on": False, "end_fit": False}
 
 
 def _errs(tips, truth):
@@ -219,7 +222,7 @@ def evaluate(seeds, store: Path, out: Path, diag: bool = True) -> None:
         try:
             own = pipeline._stereo_or_own_tips(cams, list(rec["traces"]))[0]
             row["flagged"] = bool(epipolar_gap_px(cams, own) > 5.0)
-            for name, kw in (("ref", {}), ("variant", VARIANT_KW)):
+            for name, kw in (("ref", BEFORE_S41_S42), ("variant", VARIANT_KW)):
                 t0 = time.process_time()
                 tips, src, res, chosen = pipeline.traced_stereo_tips(
                     cams, rec["traces"], calibration=REAL_LIKE_CALIBRATION, **kw
