@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import scipy.optimize
 
+from jaxcr.io.exported import cached_call
 from jaxcr.kinematics import ConstantCurvature, SingleSegment
 from jaxcr.kinematics.ctr import TEST_CTR, ConcentricTubeRobot
 from jaxcr.kinematics.ctr_mechanics import telescoping_ok
@@ -129,14 +130,18 @@ def _same_shape_joints(model, q):
 def test_recovers_q_from_noisy_backbone(case):
     kind, q_true = case
     if kind == "single_segment":
-        # The problem `jaxcr fit` solves in tests/cli (24 samples, 9 points, base term on):
-        # one compiled solver for both (a Levenberg-Marquardt solve compiles for ~6 s of CPU).
+        # The problem `jaxcr fit` solves in tests/cli (test_cli_fit, test_cli_fit_rig: 24
+        # samples, 9 points, base term on, the defaults), called as the command calls it
+        # (jit_call=cached_call: the stored traced programs), so that it is one program in the
+        # run for all three (a Levenberg-Marquardt solve compiles for ~2.5 s of CPU). The
+        # direct call (jit_call=None) is the constant-curvature case's and the other tests'.
         model, stride, base_weight = SingleSegment.make(0.1, 0.003, n_points=24), 3, 1.0
+        jit_call = cached_call
     else:
         model = ConstantCurvature.make(
             [0.05, 0.05], [0.003] * 2, joints=("kappa", "phi"), n_points=33
         )
-        stride, base_weight = 2, 0.0
+        stride, base_weight, jit_call = 2, 0.0, None
     sigma = 2e-4  # 0.2 mm tracker noise
 
     def centreline(q):  # the compiled FK of the noisy backbones (fit._cold_forward)
@@ -145,7 +150,9 @@ def test_recovers_q_from_noisy_backbone(case):
 
     for seed in (11, 12):  # fresh seeds (the configurations were chosen on seed 0)
         pts = _noisy_backbone(model, q_true, sigma, seed, stride)
-        res = fit_backbone(model, jnp.asarray(pts, jnp.float32), base_weight=base_weight)
+        res = fit_backbone(
+            model, jnp.asarray(pts, jnp.float32), base_weight=base_weight, jit_call=jit_call
+        )
         assert bool(res.ok), res.result
         # J by central differences of the slow reference residual (_cov_tolerance_fd; no
         # Jacobian program of its own). Against the jacfwd J of the fit's residual that this
@@ -284,8 +291,8 @@ def test_same_optimum_as_scipy_least_squares():
 def test_fit_pose_recovers_a_shifted_base():
     """Points measured in a frame shifted by 2 cm and turned about x: the fitted base pose maps
     the model back onto them (residual at noise level) and its translation is the shift.
-    The problem `jaxcr fit --fit-pose` solves in tests/cli (24 samples, 9 points, base term
-    on): one compiled solver for both."""
+    Its own program: no test of `jaxcr fit --fit-pose` runs this single-segment problem any
+    more (test_cli_fit_rig's pose fit is the tutorial rig's, to load the tutorial's program)."""
     model = SingleSegment.make(0.1, 0.003, n_points=24)
     q_true = jnp.array([0.5, 0.4])
     p = np.asarray(_cold_forward(model, q_true).centreline.p, np.float64)
