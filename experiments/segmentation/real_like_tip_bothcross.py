@@ -33,16 +33,13 @@ from pathlib import Path
 
 import numpy as np
 from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import tip_errors as _errs
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION, tip_epipolar_tolerance_px
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
 
 VARIANTS = {"ref": {"both_if_traces_cross": False}, "both": {"both_if_traces_cross": True}}
-
-
-def _errs(tips, truth):
-    return [float(np.linalg.norm(np.asarray(t) - g)) for t, g in zip(tips, truth, strict=True)]
 
 
 def _run(cams, traces0, kw):

@@ -32,12 +32,18 @@ from pathlib import Path
 
 import numpy as np
 from tip_harness import (
+    along_across as _along_across,
+)
+from tip_harness import (
     dev_seeds,
     harness_parser,
     resumed_rows,
     stored_records,
     variant_table,
     write_rows,
+)
+from tip_harness import (
+    tip_errors as _errs,
 )
 
 from jaxcr.segmentation.capsule_end import with_capsule_end
@@ -47,19 +53,6 @@ from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
 #: the branch step and end placement as they were when the rows were made (stop 35, before
 #: S41 ``run_on`` and S42 ``end_fit`` were on by default): ``ref`` is that tree's method
 BEFORE_S41 = {"run_on": False}  # end_fit is the variant here
-
-
-def _errs(tips, truth):
-    return [float(np.linalg.norm(np.asarray(t) - g)) for t, g in zip(tips, truth, strict=True)]
-
-
-def _along_across(d, tip, truth):
-    d = np.asarray(d, np.float64)
-    if not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
-        return [float("nan"), float("nan")]
-    d = d / np.linalg.norm(d)
-    r = np.asarray(truth, np.float64) - np.asarray(tip, np.float64)
-    return [float(r @ d), float(d[0] * r[1] - d[1] * r[0])]
 
 
 def evaluate(seeds, store: Path, out: Path) -> None:

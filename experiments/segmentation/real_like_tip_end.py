@@ -34,13 +34,10 @@ from pathlib import Path
 
 import numpy as np
 from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import tip_errors as _errs
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
-
-
-def _errs(tips, truth):
-    return [float(np.linalg.norm(np.asarray(t) - g)) for t, g in zip(tips, truth, strict=True)]
 
 
 def _along_across(trace, tip, truth):

@@ -36,7 +36,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tip_harness import along_across as _along_across
 from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import tip_errors as _errs
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
@@ -53,19 +55,6 @@ OUTPUTS = {"n": "noise_removed", "r": "reprojected"}
 NO_STEP_PX = 8.0
 TIGHT_CHI2 = (2.7, 4.0, 6.6)
 VARIANTS = [(a, c, g, o) for o in OUTPUTS for a in ALONG for c in ACROSS for g in GATES]
-
-
-def _errs(tips, truth):
-    return [float(np.linalg.norm(np.asarray(t) - g)) for t, g in zip(tips, truth, strict=True)]
-
-
-def _along_across(d, tip, truth):
-    d = np.asarray(d, np.float64)
-    if not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
-        return [float("nan"), float("nan")]
-    d = d / np.linalg.norm(d)
-    r = np.asarray(truth, np.float64) - np.asarray(tip, np.float64)
-    return [float(r @ d), float(d[0] * r[1] - d[1] * r[0])]
 
 
 def sigma_along(name: str, falloff) -> list[float]:

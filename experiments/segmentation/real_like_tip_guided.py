@@ -44,6 +44,9 @@ from tip_harness import (
     variant_table,
     write_rows,
 )
+from tip_harness import (
+    tip_errors as _errs,
+)
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.backbone_consistency import backbone_consistency
@@ -110,10 +113,6 @@ def _variant(rec, cands, bb_widths=None):
         for c, t in zip(chosen, rec["traces"], strict=True)
     ]
     return tips, act, kind, flagged
-
-
-def _errs(tips, truth):
-    return [float(np.linalg.norm(np.asarray(t) - g)) for t, g in zip(tips, truth, strict=True)]
 
 
 def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> None:

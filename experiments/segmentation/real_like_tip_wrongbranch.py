@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import tip_errors as _errs
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.backbone_consistency import backbone_consistency
@@ -42,10 +43,6 @@ VARIANT_KW: dict = {"run_on": True, "end_fit": False}
 #: the branch step and end placement as they were when the rows were made (stop 35, before
 #: S41 ``run_on`` and S42 ``end_fit`` were on by default): ``ref`` is that tree's method
 BEFORE_S41_S42 = {"run_on": False, "end_fit": False}
-
-
-def _errs(tips, truth):
-    return [float(np.linalg.norm(np.asarray(t) - g)) for t, g in zip(tips, truth, strict=True)]
 
 
 def _coverage(trace, level: float = 0.5) -> float:

@@ -13,6 +13,8 @@ import pickle
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+
 from jaxcr.benchmarks import parse_seeds
 
 FORBIDDEN_FROM = 4380  # the lead's fresh seeds (fresh_seeds_reserved.md): never run by a harness
@@ -76,3 +78,19 @@ def variant_table(sel: list[dict], title: str, names) -> None:
         ok = sum(max(r[n]["err_px"]) <= 5 for r in sel)
         v = sum(x <= 5 for r in sel for x in r[n]["err_px"])
         print(f"| {n} | {ok} of {len(sel)} | {v} of {2 * len(sel)} |")
+
+
+def tip_errors(tips, truth) -> list[float]:
+    """Each view's tip error (px) against the truth."""
+    return [float(np.linalg.norm(np.asarray(t) - g)) for t, g in zip(tips, truth, strict=True)]
+
+
+def along_across(d, tip, truth) -> list[float]:
+    """The truth minus the tip (px), along the unit end direction ``d`` and across it (NaNs
+    where ``d`` is not a direction)."""
+    d = np.asarray(d, np.float64)
+    if not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
+        return [float("nan"), float("nan")]
+    d = d / np.linalg.norm(d)
+    r = np.asarray(truth, np.float64) - np.asarray(tip, np.float64)
+    return [float(r @ d), float(d[0] * r[1] - d[1] * r[0])]
