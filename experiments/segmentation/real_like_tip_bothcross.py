@@ -32,7 +32,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import (
+    dev_seeds,
+    harness_parser,
+    resumed_rows,
+    stored_alternatives,
+    stored_records,
+    write_rows,
+)
 from tip_harness import tip_errors as _errs
 
 from jaxcr.stereo import pipeline
@@ -54,16 +61,13 @@ def _run(cams, traces0, kw):
 def evaluate(seeds, store: Path, out: Path) -> None:
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
-        alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
-        saved = pipeline.trace_alternatives
-        pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
         cams, truth = rec["calib"], rec["truth"]
         own = pipeline._stereo_or_own_tips(cams, list(rec["traces"]))[0]
         row = {"seed": seed, "trace": _errs([t.tip for t in rec["traces"]], truth),
                "flagged": bool(epipolar_gap_px(cams, own) > 5.0),
                "crossings_followed": [int(getattr(t, "crossings_followed", 0))
                                       for t in rec["traces"]]}  # fmt: skip
-        try:
+        with stored_alternatives(rec):
             for name, kw in VARIANTS.items():
                 t0 = time.process_time()
                 branch, final, action, kind = _run(cams, rec["traces"], kw)
@@ -76,8 +80,6 @@ def evaluate(seeds, store: Path, out: Path) -> None:
             )
             row["pipeline"] = {"err_px": _errs(tips, truth), "cpu_s": time.process_time() - t0,
                                "action": None if res is None else res.action}  # fmt: skip
-        finally:
-            pipeline.trace_alternatives = saved
         rows.append(row)
         print(seed, {k: [round(x, 1) for x in row[k]["err_px"]] for k in ("ref", "both")},
               row["both"]["chosen"], flush=True)  # fmt: skip

@@ -38,6 +38,7 @@ from tip_harness import (
     dev_seeds,
     harness_parser,
     resumed_rows,
+    stored_alternatives,
     stored_records,
     variant_table,
     write_rows,
@@ -59,12 +60,9 @@ def evaluate(seeds, store: Path, out: Path) -> None:
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
         # Alternatives keyed by the trace's retrace context, which a placed copy shares.
-        alts = {id(t.retrace): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
-        saved = pipeline.trace_alternatives
-        pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t.retrace)]
         cams, truth, traces = rec["calib"], rec["truth"], rec["traces"]
         row = {"seed": seed}
-        try:
+        with stored_alternatives(rec, key=lambda t: id(t.retrace)):
             t0 = time.process_time()
             placed = [with_capsule_end(t) for t in traces]
             fit_cpu = time.process_time() - t0
@@ -85,8 +83,6 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                 row[name] = {"err_px": _errs(tips, truth), "source": src,
                              "action": None if res is None else res.action,
                              "cpu_s": time.process_time() - t0}  # fmt: skip
-        finally:
-            pipeline.trace_alternatives = saved
         rows.append(row)
         print(seed, {k: [round(x, 1) for x in row[k]["err_px"]]
                      for k in ("trace", "fit", "ref", "capsule", "capsule_image")}, flush=True)  # fmt: skip

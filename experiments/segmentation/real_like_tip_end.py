@@ -33,7 +33,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import (
+    dev_seeds,
+    harness_parser,
+    resumed_rows,
+    stored_alternatives,
+    stored_records,
+    write_rows,
+)
 from tip_harness import tip_errors as _errs
 
 from jaxcr.stereo import pipeline
@@ -88,14 +95,11 @@ def evaluate(seeds, store: Path, out: Path) -> None:
 
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
-        alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
-        saved = pipeline.trace_alternatives
-        pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
         cams, truth = rec["calib"], rec["truth"]
         row = {"seed": seed,
                "trace": _errs([t.tip for t in rec["traces"]], truth),
                "truth_epipolar_px": epipolar_gap_px(cams, truth)}  # fmt: skip
-        try:
+        with stored_alternatives(rec):
 
             def tol(c, tr, tp):
                 return tip_epipolar_tolerance_px(c, tp, REAL_LIKE_CALIBRATION)
@@ -127,8 +131,6 @@ def evaluate(seeds, store: Path, out: Path) -> None:
             )
             row["pipeline"] = {"err_px": _errs(tips, truth), "cpu_s": time.process_time() - t0,
                                "action": None if res is None else res.action}  # fmt: skip
-        finally:
-            pipeline.trace_alternatives = saved
         rows.append(row)
         print(seed, {k: [round(x, 1) for x in row[k]["err_px"]] for k in ("ref", "calib")},
               row["ref"]["action"], round(row["calib"]["flag_px"], 1),

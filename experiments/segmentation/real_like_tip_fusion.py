@@ -37,7 +37,14 @@ from pathlib import Path
 
 import numpy as np
 from tip_harness import along_across as _along_across
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import (
+    dev_seeds,
+    harness_parser,
+    resumed_rows,
+    stored_alternatives,
+    stored_records,
+    write_rows,
+)
 from tip_harness import tip_errors as _errs
 
 from jaxcr.stereo import pipeline
@@ -67,11 +74,8 @@ def sigma_along(name: str, falloff) -> list[float]:
 def evaluate(seeds, store: Path, out: Path) -> None:
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
-        alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
-        saved = pipeline.trace_alternatives
-        pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
         cams, truth = rec["calib"], rec["truth"]
-        try:
+        with stored_alternatives(rec):
             t0 = time.process_time()
             tips, _, res, chosen = pipeline.traced_stereo_tips(
                 cams, rec["traces"], calibration=REAL_LIKE_CALIBRATION, **BEFORE_S41_S42
@@ -86,8 +90,6 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                 **BEFORE_S41_S42,
             )[0]
             hook_cpu = time.process_time() - t0
-        finally:
-            pipeline.trace_alternatives = saved
         action = None if res is None else res.action
         row = {"seed": seed, "action": action, "ref": {"err_px": _errs(tips, truth), "cpu_s": ref_cpu},
                "pipeline": {"err_px": _errs(hook, truth), "cpu_s": hook_cpu}}  # fmt: skip

@@ -40,6 +40,7 @@ from tip_harness import (
     dev_seeds,
     harness_parser,
     resumed_rows,
+    stored_alternatives,
     stored_records,
     variant_table,
     write_rows,
@@ -136,17 +137,12 @@ def evaluate(seeds, store: Path, out: Path, bb_widths: float, tip_mode: str) -> 
                          "flagged": bool(flagged), "cpu_s": time.process_time() - t0}  # fmt: skip
         # The pipeline's own function (the stored alternatives returned for
         # trace_alternatives, which is deterministic): after adoption equal to `guided`.
-        alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
-        saved = pipeline.trace_alternatives
-        pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
-        try:
+        with stored_alternatives(rec):
             t0 = time.process_time()
             tips, _, res, chosen = pipeline.traced_stereo_tips(cams, rec["traces"])
             row["pipeline"] = {"err_px": _errs(tips, rec["truth"]),
                                "action": None if res is None else res.action,
                                "cpu_s": time.process_time() - t0}  # fmt: skip
-        finally:
-            pipeline.trace_alternatives = saved
         row["oracle"] = {"err_px": _oracle(rec, base)}
         row["oracle_guided"] = {"err_px": _oracle(rec, plus)}
         row["trace"] = {"err_px": _errs([t.tip for t in rec["traces"]], rec["truth"])}

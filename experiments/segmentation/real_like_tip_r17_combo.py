@@ -14,7 +14,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import (
+    dev_seeds,
+    harness_parser,
+    resumed_rows,
+    stored_alternatives,
+    stored_records,
+    write_rows,
+)
 
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
@@ -25,11 +32,8 @@ VARIANTS = {"before": {"run_on": False, "end_fit": False}, "after": {}}
 def evaluate(seeds, store: Path, out: Path) -> None:
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
-        alts = {id(t): a for t, a in zip(rec["traces"], rec["alts"], strict=True)}
-        saved = pipeline.trace_alternatives
-        pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
         row = {"seed": seed}
-        try:
+        with stored_alternatives(rec):
             for name, kw in VARIANTS.items():
                 t0 = time.process_time()
                 tips = pipeline.traced_stereo_tips(
@@ -38,8 +42,6 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                 row[name] = [float(np.linalg.norm(np.asarray(t) - g))
                              for t, g in zip(tips, rec["truth"], strict=True)]  # fmt: skip
                 row[name + "_cpu_s"] = time.process_time() - t0
-        finally:
-            pipeline.trace_alternatives = saved
         rows.append(row)
         write_rows(out, rows)
         print(seed, {k: [round(x, 1) for x in row[k]] for k in VARIANTS}, flush=True)

@@ -27,7 +27,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tip_harness import dev_seeds, harness_parser, resumed_rows, stored_records, write_rows
+from tip_harness import (
+    dev_seeds,
+    harness_parser,
+    resumed_rows,
+    stored_alternatives,
+    stored_records,
+    write_rows,
+)
 from tip_harness import tip_errors as _errs
 
 from jaxcr.stereo import pipeline
@@ -210,13 +217,10 @@ def _why(cams, full, n_pipe, best, chosen, pairs, flagged, traces) -> str:
 def evaluate(seeds, store: Path, out: Path, diag: bool = True) -> None:
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
-        alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
-        saved = pipeline.trace_alternatives
-        pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
         cams, truth = rec["calib"], rec["truth"]
         row = {"seed": seed, "store": str(store),
                "trace": _errs([t.tip for t in rec["traces"]], truth)}  # fmt: skip
-        try:
+        with stored_alternatives(rec):
             own = pipeline._stereo_or_own_tips(cams, list(rec["traces"]))[0]
             row["flagged"] = bool(epipolar_gap_px(cams, own) > 5.0)
             for name, kw in (("ref", BEFORE_S41_S42), ("variant", VARIANT_KW)):
@@ -232,8 +236,6 @@ def evaluate(seeds, store: Path, out: Path, diag: bool = True) -> None:
                 t0 = time.process_time()
                 row["diag"] = diagnose(cams, rec["traces"], truth)
                 row["diag"]["cpu_s"] = time.process_time() - t0
-        finally:
-            pipeline.trace_alternatives = saved
         rows.append(row)
         d = row.get("diag", {})
         print(seed, [round(x, 1) for x in row["ref"]["err_px"]],

@@ -43,6 +43,7 @@ from tip_harness import (
     dev_seeds,
     harness_parser,
     resumed_rows,
+    stored_alternatives,
     stored_records,
     variant_table,
     write_rows,
@@ -60,13 +61,8 @@ VARIANTS = ("ref", "one", "one_own", "two_own", "one_own_x", "one_own_g", "one_o
 
 
 def _pipeline(rec):
-    alts = {id(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
-    saved = pipeline.trace_alternatives
-    pipeline.trace_alternatives = lambda t, alts=alts: alts[id(t)]
-    try:
+    with stored_alternatives(rec):
         tips, _, res, chosen = pipeline.traced_stereo_tips(rec["calib"], rec["traces"])
-    finally:
-        pipeline.trace_alternatives = saved
     kind = [
         "trace" if c is t else ("guided" if getattr(c, "departure", None) == -1 else "alt")
         for c, t in zip(chosen, rec["traces"], strict=True)

@@ -11,6 +11,7 @@ import json
 import os
 import pickle
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -94,3 +95,20 @@ def along_across(d, tip, truth) -> list[float]:
     d = d / np.linalg.norm(d)
     r = np.asarray(truth, np.float64) - np.asarray(tip, np.float64)
     return [float(r @ d), float(d[0] * r[1] - d[1] * r[0])]
+
+
+@contextmanager
+def stored_alternatives(rec: dict, key=id):
+    """Within the block, :func:`jaxcr.stereo.pipeline.trace_alternatives` returns the stored
+    record's alternatives of each of its traces (``key(trace)`` identifies a trace; a placed
+    copy of a trace shares its ``retrace``) instead of computing them again: they are
+    deterministic, and the stored ones are what the store's rows were made from."""
+    from jaxcr.stereo import pipeline
+
+    alts = {key(t): list(a) for t, a in zip(rec["traces"], rec["alts"], strict=True)}
+    saved = pipeline.trace_alternatives
+    pipeline.trace_alternatives = lambda t: alts[key(t)]
+    try:
+        yield
+    finally:
+        pipeline.trace_alternatives = saved
