@@ -35,8 +35,7 @@ from tip_harness import (
     along_across as _along_across,
 )
 from tip_harness import (
-    dev_seeds,
-    harness_parser,
+    harness_main,
     resumed_rows,
     stored_alternatives,
     stored_records,
@@ -116,14 +115,7 @@ def summary(path: Path) -> None:
 
 
 def main() -> int:
-    ap = harness_parser(__doc__, "/tmp/real_like_tip_capsule")
-    args = ap.parse_args()
-    if args.summary is not None:
-        summary(args.summary)
-        return 0
-    seeds = dev_seeds(ap, args)
-    evaluate(seeds, args.store, args.out)
-    return 0
+    return harness_main(__doc__, "/tmp/real_like_tip_capsule", evaluate, summary)
 
 
 if __name__ == "__main__":

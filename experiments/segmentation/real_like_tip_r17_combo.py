@@ -15,8 +15,7 @@ from pathlib import Path
 
 import numpy as np
 from tip_harness import (
-    dev_seeds,
-    harness_parser,
+    harness_main,
     resumed_rows,
     stored_alternatives,
     stored_records,
@@ -63,13 +62,7 @@ def summary(path: Path) -> None:
 
 
 def main() -> int:
-    ap = harness_parser(__doc__, "/tmp/real_like_tip_r17_combo")
-    args = ap.parse_args()
-    if args.summary is not None:
-        summary(args.summary)
-        return 0
-    evaluate(dev_seeds(ap, args), args.store, args.out)
-    return 0
+    return harness_main(__doc__, "/tmp/real_like_tip_r17_combo", evaluate, summary)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ import argparse
 import json
 import os
 import pickle
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -112,3 +112,15 @@ def stored_alternatives(rec: dict, key=id):
         yield
     finally:
         pipeline.trace_alternatives = saved
+
+
+def harness_main(doc: str, default_out: str, evaluate: Callable, summary: Callable) -> int:
+    """A harness's command line with the common options only: ``--summary ROWS.json`` prints
+    ``summary(ROWS.json)``; otherwise ``evaluate(seeds, store, out)`` on development seeds."""
+    ap = harness_parser(doc, default_out)
+    args = ap.parse_args()
+    if args.summary is not None:
+        summary(args.summary)
+        return 0
+    evaluate(dev_seeds(ap, args), args.store, args.out)
+    return 0
