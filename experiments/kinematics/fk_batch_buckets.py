@@ -90,7 +90,7 @@ def main(argv=None) -> int:
     lines = [
         "# `jaxcr fk` (TEST_CTR): a second batch size reusing the first one's program (issue 18)",
         "",
-        f"Command: `python experiments/kinematics/fk_batch_buckets.py "
+        "Command: `python experiments/kinematics/fk_batch_buckets.py "
         + " ".join(f"--tree {n}=<{p}>" for n, p in trees)
         + f" --rows {a.rows[0]} {a.rows[1]}` (commit {commit}). Each tree: a fresh cache, "
         f"`jaxcr fk robot.json Q{a.rows[0]}.csv`, then a second process `jaxcr fk robot.json "

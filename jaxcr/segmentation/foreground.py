@@ -1086,6 +1086,12 @@ def refine_tip_details(
     w = float(max(width_px, 2.0))
     bb = centre_end_on_axis(score, bb, w, cfg)
     arc = _local_arc(list(bb), window_px=max(24.0, 3 * w))
+    if arc is None and len(bb) >= 2:
+        # A path traced at a reduced scale steps k step_px at full resolution, and its last
+        # step (the walk's end) can be longer still: the window may hold under five points
+        # and the end would go unrefined (real_like 3947, 4334, 4388: 8-9 px beyond the
+        # end, docs/decisions.md S43). The same fit on the path resampled every 2 px.
+        arc = _local_arc(list(_densify_path(bb, 2.0)), window_px=max(24.0, 3 * w))
     if arc is None or len(bb) < 3:
         return bb[-1].copy(), 0.0, np.zeros(2), 0.0
     theta = arc[0]

@@ -11,6 +11,7 @@ from scipy import ndimage as ndi
 from skimage.filters import apply_hysteresis_threshold
 
 from jaxcr.cli import main
+from jaxcr.segmentation import foreground
 from jaxcr.segmentation.foreground import (
     PlateForegroundConfig,
     TubeTrace,
@@ -273,6 +274,26 @@ def test_refine_tip_when_the_path_overshoots_the_end():
                          np.full(25, end[1])], 1)  # fmt: skip
     tip, a = refine_tip(score, backbone, 8.0)
     assert np.all(np.isfinite(tip)) and np.linalg.norm(tip - end) < 0.5, tip
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, -70.0])
+def test_refine_tip_on_a_sparse_path(angle_deg):
+    """A path traced at a reduced scale (k = 4: 8 px steps at full resolution) whose last
+    step, the walk's end, is 20 px long and overshoots the end by 8 px (real_like 4388,
+    tube 12 px wide): the window of 3 widths behind the end holds four path points, and
+    the end used to be returned unrefined (8 px off). Reference: the drawn flat end (8x8
+    supersampled, blur 1.2 px): within 0.5 px as in
+    test_refine_tip_when_the_path_overshoots_the_end."""
+    h, w, ss = 120, 120, 8
+    end = np.array([70.3, 80.6])
+    d, n, s_, t_ = _along_across(h, w, ss, angle_deg, end)
+    body = (s_ <= 0) & (s_ >= -80) & (np.abs(t_) <= 6.0)
+    score = 3.0 * ndi.gaussian_filter(body.reshape(h, ss, w, ss).mean((1, 3)), 1.2)
+    along = np.concatenate([np.arange(-68.0, -11.9, 8.0), [8.0]])
+    backbone = end[None] + along[:, None] * d[None]
+    assert foreground._local_arc(list(backbone), window_px=36.0) is None  # the sparse case
+    tip, a = refine_tip(score, backbone, 12.0)
+    assert np.linalg.norm(tip - end) < 0.5, tip
 
 
 @pytest.mark.parametrize("angle_deg", [0.0, 35.0])
