@@ -77,7 +77,9 @@ def main(argv=None) -> int:
         for i, q in enumerate(qs):
             out = work / f"out_{name}_{i}"
             res.append(_run(tree, [str(robot), str(q), "-o", str(out)], cache))
-        second_p[name] = np.load(work / f"out_{name}_1" / "centrelines.npz", allow_pickle=False)["p"]
+        second_p[name] = np.load(work / f"out_{name}_1" / "centrelines.npz", allow_pickle=False)[
+            "p"
+        ]
         rows.append({"tree": name, "first": res[0], "second": res[1]})
     names = [n for n, _ in trees]
     dp = (
