@@ -57,6 +57,7 @@ __all__ = [
     "close_score",
     "hysteresis",
     "trace_tube",
+    "start_alternatives",
     "border_entry",
     "refine_tip",
     "refine_tip_details",
@@ -592,7 +593,11 @@ def trace_tube(
             c, s_ = np.cos(np.radians(a)), np.sin(np.radians(a))
             dr = np.array([c * d[0] - s_ * d[1], s_ * d[0] + c * d[1]])
             out.append(trace_tube(mask, entry_uv, dr, cfg, frame=frame, plate=plate, _single=True))
-        return max(out, key=_trace_length)
+        best = max(out, key=_trace_length)
+        # The others are branches too (the longest may follow a rod that runs past the
+        # entry beside the tube): trace_alternatives offers them (docs/decisions.md S45).
+        best.start_alternatives = [t for t in out if t is not best]
+        return best
     theta = float(np.arctan2(d[1], d[0]))
     radii = np.arange(1.0, cfg.look_px + 0.5, 1.0)
     turn = np.radians(cfg.max_turn_deg)
@@ -1369,7 +1374,11 @@ def plate_foreground(
         fs = ndi.gaussian_filter(fl, (cfg.blur_px, cfg.blur_px, 0))
         ps = ndi.gaussian_filter(pl, (cfg.blur_px, cfg.blur_px, 0))
     tr = trace_tube(seeds_l, _to_low(entry_uv, k), direction_uv, cfg, frame=fs, plate=ps)
+    # The starts trace_tube did not keep (an attribute, not a field: a copy need not carry
+    # them; trace_alternatives reads them from the retrace state's trace).
+    starts = getattr(tr, "start_alternatives", [])
     tr = _retrace_off_border(tr, seeds_l, cfg, fs, ps)
+    tr.start_alternatives = starts
     tr.crossing_turn_deg = _path_turn(tr.backbone, [j[0] for j in tr.junctions], cfg)
     tr.crossings_followed = _path_through(seeds_l, tr.backbone, [j[0] for j in tr.junctions],
                                           cfg, tr.width_px)  # fmt: skip
@@ -1611,9 +1620,15 @@ def trace_alternatives(
     that a second view, which sees the whole hook, can explain it.
     Each alternative's ``departure`` is its junction's index; its ``crossing_turn_deg`` the
     largest turn at the junctions it passes. [] for a trace without ``retrace`` state or
-    junctions."""
+    junctions.
+
+    The traces from the entry's other starting directions (``start_spread_deg``), which
+    :func:`trace_tube` did not keep because a longer one was found, are offered too, under
+    the same conditions, with ``departure`` 0 (docs/decisions.md S45: a rod running past
+    the entry beside the tube is the longer trace)."""
     ctx = tr.retrace
-    if ctx is None or not ctx.low.junctions:
+    starts = getattr(getattr(ctx, "low", None), "start_alternatives", [])
+    if ctx is None or not (ctx.low.junctions or starts):
         return []
     low, cfg = ctx.low, ctx.cfg
     mask = ctx.seeds_l
@@ -1686,4 +1701,38 @@ def trace_alternatives(
                                                        low.width_px)  # fmt: skip
                 alt.departure = int(i)
                 out.append(_finish(alt, ctx))
+    out += start_alternatives(tr, tips=tips)
+    return out
+
+
+def start_alternatives(tr: TubeTrace, *, tips=()) -> list[TubeTrace]:
+    """The traces of ``tr``'s view from the entry's other starting directions
+    (:func:`trace_tube` with ``start_spread_deg`` keeps the longest of three), each refined as
+    :func:`plate_foreground` does, with ``departure`` 0: part of
+    :func:`trace_alternatives` (docs/decisions.md S45: a rod running past the entry beside
+    the tube is the longer trace). Kept as the junctions' re-traces are: two look lengths
+    long, ending inside the image and more than 1.5 px (traced scale) from ``tr``'s tip and
+    every tip in ``tips`` (traced scale)."""
+    ctx = tr.retrace
+    starts = getattr(getattr(ctx, "low", None), "start_alternatives", [])
+    if not starts:
+        return []
+    low, cfg, mask = ctx.low, ctx.cfg, ctx.seeds_l
+    margin, ahead_px = 2.0 * cfg.step_px, 2.0 * cfg.look_px
+    tips = [np.asarray(low.tip, np.float64)] + [np.asarray(t, np.float64) for t in tips]
+    out = []
+    for st in starts:
+        if len(st.backbone) < 2 or _at_border(st.tip, mask.shape, margin):
+            continue
+        if _trace_length(st) < ahead_px or min(np.linalg.norm(st.tip - t) for t in tips) <= 1.5:
+            continue
+        tips.append(np.asarray(st.tip, np.float64).copy())
+        alt = TubeTrace(_path_mask(mask, st.backbone, st.gaps, low.width_px), st.backbone.copy(),
+                        st.tip.copy(), low.entry, list(st.gaps), width_px=low.width_px,
+                        junctions=list(st.junctions))  # fmt: skip
+        alt.crossing_turn_deg = _path_turn(alt.backbone, [j[0] for j in alt.junctions], cfg)
+        alt.crossings_followed = _path_through(mask, alt.backbone, [j[0] for j in alt.junctions],
+                                               cfg, low.width_px)  # fmt: skip
+        alt.departure = 0
+        out.append(_finish(alt, ctx))
     return out

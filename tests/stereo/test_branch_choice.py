@@ -15,6 +15,7 @@ import numpy as np
 from jaxcr.segmentation.foreground import (
     PlateForegroundConfig,
     plate_foreground,
+    start_alternatives,
     trace_alternatives,
 )
 from jaxcr.stereo.branch_choice import choose_branches
@@ -327,3 +328,35 @@ def test_both_traces_on_a_cable_offer_a_pair_of_two_re_traces():
     views[1][0].crossings_followed, views[1][1].crossings_followed = 1, 1
     res = choose_branches(CAMS, views, both_if_traces_cross=True, **kw)
     assert res is None or 0 in res.indices
+
+
+def test_the_entrys_other_starts_are_alternatives():
+    """A rod 7 px wide runs from the entry (60, 119) 20 deg right of the given direction
+    (up) for 90 px, longer than the tube, which goes straight up 56 px and ends inside the
+    image. The tracer starts along the given direction and turned 20 deg either way and
+    keeps the longest trace: the rod's. The start along the given direction, which reached
+    the tube's end, is offered back by :func:`jaxcr.segmentation.foreground.
+    start_alternatives` (``departure`` 0; docs/decisions.md S45), and the tube's end is
+    among :func:`trace_alternatives`. Expected against the drawn geometry: the kept trace within 6 px of
+    the rod's drawn end (as the X-junction test's cable end), one start alternative within
+    2 px of the tube's drawn end (cv2.line's round cap 3.5 px beyond (60, 63); the bound of
+    the X-junction test)."""
+    m = np.zeros((120, 160), np.uint8)
+    cv2.line(m, (60, 119), (60, 63), 1, 7)
+    b = np.radians(20.0)
+    rod_end = np.array([60 + 90 * np.sin(b), 119 - 90 * np.cos(b)])
+    cv2.line(m, (60, 119), tuple(int(round(x)) for x in rod_end), 1, 7)
+    plate = np.broadcast_to(np.array([0.16, 0.50, 0.20]), m.shape + (3,)).copy()
+    frame = plate.copy()
+    frame[m > 0] = 0.1
+    cfg = PlateForegroundConfig(align=False, start_spread_deg=20.0, close_px=0.0, refine=False)
+    tr = plate_foreground(frame, plate, (60.0, 119.0), (0.0, -1.0), cfg=cfg)
+    rod_tip = rod_end + 3.5 * np.array([np.sin(b), -np.cos(b)])
+    assert np.linalg.norm(tr.tip - rod_tip) < 6.0, tr.tip  # the longest start: the rod
+    tube_end = np.array([60.0, 63.0 - 3.5])
+    starts = start_alternatives(tr)
+    assert [np.linalg.norm(a.tip - tube_end) < 2.0 for a in starts].count(True) == 1
+    # trace_alternatives offers it (here a re-trace from the junction where the tube leaves
+    # the rod reaches the same end first, and the start's copy is not repeated).
+    good = [a for a in trace_alternatives(tr) if np.linalg.norm(a.tip - tube_end) < 2.0]
+    assert len(good) >= 1
