@@ -1694,13 +1694,7 @@ def trace_alternatives(
                 gaps += [(a + off, b + off) for a, b in sub.gaps if a >= start]
                 juncs = [j for j in low.junctions if j[0] < i or (stop > i and j[0] <= stop)]
                 juncs += first + [(a + off, b, c) for a, b, c in sub.junctions if a >= start]
-                alt = TubeTrace(_path_mask(mask, bb, gaps, low.width_px), bb, bb[-1].copy(),
-                                low.entry, gaps, width_px=low.width_px, junctions=juncs)  # fmt: skip
-                alt.crossing_turn_deg = _path_turn(bb, [j[0] for j in juncs], cfg)
-                alt.crossings_followed = _path_through(mask, bb, [j[0] for j in juncs], cfg,
-                                                       low.width_px)  # fmt: skip
-                alt.departure = int(i)
-                out.append(_finish(alt, ctx))
+                out.append(_alternative(ctx, bb, gaps, juncs, int(i)))
     out += start_alternatives(tr, tips=tips)
     return out
 
@@ -1727,12 +1721,20 @@ def start_alternatives(tr: TubeTrace, *, tips=()) -> list[TubeTrace]:
         if _trace_length(st) < ahead_px or min(np.linalg.norm(st.tip - t) for t in tips) <= 1.5:
             continue
         tips.append(np.asarray(st.tip, np.float64).copy())
-        alt = TubeTrace(_path_mask(mask, st.backbone, st.gaps, low.width_px), st.backbone.copy(),
-                        st.tip.copy(), low.entry, list(st.gaps), width_px=low.width_px,
-                        junctions=list(st.junctions))  # fmt: skip
-        alt.crossing_turn_deg = _path_turn(alt.backbone, [j[0] for j in alt.junctions], cfg)
-        alt.crossings_followed = _path_through(mask, alt.backbone, [j[0] for j in alt.junctions],
-                                               cfg, low.width_px)  # fmt: skip
-        alt.departure = 0
-        out.append(_finish(alt, ctx))
+        out.append(_alternative(ctx, st.backbone.copy(), list(st.gaps), list(st.junctions), 0))
     return out
+
+
+def _alternative(ctx: _Retrace, bb: np.ndarray, gaps: list, junctions: list, departure: int):
+    """An alternative path ``bb`` (traced scale) of the trace whose retrace state is
+    ``ctx`` as :func:`trace_alternatives` offers it: its mask, turn and crossings at its
+    ``junctions``, ``departure``, finished (mapped to full resolution, tip refined) as
+    :func:`plate_foreground` finishes a trace."""
+    low, cfg, mask = ctx.low, ctx.cfg, ctx.seeds_l
+    alt = TubeTrace(_path_mask(mask, bb, gaps, low.width_px), bb, bb[-1].copy(), low.entry,
+                    gaps, width_px=low.width_px, junctions=junctions)  # fmt: skip
+    alt.crossing_turn_deg = _path_turn(bb, [j[0] for j in junctions], cfg)
+    alt.crossings_followed = _path_through(mask, bb, [j[0] for j in junctions], cfg,
+                                           low.width_px)  # fmt: skip
+    alt.departure = departure
+    return _finish(alt, ctx)
