@@ -216,18 +216,29 @@ def test_front_doors_equal_refine_frame_jit_and_refine_batch(scene, per_frame, b
 
 
 def test_batch_vmap_matches_per_frame_quality(scene, per_frame, batch):
-    # Known difference (open in issue 2): in lock-step vmap mode BFGS does not follow the
-    # per-frame iterates exactly (float differences in batched reductions change the BFGS
-    # path; on frame 1 it once reached a lower energy, 0.204 vs 0.241, and after the level
-    # coarsening an IoU of 0.844 vs 0.881), so vmap is held to the per-frame result's quality
-    # (IoU within 0.05; its energy was once 35 % higher after the level coarsening, open in
-    # issue 2) rather than to equality. ``mode="map"`` (the
-    # default) equals the per-frame results exactly (test above).
+    """vmap mode reaches the per-frame result's quality: mask IoU to the truth at most 0.15
+    below the per-frame one (docs/decisions.md T5).
+
+    Not equality: in lock-step vmap mode BFGS does not follow the per-frame iterates (float
+    differences in batched reductions change its path, open in issue 2), and on these frames
+    (whose 15 fine steps run out) the two paths end in different places, as one path does on
+    two x86-64 CPUs. ``mode="map"`` (the default) equals the per-frame results exactly (test
+    above); test_refine_convergence checks vmap against per-frame on easy frames.
+
+    Bound from a measured spread (experiments/segmentation/vmap_target_spread.py, 8 code
+    generations -- the suite's flags and XLA's defaults, each for SSE4.2, AVX, AVX2 and this
+    AVX-512 host -- x 12 render-seed pairs, 192 frames): per-frame minus vmap IoU at most
+    0.079 (this test's frame 1 on an SSE4.2 CPU: 0.937 vs 0.858, which failed the old bound of
+    0.05), and vmap ahead by up to 0.082; every refined IoU of either path lies in
+    0.840-0.944, so no two are more than 0.104 apart. 0.15 is ~2x the largest gap.
+    It still fails for a broken vmap mode (the test's frames, SSE4.2 and AVX): frames mixed
+    up (IoU 0.105-0.117), no solve (the nominal 0.156-0.180), or a solve stopped at a third of
+    its budget (10 and 5 steps: 0.734 / 0.483 against limits >= 0.76)."""
     _, _, frames = scene
     *_, out = batch
     for k, r in enumerate(per_frame):
         truth = frames[k]["mask"]
-        assert float(iou(out.masks[0][k], truth)) > float(iou(r.masks[0], truth)) - 0.05
+        assert float(iou(out.masks[0][k], truth)) > float(iou(r.masks[0], truth)) - 0.15
         np.testing.assert_array_equal(
             np.asarray(out.nominal_masks[0][k]), np.asarray(r.nominal_masks[0])
         )
