@@ -57,6 +57,7 @@ def run_one(target: str, seeds: list[int], budgets: list[str] = ()) -> list[dict
     import jax
     import jax.numpy as jnp
 
+    from jaxcr.camera import project_xy
     from jaxcr.kinematics.cosserat import Centreline
     from jaxcr.segmentation.metrics import iou
     from jaxcr.segmentation.refine import refine_batch, refine_frame_jit
@@ -76,14 +77,26 @@ def run_one(target: str, seeds: list[int], budgets: list[str] = ()) -> list[dict
     nan_base = jax.tree.map(lambda x: x * jnp.nan, base)
     far = Centreline(base.s, base.p + jnp.array([5.0, 5.0, 0.0]), base.R, base.u, base.rho)
     bases = jax.tree.map(lambda *x: jnp.stack(x), base, base, nan_base, base, far)
+    R = jnp.asarray(cam.R)
+
+    def shape_errors(p, truth_p):
+        """test_refine.test_recovers_known_delta_u's two centreline measures: the mean
+        projected distance to the truth (px) and the mean in-image-plane 3-D error (m)."""
+        u1, v1, _ = project_xy(cam, p)
+        u2, v2, _ = project_xy(cam, truth_p)
+        px = float(jnp.mean(jnp.hypot(u1 - u2, v1 - v2)))
+        lateral = float(jnp.mean(jnp.linalg.norm(((p - truth_p) @ R.T)[:, :2], axis=1)))
+        return px, lateral
+
     rows = []
     for s in seeds:
-        frames = []
+        frames, truths = [], []
         for k, c in enumerate(true_coeffs):
             truth = perturbed_centreline(base, c)
             img, mask = render_tube(truth, cam, s + k, (rs.W, rs.H))
             bg, ip = colour_mask(jnp.asarray(img))
             frames.append((ip, bg, mask))
+            truths.append(truth.p)
         t0 = time.process_time()
         per = [refine_frame_jit(base, cam, ip, bg, cfg) for ip, bg, _ in frames]
         f0, f1 = frames
@@ -101,6 +114,9 @@ def run_one(target: str, seeds: list[int], budgets: list[str] = ()) -> list[dict
             cut[b] = refine_batch(bases, cam, imgs, bgs, short, mode="vmap")
         cpu = time.process_time() - t0
         for k, (r, (_, _, mask)) in enumerate(zip(per, frames, strict=True)):
+            px_pf, lat_pf = shape_errors(r.centreline.p, truths[k])
+            px_vm, lat_vm = shape_errors(vm.centreline.p[k], truths[k])
+            _, lat_nom = shape_errors(base.p, truths[k])
             rows.append(
                 dict(
                     target=target,
@@ -117,6 +133,10 @@ def run_one(target: str, seeds: list[int], budgets: list[str] = ()) -> list[dict
                     steps_per_frame=int(r.num_steps),
                     steps_vmap=int(vm.num_steps[k]),
                     ok_vmap=bool(vm.ok[k]),
+                    px_per_frame=px_pf,
+                    px_vmap=px_vm,
+                    lateral_ratio_per_frame=lat_pf / lat_nom,
+                    lateral_ratio_vmap=lat_vm / lat_nom,
                     failure=[int(x) for x in vm.failure],
                     cpu_s=cpu,
                     **{
