@@ -139,7 +139,15 @@ def test_recovers_known_delta_u(scene, per_frame):
         nominal_iou = float(iou(r.nominal_masks[0], f["mask"]))
         refined_iou = float(iou(r.masks[0], f["mask"]))
         assert nominal_iou < 0.5
-        assert refined_iou > 0.85, (nominal_iou, refined_iou)
+        # Refined IoU > 0.8, from a measured spread (docs/decisions.md T5): these frames'
+        # solves end at one of two energies, J 0.15-0.25 (IoU 0.882-0.944) or, for frame 1
+        # now and then, J 0.25-0.39 (IoU 0.840-0.898): 14 of 96 per-frame ends of frame 1
+        # (24 render seeds x 4 x86-64 code generations; experiments/segmentation/
+        # vmap_target_spread.py). This frame ends at the first on every target measured
+        # (0.911-0.937), but another CPU's rounding can send it to the second, where the old
+        # bound (0.85) failed twice (0.843, 0.844) and held by < 0.001 twice. Still fails
+        # for no solve (the nominal 0.156) or a solve cut to 10/5 steps (0.734).
+        assert refined_iou > 0.8, (nominal_iou, refined_iou)
         # The in-image-plane shape is recovered: the 3-D centreline error's component in the
         # image plane (camera x, y) falls to below a third of the nominal's. The coefficients
         # themselves are not compared: the out-of-plane row is only weakly observable from
