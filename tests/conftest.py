@@ -64,8 +64,8 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 # the suite's flags as on a CPU without AVX, the only other target these flags give (a CPU
 # with AVX2 or AVX-512 still gets the AVX cap). With JAXCR_TESTS_XLA_DEFAULT=1 the cap picks
 # XLA's defaults for that CPU (SSE4_2, AVX, AVX2; no cap: this CPU's own). Measured in T5: the
-# whole suite passes for SSE4_2 under both, the refinement, kinematics and fit modules for
-# AVX2 and this CPU under XLA's defaults.
+# whole suite passes for SSE4_2 under both; under XLA's defaults 93 of the 130 modules pass for
+# AVX2 and the 30 refinement, kinematics and fit modules for this CPU.
 FAST_COMPILE_FLAGS = (
     "--xla_cpu_use_fusion_emitters=false",
     "--xla_cpu_max_isa=AVX",
