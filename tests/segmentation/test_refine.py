@@ -139,7 +139,15 @@ def test_recovers_known_delta_u(scene, per_frame):
         nominal_iou = float(iou(r.nominal_masks[0], f["mask"]))
         refined_iou = float(iou(r.masks[0], f["mask"]))
         assert nominal_iou < 0.5
-        assert refined_iou > 0.85, (nominal_iou, refined_iou)
+        # Refined IoU > 0.8, from a measured spread (docs/decisions.md T5): these frames'
+        # solves end at one of two energies, J 0.15-0.25 (IoU 0.882-0.944) or, for frame 1
+        # now and then, J 0.25-0.39 (IoU 0.840-0.898): 14 of 96 per-frame ends of frame 1
+        # (24 render seeds x 4 x86-64 code generations; experiments/segmentation/
+        # vmap_target_spread.py). This frame ends at the first on every target measured
+        # (0.911-0.937), but another CPU's rounding can send it to the second, where the old
+        # bound (0.85) failed twice (0.843, 0.844) and held by < 0.001 twice. Still fails
+        # for no solve (the nominal 0.156) or a solve cut to 10/5 steps (0.734).
+        assert refined_iou > 0.8, (nominal_iou, refined_iou)
         # The in-image-plane shape is recovered: the 3-D centreline error's component in the
         # image plane (camera x, y) falls to below a third of the nominal's. The coefficients
         # themselves are not compared: the out-of-plane row is only weakly observable from
@@ -216,18 +224,32 @@ def test_front_doors_equal_refine_frame_jit_and_refine_batch(scene, per_frame, b
 
 
 def test_batch_vmap_matches_per_frame_quality(scene, per_frame, batch):
-    # Known difference (open in issue 2): in lock-step vmap mode BFGS does not follow the
-    # per-frame iterates exactly (float differences in batched reductions change the BFGS
-    # path; on frame 1 it once reached a lower energy, 0.204 vs 0.241, and after the level
-    # coarsening an IoU of 0.844 vs 0.881), so vmap is held to the per-frame result's quality
-    # (IoU within 0.05; its energy was once 35 % higher after the level coarsening, open in
-    # issue 2) rather than to equality. ``mode="map"`` (the
-    # default) equals the per-frame results exactly (test above).
+    """vmap mode reaches the per-frame result's quality: mask IoU to the truth at most 0.15
+    below the per-frame one (docs/decisions.md T5).
+
+    Not equality: in lock-step vmap mode BFGS does not follow the per-frame iterates (float
+    differences in batched reductions change its path, open in issue 2), and on these frames
+    (whose 15 fine steps run out) the two paths end in different places, as one path does on
+    two x86-64 CPUs. ``mode="map"`` (the default) equals the per-frame results exactly (test
+    above); test_refine_convergence checks vmap against per-frame on easy frames.
+
+    Bound from a measured spread (experiments/segmentation/vmap_target_spread.py; 8 settings:
+    the suite's flags and XLA's defaults, each capped at SSE4.2, AVX, AVX2 or uncapped on this
+    AVX-512 host, 4 distinct code generations; 12 render-seed pairs, then 12 held-out pairs on
+    the 4; 288 frames). Per-frame minus vmap IoU: at most 0.079 on the first set (this test's
+    frame 1 on SSE4.2, 0.937 vs 0.858, which failed the old bound of 0.05), 0.086 on the
+    held-out one; vmap ahead by up to 0.083. Frame 1's solve, on either path, sometimes ends
+    at a second, higher energy (38 of 576 ends; J 0.25-0.39 against 0.15-0.25) with IoU
+    0.840-0.898, against 0.882-0.944 at the usual end: a gap is at most the distance between
+    the two, 0.104. 0.15 is ~1.7x the largest gap measured.
+    It still fails for a broken vmap mode (the test's frames, SSE4.2 and AVX): frames mixed
+    up (IoU 0.105-0.117), no solve (the nominal 0.156-0.180), or a solve stopped at a third of
+    its budget (10 and 5 steps: 0.734 / 0.48 against limits >= 0.76)."""
     _, _, frames = scene
     *_, out = batch
     for k, r in enumerate(per_frame):
         truth = frames[k]["mask"]
-        assert float(iou(out.masks[0][k], truth)) > float(iou(r.masks[0], truth)) - 0.05
+        assert float(iou(out.masks[0][k], truth)) > float(iou(r.masks[0], truth)) - 0.15
         np.testing.assert_array_equal(
             np.asarray(out.nominal_masks[0][k]), np.asarray(r.nominal_masks[0])
         )
