@@ -12,7 +12,8 @@ the band of half width ``r`` round that axis (distance to the sampled axis,
 drawn nearly sharp, blurred, scaled between a background and an inside level; fitted by
 robust least squares (three starts: straight, and curving 0.8/r either way). The tip is the
 axis' end. Per view it prints the one-view trace's tip error, the capsule fit's (None where
-its gates refuse) and this fit's, against the rendered truth.
+its gates refuse) and this fit's, against the rendered truth, and the same model fitted with ``k = 0`` (``straight``) and the
+ratio of the curled fit's cost to the straight one's (a test that could choose between them).
 
     python experiments/segmentation/real_like_tip_curl_prototype.py 4501:1 4520:1 ...
 
@@ -74,7 +75,7 @@ def model_cover(p, P0, th0, U, V, step):
     return ndi.gaussian_filter(cover, max(sig, 0.3) / step, mode="nearest"), bb[-1]
 
 
-def fit_curl(score, tr, w, step=1.0):
+def fit_curl(score, tr, w, step=1.0, straight=False):
     bb = np.asarray(tr.backbone, float)
     seg = np.r_[0, np.cumsum(np.linalg.norm(np.diff(bb, axis=0), axis=1))]
     back = 2.0 * w
@@ -92,13 +93,14 @@ def fit_curl(score, tr, w, step=1.0):
     s_bg = np.median(g)
     best = None
     L = seg[-1] - seg[i0]
-    for k0 in (0.0, 0.8 / (w / 2), -0.8 / (w / 2)):
+    for k0 in (0.0,) if straight else (0.0, 0.8 / (w / 2), -0.8 / (w / 2)):
         for frac in (0.6,):
             p0 = np.array(
                 [frac * L, k0, (1 - frac) * L + 0.5 * w, w / 2, w / 4, 1.2, 0.0, 0.0, s_in, s_bg]
             )
-            lo = [0, -2.0 / (w / 2), 0.5, 0.3 * w, 0.05, 0.3, -0.5, -w / 2, -np.inf, -np.inf]
-            hi = [2 * L + w, 2.0 / (w / 2), 3 * w, 0.8 * w, w / 2, 3.0, 0.5, w / 2, np.inf, np.inf]
+            kmax = 1e-9 if straight else 2.0 / (w / 2)  # straight: the same model, k = 0
+            lo = [0, -kmax, 0.5, 0.3 * w, 0.05, 0.3, -0.5, -w / 2, -np.inf, -np.inf]
+            hi = [2 * L + w, kmax, 3 * w, 0.8 * w, w / 2, 3.0, 0.5, w / 2, np.inf, np.inf]
 
             def res(p):
                 cov, _ = model_cover(p, P0, th0, U, V, step)
@@ -132,6 +134,7 @@ def main() -> int:
         tr = plate_foreground(v.image, v.plate, v.entry_px, v.entry_dir_px)
         w = tr.width_px
         tip, sol = fit_curl(tr.score, tr, w)
+        tip0, sol0 = fit_curl(tr.score, tr, w, straight=True)
         hw = tr.end_half_width_px if tr.end_half_width_px > 0 else 0.5 * w
         cf = (
             fit_capsule_end(tr.score, tr.tip, tr.end_dir, hw, cap=tr.cap_px)
@@ -149,6 +152,10 @@ def main() -> int:
             None if cf is None else np.linalg.norm(cf.tip - v.tip_px).round(1),
             "curl",
             np.linalg.norm(tip - v.tip_px).round(1),
+            "straight",
+            np.linalg.norm(tip0 - v.tip_px).round(1),
+            "cost_ratio",
+            round(sol.cost / max(sol0.cost, 1e-12), 3),
             "k*r",
             round(sol.x[1] * w / 2, 2),
             "L1",
