@@ -37,16 +37,13 @@ from pathlib import Path
 
 import numpy as np
 from tip_harness import (
-    dev_seeds,
-    harness_parser,
+    harness_main,
     resumed_rows,
     stored_alternatives,
     stored_records,
+    tip_errors,
     variant_table,
     write_rows,
-)
-from tip_harness import (
-    tip_errors as _errs,
 )
 
 from jaxcr.segmentation import foreground as fg
@@ -119,7 +116,7 @@ def evaluate(seeds, store: Path, cache: Path, out: Path) -> None:
                                                 for a in alts])
                  for t, alts in zip(traces, rec["alts"], strict=True)]  # fmt: skip
         row["start_alternatives"] = [len(e) for e in extra]
-        row["start_errors"] = [_errs([a.tip for a in e], [g] * len(e)) if e else []
+        row["start_errors"] = [tip_errors([a.tip for a in e], [g] * len(e)) if e else []
                                for e, g in zip(extra, truth, strict=True)]  # fmt: skip
         starts_cpu = time.process_time() - t0
         for name, add in (("ref", False), ("starts", True)):
@@ -134,7 +131,7 @@ def evaluate(seeds, store: Path, cache: Path, out: Path) -> None:
                 tips, src, res, _ = pipeline.traced_stereo_tips(
                     cams, traces, calibration=REAL_LIKE_CALIBRATION
                 )
-            row[name] = {"err_px": _errs(tips, truth), "source": src,
+            row[name] = {"err_px": tip_errors(tips, truth), "source": src,
                          "action": None if res is None else res.action,
                          "cpu_s": time.process_time() - t0 + (starts_cpu if add else 0.0)}  # fmt: skip
         picks = [along_given(t.retrace.low.starts_traced) for t in traces]
@@ -159,9 +156,9 @@ def evaluate(seeds, store: Path, cache: Path, out: Path) -> None:
                 tips, src, res, _ = pipeline.traced_stereo_tips(
                     cams, new_traces, calibration=REAL_LIKE_CALIBRATION
                 )
-            row["rule"] = {"err_px": _errs(tips, truth), "source": src,
+            row["rule"] = {"err_px": tip_errors(tips, truth), "source": src,
                            "action": None if res is None else res.action,
-                           "one_view_err_px": _errs([t.tip for t in new_traces], truth),
+                           "one_view_err_px": tip_errors([t.tip for t in new_traces], truth),
                            "cpu_s": time.process_time() - t0}  # fmt: skip
         rows.append(row)
         print(seed, row["start_alternatives"], row["rule_changed"],
@@ -190,17 +187,7 @@ def summary(path: Path) -> None:
 
 
 def main() -> int:
-    ap = harness_parser(__doc__, "/tmp/real_like_tip_starts")
-    ap.add_argument("--cache", type=Path, help="the rendered frames (real_like_tip.py --cache)")
-    args = ap.parse_args()
-    if args.summary is not None:
-        summary(args.summary)
-        return 0
-    seeds = dev_seeds(ap, args)
-    if args.cache is None:
-        ap.error("--cache is required")
-    evaluate(seeds, args.store, args.cache, args.out)
-    return 0
+    return harness_main(__doc__, "/tmp/real_like_tip_starts", evaluate, summary, cache=True)
 
 
 if __name__ == "__main__":

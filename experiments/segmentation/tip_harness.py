@@ -114,13 +114,25 @@ def stored_alternatives(rec: dict, key=id):
         pipeline.trace_alternatives = saved
 
 
-def harness_main(doc: str, default_out: str, evaluate: Callable, summary: Callable) -> int:
+def harness_main(
+    doc: str, default_out: str, evaluate: Callable, summary: Callable, *, cache: bool = False
+) -> int:
     """A harness's command line with the common options only: ``--summary ROWS.json`` prints
-    ``summary(ROWS.json)``; otherwise ``evaluate(seeds, store, out)`` on development seeds."""
+    ``summary(ROWS.json)``; otherwise ``evaluate(seeds, store, out)`` on development seeds.
+    ``cache``: also a required ``--cache`` (the rendered frames, real_like_tip.py --cache),
+    passed as ``evaluate(seeds, store, cache, out)``."""
     ap = harness_parser(doc, default_out)
+    if cache:
+        ap.add_argument("--cache", type=Path, help="the rendered frames (real_like_tip.py --cache)")
     args = ap.parse_args()
     if args.summary is not None:
         summary(args.summary)
         return 0
-    evaluate(dev_seeds(ap, args), args.store, args.out)
+    seeds = dev_seeds(ap, args)
+    if not cache:
+        evaluate(seeds, args.store, args.out)
+    elif args.cache is None:
+        ap.error("--cache is required")
+    else:
+        evaluate(seeds, args.store, args.cache, args.out)
     return 0
