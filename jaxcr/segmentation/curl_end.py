@@ -9,7 +9,9 @@ of curvature ``k`` for ``L1`` (px); behind the anchor it is the traced path itse
 silhouette is the band of half width ``r`` round the axis and a half-ellipse end face of
 length ``a`` beyond the axis' end, drawn nearly sharp, blurred by a Gaussian, scaled
 between a background and an inside level; robust least squares from three starts
-(straight, and curving ``0.8 / r`` either way). The tip is the axis' end.
+(straight, and curving ``0.8 / r`` either way; scipy's ``trf`` with the ``lsmr`` trust-region
+solver: 3.3 times faster than the exact SVD one over eight real_like views, the tips within
+0.2 px but on one failed fit). The tip is the axis' end.
 
 The same model with ``k = 0`` is fitted too (:attr:`CurlEnd.straight_cost`): one view's
 residuals choose between them only weakly (stop 37's prototype,
@@ -216,7 +218,7 @@ def fit_curl_end(
         try:
             return least_squares(lambda p: model(p)[0] - g, np.clip(p0, lo, hi),
                                  bounds=(lo, hi), loss="soft_l1", f_scale=0.1 * (s_in - s_bg),
-                                 max_nfev=max_nfev)  # fmt: skip
+                                 max_nfev=max_nfev, tr_solver="lsmr")  # fmt: skip
         except (ValueError, np.linalg.LinAlgError):
             return None
 
