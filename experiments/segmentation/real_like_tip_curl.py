@@ -70,30 +70,37 @@ def evaluate(seeds, store: Path, out: Path) -> None:
             if f is None or not all(np.all(np.isfinite(p)) for p in tips):
                 views.append({"fit": False, "cpu_s": cpu})
                 continue
-            new = [np.asarray(p, np.float64) for p in tips]
-            new[j] = f.tip
-            nb = list(bbs)
-            nb[j] = f.backbone
-            views.append({
-                "fit": True, "cpu_s": cpu, "tip": list(map(float, f.tip)),
-                "err_px": float(np.linalg.norm(f.tip - truth[j])),
-                "straight_err_px": float(np.linalg.norm(f.straight_tip - truth[j])),
-                "move_px": float(np.linalg.norm(f.tip - tips[j])),
-                "turn_deg": f.turn_deg, "cost_ratio": f.cost / max(f.straight_cost, 1e-12),
-                "half_width": f.half_width, "width_px": float(t.width_px),
-                "gap_px": epipolar_gap_px(cams, new),
-                "inconsistent_px": backbone_consistency(cams, *nb).inconsistent_px,
-            })  # fmt: skip
+            v = {
+                "fit": True,
+                "cpu_s": cpu,
+                "turn_deg": f.turn_deg,
+                "cost_ratio": f.cost / max(f.gentle_cost, 1e-12),
+                "half_width": f.half_width,
+                "width_px": float(t.width_px),
+            }
+            for name, tip, bb in (
+                ("curl", f.tip, f.backbone),
+                ("gentle", f.gentle_tip, f.gentle_backbone),
+            ):
+                new = [np.asarray(p, np.float64) for p in tips]
+                new[j] = tip
+                nb = list(bbs)
+                nb[j] = bb
+                v[name] = {
+                    "tip": list(map(float, tip)),
+                    "err_px": float(np.linalg.norm(tip - truth[j])),
+                    "move_px": float(np.linalg.norm(tip - tips[j])),
+                    "gap_px": epipolar_gap_px(cams, new),
+                    "inconsistent_px": backbone_consistency(cams, *nb).inconsistent_px,
+                }
+            views.append(v)  # fmt: skip
         row["curl"] = views
-        if all(v["fit"] for v in views):
-            both = [np.asarray(v["tip"]) for v in views]
-            row["both_gap_px"] = epipolar_gap_px(cams, both)
-            row["both_err_px"] = tip_errors(both, truth)
         rows.append(row)
         print(seed, [round(x, 1) for x in row["ref"]["err_px"]],
-              [round(v.get("err_px", np.nan), 1) for v in views],
               "gap", round(row["ref"]["gap_px"], 1),
-              [round(v.get("gap_px", np.nan), 1) for v in views], flush=True)  # fmt: skip
+              *[(n, [round(v[n]["err_px"], 1) if v["fit"] else None for v in views],
+                 [round(v[n]["gap_px"], 1) if v["fit"] else None for v in views])
+                for n in ("curl", "gentle")], flush=True)  # fmt: skip
         write_rows(out, rows)
 
 

@@ -13,7 +13,7 @@ between a background and an inside level; robust least squares from three starts
 solver: 3.3 times faster than the exact SVD one over eight real_like views, the tips within
 0.2 px but on one failed fit). The tip is the axis' end.
 
-The same model with ``k = 0`` is fitted too (:attr:`CurlEnd.straight_cost`): one view's
+The same model with the bend bounded is fitted too (:attr:`CurlEnd.gentle_cost`): one view's
 residuals choose between them only weakly (stop 37's prototype,
 experiments/results/segmentation/real_like_tip_curl_prototype.md), so the fit is a
 *candidate* that the two-view step chooses with the other view
@@ -36,6 +36,7 @@ __all__ = ["CurlEnd", "curl_axis", "fit_curl_end"]
 
 _EDGE_PX = 0.25  # the drawn edge's own softness (px), under the blur that is fitted
 _STRAIGHT_K = 1e-6  # |k| (1/px) below which the arc is drawn as a straight segment
+_GENTLE_KR = 0.25  # the gentle fit's bound on |k| r (the capsule end's bend bound)
 
 
 @dataclass(frozen=True)
@@ -48,10 +49,12 @@ class CurlEnd:
         curvature: the arc's curvature ``k`` (1/px, positive turning from +u towards +v).
         arc_px: the arc's length ``L1`` (px); ``turn_deg = degrees(k L1)``.
         half_width: the band's half width ``r`` (px).
-        cost: the robust least-squares cost of the curled fit; ``straight_cost``: of the
-            same model with ``k = 0`` (the same window and loss).
-        straight_tip: (2,) the straight fit's tip.
-        backbone: (m, 2) the path behind the anchor and the fitted axis to the tip.
+        cost: the robust least-squares cost of the curled fit; ``gentle_cost``: of the
+            same model with the bend bounded, ``|k| r <= 0.25`` (the capsule end's bound;
+            the same window and loss), a tube that does not curl.
+        gentle_tip: (2,) the gentle fit's tip.
+        backbone, gentle_backbone: (m, 2) the path behind the anchor and the fitted axis
+            to the tip, of the curled and the gentle fit.
     """
 
     tip: np.ndarray
@@ -60,9 +63,10 @@ class CurlEnd:
     arc_px: float
     half_width: float
     cost: float
-    straight_cost: float
-    straight_tip: np.ndarray
+    gentle_cost: float
+    gentle_tip: np.ndarray
     backbone: np.ndarray
+    gentle_backbone: np.ndarray
 
     @property
     def turn_deg(self) -> float:
@@ -175,6 +179,12 @@ def _window(backbone: np.ndarray, width: float, back_widths: float, step: float)
     return P, theta, U, V, X, d_tail, float(seg[-1] - s0), tail
 
 
+def _fitted_axis(p, P, theta):
+    """The axis of the fitted parameters ``p`` from the anchor ``P`` at angle ``theta``."""
+    P2 = P + p[7] * np.array([-np.sin(theta), np.cos(theta)])
+    return curl_axis(P2, theta + p[6], p[0], p[1], p[2])[0]
+
+
 def fit_curl_end(
     score: np.ndarray,
     backbone,
@@ -186,7 +196,7 @@ def fit_curl_end(
 ) -> CurlEnd | None:
     """The end of the tube traced along ``backbone`` ((n, 2) (u, v) from the entry to the
     traced tip; ``width`` its width, px) fitted to the cue ``score`` (H, W) with the model
-    of the module docstring, and the straight model beside it. Window: a square of
+    of the module docstring, and the gentle model beside it. Window: a square of
     ``back_widths / 2 + 2`` widths half side round the path's last ``back_widths`` widths,
     sampled every ``step`` px (bilinear). Levels start at the window's 95th percentile
     (inside) and median (background); the soft-L1 loss's scale is a tenth of their
@@ -225,17 +235,16 @@ def fit_curl_end(
     r = w / 2
     curled = [solve(k0, 2.0 / r) for k0 in (0.0, 0.8 / r, -0.8 / r)]
     curled = [s for s in curled if s is not None]
-    straight = solve(0.0, _STRAIGHT_K / 2)
-    if not curled or straight is None:
+    gentle = solve(0.0, _GENTLE_KR / r)
+    if not curled or gentle is None:
         return None
     best = min(curled, key=lambda s: s.cost)
     _, end, th_end = model(best.x)
-    _, end0, _ = model(straight.x)
-    p = best.x
-    P2 = P + p[7] * np.array([-np.sin(theta), np.cos(theta)])
-    axis, _ = curl_axis(P2, theta + p[6], p[0], p[1], p[2])
+    _, end0, _ = model(gentle.x)
+    axis0 = _fitted_axis(gentle.x, P, theta)
+    axis = _fitted_axis(best.x, P, theta)
     return CurlEnd(tip=end, direction=np.array([np.cos(th_end), np.sin(th_end)]),
                    curvature=float(best.x[1]), arc_px=float(best.x[2]),
                    half_width=float(best.x[3]), cost=float(best.cost),
-                   straight_cost=float(straight.cost), straight_tip=end0,
+                   gentle_cost=float(gentle.cost), gentle_tip=end0, gentle_backbone=np.vstack([tail[:-1], axis0]),
                    backbone=np.vstack([tail[:-1], axis]))  # fmt: skip
