@@ -171,7 +171,7 @@ def stereo_step(fr, views: list[dict]) -> dict:
             "tip": [float(x) for x in tips[k]], "fallback": source != "trace_stereo",
             "recheck": None if recheck is None else recheck.action,
             "moved": recheck is not None and recheck.view == k,
-            "branch": chosen[k] is not objs[k],
+            "branch": getattr(chosen[k], "curl_of", chosen[k]) is not objs[k],
         }  # fmt: skip
     F = fundamental_from_poses(cams[0].K, cams[0].T_cam_robot, cams[1].K, cams[1].T_cam_robot)
     epi = {}

@@ -75,13 +75,15 @@ class CurlEnd:
 
 def curl_axis(anchor, theta: float, L0: float, k: float, L1: float, step: float = 0.5):
     """The model's axis sampled every ``step`` px: ``L0`` straight from ``anchor`` (u, v)
-    at angle ``theta`` (rad), then ``L1`` on an arc of curvature ``k``; ((n, 2) points,
-    the end's angle)."""
+    at angle ``theta`` (rad), then ``L1`` on an arc of curvature ``k``; ((n, 2) points
+    ending at the axis' end, the end's angle)."""
     P = np.asarray(anchor, np.float64)
     d0 = np.array([np.cos(theta), np.sin(theta)])
     s0 = np.arange(0.0, L0 + 1e-9, step)
     E = P + L0 * d0
     s1 = np.arange(step, L1 + 1e-9, step)
+    if len(s1) == 0 or s1[-1] < L1 - 1e-9:  # the end itself is the last point
+        s1 = np.r_[s1, L1]
     if abs(k) < _STRAIGHT_K:
         q = E + s1[:, None] * d0
     else:

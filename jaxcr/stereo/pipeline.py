@@ -88,6 +88,7 @@ from jaxcr.stereo.chroma import (
     plate_alpha_shadow_invariant,
 )
 from jaxcr.stereo.correspondence import match_backbones
+from jaxcr.stereo.curl_choice import choose_curled_end, curled_trace
 from jaxcr.stereo.diameter import (
     cylinder_diameters,
     edge_clearance,
@@ -363,6 +364,7 @@ def traced_stereo_tips(
     run_on: bool = True,
     end_fit: bool | str = True,
     fuse_ends: bool = False,
+    curl_ends: bool = True,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -413,7 +415,15 @@ def traced_stereo_tips(
     ``fuse_ends`` (with ``calibration``; off: measured, not adopted, S40): tips the tip step
     calls ``"consistent"`` are replaced by the ones the two views' ends give when
     triangulated with each view's along/across covariance
-    (:func:`jaxcr.stereo.tip_fusion.fuse_traced_tips`)."""
+    (:func:`jaxcr.stereo.tip_fusion.fuse_traced_tips`).
+
+    ``curl_ends`` (on by default since stop 38, S46): last, one view's tip may be replaced by
+    a curled end fitted to its cue map where that fit beats a gently bent one clearly and
+    brings the pair closer to each other's epipolar lines
+    (:func:`jaxcr.stereo.curl_choice.choose_curled_end`); the result's action is then
+    ``"curled"`` for that view and its trace a copy ending in the fitted axis
+    (:func:`jaxcr.stereo.curl_choice.curled_trace`, attribute ``curl_of`` the trace it
+    replaces). About 1-3 CPU-s a view."""
     traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on)
     chosen = traces
     if end_fit:
@@ -431,8 +441,16 @@ def traced_stereo_tips(
         fused = fuse_traced_tips(cams, out[3], out[0], calibration)
         if fused is not None and fused.applied:
             out = (fused.tips, out[1], out[2], out[3])
+    if curl_ends:
+        cc = choose_curled_end(cams, chosen, out[0])
+        if cc is not None:
+            res = TipConsistency(cc.tips, "curled", cc.view, float("nan"),
+                                 cc.epipolar_before_px, cc.epipolar_after_px)  # fmt: skip
+            chosen = list(chosen)
+            chosen[cc.view] = curled_trace(chosen[cc.view], cc.fit)
+            return cc.tips, out[1], res, chosen
     # The traces returned are the branch choice's (a placed copy is the same path: callers
-    # tell a replaced branch by identity).
+    # tell a replaced branch by identity, looking through a curled copy's ``curl_of``).
     return out[0], out[1], out[2], chosen
 
 
@@ -595,13 +613,14 @@ def _traced_tips(vrec: list[dict], traces, traced) -> None:
         else:
             v["tip_source"] = "skeleton"
             continue
-        if t is not traces[k]:
+        if getattr(t, "curl_of", t) is not traces[k]:
             src = src + "+branch"
         if recheck is not None and recheck.view == k:
             src = src + "+" + recheck.action
         line = np.asarray(v["backbone_px"], np.float64)[:-1]  # the skeleton's end dropped
         if t is not traces[k]:
-            # Another branch than the mask's skeleton followed: the chosen trace's path.
+            # Another branch than the mask's skeleton followed, or a curled end fitted:
+            # the chosen trace's path.
             line = np.asarray(t.backbone, np.float64)[:-1]
         d = np.asarray(t.end_dir, np.float64)
         if np.all(np.isfinite(d)) and np.linalg.norm(d) > 0:

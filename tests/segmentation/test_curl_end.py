@@ -1,6 +1,6 @@
 """The curled-end fit (jaxcr.segmentation.curl_end) against tube ends drawn in the test: the
 union of discs of radius r round a densely sampled axis (straight, then an arc), counted by
-supersampling and blurred by scipy.ndimage, with noise; the path given to the fit stops
+supersampling and blurred by scipy.ndimage (tests.helpers.drawn_tube), with noise; the path given to the fit stops
 where a tracer stops on a curl (before the arc). The axis distance in closed form against
 the distance to the densely sampled axis (scipy cKDTree).
 
@@ -14,26 +14,12 @@ Float64 numpy/scipy (no jit), so it holds on any x86-64 CPU.
 
 import numpy as np
 import pytest
-from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from jaxcr.segmentation.curl_end import _axis_distance, curl_axis, fit_curl_end
+from tests.helpers.drawn_tube import drawn_tube
 
 TIP_PX = 2.5
-
-
-def _drawn(shape, axis, r, *, blur=1.2, supersample=4):
-    """Coverage of the discs of radius ``r`` round ``axis`` (n, 2), supersampled, blurred."""
-    h, w = shape
-    o = (np.arange(supersample) + 0.5) / supersample - 0.5
-    vv, uu = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    tree = cKDTree(axis)
-    cover = np.zeros((h, w))
-    for du in o:
-        for dv in o:
-            X = np.stack([(uu + du).ravel(), (vv + dv).ravel()], 1)
-            cover += (tree.query(X)[0] <= r).reshape(h, w)
-    return ndi.gaussian_filter(cover / supersample**2, blur, mode="nearest")
 
 
 @pytest.mark.parametrize("k", [0.0, 0.02, -0.09, 0.3])
@@ -56,7 +42,7 @@ def test_fit_puts_the_tip_of_a_drawn_curl(r, turn_deg, arc_px):
     k = np.radians(turn_deg) / arc_px
     start = np.array([10.0, 70.3])
     axis, _ = curl_axis(start, -0.2, 60.0, k, arc_px, step=0.1)
-    score = 0.1 + 0.9 * _drawn((128, 128), axis, r)
+    score = 0.1 + 0.9 * drawn_tube((128, 128), axis, r)
     score += rng.normal(0.0, 0.05, score.shape)
     # The path a tracer leaves on a curl: the straight part, ending 2 px into the arc.
     path, _ = curl_axis(start, -0.2, 62.0, 0.0, 0.0, step=4.0)

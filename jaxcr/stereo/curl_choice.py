@@ -1,0 +1,91 @@
+"""A curled tube end offered to the two-view tips, chosen by one view's residuals and the
+other view's epipolar line (issue 16 item 2, docs/decisions.md S46).
+
+Where a tube curls at its end, each view's tracer and end fit stop at the curl's apex
+(:mod:`jaxcr.segmentation.curl_end`). After the two-view tip step
+(:func:`jaxcr.stereo.pipeline.traced_stereo_tips`), each view's end is fitted with the
+curled model and with the same model held to a gentle bend; a view's tip is replaced by
+its curled fit's where
+
+* the curl explains the view's cue clearly better than a gentle bend (the robust costs'
+  ratio at most ``max_ratio``: one view's residual alone is a weak test, stop 37's
+  prototype),
+* the curled tip is at least ``min_move_px`` from the tip it replaces, and
+* the other view agrees: the pair's epipolar distance drops by at least
+  ``min_gap_drop_px`` (a curl that moves the tip along the epipolar line, or away from it,
+  is not taken).
+
+Of two views that qualify, the one with the lower cost ratio. Host side, numpy / scipy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from jaxcr.segmentation.curl_end import CurlEnd, fit_curl_end
+from jaxcr.stereo.tip_consistency import epipolar_gap_px
+
+__all__ = ["CurlChoice", "choose_curled_end", "curled_trace"]
+
+
+@dataclass(frozen=True)
+class CurlChoice:
+    """Result of :func:`choose_curled_end`: ``view`` (0 or 1) whose tip is replaced,
+    ``fit`` its :class:`jaxcr.segmentation.curl_end.CurlEnd`, ``tips`` the new pair
+    (distorted (u, v)), the pair's epipolar distance before and after (px)."""
+
+    view: int
+    fit: CurlEnd
+    tips: list
+    epipolar_before_px: float
+    epipolar_after_px: float
+
+
+def choose_curled_end(
+    cams,
+    traces,
+    tips,
+    *,
+    max_ratio: float = 0.9,
+    min_move_px: float = 2.0,
+    min_gap_drop_px: float = 2.0,
+) -> CurlChoice | None:
+    """The view whose tip a curled end replaces (the rule of the module docstring), or
+    None. ``traces``: the two views' :class:`jaxcr.segmentation.foreground.TubeTrace` whose
+    paths end at the curl's apex (the branch choice's); ``tips``: the two-view tips."""
+    tips = [np.asarray(t, np.float64) for t in tips]
+    if not all(np.all(np.isfinite(t)) for t in tips):
+        return None
+    gap0 = epipolar_gap_px(cams, tips)
+    best = None
+    for j, t in enumerate(traces):
+        score = getattr(t, "score", None)
+        if score is None:
+            continue
+        fit = fit_curl_end(score, t.backbone, t.width_px)
+        if fit is None or not fit.gentle_cost > 0:
+            continue
+        ratio = fit.cost / fit.gentle_cost
+        if ratio > max_ratio or np.linalg.norm(fit.tip - tips[j]) < min_move_px:
+            continue
+        new = list(tips)
+        new[j] = fit.tip
+        gap = epipolar_gap_px(cams, new)
+        if gap > gap0 - min_gap_drop_px:
+            continue
+        if best is None or ratio < best[0]:
+            best = (ratio, CurlChoice(j, fit, new, gap0, gap))
+    return None if best is None else best[1]
+
+
+def curled_trace(trace, fit: CurlEnd):
+    """A copy of ``trace`` ending in the curled fit: its path behind the fit's anchor and
+    the fitted axis (``backbone``), ``tip``, ``end_dir`` and ``end_half_width_px`` from the
+    fit, ``cap_px`` 0 (the tip is the axis' end); attribute ``curl_of``: ``trace``."""
+    out = replace(trace, tip=fit.tip.copy(), backbone=fit.backbone.copy(),
+                  end_dir=fit.direction.copy(), end_half_width_px=fit.half_width,
+                  cap_px=0.0)  # fmt: skip
+    out.curl_of = trace
+    return out
