@@ -104,12 +104,23 @@ def evaluate(seeds, store: Path, out: Path) -> None:
         write_rows(out, rows)
 
 
-def rule_errors(row: dict, *, max_ratio: float, min_gap_drop_px: float, min_move_px: float):
+def rule_errors(
+    row: dict,
+    *,
+    max_ratio: float,
+    min_gap_drop_px: float,
+    min_move_px: float,
+    refit_move_px: float | None = None,
+    refit_gap_px: float = 5.0,
+):
     """Each view's tip error under the rule of :func:`jaxcr.stereo.curl_choice.
     choose_curled_end` with these settings, from the row's features: the view whose curl
     fit beats its gentle fit most (the lowest cost ratio, at most ``max_ratio``) has its tip
     replaced by the curl fit's where that moves it at least ``min_move_px`` and the pair's
-    epipolar gap drops by at least ``min_gap_drop_px``; (errors, view or None)."""
+    epipolar gap drops by at least ``min_gap_drop_px``; else (S47, with ``refit_move_px``)
+    the view whose gentle fit's tip is at least ``refit_move_px`` away and brings the gap
+    down by ``min_gap_drop_px`` to at most ``refit_gap_px`` (the lower gap of two); (errors,
+    view or None)."""
     err = list(row["ref"]["err_px"])
     best = None
     for j, v in enumerate(row["curl"]):
@@ -122,6 +133,22 @@ def rule_errors(row: dict, *, max_ratio: float, min_gap_drop_px: float, min_move
             best = j
     if best is not None:
         err[best] = row["curl"][best]["curl"]["err_px"]
+        return err, best
+    if refit_move_px is None:
+        return err, None
+    for j, v in enumerate(row["curl"]):
+        if not v["fit"]:
+            continue
+        g = v["gentle"]
+        cap = min(row["ref"]["gap_px"] - min_gap_drop_px, refit_gap_px)
+        if (
+            g["move_px"] >= refit_move_px
+            and g["gap_px"] <= cap
+            and (best is None or g["gap_px"] < row["curl"][best]["gentle"]["gap_px"])
+        ):
+            best = j
+    if best is not None:
+        err[best] = row["curl"][best]["gentle"]["err_px"]
     return err, best
 
 
@@ -175,6 +202,22 @@ def summary(path: Path) -> None:
                  f"{c['better']}" for c in (e, o)]  # fmt: skip
         print(f"| {kw['max_ratio']} | {kw['min_gap_drop_px']} | {kw['min_move_px']} | "
               f"{cells[0]} | {cells[1]} |")  # fmt: skip
+    s46 = dict(max_ratio=0.9, min_gap_drop_px=2.0, min_move_px=2.0)
+    print("\nS47 after S46's settings (the gentle fit's end where it is far from the tip): "
+          "cells as above, against S46\n")  # fmt: skip
+    print("| refit move | max gap after | even | odd |\n|---|---|---|---|")
+    base_e = [dict(r, ref=dict(r["ref"], err_px=rule_errors(r, **s46)[0])) for r in even]
+    base_o = [dict(r, ref=dict(r["ref"], err_px=rule_errors(r, **s46)[0])) for r in odd]
+    for mv in (6.0, 8.0, 10.0, 12.0, 16.0):
+        for mg in (3.0, 5.0, 100.0):
+            kw = dict(s46, refit_move_px=mv, refit_gap_px=mg)
+            cells = []
+            for sel, base in ((even, base_e), (odd, base_o)):
+                c = _count(sel, **kw)
+                fx = [x for x in c["fixed"] if max(base[[r["seed"] for r in sel].index(x)]
+                                                    ["ref"]["err_px"]) > 5]  # fmt: skip
+                cells.append(f"{c['ok']} / fixed {fx} / broken {c['broken']} / fired {c['fired']}")
+            print(f"| {mv} | {mg} | {cells[0]} | {cells[1]} |")
     cpu = [sum(v["cpu_s"] for v in r["curl"]) for r in rows]
     print(f"\nCurl fits' CPU a frame (both views): median {np.median(cpu):.2f} s, p90 "
           f"{np.percentile(cpu, 90):.2f} s, max {max(cpu):.1f} s")  # fmt: skip

@@ -15,7 +15,15 @@ its curled fit's where
   ``min_gap_drop_px`` (a curl that moves the tip along the epipolar line, or away from it,
   is not taken).
 
-Of two views that qualify, the one with the lower cost ratio. Host side, numpy / scipy.
+Of two views that qualify, the one with the lower cost ratio (action ``"curled"``).
+
+Else (S47) a view's tip is replaced by its gentle fit's where that tip is at least
+``refit_move_px`` from the two-view tip and the pair's epipolar distance drops by at least
+``min_gap_drop_px`` to at most ``refit_gap_px`` (the tip step's own 5 px: the pair is then
+consistent by its standard): the tube's cue fades before its end (the grey tube over the
+white calibration board) and the tracer stopped where it faded; the end model fitted
+over the whole window finds the end beyond (action ``"refitted"``; of two views, the lower
+gap). Host side, numpy / scipy.
 """
 
 from __future__ import annotations
@@ -34,13 +42,15 @@ __all__ = ["CurlChoice", "choose_curled_end", "curled_trace"]
 class CurlChoice:
     """Result of :func:`choose_curled_end`: ``view`` (0 or 1) whose tip is replaced,
     ``fit`` its :class:`jaxcr.segmentation.curl_end.CurlEnd`, ``tips`` the new pair
-    (distorted (u, v)), the pair's epipolar distance before and after (px)."""
+    (distorted (u, v)), the pair's epipolar distance before and after (px), ``action``
+    ``"curled"`` (the curled fit's tip) or ``"refitted"`` (the gentle fit's)."""
 
     view: int
     fit: CurlEnd
     tips: list
     epipolar_before_px: float
     epipolar_after_px: float
+    action: str = "curled"
 
 
 def choose_curled_end(
@@ -51,15 +61,25 @@ def choose_curled_end(
     max_ratio: float = 0.9,
     min_move_px: float = 2.0,
     min_gap_drop_px: float = 2.0,
+    refit: bool = True,
+    refit_move_px: float = 10.0,
+    refit_gap_px: float = 5.0,
 ) -> CurlChoice | None:
-    """The view whose tip a curled end replaces (the rule of the module docstring), or
-    None. ``traces``: the two views' :class:`jaxcr.segmentation.foreground.TubeTrace` whose
-    paths end at the curl's apex (the branch choice's); ``tips``: the two-view tips."""
+    """The view whose tip a curled end (or, with ``refit``, a gentle end found well away)
+    replaces, by the rules of the module docstring, or None. ``traces``: the two views'
+    :class:`jaxcr.segmentation.foreground.TubeTrace` whose paths end where the tracer
+    stopped (the branch choice's); ``tips``: the two-view tips."""
     tips = [np.asarray(t, np.float64) for t in tips]
     if not all(np.all(np.isfinite(t)) for t in tips):
         return None
     gap0 = epipolar_gap_px(cams, tips)
-    best = None
+
+    def with_tip(j, tip):
+        new = list(tips)
+        new[j] = np.asarray(tip, np.float64)
+        return new, epipolar_gap_px(cams, new)
+
+    best, refitted = None, None
     for j, t in enumerate(traces):
         score = getattr(t, "score", None)
         if score is None:
@@ -68,24 +88,36 @@ def choose_curled_end(
         if fit is None or not fit.gentle_cost > 0:
             continue
         ratio = fit.cost / fit.gentle_cost
-        if ratio > max_ratio or np.linalg.norm(fit.tip - tips[j]) < min_move_px:
-            continue
-        new = list(tips)
-        new[j] = fit.tip
-        gap = epipolar_gap_px(cams, new)
-        if gap > gap0 - min_gap_drop_px:
-            continue
-        if best is None or ratio < best[0]:
-            best = (ratio, CurlChoice(j, fit, new, gap0, gap))
-    return None if best is None else best[1]
+        if ratio <= max_ratio and np.linalg.norm(fit.tip - tips[j]) >= min_move_px:
+            new, gap = with_tip(j, fit.tip)
+            if gap <= gap0 - min_gap_drop_px and (best is None or ratio < best[0]):
+                best = (ratio, CurlChoice(j, fit, new, gap0, gap))
+        if refit and np.linalg.norm(fit.gentle_tip - tips[j]) >= refit_move_px:
+            new, gap = with_tip(j, fit.gentle_tip)
+            if gap <= min(gap0 - min_gap_drop_px, refit_gap_px) and (
+                refitted is None or gap < refitted.epipolar_after_px
+            ):
+                refitted = CurlChoice(j, fit, new, gap0, gap, "refitted")
+    if best is not None:
+        return best[1]
+    return refitted
 
 
-def curled_trace(trace, fit: CurlEnd):
-    """A copy of ``trace`` ending in the curled fit: its path behind the fit's anchor and
-    the fitted axis (``backbone``), ``tip``, ``end_dir`` and ``end_half_width_px`` from the
-    fit, ``cap_px`` 0 (the tip is the axis' end); attribute ``curl_of``: ``trace``."""
-    out = replace(trace, tip=fit.tip.copy(), backbone=fit.backbone.copy(),
-                  end_dir=fit.direction.copy(), end_half_width_px=fit.half_width,
-                  cap_px=0.0)  # fmt: skip
+def curled_trace(trace, fit: CurlEnd, action: str = "curled"):
+    """A copy of ``trace`` ending in the fit (the curled one, or the gentle one for
+    ``action`` ``"refitted"``): its path behind the fit's anchor and the fitted axis
+    (``backbone``), ``tip``, ``end_dir`` and ``end_half_width_px`` from the fit (the gentle
+    fit's direction: its path's last step), ``cap_px`` 0 (the tip is the axis' end);
+    attribute ``curl_of``: ``trace``."""
+    if action == "refitted":
+        bb = fit.gentle_backbone
+        d = bb[-1] - bb[-2] if len(bb) > 1 else fit.direction
+        d = d / max(float(np.linalg.norm(d)), 1e-12)
+        out = replace(trace, tip=fit.gentle_tip.copy(), backbone=bb.copy(), end_dir=d,
+                      cap_px=0.0)  # fmt: skip
+    else:
+        out = replace(trace, tip=fit.tip.copy(), backbone=fit.backbone.copy(),
+                      end_dir=fit.direction.copy(), end_half_width_px=fit.half_width,
+                      cap_px=0.0)  # fmt: skip
     out.curl_of = trace
     return out

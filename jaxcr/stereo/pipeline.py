@@ -365,6 +365,7 @@ def traced_stereo_tips(
     end_fit: bool | str = True,
     fuse_ends: bool = False,
     curl_ends: bool = True,
+    refit_ends: bool = True,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -423,7 +424,11 @@ def traced_stereo_tips(
     (:func:`jaxcr.stereo.curl_choice.choose_curled_end`); the result's action is then
     ``"curled"`` for that view and its trace a copy ending in the fitted axis
     (:func:`jaxcr.stereo.curl_choice.curled_trace`, attribute ``curl_of`` the trace it
-    replaces). About 1-3 CPU-s a view."""
+    replaces). About 1-3 CPU-s a view. ``refit_ends`` (with ``curl_ends``; on since stop 38,
+    S47): else a view's tip may be replaced by the same fit held to a gentle bend where
+    that end is at least 10 px from the tip and brings the pair within ``flag_px`` of each
+    other's epipolar lines, 2 px nearer (the tube's cue faded before its end and the tracer
+    stopped there); action ``"refitted"``."""
     traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on)
     chosen = traces
     if end_fit:
@@ -442,12 +447,12 @@ def traced_stereo_tips(
         if fused is not None and fused.applied:
             out = (fused.tips, out[1], out[2], out[3])
     if curl_ends:
-        cc = choose_curled_end(cams, chosen, out[0])
+        cc = choose_curled_end(cams, chosen, out[0], refit=refit_ends, refit_gap_px=flag_px)
         if cc is not None:
-            res = TipConsistency(cc.tips, "curled", cc.view, float("nan"),
+            res = TipConsistency(cc.tips, cc.action, cc.view, float("nan"),
                                  cc.epipolar_before_px, cc.epipolar_after_px)  # fmt: skip
             chosen = list(chosen)
-            chosen[cc.view] = curled_trace(chosen[cc.view], cc.fit)
+            chosen[cc.view] = curled_trace(chosen[cc.view], cc.fit, cc.action)
             return cc.tips, out[1], res, chosen
     # The traces returned are the branch choice's (a placed copy is the same path: callers
     # tell a replaced branch by identity, looking through a curled copy's ``curl_of``).
