@@ -3,7 +3,8 @@ cue map (:func:`jaxcr.segmentation.curl_end.fit_curl_end`) offered beside the tw
 chosen by the other view; features and errors on stored development traces.
 
 Per stored seed: ``ref`` -- :func:`jaxcr.stereo.pipeline.traced_stereo_tips` as committed
-(``calibration=REAL_LIKE_CALIBRATION``, the stored alternatives); then, for each view, the
+before S46 (``calibration=REAL_LIKE_CALIBRATION``, ``curl_ends=False``, the stored
+alternatives); then, for each view, the
 curl fit on the chosen trace's path and cue map, and what the other view says of it: the
 epipolar gap of the pair with that view's tip replaced by the curl tip (and both replaced),
 and the pair's backbone inconsistency (:func:`jaxcr.stereo.backbone_consistency.
@@ -50,7 +51,7 @@ def evaluate(seeds, store: Path, out: Path) -> None:
         with stored_alternatives(rec):
             t0 = time.process_time()
             tips, src, res, chosen = pipeline.traced_stereo_tips(
-                cams, traces, calibration=REAL_LIKE_CALIBRATION
+                cams, traces, calibration=REAL_LIKE_CALIBRATION, curl_ends=False
             )
             ref_cpu = time.process_time() - t0
         row = {"seed": seed, "ref": {"err_px": tip_errors(tips, truth), "source": src,
