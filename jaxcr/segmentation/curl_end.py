@@ -17,7 +17,9 @@ The same model with the bend bounded is fitted too (:attr:`CurlEnd.gentle_cost`)
 residuals choose between them only weakly (stop 37's prototype,
 experiments/results/segmentation/real_like_tip_curl_prototype.md), so the fit is a
 *candidate* that the two-view step chooses with the other view
-(:func:`jaxcr.stereo.pipeline.traced_stereo_tips`, ``curl_ends``).
+(:func:`jaxcr.stereo.pipeline.traced_stereo_tips`: ``refit_ends``, the gentle fit's end
+where the tracer stopped early, on by default; ``curl_ends``, the curled fit's, off:
+docs/decisions.md S46-S48).
 
 Pure numpy / scipy, host side, one view at a time.
 """

@@ -1,5 +1,8 @@
 """A curled tube end offered to the two-view tips, chosen by one view's residuals and the
-other view's epipolar line (issue 16 item 2, docs/decisions.md S46).
+other view's epipolar line (issue 16 item 2, docs/decisions.md S46), and the gently bent end
+where the tracer stopped early (S47). The pipeline runs the second only by default
+(:func:`jaxcr.stereo.pipeline.traced_stereo_tips`, ``refit_ends=True``, ``curl_ends=False``:
+the first did not hold on fresh frames, S48).
 
 Where a tube curls at its end, each view's tracer and end fit stop at the curl's apex
 (:mod:`jaxcr.segmentation.curl_end`). After the two-view tip step
@@ -61,12 +64,14 @@ def choose_curled_end(
     max_ratio: float = 0.9,
     min_move_px: float = 2.0,
     min_gap_drop_px: float = 2.0,
+    curl: bool = True,
     refit: bool = True,
     refit_move_px: float = 10.0,
     refit_gap_px: float = 5.0,
 ) -> CurlChoice | None:
-    """The view whose tip a curled end (or, with ``refit``, a gentle end found well away)
-    replaces, by the rules of the module docstring, or None. ``traces``: the two views'
+    """The view whose tip a curled end (with ``curl``) or a gentle end found well away
+    (with ``refit``) replaces, by the rules of the module docstring, or None. (The pipeline
+    runs the second only: the first did not hold on fresh frames, docs/decisions.md S48.) ``traces``: the two views'
     :class:`jaxcr.segmentation.foreground.TubeTrace` whose paths end where the tracer
     stopped (the branch choice's); ``tips``: the two-view tips."""
     tips = [np.asarray(t, np.float64) for t in tips]
@@ -88,7 +93,7 @@ def choose_curled_end(
         if fit is None or not fit.gentle_cost > 0:
             continue
         ratio = fit.cost / fit.gentle_cost
-        if ratio <= max_ratio and np.linalg.norm(fit.tip - tips[j]) >= min_move_px:
+        if curl and ratio <= max_ratio and np.linalg.norm(fit.tip - tips[j]) >= min_move_px:
             new, gap = with_tip(j, fit.tip)
             if gap <= gap0 - min_gap_drop_px and (best is None or ratio < best[0]):
                 best = (ratio, CurlChoice(j, fit, new, gap0, gap))

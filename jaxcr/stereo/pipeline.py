@@ -364,7 +364,7 @@ def traced_stereo_tips(
     run_on: bool = True,
     end_fit: bool | str = True,
     fuse_ends: bool = False,
-    curl_ends: bool = True,
+    curl_ends: bool = False,
     refit_ends: bool = True,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
@@ -418,17 +418,17 @@ def traced_stereo_tips(
     triangulated with each view's along/across covariance
     (:func:`jaxcr.stereo.tip_fusion.fuse_traced_tips`).
 
-    ``curl_ends`` (on by default since stop 38, S46): last, one view's tip may be replaced by
-    a curled end fitted to its cue map where that fit beats a gently bent one clearly and
-    brings the pair closer to each other's epipolar lines
-    (:func:`jaxcr.stereo.curl_choice.choose_curled_end`); the result's action is then
-    ``"curled"`` for that view and its trace a copy ending in the fitted axis
+    ``refit_ends`` (on by default since stop 38, S47): last, each view's end is fitted on its
+    cue map (:mod:`jaxcr.segmentation.curl_end`) and a view's tip may be replaced by the
+    end of the fit held to a gentle bend where that end is at least 10 px from the tip and
+    brings the pair within ``flag_px`` of each other's epipolar lines, 2 px nearer (the
+    tube's cue faded before its end and the tracer stopped there); the result's action is
+    then ``"refitted"`` for that view and its trace a copy ending in the fitted axis
     (:func:`jaxcr.stereo.curl_choice.curled_trace`, attribute ``curl_of`` the trace it
-    replaces). About 1-3 CPU-s a view. ``refit_ends`` (with ``curl_ends``; on since stop 38,
-    S47): else a view's tip may be replaced by the same fit held to a gentle bend where
-    that end is at least 10 px from the tip and brings the pair within ``flag_px`` of each
-    other's epipolar lines, 2 px nearer (the tube's cue faded before its end and the tracer
-    stopped there); action ``"refitted"``."""
+    replaces). About 1-3 CPU-s a view. ``curl_ends`` (off: measured on two fresh sets, not
+    kept, S46/S48): first, a curled end where that fit beats the gentle one clearly and the
+    pair's epipolar distance drops by 2 px (action ``"curled"``;
+    :func:`jaxcr.stereo.curl_choice.choose_curled_end`)."""
     traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on)
     chosen = traces
     if end_fit:
@@ -446,8 +446,9 @@ def traced_stereo_tips(
         fused = fuse_traced_tips(cams, out[3], out[0], calibration)
         if fused is not None and fused.applied:
             out = (fused.tips, out[1], out[2], out[3])
-    if curl_ends:
-        cc = choose_curled_end(cams, chosen, out[0], refit=refit_ends, refit_gap_px=flag_px)
+    if curl_ends or refit_ends:
+        cc = choose_curled_end(cams, chosen, out[0], curl=curl_ends, refit=refit_ends,
+                               refit_gap_px=flag_px)  # fmt: skip
         if cc is not None:
             res = TipConsistency(cc.tips, cc.action, cc.view, float("nan"),
                                  cc.epipolar_before_px, cc.epipolar_after_px)  # fmt: skip
