@@ -111,3 +111,24 @@ def test_an_end_whose_cue_fades_is_refitted():
     t = curled_trace(traces[0], cc.fit, cc.action)
     np.testing.assert_array_equal(t.tip, cc.tips[0])
     np.testing.assert_array_equal(t.backbone[-1], cc.tips[0])
+
+
+def test_a_refitted_view_is_recorded_as_refitted_not_as_a_branch():
+    """``_traced_tips`` (what ``jaxcr stereo --segmentation trace`` records): the view whose
+    trace is a refitted copy gets ``+refitted`` (not ``+branch``) and the copy's path."""
+    from jaxcr.stereo.pipeline import _traced_tips
+    from jaxcr.stereo.tip_consistency import TipConsistency
+
+    cams, traces, truth = _views(150.0, apex_in_view1=True)
+    cc = choose_curled_end(cams, traces, [traces[0].tip, truth[1]])
+    assert cc is not None
+    chosen = [curled_trace(traces[0], cc.fit, "refitted"), traces[1]]
+    tips = [chosen[0].tip, cc.tips[1]]
+    res = TipConsistency(tips, "refitted", 0, float("nan"), 1.0, 0.5)
+    vrec = [{"tip_px": [0.0, 0.0], "backbone_px": t.backbone.tolist()} for t in traces]
+    _traced_tips(vrec, traces, (tips, "trace_stereo", res, chosen))
+    assert vrec[0]["tip_source"] == "trace_stereo+refitted"
+    assert vrec[1]["tip_source"] == "trace_stereo"
+    np.testing.assert_allclose(vrec[0]["tip_px"], chosen[0].tip, atol=0.006)
+    np.testing.assert_allclose(vrec[0]["backbone_px"][-1], chosen[0].tip, atol=0.006)
+    assert len(vrec[0]["backbone_px"]) > len(traces[0].backbone)  # the fitted axis appended
