@@ -197,6 +197,7 @@ def fit_curl_end(
     back_widths: float = 2.0,
     step: float = 1.0,
     max_nfev: int = 40,
+    curled: bool = True,
 ) -> CurlEnd | None:
     """The end of the tube traced along ``backbone`` ((n, 2) (u, v) from the entry to the
     traced tip; ``width`` its width, px) fitted to the cue ``score`` (H, W) with the model
@@ -205,7 +206,8 @@ def fit_curl_end(
     sampled every ``step`` px (bilinear). Levels start at the window's 95th percentile
     (inside) and median (background); the soft-L1 loss's scale is a tenth of their
     difference. None for a path shorter than half the anchor's distance, a window without
-    contrast, or a failed solve."""
+    contrast, or a failed solve. ``curled`` False: the gentle model alone (the curled
+    fields are then the gentle fit's, cost ratio 1; a quarter of the work)."""
     score = np.asarray(score, np.float64)
     w = float(width)
     if not (w > 0 and np.isfinite(w)):
@@ -237,12 +239,17 @@ def fit_curl_end(
             return None
 
     r = w / 2
-    curled = [solve(k0, 2.0 / r) for k0 in (0.0, 0.8 / r, -0.8 / r)]
-    curled = [s for s in curled if s is not None]
     gentle = solve(0.0, _GENTLE_KR / r)
-    if not curled or gentle is None:
+    if gentle is None:
         return None
-    best = min(curled, key=lambda s: s.cost)
+    if curled:
+        sols = [solve(k0, 2.0 / r) for k0 in (0.0, 0.8 / r, -0.8 / r)]
+        sols = [s for s in sols if s is not None]
+        if not sols:
+            return None
+        best = min(sols, key=lambda s: s.cost)
+    else:
+        best = gentle
     _, end, th_end = model(best.x)
     _, end0, _ = model(gentle.x)
     axis0 = _fitted_axis(gentle.x, P, theta)
@@ -250,5 +257,6 @@ def fit_curl_end(
     return CurlEnd(tip=end, direction=np.array([np.cos(th_end), np.sin(th_end)]),
                    curvature=float(best.x[1]), arc_px=float(best.x[2]),
                    half_width=float(best.x[3]), cost=float(best.cost),
-                   gentle_cost=float(gentle.cost), gentle_tip=end0, gentle_backbone=np.vstack([tail[:-1], axis0]),
+                   gentle_cost=float(gentle.cost), gentle_tip=end0,
+                   gentle_backbone=np.vstack([tail[:-1], axis0]),
                    backbone=np.vstack([tail[:-1], axis]))  # fmt: skip

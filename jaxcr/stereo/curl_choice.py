@@ -70,8 +70,9 @@ def choose_curled_end(
     refit_gap_px: float = 5.0,
 ) -> CurlChoice | None:
     """The view whose tip a curled end (with ``curl``) or a gentle end found well away
-    (with ``refit``) replaces, by the rules of the module docstring, or None. (The pipeline
-    runs the second only: the first did not hold on fresh frames, docs/decisions.md S48.) ``traces``: the two views'
+    (with ``refit``) replaces, by the rules of the module docstring, or None (the pipeline
+    runs the second only: the first did not hold on fresh frames, docs/decisions.md S48;
+    without ``curl`` only the gentle model is fitted). ``traces``: the two views'
     :class:`jaxcr.segmentation.foreground.TubeTrace` whose paths end where the tracer
     stopped (the branch choice's); ``tips``: the two-view tips."""
     tips = [np.asarray(t, np.float64) for t in tips]
@@ -89,7 +90,7 @@ def choose_curled_end(
         score = getattr(t, "score", None)
         if score is None:
             continue
-        fit = fit_curl_end(score, t.backbone, t.width_px)
+        fit = fit_curl_end(score, t.backbone, t.width_px, curled=curl)
         if fit is None or not fit.gentle_cost > 0:
             continue
         ratio = fit.cost / fit.gentle_cost

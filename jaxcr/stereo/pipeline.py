@@ -425,7 +425,7 @@ def traced_stereo_tips(
     tube's cue faded before its end and the tracer stopped there); the result's action is
     then ``"refitted"`` for that view and its trace a copy ending in the fitted axis
     (:func:`jaxcr.stereo.curl_choice.curled_trace`, attribute ``curl_of`` the trace it
-    replaces). About 1-3 CPU-s a view. ``curl_ends`` (off: measured on two fresh sets, not
+    replaces). About 0.3 CPU-s a frame (median; 2 s with ``curl_ends``). ``curl_ends`` (off: measured on two fresh sets, not
     kept, S46/S48): first, a curled end where that fit beats the gentle one clearly and the
     pair's epipolar distance drops by 2 px (action ``"curled"``;
     :func:`jaxcr.stereo.curl_choice.choose_curled_end`)."""

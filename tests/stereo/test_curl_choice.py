@@ -108,6 +108,10 @@ def test_an_end_whose_cue_fades_is_refitted():
     assert cc is not None and cc.view == 0 and cc.action == "refitted"
     assert np.linalg.norm(cc.tips[0] - truth[0]) <= 2.5
     assert choose_curled_end(cams, traces, tips, refit=False) is None
+    # The pipeline's default (curl=False) fits the gentle model alone: the same end.
+    cc2 = choose_curled_end(cams, traces, tips, curl=False)
+    assert cc2 is not None and cc2.action == "refitted"
+    np.testing.assert_array_equal(cc2.tips[0], cc.tips[0])
     t = curled_trace(traces[0], cc.fit, cc.action)
     np.testing.assert_array_equal(t.tip, cc.tips[0])
     np.testing.assert_array_equal(t.backbone[-1], cc.tips[0])
