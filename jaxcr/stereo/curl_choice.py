@@ -79,6 +79,8 @@ def choose_curled_end(
     if not all(np.all(np.isfinite(t)) for t in tips):
         return None
     gap0 = epipolar_gap_px(cams, tips)
+    if not gap0 >= min_gap_drop_px:  # no replacement can drop it that far: nothing to fit
+        return None
 
     def with_tip(j, tip):
         new = list(tips)
