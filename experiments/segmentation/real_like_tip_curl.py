@@ -40,10 +40,6 @@ from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
 from jaxcr.stereo.tip_consistency import epipolar_gap_px
 
 
-def _ending_at(bb, tip):
-    return pipeline._ending_at(np.asarray(bb, np.float64), np.asarray(tip, np.float64))
-
-
 def evaluate(seeds, store: Path, out: Path) -> None:
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
@@ -59,7 +55,7 @@ def evaluate(seeds, store: Path, out: Path) -> None:
                                      "tips": [list(map(float, t)) for t in tips],
                                      "cpu_s": ref_cpu}}  # fmt: skip
         row["ref"]["gap_px"] = epipolar_gap_px(cams, tips)
-        bbs = [_ending_at(t.backbone, p) for t, p in zip(chosen, tips, strict=True)]
+        bbs = [pipeline._ending_at(t.backbone, p) for t, p in zip(chosen, tips, strict=True)]
         row["ref"]["inconsistent_px"] = (
             backbone_consistency(cams, *bbs).inconsistent_px
             if all(np.all(np.isfinite(t)) for t in tips) else float("nan"))  # fmt: skip

@@ -250,13 +250,15 @@ def fit_curl_end(
         best = min(sols, key=lambda s: s.cost)
     else:
         best = gentle
-    _, end, th_end = model(best.x)
-    _, end0, _ = model(gentle.x)
-    axis0 = _fitted_axis(gentle.x, P, theta)
-    axis = _fitted_axis(best.x, P, theta)
+
+    def ending(p):  # the fit's end, its angle and its backbone
+        _, end, th_end = model(p)
+        return end, th_end, np.vstack([tail[:-1], _fitted_axis(p, P, theta)])
+
+    end0, th0, bb0 = ending(gentle.x)
+    end, th_end, bb = (end0, th0, bb0) if best is gentle else ending(best.x)
     return CurlEnd(tip=end, direction=np.array([np.cos(th_end), np.sin(th_end)]),
                    curvature=float(best.x[1]), arc_px=float(best.x[2]),
                    half_width=float(best.x[3]), cost=float(best.cost),
-                   gentle_cost=float(gentle.cost), gentle_tip=end0,
-                   gentle_backbone=np.vstack([tail[:-1], axis0]),
-                   backbone=np.vstack([tail[:-1], axis]))  # fmt: skip
+                   gentle_cost=float(gentle.cost), gentle_tip=end0, gentle_backbone=bb0,
+                   backbone=bb)  # fmt: skip
