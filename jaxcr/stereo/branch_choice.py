@@ -89,6 +89,7 @@ def choose_branches(
     cams, candidates, *, tips_of=None, match_px: float = 15.0, inconsistency_of=None,
     consistent_px: float = CONSISTENT_PX, margin_px: float = 20.0, any_pair: bool = False,
     more_crossings_if_consistent: bool = False, both_if_traces_cross: bool = False,
+    tip_flag_px: float | None = None, tip_rank: bool = True,
 ) -> BranchChoice | None:  # fmt: skip
     """The consistent pair of candidates with the smoothest paths (module docstring).
 
@@ -127,16 +128,33 @@ def choose_branches(
     traces are offered too, each alternative following fewer crossing objects than its
     view's trace and the pair under the same gate (what :func:`jaxcr.stereo.pipeline.
     traced_stereo_tips` passes since S39; ``any_pair`` offers them everywhere, which S31
-    found breaks right frames whose one view's trace is right)."""
+    found breaks right frames whose one view's trace is right).
+
+    ``tip_flag_px`` (with ``inconsistency_of``; docs/decisions.md S49): where the traces'
+    own tips are over ``tip_flag_px`` from each other's epipolar lines, a pair whose tips
+    are within it also passes the gate when it leaves no more unexplained than the traces'
+    pair, follows no more crossing objects, and each changed view's tip is over
+    ``margin_px`` from its trace's tip (another branch, not the same path's end, which the
+    tip step mends); and with ``tip_rank`` pairs within ``tip_flag_px`` rank before the
+    others (after the consistency level). A trace that follows a cable along the epipolar
+    lines explains itself with the other view, so no alternative can be ``margin_px``
+    better there."""
     F = fundamental_from_poses(np.asarray(cams[0].K, np.float64), cams[0].T_cam_robot,
                                np.asarray(cams[1].K, np.float64), cams[1].T_cam_robot)  # fmt: skip
     best, key, n_ok = None, None, 0
-    base_bad = np.inf
+    base_bad, base_e = np.inf, np.inf
     if inconsistency_of is not None:
         a, b = candidates[0][0], candidates[1][0]
         tips = tips_of(a, b) if tips_of is not None else (a.tip, b.tip)
-        if all(np.all(np.isfinite(np.asarray(t, np.float64))) for t in tips):
+        tips = [np.asarray(t, np.float64) for t in tips]
+        if all(np.all(np.isfinite(t)) for t in tips):
             base_bad = float(inconsistency_of(a, b, tips))
+            base_tips = tips
+            x0, x1 = (undistort_pixels(c, t)[0] for c, t in zip(cams, tips, strict=True))
+            base_e = float(max(epipolar_distances(F, x0, x1)))
+    # The traces' tips disagree: a pair whose tips agree may replace them with backbones no
+    # less consistent than the traces' (S49).
+    tips_flagged = tip_flag_px is not None and inconsistency_of is not None and base_e > tip_flag_px
     both_cross = (
         both_if_traces_cross
         and inconsistency_of is not None
@@ -186,9 +204,19 @@ def choose_branches(
                 # traces (a tube that crosses its own silhouette is an X too); it still
                 # ranks after every such pair that follows fewer (the key below).
                 alts_ok = alts_ok or (more_crossings_if_consistent and bad <= consistent_px)
-                if (i0 or i1) and not (bad < base_bad - margin_px and alts_ok):
+                better = bad < base_bad - margin_px
+                if tips_flagged and e <= tip_flag_px and bad <= base_bad:
+                    # Another branch (its tip over the margin from the trace's), not the
+                    # same path's end placed again, which the tip step mends.
+                    better = better or all(
+                        np.linalg.norm(tips[v] - base_tips[v]) > margin_px
+                        for v, i in enumerate((i0, i1))
+                        if i
+                    )
+                if (i0 or i1) and not (better and alts_ok):
                     continue
-                k = (bad > consistent_px, followed, turn, bad, e)
+                off = bool(tips_flagged and tip_rank and e > tip_flag_px)
+                k = (bad > consistent_px, off, followed, turn, bad, e)
             if key is None or k < key:
                 best, key = ((i0, i1), tips, e, turn, bad), k
     if best is None:

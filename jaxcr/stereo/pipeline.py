@@ -366,6 +366,8 @@ def traced_stereo_tips(
     fuse_ends: bool = False,
     curl_ends: bool = False,
     refit_ends: bool = True,
+    branch_tips: bool = False,
+    branch_backbones: bool = False,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -428,8 +430,19 @@ def traced_stereo_tips(
     replaces). About 0.3 CPU-s a frame (median; 2 s with ``curl_ends``). ``curl_ends`` (off: measured on two fresh sets, not
     kept, S46/S48): first, a curled end where that fit beats the gentle one clearly and the
     pair's epipolar distance drops by 2 px (action ``"curled"``;
-    :func:`jaxcr.stereo.curl_choice.choose_curled_end`)."""
-    traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on)
+    :func:`jaxcr.stereo.curl_choice.choose_curled_end`).
+
+    ``branch_tips`` (docs/decisions.md S49): where the traces' tips are over ``flag_px``
+    apart, a pair whose tips are within it may replace them when its backbones are no less
+    consistent than the traces' (the check is blind where a trace follows a cable along the
+    epipolar lines, so no alternative can be clearly better there) and each changed view
+    ends over the margin from its trace's tip (another branch); such pairs rank first
+    (:func:`jaxcr.stereo.branch_choice.choose_branches`' ``tip_flag_px``).
+    ``branch_backbones`` (S49): the branch choice also runs where the tips agree but the
+    traces' backbones leave over ``CONSISTENT_PX`` unexplained (a wrong end that meets the
+    other tip's epipolar line by chance)."""
+    traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on, tips_gate=branch_tips,
+                                     backbones_flag=branch_backbones)  # fmt: skip
     chosen = traces
     if end_fit:
         # After the branch choice (its candidates and decisions are the tracer's), the
@@ -488,7 +501,14 @@ def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | N
 
 
 def _branch_step(
-    cams, traces, flag_px: float, *, both_if_traces_cross: bool = True, run_on: bool = False
+    cams,
+    traces,
+    flag_px: float,
+    *,
+    both_if_traces_cross: bool = True,
+    run_on: bool = False,
+    tips_gate: bool = False,
+    backbones_flag: bool = False,
 ):
     """:func:`traced_stereo_tips`' branch choice: (the two traces, their tips, source).
 
@@ -504,12 +524,22 @@ def _branch_step(
     pair that explains itself (a re-trace onto a cable both views see: dev 4079, 4185).
     Where both views' traces follow a crossing object, a pair of two re-traces that each
     follow fewer is offered too (``both_if_traces_cross``, S39: neither trace is evidence
-    for the other view then; dev 4187, both traces on a cable); False: as S36."""
+    for the other view then; dev 4187, both traces on a cable); False: as S36.
+    ``tips_gate`` and ``backbones_flag``: :func:`traced_stereo_tips`' ``branch_tips`` and
+    ``branch_backbones`` (S49)."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
-    if epipolar_gap_px(cams, tips) > flag_px and all(
-        getattr(t, "retrace", None) is not None for t in traces
-    ):
+    flagged = epipolar_gap_px(cams, tips) > flag_px
+    if backbones_flag and not flagged and all(np.all(np.isfinite(t)) for t in tips):
+        flagged = (
+            backbone_consistency(
+                cams,
+                _ending_at(traces[0].backbone, tips[0]),
+                _ending_at(traces[1].backbone, tips[1]),
+            ).inconsistent_px
+            > CONSISTENT_PX
+        )
+    if flagged and all(getattr(t, "retrace", None) is not None for t in traces):
         # A pair's tips and inconsistency are asked for by `explains` and again by the
         # choice (and its tips are a function of the pair): each computed once per pair.
         pair_tips, pair_bad = {}, {}
@@ -543,6 +573,7 @@ def _branch_step(
                 # explains itself: a tube crossing its own silhouette is an X too (S36).
                 more_crossings_if_consistent=True,
                 both_if_traces_cross=both_if_traces_cross,
+                tip_flag_px=flag_px if tips_gate else None,
             )
 
         cands = [[t] + trace_alternatives(t) for t in traces]

@@ -360,3 +360,101 @@ def test_the_entrys_other_starts_are_alternatives():
     # the rod reaches the same end first, and the start's copy is not repeated).
     good = [a for a in trace_alternatives(tr) if np.linalg.norm(a.tip - tube_end) < 2.0]
     assert len(good) >= 1
+
+
+def _off_epiline(x0, along_px, off_px):
+    """A point of view 1 ``off_px`` across the epipolar line of view-0 pixel ``x0``, at the
+    line's point ``along_px`` from its foot nearest the true tip's image."""
+    ln = F @ np.r_[x0, 1.0]
+    ln = ln / np.hypot(ln[0], ln[1])
+    return _on_epiline_of(x0, along_px) + off_px * ln[:2]
+
+
+def test_tips_that_agree_replace_a_flagged_pair_whose_backbones_look_consistent():
+    """View 0 traced the tube to its end; view 1's tracer followed a cable that runs along
+    the epipolar lines, so its backbone pair with view 0 explains itself (10 px, under the
+    1.25-width margin of 20 px) while its tip is 10 px off view 0's tip's epipolar line
+    (flagged at 5 px). View 1's alternative ends at the tube's end (exactly consistent, 10
+    px unexplained too, a larger turn than the trace). By default no alternative passes the
+    gate (it must leave 20 px less unexplained). With ``tip_flag_px=5`` (S49) it does: its
+    tips agree, its backbones are no less consistent and its tip is over the margin from
+    the trace's (another branch). Not when it leaves more unexplained than the traces,
+    follows more crossing objects, ends within the margin of the trace's tip, or when the
+    traces' own tips agree."""
+    t0, t1 = _proj(T0, TIP)[0], _proj(T1, TIP)[0]
+    c1 = _off_epiline(t0, 60.0, 10.0)
+    e = max(epipolar_distances(F, t0, c1))
+    assert 5.0 < e < 15.0, e  # flagged, within match_px
+    assert max(epipolar_distances(F, t0, t1)) < 1e-6
+    cands = [[_cand(t0, 0, 5.0)], [_cand(c1, 0, 20.0), _cand(t1, 0, 30.0)]]
+    bad = {0: 10.0, 1: 10.0}
+
+    def inconsistency(a, b, tips):
+        return bad[next(i for i, x in enumerate(cands[1]) if x is b)]
+
+    kw = dict(inconsistency_of=inconsistency, margin_px=20.0)
+    res = choose_branches(CAMS, cands, **kw)
+    assert res.indices == (0, 0)
+    res = choose_branches(CAMS, cands, tip_flag_px=5.0, **kw)
+    assert res.indices == (0, 1) and res.epipolar_px < 1e-6
+    # The ranking alone: without it the traces' pair (smaller turn) would still win.
+    res = choose_branches(CAMS, cands, tip_flag_px=5.0, tip_rank=False, **kw)
+    assert res.indices == (0, 0)
+    bad[1] = 10.5  # leaves more unexplained than the traces' pair: gated out
+    assert choose_branches(CAMS, cands, tip_flag_px=5.0, **kw).indices == (0, 0)
+    bad[1] = 10.0
+    cands[1][1].crossings_followed = 1  # follows more crossing objects: gated out
+    assert choose_branches(CAMS, cands, tip_flag_px=5.0, **kw).indices == (0, 0)
+    cands[1][1].crossings_followed = 0
+    # The trace's tip 12 px from the alternative's (10 px off the line): the same path's
+    # end, for the tip step to mend, not another branch.
+    cands[1][0] = _cand(_off_epiline(t0, 7.0, 10.0), 0, 20.0)
+    assert np.linalg.norm(cands[1][0].tip - t1) < 20.0
+    assert 5.0 < max(epipolar_distances(F, t0, cands[1][0].tip)) < 15.0
+    assert choose_branches(CAMS, cands, tip_flag_px=5.0, **kw).indices == (0, 0)
+    # The traces' tips agree (3 px): the rule does not act (the alternative's pair is not
+    # 20 px more consistent).
+    cands[1][0] = _cand(_off_epiline(t0, 60.0, 3.0), 0, 20.0)
+    assert max(epipolar_distances(F, t0, cands[1][0].tip)) <= 5.0
+    assert choose_branches(CAMS, cands, tip_flag_px=5.0, **kw).indices == (0, 0)
+
+
+def test_tips_that_agree_by_chance_over_inconsistent_backbones_are_flagged(monkeypatch):
+    """The tube is a 3-D arc (``cv2.projectPoints``). View 1 traced it. View 0's trace left
+    it half way along a straight image path that ends on the epipolar line of view 1's
+    tip, 40 px from the tube's end: the tips agree (under 1e-6 px), so by default the
+    branch choice does not run and the wrong trace stays. Its backbone pair with view 1
+    leaves over 40 px unexplained (``backbone_consistency``); with ``backbones_flag``
+    (S49) the choice runs and view 0's re-trace, the whole arc, is chosen (its tip exactly
+    the arc's projected end). The pipeline's guided candidates are switched off here:
+    only the views' own re-traces are offered."""
+    from jaxcr.stereo import pipeline
+    from jaxcr.stereo.backbone_consistency import backbone_consistency
+
+    arc = _arc()
+    tube = [_cv2_proj(T, arc) for T in (T0, T1)]
+    ln = F.T @ np.r_[tube[1][-1], 1.0]  # view 0's epipolar line of view 1's tip
+    ln = ln / np.hypot(ln[0], ln[1])
+    wrong_end = tube[0][-1] + 40.0 * np.array([-ln[1], ln[0]])
+    half = tube[0][: len(arc) // 2]
+    # Out across the epipolar lines and back: no monotone matching explains it.
+    out = half[-1] + 40.0 * ln[:2]
+    t = np.linspace(0.0, 1.0, 20)[1:, None]
+    wrong = np.vstack([half, half[-1] + t * (out - half[-1]), out + t * (wrong_end - out)])
+
+    def tr(bb, alts=()):
+        return SimpleNamespace(tip=bb[-1].copy(), backbone=bb, cap_px=0.0, end_dir=np.zeros(2),
+                               end_half_width_px=0.0, retrace=object(), width_px=4.0,
+                               crossings_followed=0, crossing_turn_deg=0.0, alts=list(alts))  # fmt: skip
+
+    views = [tr(wrong, [tr(tube[0])]), tr(tube[1])]
+    assert max(epipolar_distances(F, views[0].tip, views[1].tip)) < 1e-6
+    assert backbone_consistency(CAMS, wrong, tube[1]).inconsistent_px > 40.0
+    assert backbone_consistency(CAMS, tube[0], tube[1]).inconsistent_px < 1.0
+    monkeypatch.setattr(pipeline, "trace_alternatives", lambda t: t.alts)
+    monkeypatch.setattr(pipeline, "guided_candidates", lambda cams, traces, cut_back: [[], []])
+    traces, tips, src = pipeline._branch_step(CAMS, views, 5.0)
+    assert traces[0] is views[0] and traces[1] is views[1] and "+branch" not in src
+    traces, tips, src = pipeline._branch_step(CAMS, views, 5.0, backbones_flag=True)
+    assert traces[0] is views[0].alts[0] and traces[1] is views[1] and "+branch" in src
+    np.testing.assert_array_equal(tips[0], tube[0][-1])
