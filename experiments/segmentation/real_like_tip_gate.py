@@ -11,7 +11,8 @@ the tips agree by chance but the backbones do not (4575), the choice never runs.
 each :func:`jaxcr.stereo.pipeline.traced_stereo_tips` with ``calibration=REAL_LIKE_CALIBRATION``
 on the stored traces (the stored alternatives returned for ``trace_alternatives``):
 
-* ``ref`` -- as committed (the defaults);
+* ``ref`` -- as committed before S49 (``branch_tips=False, branch_backbones=False``; the
+  defaults since S49 are ``both``);
 * ``tips`` -- ``branch_tips=True``: where the traces' tips are over 5 px apart, a pair whose
   tips are within 5 px passes the gate when its backbones are no less consistent than the
   traces', it follows no more crossing objects and each changed view's tip is over the
@@ -46,9 +47,9 @@ from jaxcr.stereo import branch_choice, pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
 
 VARIANTS = {
-    "ref": {},
-    "tips": {"branch_tips": True},
-    "backbones": {"branch_backbones": True},
+    "ref": {"branch_tips": False, "branch_backbones": False},
+    "tips": {"branch_tips": True, "branch_backbones": False},
+    "backbones": {"branch_tips": False, "branch_backbones": True},
     "both": {"branch_tips": True, "branch_backbones": True},
 }
 

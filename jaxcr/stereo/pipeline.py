@@ -366,8 +366,8 @@ def traced_stereo_tips(
     fuse_ends: bool = False,
     curl_ends: bool = False,
     refit_ends: bool = True,
-    branch_tips: bool = False,
-    branch_backbones: bool = False,
+    branch_tips: bool = True,
+    branch_backbones: bool = True,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -432,13 +432,13 @@ def traced_stereo_tips(
     pair's epipolar distance drops by 2 px (action ``"curled"``;
     :func:`jaxcr.stereo.curl_choice.choose_curled_end`).
 
-    ``branch_tips`` (docs/decisions.md S49): where the traces' tips are over ``flag_px``
+    ``branch_tips`` (on by default since stop 39, docs/decisions.md S49): where the traces' tips are over ``flag_px``
     apart, a pair whose tips are within it may replace them when its backbones are no less
     consistent than the traces' (the check is blind where a trace follows a cable along the
     epipolar lines, so no alternative can be clearly better there) and each changed view
     ends over the margin from its trace's tip (another branch); such pairs rank first
     (:func:`jaxcr.stereo.branch_choice.choose_branches`' ``tip_flag_px``).
-    ``branch_backbones`` (S49): the branch choice also runs where the tips agree but the
+    ``branch_backbones`` (on by default since stop 39, S49): the branch choice also runs where the tips agree but the
     traces' backbones leave over ``CONSISTENT_PX`` unexplained (a wrong end that meets the
     other tip's epipolar line by chance)."""
     traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on, tips_gate=branch_tips,
