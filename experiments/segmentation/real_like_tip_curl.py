@@ -19,13 +19,13 @@ run again to evaluate a rule).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 from tip_harness import (
     harness_main,
+    merged_rows,
     resumed_rows,
     stored_alternatives,
     stored_records,
@@ -178,10 +178,7 @@ def _count(rows, **kw) -> dict:
 def summary(path: Path) -> None:
     """The rule's grid on even seeds (design) and odd ones (held out), best even first (ties:
     fewer views made worse); ``path`` may list several rows files, comma separated."""
-    rows = []
-    for p in str(path).split(","):
-        rows += json.loads(Path(p).read_text())["rows"]
-    rows = sorted({r["seed"]: r for r in rows}.values(), key=lambda r: r["seed"])
+    rows = merged_rows(path)
     even = [r for r in rows if r["seed"] % 2 == 0]
     odd = [r for r in rows if r["seed"] % 2 == 1]
 

@@ -29,12 +29,12 @@ on the stored traces (the stored alternatives returned for ``trace_alternatives`
 from __future__ import annotations
 
 import functools
-import json
 import time
 from pathlib import Path
 
 from tip_harness import (
     harness_main,
+    merged_rows,
     resumed_rows,
     stored_alternatives,
     stored_records,
@@ -90,10 +90,7 @@ def evaluate(seeds, store: Path, out: Path) -> None:
 def summary(path: Path) -> None:
     """Each variant on even seeds (design) and odd ones (held out); the frames each fixes
     and breaks against ``ref``; comma-separated rows files are merged."""
-    rows = []
-    for p in str(path).split(","):
-        rows += json.loads(Path(p).read_text())["rows"]
-    rows = sorted({r["seed"]: r for r in rows}.values(), key=lambda r: r["seed"])
+    rows = merged_rows(path)
     for title, sel in (("even seeds (design)", [r for r in rows if r["seed"] % 2 == 0]),
                        ("odd seeds (held out)", [r for r in rows if r["seed"] % 2 == 1]),
                        ("all", rows)):  # fmt: skip

@@ -61,6 +61,15 @@ def stored_records(seeds, store: Path, rows: list[dict]) -> Iterator[tuple[int, 
             yield seed, pickle.load(f)
 
 
+def merged_rows(path) -> list[dict]:
+    """The rows of the rows files ``path`` lists (comma separated), one per seed (a later
+    file's row replaces an earlier one's), in seed order."""
+    rows = []
+    for p in str(path).split(","):
+        rows += json.loads(Path(p).read_text())["rows"]
+    return sorted({r["seed"]: r for r in rows}.values(), key=lambda r: r["seed"])
+
+
 def write_rows(out: Path, rows: list[dict]) -> None:
     """``rows`` to ``out``.json, replaced whole (a run stopped part way leaves the last
     complete file, which :func:`resumed_rows` resumes from)."""
