@@ -432,15 +432,16 @@ def traced_stereo_tips(
     pair's epipolar distance drops by 2 px (action ``"curled"``;
     :func:`jaxcr.stereo.curl_choice.choose_curled_end`).
 
-    ``branch_tips`` (on by default since stop 39, docs/decisions.md S49): where the traces' tips are over ``flag_px``
-    apart, a pair whose tips are within it may replace them when its backbones are no less
-    consistent than the traces' (the check is blind where a trace follows a cable along the
-    epipolar lines, so no alternative can be clearly better there) and each changed view
-    ends over the margin from its trace's tip (another branch); such pairs rank first
-    (:func:`jaxcr.stereo.branch_choice.choose_branches`' ``tip_flag_px``).
-    ``branch_backbones`` (on by default since stop 39, S49): the branch choice also runs where the tips agree but the
-    traces' backbones leave over ``CONSISTENT_PX`` unexplained (a wrong end that meets the
-    other tip's epipolar line by chance)."""
+    ``branch_tips`` (on by default since stop 39, docs/decisions.md S49): where the traces'
+    tips are over ``flag_px`` apart, a pair whose tips are within it may replace them when
+    its backbones are no less consistent than the traces' (the check is blind where a trace
+    follows a cable along the epipolar lines, so no alternative can be clearly better
+    there) and each changed view ends over the margin from its trace's tip (another
+    branch); such pairs rank first (:func:`jaxcr.stereo.branch_choice.choose_branches`'
+    ``tip_flag_px``). ``branch_backbones`` (on by default since stop 39, S49): the branch
+    choice also runs where the tips agree but the traces' backbones leave over
+    ``CONSISTENT_PX`` unexplained (a wrong end that meets the other tip's epipolar line by
+    chance)."""
     traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on, tips_gate=branch_tips,
                                      backbones_flag=branch_backbones)  # fmt: skip
     chosen = traces
@@ -529,34 +530,28 @@ def _branch_step(
     ``branch_backbones`` (S49)."""
     traces = list(traces)
     tips, src = _stereo_or_own_tips(cams, traces)
+    # A pair's tips and inconsistency are asked for by the flag, by `explains` and again by
+    # the choice (and its tips are a function of the pair): each computed once per pair.
+    pair_tips, pair_bad = {(id(traces[0]), id(traces[1])): tips}, {}
+
+    def tips_of(a, b):
+        key = (id(a), id(b))
+        if key not in pair_tips:
+            pair_tips[key] = _stereo_or_own_tips(cams, [a, b])[0]
+        return pair_tips[key]
+
+    def inconsistency(a, b, tips):
+        key = (id(a), id(b))
+        if key not in pair_bad:
+            pair_bad[key] = backbone_consistency(
+                cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
+            ).inconsistent_px
+        return pair_bad[key]
+
     flagged = epipolar_gap_px(cams, tips) > flag_px
     if backbones_flag and not flagged and all(np.all(np.isfinite(t)) for t in tips):
-        flagged = (
-            backbone_consistency(
-                cams,
-                _ending_at(traces[0].backbone, tips[0]),
-                _ending_at(traces[1].backbone, tips[1]),
-            ).inconsistent_px
-            > CONSISTENT_PX
-        )
+        flagged = inconsistency(traces[0], traces[1], tips) > CONSISTENT_PX
     if flagged and all(getattr(t, "retrace", None) is not None for t in traces):
-        # A pair's tips and inconsistency are asked for by `explains` and again by the
-        # choice (and its tips are a function of the pair): each computed once per pair.
-        pair_tips, pair_bad = {}, {}
-
-        def tips_of(a, b):
-            key = (id(a), id(b))
-            if key not in pair_tips:
-                pair_tips[key] = _stereo_or_own_tips(cams, [a, b])[0]
-            return pair_tips[key]
-
-        def inconsistency(a, b, tips):
-            key = (id(a), id(b))
-            if key not in pair_bad:
-                pair_bad[key] = backbone_consistency(
-                    cams, _ending_at(a.backbone, tips[0]), _ending_at(b.backbone, tips[1])
-                ).inconsistent_px
-            return pair_bad[key]
 
         def choose(cands):
             if len(cands[0]) + len(cands[1]) <= 2:
