@@ -28,7 +28,6 @@ on the stored traces (the stored alternatives returned for ``trace_alternatives`
 
 from __future__ import annotations
 
-import functools
 import time
 from pathlib import Path
 
@@ -43,7 +42,7 @@ from tip_harness import (
     write_rows,
 )
 
-from jaxcr.stereo import branch_choice, pipeline
+from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
 
 VARIANTS = {
@@ -55,18 +54,11 @@ VARIANTS = {
 
 
 def _run(cams, traces, kw):
-    kw = dict(kw)
-    rank = kw.pop("_tip_rank", True)
-    saved = pipeline.choose_branches
-    pipeline.choose_branches = functools.partial(branch_choice.choose_branches, tip_rank=rank)
-    try:
-        t0 = time.process_time()
-        tips, src, res, chosen = pipeline.traced_stereo_tips(
-            cams, traces, calibration=REAL_LIKE_CALIBRATION, **kw
-        )
-        cpu = time.process_time() - t0
-    finally:
-        pipeline.choose_branches = saved
+    t0 = time.process_time()
+    tips, src, res, chosen = pipeline.traced_stereo_tips(
+        cams, traces, calibration=REAL_LIKE_CALIBRATION, **kw
+    )
+    cpu = time.process_time() - t0
     branch = [getattr(c, "curl_of", c) is not t for c, t in zip(chosen, traces, strict=True)]
     return tips, src, None if res is None else res.action, branch, cpu
 
