@@ -63,31 +63,35 @@ def _run(cams, traces, kw):
     return tips, src, None if res is None else res.action, branch, cpu
 
 
-def evaluate(seeds, store: Path, out: Path) -> None:
+def evaluate(seeds, store: Path, out: Path, variants=None) -> None:
+    """Each of ``variants`` (name -> keywords of ``traced_stereo_tips``; this round's
+    ``VARIANTS`` by default) on each stored frame, rows written as they complete."""
+    variants = VARIANTS if variants is None else variants
     rows = resumed_rows(out)
     for seed, rec in stored_records(seeds, store, rows):
         cams, truth, traces = rec["calib"], rec["truth"], rec["traces"]
         row = {"seed": seed}
         with stored_alternatives(rec):
-            for name, kw in VARIANTS.items():
+            for name, kw in variants.items():
                 tips, src, act, branch, cpu = _run(cams, traces, kw)
                 row[name] = {"err_px": tip_errors(tips, truth), "source": src, "action": act,
                              "branch": branch, "cpu_s": cpu}  # fmt: skip
         rows.append(row)
-        print(seed, *[(n, [round(x, 1) for x in row[n]["err_px"]]) for n in VARIANTS],
+        print(seed, *[(n, [round(x, 1) for x in row[n]["err_px"]]) for n in variants],
               flush=True)  # fmt: skip
         write_rows(out, rows)
 
 
-def summary(path: Path) -> None:
+def summary(path: Path, variants=None) -> None:
     """Each variant on even seeds (design) and odd ones (held out); the frames each fixes
     and breaks against ``ref``; comma-separated rows files are merged."""
+    variants = VARIANTS if variants is None else variants
     rows = merged_rows(path)
     for title, sel in (("even seeds (design)", [r for r in rows if r["seed"] % 2 == 0]),
                        ("odd seeds (held out)", [r for r in rows if r["seed"] % 2 == 1]),
                        ("all", rows)):  # fmt: skip
-        variant_table(sel, title, VARIANTS)
-        for n in VARIANTS:
+        variant_table(sel, title, variants)
+        for n in variants:
             if n == "ref":
                 continue
             fixed = [r["seed"] for r in sel

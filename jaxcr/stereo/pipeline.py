@@ -368,6 +368,7 @@ def traced_stereo_tips(
     refit_ends: bool = True,
     branch_tips: bool = True,
     branch_backbones: bool = True,
+    mend_within_tolerance: bool = True,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -454,7 +455,8 @@ def traced_stereo_tips(
     research_px = None
     if calibration is not None:
         research_px = tip_epipolar_tolerance_px(cams, tips, calibration, floor_px=flag_px)
-    out = _tip_step(cams, traces, tips, src, flag_px, research_px=research_px)
+    out = _tip_step(cams, traces, tips, src, flag_px, research_px=research_px,
+                    mend_within_tolerance=mend_within_tolerance)  # fmt: skip
     consistent = out[2] is not None and out[2].action == "consistent"
     if fuse_ends and calibration is not None and consistent:
         fused = fuse_traced_tips(cams, out[3], out[0], calibration)
@@ -474,17 +476,29 @@ def traced_stereo_tips(
     return out[0], out[1], out[2], chosen
 
 
-def _tip_step(cams, traces, tips, src, flag_px: float, *, research_px: float | None = None):
+def _tip_step(
+    cams, traces, tips, src, flag_px: float, *, research_px: float | None = None,
+    mend_within_tolerance: bool = True,
+):  # fmt: skip
     """:func:`traced_stereo_tips` after the branch choice: a fold, a trim or the tips'
     re-search (its return value; flagged over ``research_px`` when given, else
-    ``flag_px``)."""
+    ``flag_px``). ``mend_within_tolerance`` False (with ``research_px``): a pair within
+    ``research_px`` whose backbones leave at most ``CONSISTENT_PX`` unexplained is neither
+    folded nor trimmed (docs/decisions.md S50)."""
     if not all(np.all(np.isfinite(t)) for t in tips):
         return tips, src, None, traces
     res = None
-    if epipolar_gap_px(cams, tips) > flag_px:
+    gap = epipolar_gap_px(cams, tips)
+    if gap > flag_px:
         bc = backbone_consistency(
             cams, _ending_at(traces[0].backbone, tips[0]), _ending_at(traces[1].backbone, tips[1])
         )
+    if gap > flag_px and (
+        mend_within_tolerance
+        or research_px is None
+        or gap > research_px
+        or bc.inconsistent_px > CONSISTENT_PX
+    ):
         fold = fold_back_tip(cams, bc, [t.width_px for t in traces])
         if fold is not None:
             j, tip_j, _ = fold
