@@ -10,7 +10,7 @@ px. Variants, each :func:`jaxcr.stereo.pipeline.traced_stereo_tips` with
 for ``trace_alternatives``):
 
 * ``ref`` -- as committed before S50 (``mend_within_tolerance=True``);
-* ``tolerance`` -- ``mend_within_tolerance=False`` (the default since S50): a pair within the tolerance whose
+* ``tolerance`` -- ``mend_within_tolerance=False`` (S50; measured, not adopted): a pair within the tolerance whose
   backbones leave at most ``CONSISTENT_PX`` (40 px) unexplained is neither folded nor
   trimmed; the re-search as before.
 

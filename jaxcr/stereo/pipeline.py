@@ -368,7 +368,7 @@ def traced_stereo_tips(
     refit_ends: bool = True,
     branch_tips: bool = True,
     branch_backbones: bool = True,
-    mend_within_tolerance: bool = False,
+    mend_within_tolerance: bool = True,
 ) -> tuple[list[np.ndarray], str, TipConsistency | None, list]:
     """The two views' tips as ``jaxcr stereo --segmentation trace`` records them: the traced
     tips with the end face's length from both views (:func:`trace_stereo_tips`; each
@@ -444,14 +444,13 @@ def traced_stereo_tips(
     ``CONSISTENT_PX`` unexplained (a wrong end that meets the other tip's epipolar line by
     chance).
 
-    ``mend_within_tolerance`` False (the default since stop 40, with ``calibration``;
-    docs/decisions.md S50; True: as before): where the
-    tips are over ``flag_px`` but within the calibration's tolerance apart and the two
-    backbones leave at most ``CONSISTENT_PX`` unexplained, the fold and the trim do not act
-    (only the re-search, which keeps such a pair): a right pair 5.5 px apart under the
-    preset's calibration error was trimmed by 19 px (dev 4654). A wrong trace hidden by a
-    small tip gap (S37's 4074) leaves far more than ``CONSISTENT_PX`` unexplained and is
-    still mended."""
+    ``mend_within_tolerance`` False (with ``calibration``; measured at stop 40, not adopted,
+    docs/decisions.md S50): where the tips are over ``flag_px`` but within the calibration's
+    tolerance apart and the two backbones leave at most ``CONSISTENT_PX`` unexplained, the
+    fold and the trim do not act (only the re-search, which keeps such a pair). It mends a
+    right pair 5.5 px apart that the trim cut by 19 px (dev 4654) and no other of 450
+    development frames, and leaves a 12 px overshoot under a wide calibration uncut (its
+    backbones leave 6 px unexplained: S37's case, ``tests/stereo/test_epipolar_tolerance.py``)."""
     traces, tips, src = _branch_step(cams, traces, flag_px, run_on=run_on, tips_gate=branch_tips,
                                      backbones_flag=branch_backbones)  # fmt: skip
     chosen = traces
@@ -487,14 +486,13 @@ def traced_stereo_tips(
 
 def _tip_step(
     cams, traces, tips, src, flag_px: float, *, research_px: float | None = None,
-    mend_within_tolerance: bool = False,
+    mend_within_tolerance: bool = True,
 ):  # fmt: skip
     """:func:`traced_stereo_tips` after the branch choice: a fold, a trim or the tips'
     re-search (its return value; flagged over ``research_px`` when given, else
-    ``flag_px``). ``mend_within_tolerance`` False (the default since stop 40; with
-    ``research_px``): a pair within ``research_px`` whose backbones leave at most
-    ``CONSISTENT_PX`` unexplained is neither folded nor trimmed (docs/decisions.md S50);
-    True: as before S50."""
+    ``flag_px``). ``mend_within_tolerance`` False (with ``research_px``; measured at stop 40,
+    not adopted: docs/decisions.md S50): a pair within ``research_px`` whose backbones leave
+    at most ``CONSISTENT_PX`` unexplained is neither folded nor trimmed."""
     if not all(np.all(np.isfinite(t)) for t in tips):
         return tips, src, None, traces
     res = None
