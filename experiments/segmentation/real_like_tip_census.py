@@ -26,6 +26,7 @@ import collections
 import pickle
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 from tip_harness import (
     harness_main,
@@ -37,6 +38,7 @@ from tip_harness import (
     write_rows,
 )
 
+from jaxcr.kinematics.fit import closest_points_on_polyline
 from jaxcr.segmentation.capsule_end import with_capsule_end
 from jaxcr.stereo import pipeline
 from jaxcr.stereo.epipolar_tolerance import REAL_LIKE_CALIBRATION
@@ -47,10 +49,10 @@ OCCLUDER_PX = 12.0
 
 
 def _polyline_distance(p: np.ndarray, poly: np.ndarray) -> float:
-    a, b = poly[:-1], poly[1:]
-    ab = b - a
-    t = np.clip(np.sum((p - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0, 1)
-    return float(np.min(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
+    c = closest_points_on_polyline(
+        jnp.asarray(p[None], jnp.float32), jnp.asarray(poly, jnp.float32)
+    )
+    return float(np.linalg.norm(np.asarray(c[0], np.float64) - p))
 
 
 def _occluders(cache: Path | None, seed: int) -> list:

@@ -497,22 +497,22 @@ def _tip_step(
         return tips, src, None, traces
     res = None
     gap = epipolar_gap_px(cams, tips)
-    if gap > flag_px:
+    mend = gap > flag_px
+    if mend:
         bc = backbone_consistency(
             cams, _ending_at(traces[0].backbone, tips[0]), _ending_at(traces[1].backbone, tips[1])
         )
-    if gap > flag_px and (
-        mend_within_tolerance
-        or research_px is None
-        or gap > research_px
-        or bc.inconsistent_px > CONSISTENT_PX
-    ):
+        if not (mend_within_tolerance or research_px is None or gap > research_px):
+            # S50 (off by default): a pair within the tolerance that explains itself is
+            # left to the re-search.
+            mend = bc.inconsistent_px > CONSISTENT_PX
+    if mend:
         fold = fold_back_tip(cams, bc, [t.width_px for t in traces])
         if fold is not None:
             j, tip_j, _ = fold
             new = [np.asarray(t, np.float64) for t in tips]
             new[j] = tip_j
-            res = TipConsistency(new, "folded", j, float("nan"), epipolar_gap_px(cams, tips),
+            res = TipConsistency(new, "folded", j, float("nan"), gap,
                                  epipolar_gap_px(cams, new))  # fmt: skip
         else:
             res = trim_unexplained_tail(cams, traces, tips, bc, tails=open_end_tails(cams, bc))
